@@ -1,0 +1,28 @@
+"""User-facing errors.
+
+Anything a user can fix (a bad CSV, a missing image, an impossible setting) raises a
+:class:`FedlgrError` whose message names the file, row/stamp, column or setting at fault.
+The command line prints such errors as one line and exits non-zero; any other exception
+is a bug and keeps its traceback.
+"""
+
+
+class FedlgrError(Exception):
+    """An error the user can fix; its message is printed as one line by the CLI."""
+
+
+class DataError(FedlgrError):
+    """Bad input data: CSV content, image files, folder layout."""
+
+
+class ConfigError(FedlgrError):
+    """An impossible or malformed setting."""
+
+
+def join_problems(subject: str, problems: list[str], shown: int = 5) -> str:
+    """One line that names ``subject`` and lists the first ``shown`` problems."""
+    if len(problems) == 1:
+        return f"{subject}: {problems[0]}"
+    listed = "; ".join(problems[:shown])
+    more = f"; ... and {len(problems) - shown} more" if len(problems) > shown else ""
+    return f"{subject}: {len(problems)} problems: {listed}{more}"
