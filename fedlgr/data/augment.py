@@ -1,0 +1,144 @@
+"""Training batches straight from the in-memory stores, with the paper's augmentation.
+
+SPEC 2.3 / the paper's "W/ augmentation": each training scene appears ``copies`` (10)
+times per epoch; each appearance is flipped horizontally with p=0.5 and rotated by an
+angle uniform in [-10, 10] degrees with p=0.5; images are then scaled to 0..1 and
+normalised with the ImageNet mean/std. A batch is one gather from the uint8 store, moved
+to the device as uint8 (a quarter of the bytes of float32) and augmented there.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from functools import lru_cache
+
+import numpy as np
+import torch
+from torch.nn import functional as tnf
+from torchvision.transforms.v2 import functional as F
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def normalize(images: torch.Tensor) -> torch.Tensor:
+    """uint8 (..., 3, H, W) -> float32 scaled to 0..1 and ImageNet-normalised."""
+    return F.normalize(F.to_dtype(images, torch.float32, scale=True), IMAGENET_MEAN, IMAGENET_STD)
+
+
+@lru_cache(maxsize=8)
+def _base_grid(height: int, width: int, device: torch.device) -> torch.Tensor:
+    # Pixel centres relative to the image centre, with a homogeneous 1: the grid that
+    # torchvision's rotate builds (torchvision.transforms.v2.functional._geometry).
+    xs = torch.linspace(-width * 0.5 + 0.5, width * 0.5 - 0.5, width, device=device)
+    ys = torch.linspace(-height * 0.5 + 0.5, height * 0.5 - 0.5, height, device=device)
+    grid = torch.ones(height, width, 3, device=device)
+    grid[..., 0] = xs
+    grid[..., 1] = ys[:, None]
+    return grid.view(1, height * width, 3)
+
+
+def rotate(images: torch.Tensor, degrees: torch.Tensor) -> torch.Tensor:
+    """Rotate each float image ``images[b]`` by ``degrees[b]`` (counter-clockwise, about
+    the centre, nearest neighbour, zero fill): ``v2.functional.rotate`` with one angle
+    per image.
+
+    torchvision's functional rotate takes one angle per call, and calling it per image
+    cost ~0.4 ms each here; this builds the same sampling grid for all images at once and
+    runs one ``grid_sample`` (~0.15 ms per image). ``tests/test_augment.py`` checks it
+    against ``v2.functional.rotate`` pixel for pixel.
+    """
+    b, _, h, w = images.shape
+    # The inverse rotation as torchvision builds it (_get_inverse_affine_matrix with -angle:
+    # trigonometry in float64, then a 2x3 float matrix with zero translation), transposed
+    # and scaled like its _affine_grid, so that nearest-neighbour ties fall the same way.
+    rad = torch.deg2rad(degrees.to(images.device, torch.float64))
+    cos, sin, zero = torch.cos(rad), torch.sin(rad), torch.zeros_like(rad)
+    theta = torch.stack([torch.stack([cos, -sin, zero], 1), torch.stack([sin, cos, zero], 1)], 1)
+    theta = theta.to(images.dtype).transpose(1, 2) / torch.tensor(
+        [0.5 * w, 0.5 * h], device=images.device, dtype=images.dtype
+    )  # (B, 3, 2)
+    grid = _base_grid(h, w, images.device).expand(b, -1, -1).bmm(theta)
+    return tnf.grid_sample(
+        images, grid.view(b, h, w, 2), mode="nearest", padding_mode="zeros", align_corners=False
+    )
+
+
+class Augment:
+    """Per-image random flip and rotation (SPEC 2.3), drawn from an explicit generator."""
+
+    def __init__(self, flip_p: float = 0.5, rotate_p: float = 0.5, max_degrees: float = 10.0):
+        self.flip_p, self.rotate_p, self.max_degrees = flip_p, rotate_p, max_degrees
+
+    def __call__(self, images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """uint8 (B, 3, H, W) -> augmented, normalised float32 (B, 3, H, W)."""
+        n = len(images)
+        draws = torch.rand(3, n, generator=generator)  # flip?, rotate?, angle
+        x = F.to_dtype(images, torch.float32, scale=True)
+        # Touch only the chosen images: a masked select over the whole batch (torch.where)
+        # cost ~10x more here.
+        flip = torch.flatten(torch.nonzero(draws[0] < self.flip_p))
+        if len(flip):
+            flip = flip.to(x.device)
+            x[flip] = F.horizontal_flip(x[flip])
+        turn = torch.flatten(torch.nonzero(draws[1] < self.rotate_p))
+        if len(turn):
+            angles = (draws[2, turn] * 2 - 1) * self.max_degrees
+            turn = turn.to(x.device)
+            x[turn] = rotate(x[turn], angles)
+        return F.normalize(x, IMAGENET_MEAN, IMAGENET_STD, inplace=True)
+
+
+class SceneBatches:
+    """Batches of (inputs, targets) over some scenes of the in-memory stores.
+
+    Each ``iter()`` is one epoch: every position appears ``copies`` times, in an order
+    drawn from the batches' own generator (so epochs differ and a seed repeats them).
+    Image inputs (uint8) are normalised, and augmented if ``augment`` is given; feature
+    inputs (float) pass through.
+    """
+
+    def __init__(
+        self,
+        inputs: torch.Tensor,
+        targets: torch.Tensor,
+        positions: np.ndarray,
+        batch_size: int,
+        *,
+        shuffle: bool = True,
+        copies: int = 1,
+        augment: Augment | None = None,
+        seed: int = 0,
+        drop_last: bool = False,
+        device: torch.device | str = "cpu",
+    ):
+        if batch_size < 1:
+            raise ValueError(f"batch_size={batch_size}: must be >= 1")
+        self.inputs, self.targets = inputs, targets
+        self.positions = torch.as_tensor(np.asarray(positions), dtype=torch.long)
+        self.batch_size, self.shuffle, self.copies = batch_size, shuffle, copies
+        self.augment, self.drop_last = augment, drop_last
+        self.device = torch.device(device)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.images = inputs.dtype == torch.uint8
+
+    @property
+    def samples_per_epoch(self) -> int:
+        return len(self.positions) * self.copies
+
+    def __len__(self) -> int:
+        n = self.samples_per_epoch
+        return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        order = self.positions.repeat(self.copies)
+        if self.shuffle:
+            order = order[torch.randperm(len(order), generator=self.generator)]
+        for k in range(len(self)):
+            index = order[k * self.batch_size : (k + 1) * self.batch_size]
+            x = self.inputs[index].to(self.device, non_blocking=True)
+            y = self.targets[index].to(self.device, non_blocking=True)
+            if self.images:
+                x = self.augment(x, self.generator) if self.augment is not None else normalize(x)
+            yield x, y
