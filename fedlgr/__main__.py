@@ -1,0 +1,5 @@
+import sys
+
+from fedlgr.cli import main
+
+sys.exit(main())

@@ -1,0 +1,123 @@
+"""The ``fedlgr`` command: one console script with verbs.
+
+Each verb is a thin function in this package that imports what it needs when it runs,
+so ``fedlgr --help`` answers without loading torch. Errors the user can fix
+(:class:`fedlgr.errors.FedlgrError`) are printed as one line and exit with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+from fedlgr import __version__
+from fedlgr.errors import FedlgrError
+
+DEFAULT_DATA = Path("data/manners-synth")
+
+
+def _crop(text: str) -> tuple[int | None, ...]:
+    """``--crop 295,,1313,`` -> (295, None, 1313, None)."""
+    parts = text.split(",")
+    if len(parts) != 4:
+        raise argparse.ArgumentTypeError(
+            "expected LEFT,TOP,RIGHT,BOTTOM (leave one empty for an edge)"
+        )
+    try:
+        return tuple(int(p) if p.strip() else None for p in parts)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"not a pixel position: {err}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fedlgr",
+        description="Federated (continual) learning of socially appropriate robot behaviours: "
+        "FedRoot, FedLGR and baselines on MANNERS-DB or a synthetic living room.",
+    )
+    parser.add_argument("--version", action="version", version=f"fedlgr {__version__}")
+    verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
+
+    demo = verbs.add_parser(
+        "demo",
+        help="the main job on the embedded synthetic data",
+        description="Generate the synthetic living room if absent, load it "
+        "through the MANNERS-DB reader and summarise it and its split.",
+    )
+    demo.add_argument(
+        "--data", type=Path, default=DEFAULT_DATA, help="dataset folder (default %(default)s)"
+    )
+    demo.add_argument("--scenes", type=int, default=1000, help="scenes to synthesise if absent")
+    demo.add_argument("--clients", type=int, default=2)
+    demo.add_argument("--seed", type=int, default=0)
+    demo.set_defaults(run="fedlgr.cli.demo:demo")
+
+    data = verbs.add_parser("data", help="create, inspect and check datasets")
+    data_verbs = data.add_subparsers(dest="data_verb", metavar="VERB", required=True)
+    synth = data_verbs.add_parser(
+        "synth", help="write a synthetic living room in the MANNERS-DB layout"
+    )
+    synth.add_argument("--out", type=Path, required=True, help="folder to write")
+    synth.add_argument("--scenes", type=int, default=1000)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--size", type=int, default=128, help="image width and height in pixels")
+    synth.add_argument("--force", action="store_true", help="overwrite a non-empty folder")
+    synth.set_defaults(run="fedlgr.cli.data:synth")
+
+    show = data_verbs.add_parser("show", help="contact sheet of a few scenes with their labels")
+    show.add_argument("folder", type=Path)
+    show.add_argument("--out", type=Path, default=Path("contact_sheet.png"))
+    show.add_argument("--scenes", type=int, default=8)
+    show.add_argument("--seed", type=int, default=0)
+    show.add_argument(
+        "--crop", type=_crop, default=None, help="LEFT,TOP,RIGHT,BOTTOM before resizing"
+    )
+    show.set_defaults(run="fedlgr.cli.data:show")
+
+    check = data_verbs.add_parser("check", help="validate a dataset folder and summarise it")
+    check.add_argument("folder", type=Path)
+    check.add_argument("--modality", choices=["image", "features"], default="image")
+    check.add_argument("--size", type=int, default=128)
+    check.add_argument(
+        "--crop", type=_crop, default=None, help="LEFT,TOP,RIGHT,BOTTOM before resizing"
+    )
+    check.add_argument(
+        "--skip-bad-images",
+        action="store_true",
+        help="skip (with a warning) scenes whose image is missing or corrupt instead of failing",
+    )
+    check.add_argument("--clients", type=int, default=2)
+    check.set_defaults(run="fedlgr.cli.data:check")
+    return parser
+
+
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    return f"fedlgr: warning: {message}\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    module_name, func_name = args.run.split(":")
+    standard_format, warnings.formatwarning = warnings.formatwarning, _one_line_warning
+    try:
+        import importlib
+
+        from fedlgr.runtime import tune_allocator
+
+        tune_allocator()
+        verb = getattr(importlib.import_module(module_name), func_name)
+        return verb(args) or 0
+    except FedlgrError as err:
+        print(f"fedlgr: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("fedlgr: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        warnings.formatwarning = standard_format
+
+
+if __name__ == "__main__":
+    sys.exit(main())

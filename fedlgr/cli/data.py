@@ -1,0 +1,58 @@
+"""``fedlgr data synth | show | check``."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from fedlgr.console import Progress, table
+
+
+def synth(args: argparse.Namespace) -> int:
+    from fedlgr.data.columns import LABEL_SHORT_NAMES
+    from fedlgr.data.synth import synthesize
+
+    with Progress("synthesising", unit="scene") as bar:
+        s = synthesize(args.out, args.scenes, args.seed, args.size, force=args.force, progress=bar)
+    print(
+        f"wrote {s.scenes} scenes ({s.circle} circle, {s.arrow} arrow) and {s.ratings} ratings "
+        f"to {s.out} in {s.seconds:.1f} s"
+    )
+    print(
+        table(
+            ["action", "mean rating"],
+            zip(LABEL_SHORT_NAMES, map(float, s.label_means), strict=True),
+        )
+    )
+    return 0
+
+
+def show(args: argparse.Namespace) -> int:
+    from fedlgr.data.contact_sheet import contact_sheet
+
+    out = contact_sheet(args.folder, args.out, args.scenes, args.seed, args.crop)
+    print(f"wrote {out}")
+    return 0
+
+
+def check(args: argparse.Namespace) -> int:
+    from fedlgr.data.config import DataConfig
+    from fedlgr.data.dataset import load_scenes
+    from fedlgr.data.splits import make_split
+    from fedlgr.data.summary import describe_scenes, describe_split
+
+    config = DataConfig(
+        path=args.folder,
+        modality=args.modality,
+        image_size=args.size,
+        crop=args.crop,
+        clients=args.clients,
+        on_bad_image="skip" if args.skip_bad_images else "error",
+    )
+    start = time.perf_counter()
+    with Progress("decoding images", unit="img") as bar:
+        scenes = load_scenes(config, progress=bar)
+    print(describe_scenes(scenes))
+    print(f"\nloaded in {time.perf_counter() - start:.2f} s\n")
+    print(describe_split(make_split(scenes.table, config)))
+    return 0
