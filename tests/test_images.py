@@ -1,0 +1,204 @@
+"""Images: matching stamps to files, bad files, crop and resize, and decode-once caching."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+import fedlgr.data.images as images_module
+from fedlgr.cli import main
+from fedlgr.data.config import DataConfig
+from fedlgr.data.dataset import load_scenes
+from fedlgr.data.images import decode, load_image_store, match_images
+from fedlgr.errors import ConfigError, DataError
+
+
+def _png(path, colour=(200, 10, 10), size=(40, 30)):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.new("RGB", size, colour).save(path)
+    return path
+
+
+def test_images_match_stamps_by_prefix(tmp_path):
+    d = tmp_path / "images"
+    _png(d / "250.png")
+    _png(d / "251_scene.jpg")
+    _png(d / "2520.png")  # starts with 252, not with a known stamp
+    _png(d / "scene_253.png")  # does not start with a stamp
+    (d / "notes.txt").write_text("not an image")
+    match = match_images(d, np.array([250, 251, 252, 254]))
+    assert {s: p.name for s, p in match.files.items()} == {250: "250.png", 251: "251_scene.jpg"}
+    assert match.missing == [252, 254]
+    assert [p.name for p in match.orphans] == ["2520.png", "scene_253.png"]
+
+
+def test_two_images_for_one_stamp_is_an_error(tmp_path):
+    _png(tmp_path / "images" / "250.png")
+    _png(tmp_path / "images" / "250_b.png")
+    with pytest.raises(DataError, match=r"images: stamp 250 matches both 250.png and 250_b.png"):
+        match_images(tmp_path / "images", np.array([250]))
+
+
+def test_missing_images_error_names_the_stamps(synth_copy, cache_dir):
+    (synth_copy / "images" / "251.png").unlink()
+    (synth_copy / "images" / "260.png").unlink()
+    with pytest.raises(DataError) as err:
+        load_scenes(DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir))
+    message = str(err.value)
+    assert str(synth_copy / "images") in message
+    assert "no image for 2 stamp(s) of the CSV: 251, 260" in message
+    assert "data.on_bad_image=skip" in message
+
+
+def test_missing_images_can_be_skipped_with_a_warning(synth_copy, cache_dir):
+    (synth_copy / "images" / "251.png").unlink()
+    with pytest.warns(UserWarning, match="skipping, for want of an image, 1 stamp.*: 251"):
+        scenes = load_scenes(
+            DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir, on_bad_image="skip")
+        )
+    assert len(scenes) == 47 and 251 not in scenes.stamps.tolist()
+    assert len(scenes.images) == len(scenes.targets) == 47
+
+
+def test_images_without_a_stamp_are_reported(synth_copy, cache_dir):
+    _png(synth_copy / "images" / "999.png")
+    with pytest.warns(
+        UserWarning, match=r"1 image\(s\) without a stamp in the CSV, ignored: 999.png"
+    ):
+        scenes = load_scenes(DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir))
+    assert len(scenes) == 48
+
+
+def test_corrupt_image_names_the_file(synth_copy, cache_dir):
+    bad = synth_copy / "images" / "255.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n this is not really a png")
+    with pytest.raises(DataError, match="cannot decode image") as err:
+        load_scenes(DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir))
+    assert str(err.value).startswith(f"{bad}: ")
+
+
+def test_corrupt_image_can_be_skipped(synth_copy, cache_dir):
+    (synth_copy / "images" / "255.png").write_bytes(b"garbage")
+    with pytest.warns(UserWarning, match=r"skipping stamp 255: .*255.png: cannot decode image"):
+        scenes = load_scenes(
+            DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir, on_bad_image="skip")
+        )
+    assert 255 not in scenes.stamps.tolist() and len(scenes.images) == 47
+
+
+def test_cli_reports_a_corrupt_image_in_one_line(synth_copy, cache_dir, capsys):
+    bad = synth_copy / "images" / "255.png"
+    bad.write_bytes(b"garbage")
+    assert main(["data", "check", str(synth_copy), "--size", "16"]) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err.startswith(f"fedlgr: error: {bad}: cannot decode image") and err.count("\n") == 1
+
+
+def test_crop_then_resize(tmp_path):
+    # Left 10 columns red, right 30 blue: cropping x in [10, 40) leaves only blue.
+    image = Image.new("RGB", (40, 20), (0, 0, 255))
+    image.paste((255, 0, 0), (0, 0, 10, 20))
+    path = tmp_path / "1.png"
+    image.save(path)
+    full = decode(path, 8, None)
+    assert full.shape == (3, 8, 8) and full.dtype == torch.uint8
+    assert full[0, :, 0].min() > 200  # red at the left edge
+    cropped = decode(path, 8, (10, None, None, None))
+    assert cropped[0].max() == 0 and cropped[2].min() == 255
+    top = decode(path, 4, (None, 0, 10, 5))
+    assert top[0].min() == 255 and top[2].max() == 0
+
+
+def test_crop_outside_the_image_names_file_and_setting(tmp_path):
+    path = _png(tmp_path / "1.png", size=(40, 20))
+    with pytest.raises(
+        DataError,
+        match=r"1.png: data.crop=\[295, None, 1313, None\] reaches "
+        r"outside the 40x20 image",
+    ):
+        decode(path, 8, (295, None, 1313, None))
+
+
+def test_crop_setting_is_validated():
+    with pytest.raises(
+        ConfigError, match=r"data.crop=\[10, 0, 5, 20\]: right \(5\) must exceed left"
+    ):
+        DataConfig(crop=(10, 0, 5, 20))
+    with pytest.raises(ConfigError, match=r"data\.crop=\[1, 2, 3\]: must be \[left, top, right"):
+        DataConfig(crop=(1, 2, 3))
+
+
+def test_jpeg_images_decode(tmp_path):
+    path = tmp_path / "7_render.jpg"
+    Image.new("RGB", (32, 32), (0, 200, 0)).save(path, quality=95)
+    image = decode(path, 16, None)
+    assert image[1].float().mean() > 190 and image[0].float().mean() < 15
+
+
+def _count_decodes(monkeypatch):
+    calls = []
+    real = images_module.decode
+
+    def counting(path, size, crop):
+        calls.append(path)
+        return real(path, size, crop)
+
+    monkeypatch.setattr(images_module, "decode", counting)
+    return calls
+
+
+def test_second_load_decodes_nothing(synth_dir, cache_dir, monkeypatch):
+    calls = _count_decodes(monkeypatch)
+    config = DataConfig(path=synth_dir, image_size=24, cache_dir=cache_dir)
+    first = load_scenes(config)
+    assert len(calls) == 48
+    second = load_scenes(config)
+    assert len(calls) == 48  # not one more decode
+    assert torch.equal(first.images, second.images)
+    np.testing.assert_array_equal(first.stamps, second.stamps)
+    assert len(list(cache_dir.glob("images-*.pt"))) == 1
+
+
+def test_cache_follows_files_and_settings(synth_copy, cache_dir, monkeypatch):
+    calls = _count_decodes(monkeypatch)
+    config = DataConfig(path=synth_copy, image_size=24, cache_dir=cache_dir)
+    load_scenes(config)
+    load_scenes(DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir))
+    assert len(calls) == 96  # another size is another store
+    changed = synth_copy / "images" / "260.png"
+    _png(changed, colour=(1, 2, 3), size=(32, 32))
+    os.utime(changed, ns=(1, 1))
+    scenes = load_scenes(config)
+    assert len(calls) == 144  # a changed source file invalidates the store
+    assert scenes.images[scenes.stamps.tolist().index(260)].float().mean() < 4
+
+
+def test_unreadable_cache_is_rebuilt(synth_dir, cache_dir, monkeypatch):
+    config = DataConfig(path=synth_dir, image_size=20, cache_dir=cache_dir)
+    load_scenes(config)
+    (cache_file,) = cache_dir.glob("images-*.pt")
+    cache_file.write_bytes(b"truncated")
+    calls = _count_decodes(monkeypatch)
+    with pytest.warns(UserWarning, match="unreadable image cache, decoding again"):
+        scenes = load_scenes(config)
+    assert len(calls) == 48 and scenes.images.shape == (48, 3, 20, 20)
+
+
+def test_cache_can_be_turned_off(synth_dir, cache_dir, monkeypatch):
+    calls = _count_decodes(monkeypatch)
+    config = DataConfig(path=synth_dir, image_size=20, cache_dir=cache_dir, cache=False)
+    load_scenes(config)
+    load_scenes(config)
+    assert len(calls) == 96 and not cache_dir.exists()
+
+
+def test_store_order_follows_the_stamps(synth_dir, cache_dir):
+    with pytest.warns(UserWarning, match="45 image"):  # the other 45 scenes' files
+        store = load_image_store(synth_dir / "images", np.array([260, 250, 255]), 16)
+    assert store.stamps.tolist() == [260, 250, 255]
+    assert torch.equal(store.images[1], decode(synth_dir / "images" / "250.png", 16, None))
