@@ -35,24 +35,31 @@ def show(args: argparse.Namespace) -> int:
     return 0
 
 
-def check(args: argparse.Namespace) -> int:
-    from fedlgr.data.config import DataConfig
+def summarise(config) -> None:
+    """Load the dataset of ``config`` (decoding images at most once), print it and its split."""
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
     from fedlgr.data.summary import describe_scenes, describe_split
 
-    config = DataConfig(
-        path=args.folder,
-        modality=args.modality,
-        image_size=args.size,
-        crop=args.crop,
-        clients=args.clients,
-        on_bad_image="skip" if args.skip_bad_images else "error",
-    )
     start = time.perf_counter()
     with Progress("decoding images", unit="img") as bar:
         scenes = load_scenes(config, progress=bar)
     print(describe_scenes(scenes))
     print(f"\nloaded in {time.perf_counter() - start:.2f} s\n")
     print(describe_split(make_split(scenes.table, config)))
+
+
+def check(args: argparse.Namespace) -> int:
+    from fedlgr.data.config import DataConfig
+
+    summarise(
+        DataConfig(
+            path=args.folder,
+            modality=args.modality,
+            image_size=args.size,
+            crop=args.crop,
+            clients=args.clients,
+            on_bad_image="skip" if args.skip_bad_images else "error",
+        )
+    )
     return 0
