@@ -60,8 +60,8 @@ import numpy as np
 
 from fedlgr.data.columns import ALL_COLUMNS
 from fedlgr.data.synth.appropriateness import RaterPool, true_appropriateness
+from fedlgr.data.synth.drawing import render
 from fedlgr.data.synth.layout import Layout, descriptors, sample_layout
-from fedlgr.data.synth.render import render
 from fedlgr.errors import ConfigError, DataError
 
 FIRST_STAMP = 250

@@ -17,6 +17,7 @@ from PIL import Image, ImageDraw
 from fedlgr.data.synth.layout import WALL, Layout
 
 SUPERSAMPLE = 2
+AGENT_SCALE = 1.5  # people and animals: large enough for a small CNN to count them at 128 px
 ZONE_COLOUR = (0, 190, 255)
 ROBOT_COLOUR = (250, 250, 250)
 OUTLINE = (40, 40, 40)
@@ -162,7 +163,7 @@ def _zone(cv: _Canvas, layout: Layout) -> None:
 
 
 def _person(cv: _Canvas, person, clothes) -> None:
-    k = 0.65 if person.child else 1.0
+    k = (0.65 if person.child else 1.0) * AGENT_SCALE
     f = person.facing
     cv.oval(person.x, person.y, 0.026 * k, 0.04 * k, f, clothes, outline=OUTLINE)
     hx, hy = person.x + 0.01 * k * math.cos(f), person.y + 0.01 * k * math.sin(f)
@@ -181,7 +182,7 @@ def _person(cv: _Canvas, person, clothes) -> None:
 
 def _animal(cv: _Canvas, animal) -> None:
     colour = _ANIMAL_COLOURS[animal.kind]
-    k = 1.0 if animal.kind == "dog" else 0.75
+    k = (1.0 if animal.kind == "dog" else 0.75) * AGENT_SCALE
     f = animal.facing
     tail = (animal.x - 0.045 * k * math.cos(f), animal.y - 0.045 * k * math.sin(f))
     cv.line([(animal.x, animal.y), tail], _darker(colour), 0.007)
