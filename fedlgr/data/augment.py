@@ -136,9 +136,19 @@ class SceneBatches:
         if self.shuffle:
             order = order[torch.randperm(len(order), generator=self.generator)]
         for k in range(len(self)):
-            index = order[k * self.batch_size : (k + 1) * self.batch_size]
-            x = self.inputs[index].to(self.device, non_blocking=True)
-            y = self.targets[index].to(self.device, non_blocking=True)
-            if self.images:
-                x = self.augment(x, self.generator) if self.augment is not None else normalize(x)
-            yield x, y
+            yield self._batch(
+                order[k * self.batch_size : (k + 1) * self.batch_size], self.generator
+            )
+
+    def peek(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """The first batch in position order, drawing nothing from the batches' generator."""
+        yield self._batch(self.positions[: self.batch_size], torch.Generator().manual_seed(0))
+
+    def _batch(
+        self, index: torch.Tensor, generator: torch.Generator
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.inputs[index].to(self.device, non_blocking=True)
+        y = self.targets[index].to(self.device, non_blocking=True)
+        if self.images:
+            x = self.augment(x, generator) if self.augment is not None else normalize(x)
+        return x, y

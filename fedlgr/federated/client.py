@@ -1,0 +1,110 @@
+"""A client: its model, optimiser, plugins and data, all in memory, and its local training.
+
+The local loop is deliberately plain - gather a batch, forward, the plugins' loss hooks,
+backward, step - with no per-step host synchronisation beyond what the plugins need, so it
+trains as fast as a hand-written PyTorch loop (``bench/train.py`` measures the ratio).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from fedlgr.data.augment import SceneBatches
+from fedlgr.federated.plugins import ClientPlugin, LocalContext
+
+
+@dataclass
+class Client:
+    index: int
+    positions: np.ndarray  # the client's training scenes (positions into the Scenes)
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+    batches: SceneBatches
+    plugins: list[ClientPlugin] = field(default_factory=list)
+
+    @property
+    def n_samples(self) -> int:
+        """Aggregation weight: the client's number of training scenes."""
+        return len(self.positions)
+
+    def state_dict(self) -> dict:
+        """Everything the client keeps between rounds (for checkpoints)."""
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "plugins": {p.name: p.state_dict() for p in self.plugins},
+            "batches_rng": self.batches.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        for p in self.plugins:
+            p.load_state_dict(state["plugins"].get(p.name, {}))
+        self.batches.generator.set_state(state["batches_rng"])
+
+    def download(self, weights: dict[str, torch.Tensor]) -> None:
+        """Copy the server's tensors into the local model (in place, no reallocation)."""
+        state = self.model.state_dict()
+        with torch.no_grad():
+            for key, value in weights.items():
+                state[key].copy_(value)
+
+    def upload(self, keys: list[str]) -> dict[str, torch.Tensor]:
+        state = self.model.state_dict()
+        return {key: state[key] for key in keys}
+
+
+@dataclass
+class LocalStats:
+    samples: int = 0  # images (or feature rows) trained on, all epochs
+    loss: float = 0.0  # mean training loss over the round
+
+
+def train_locally(
+    client: Client,
+    ctx: LocalContext,
+    epochs: int,
+    max_batches: int | None = None,
+    channels_last: bool = False,
+    autocast=contextlib.nullcontext,
+    on_epoch=None,
+) -> LocalStats:
+    """``epochs`` passes over the client's shard (``max_batches`` per epoch at most)."""
+    model, optimizer, plugins = client.model, client.optimizer, client.plugins
+    model.train()
+    for plugin in plugins:
+        plugin.on_round_start(ctx)
+    total_loss = torch.zeros((), device=ctx.device)
+    seen = 0
+    for epoch in range(epochs):
+        for step, (x, y) in enumerate(client.batches):
+            if max_batches is not None and step >= max_batches:
+                break
+            if len(x) < 2:  # BatchNorm cannot train on a single sample
+                continue
+            if channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            with autocast():
+                outputs = model(x)
+                loss = nn.functional.mse_loss(outputs.float(), y)
+            task_loss = loss.detach()
+            for plugin in plugins:
+                loss = plugin.loss(ctx, x, y, outputs.float(), loss)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            for plugin in plugins:
+                plugin.after_step(ctx)
+            total_loss += task_loss * len(x)
+            seen += len(x)
+        if on_epoch is not None:
+            on_epoch(epoch + 1)
+    for plugin in plugins:
+        plugin.on_round_end(ctx)
+    return LocalStats(seen, float(total_loss) / max(seen, 1))

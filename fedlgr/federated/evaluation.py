@@ -1,0 +1,38 @@
+"""Every client evaluates its own model on the shared test set (SPEC 5)."""
+
+from __future__ import annotations
+
+import contextlib
+
+import torch
+from torch import nn
+
+from fedlgr.tracking.metrics import RegressionScores, regression_scores
+
+
+@torch.no_grad()
+def predict(
+    model: nn.Module, inputs: torch.Tensor, batch_size: int, autocast=contextlib.nullcontext
+) -> torch.Tensor:
+    """Model outputs (N, 8) for prepared (normalised, on-device) inputs, in eval mode."""
+    was_training = model.training
+    model.eval()
+    try:
+        with autocast():
+            out = [
+                model(inputs[i : i + batch_size]).float() for i in range(0, len(inputs), batch_size)
+            ]
+    finally:
+        model.train(was_training)
+    return torch.cat(out)
+
+
+def evaluate(
+    model: nn.Module,
+    inputs: torch.Tensor,
+    targets: torch.Tensor,
+    batch_size: int,
+    autocast=contextlib.nullcontext,
+    batch_compat: bool = False,
+) -> RegressionScores:
+    return regression_scores(predict(model, inputs, batch_size, autocast), targets, batch_compat)

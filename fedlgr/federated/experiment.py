@@ -1,0 +1,164 @@
+"""Run one experiment: set up Fabric, launch the processes, loop over rounds, track it.
+
+``run_experiment(config)`` returns an :class:`ExperimentResult` in the process that
+called it (rank 0). Multi-process runs use Fabric's launchers: ``runtime.launcher=ddp``
+re-runs the current command once per extra process (what ``fedlgr run`` uses; several
+nodes via ``fabric run`` / torchrun, which start the processes themselves), ``ddp_spawn``
+spawns them from Python.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+
+from fedlgr.config import ExperimentConfig
+from fedlgr.console import Progress, table
+from fedlgr.federated.orchestrator import FIELDS, Orchestrator, RoundLog, torch_threads
+
+
+@dataclass
+class ExperimentResult:
+    config: ExperimentConfig
+    rounds: list[RoundLog] = field(default_factory=list)
+    run_id: str | None = None
+    seconds: float = 0.0
+
+    @property
+    def final(self) -> RoundLog:
+        return self.rounds[-1]
+
+    def rows(self) -> list[dict[str, object]]:
+        return [row for r in self.rounds for row in r.rows()]
+
+    def summary(self) -> str:
+        """Final per-client scores and costs, and their means."""
+        last = self.final
+        names = ["test_loss", "test_rmse", "test_pcc", "cpu_s", "wall_s", "bytes_up"]
+        rows = [
+            [f"client {c}", *(float(last.table[c, FIELDS.index(n)]) for n in names)]
+            for c in range(len(last.table))
+        ]
+        rows.append(["mean", *(last.mean(n) for n in names)])
+        for row in rows:
+            row[-1] = _human_bytes(row[-1])
+        return table(
+            ["client", "loss", "RMSE", "PCC", "CPU s/round", "wall s/round", "upload/round"], rows
+        )
+
+
+def _human_bytes(n: float | None) -> str:
+    if n is None:
+        return "-"
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)
+
+
+def _epoch_counter(bar: Progress, total: int):
+    """A ``progress(client, epoch)`` callback that advances ``bar`` by one epoch per call."""
+    done = iter(range(1, total + 1))
+    return lambda client, epoch: bar(next(done), total)
+
+
+def make_fabric(config: ExperimentConfig):
+    from lightning.fabric import Fabric
+    from lightning.fabric.strategies import DDPStrategy
+
+    rt = config.runtime
+    accelerator = "cuda" if rt.accelerator == "gpu" else rt.accelerator
+    strategy = "auto"
+    if rt.world_size > 1:
+        # Models are never wrapped in DDP (clients train independently); buffers must
+        # not be broadcast between processes either.
+        strategy = (
+            DDPStrategy(start_method="spawn", broadcast_buffers=False)
+            if rt.launcher == "ddp_spawn"
+            else DDPStrategy(broadcast_buffers=False)
+        )
+    return Fabric(
+        accelerator=accelerator,
+        devices=rt.devices,
+        num_nodes=rt.num_nodes,
+        strategy=strategy,
+        precision=config.train.precision,
+    )
+
+
+def run_experiment(
+    config: ExperimentConfig,
+    *,
+    parent_run_id: str | None = None,
+    tags: dict[str, str] | None = None,
+    echo=None,
+) -> ExperimentResult | None:
+    """Run ``config`` end to end; the result in rank 0, ``None`` in other processes."""
+    from lightning.fabric.connector import _is_using_cli
+
+    echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
+    fabric = make_fabric(config)
+    if config.runtime.world_size == 1 or _is_using_cli():
+        return _main(fabric, config, parent_run_id, tags, echo)
+    return fabric.launch(_main, config, parent_run_id, tags, echo)
+
+
+def _main(fabric, config: ExperimentConfig, parent_run_id, tags, echo) -> ExperimentResult | None:
+    import torch
+    from lightning.fabric import seed_everything
+
+    from fedlgr.data.dataset import load_scenes
+    from fedlgr.data.splits import make_split
+    from fedlgr.tracking.mlflow_run import Tracker
+    from fedlgr.tracking.plots import curves_png
+
+    rank0 = fabric.global_rank == 0
+    say = echo if rank0 else (lambda *a, **k: None)
+    if fabric.device.type == "cpu":
+        torch.set_num_threads(torch_threads(config, fabric.world_size // config.runtime.num_nodes))
+    seed_everything(config.seed, verbose=False)
+    start = time.perf_counter()
+    scenes = load_scenes(config.data)
+    split = make_split(scenes.table, config.data)
+    orchestrator = Orchestrator(fabric, config, scenes, split)
+    tracker = Tracker(config, tags, parent_run_id) if rank0 and config.tracking.enabled else None
+    result = ExperimentResult(config, run_id=tracker.run_id if tracker else None)
+    fc = config.federated
+    say(
+        f"{config.run_name}: {fc.rounds} rounds x {config.train.epochs} local epochs, "
+        f"{config.data.clients} clients, {len(split.train)} training / {len(split.test)} test "
+        "scenes" + (f", {fabric.world_size} processes" if fabric.world_size > 1 else "")
+    )
+    try:
+        for round_ in range(1, fc.rounds + 1):
+            show = rank0 and config.runtime.progress
+            with Progress(f"round {round_}/{fc.rounds} (client epochs)", "epoch", show) as bar:
+                log = orchestrator.run_round(
+                    round_, _epoch_counter(bar, len(orchestrator.clients) * config.train.epochs)
+                )
+            result.rounds.append(log)
+            if tracker is not None:
+                tracker.log_round(round_, log.metrics())
+            loss, rmse, pcc = (log.mean(f"test_{m}") for m in ("loss", "rmse", "pcc"))
+            say(
+                f"round {round_}/{fc.rounds}: loss {loss:.3f}  RMSE {rmse:.3f}  PCC {pcc:.3f}  "
+                f"CPU {log.mean('cpu_s'):.1f} s/client  ({log.seconds:.1f} s)"
+            )
+    except BaseException as err:
+        if tracker is not None:
+            tracker.save_results(
+                result.rows(), curves_png(result.rows()) if result.rounds else None
+            )
+            tracker.fail(interrupted=isinstance(err, KeyboardInterrupt))
+        raise
+    result.seconds = time.perf_counter() - start
+    if tracker is not None:
+        tracker.save_results(result.rows(), curves_png(result.rows()))
+        tracker.finish()
+    if not rank0:
+        return None
+    say(f"\n{config.run_name} after {fc.rounds} rounds ({result.seconds:.0f} s):")
+    say(result.summary())
+    return result

@@ -1,0 +1,12 @@
+"""FedBN (Li et al. 2021): BatchNorm parameters and running statistics stay local."""
+
+from __future__ import annotations
+
+from fedlgr.federated.strategies.base import Strategy
+
+
+class FedBN(Strategy):
+    name = "BN"
+
+    def shares(self, key: str, batchnorm: bool) -> bool:
+        return not batchnorm

@@ -1,0 +1,40 @@
+"""The run's PNG: test RMSE and PCC per round, the mean over clients and each client."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+
+
+def curves_png(rows: Sequence[dict[str, object]]) -> bytes:
+    """RMSE and PCC per round from the per-round/per-client result rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rounds = sorted({int(r["round"]) for r in rows})
+    clients = sorted({int(r["client"]) for r in rows})
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), constrained_layout=True)
+    for ax, metric, label in (
+        (axes[0], "test_rmse", "test RMSE"),
+        (axes[1], "test_pcc", "test PCC"),
+    ):
+        for c in clients:
+            values = [
+                next(float(r[metric]) for r in rows if r["round"] == k and r["client"] == c)
+                for k in rounds
+            ]
+            ax.plot(rounds, values, color="0.7", linewidth=0.8)
+        means = [
+            sum(float(r[metric]) for r in rows if r["round"] == k) / len(clients) for k in rounds
+        ]
+        ax.plot(rounds, means, color="C0", linewidth=2, marker="o", label="mean over clients")
+        ax.set_xlabel("round")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[1].legend(loc="lower right")
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    return buffer.getvalue()

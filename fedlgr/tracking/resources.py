@@ -1,0 +1,114 @@
+"""What a client's training costs (SPEC 5): CPU and wall seconds, GPU utilisation and memory.
+
+CPU seconds are the process's user + system time (all its threads, plus any child
+processes) across the client's training; with several clients in one process they run
+one after another, so the difference belongs to that client. GPU utilisation is NVML's
+device-wide figure sampled every 50 ms while the client trains (NVML reports no
+per-process utilisation); peak memory is torch's allocator peak on the client's device.
+Without an NVIDIA GPU both are absent (``None``), not errors.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import psutil
+import torch
+
+SAMPLE_SECONDS = 0.05
+
+
+@dataclass
+class Usage:
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+    gpu_util: float | None = None  # mean %, while training
+    gpu_mem_mb: float | None = None  # peak allocated
+
+
+def _cpu_seconds(process: psutil.Process) -> float:
+    times = process.cpu_times()
+    total = times.user + times.system
+    for child in process.children(recursive=True):
+        try:
+            t = child.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:  # a child that ended meanwhile
+            pass
+    return total
+
+
+class _NvmlSampler:
+    """Samples NVML utilisation of one GPU in a background thread.
+
+    ``torch.cuda.utilization`` asks NVML and maps CUDA_VISIBLE_DEVICES to NVML's indices.
+    """
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.samples: list[int] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.samples.append(torch.cuda.utilization(self.device))
+            self._stop.wait(SAMPLE_SECONDS)
+
+    def __enter__(self) -> _NvmlSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    @property
+    def mean(self) -> float | None:
+        return sum(self.samples) / len(self.samples) if self.samples else None
+
+
+_nvml_ready: bool | None = None
+
+
+def nvml_available() -> bool:
+    """Is there an NVIDIA driver to ask? (Initialises NVML once per process.)"""
+    global _nvml_ready
+    if _nvml_ready is None:
+        try:
+            import pynvml
+
+            pynvml.nvmlInit()
+            _nvml_ready = True
+        except Exception:
+            _nvml_ready = False
+    return _nvml_ready
+
+
+@contextmanager
+def measure(device: torch.device) -> Iterator[Usage]:
+    """Measure the block's cost; the yielded ``Usage`` is filled in when it ends."""
+    usage = Usage()
+    process = psutil.Process()
+    gpu = device.type == "cuda" and nvml_available()
+    sampler = None
+    if gpu:
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        sampler = _NvmlSampler(device).__enter__()
+    cpu0, wall0 = _cpu_seconds(process), time.perf_counter()
+    try:
+        yield usage
+    finally:
+        if gpu:
+            torch.cuda.synchronize(device)
+        usage.wall_s = time.perf_counter() - wall0
+        usage.cpu_s = _cpu_seconds(process) - cpu0
+        if sampler is not None:
+            sampler.__exit__()
+            usage.gpu_util = sampler.mean
+            usage.gpu_mem_mb = torch.cuda.max_memory_allocated(device) / 2**20
