@@ -36,11 +36,12 @@ class Progress:
     """``progress(done, total)`` callback drawing a tqdm bar on stderr when it is a terminal
     (silent otherwise, so logs stay clean). Use as a context manager."""
 
-    def __init__(self, desc: str, unit: str = "it"):
+    def __init__(self, desc: str, unit: str = "it", enabled: bool = True):
         self.desc, self.unit, self.bar = desc, unit, None
+        self.enabled = enabled and sys.stderr.isatty()
 
     def __call__(self, done: int, total: int) -> None:
-        if not sys.stderr.isatty():
+        if not self.enabled:
             return
         if self.bar is None:
             from tqdm.auto import tqdm

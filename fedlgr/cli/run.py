@@ -1,0 +1,25 @@
+"""``fedlgr run [CONFIG] [key=value ...]``: one experiment, tracked in MLflow."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]:
+    """The first item without ``=`` is the config file; the rest are overrides."""
+    config = next((i for i in items if "=" not in i), None)
+    return config, [i for i in items if i is not config]
+
+
+def run(args: argparse.Namespace) -> int:
+    from fedlgr.config import load_config
+    from fedlgr.federated.experiment import run_experiment
+
+    path, overrides = split_config_and_overrides(args.items)
+    if args.tracking_uri:
+        overrides.append(f"tracking.uri={args.tracking_uri}")
+    config = load_config(path, overrides)
+    result = run_experiment(config)
+    if result is not None and result.run_id:
+        print(f"MLflow run {result.run_id} (experiment {config.tracking.experiment!r})")
+    return 0
