@@ -65,13 +65,31 @@ def test_impossible_split_names_the_setting(synth_dir, cache_dir, capsys):
     assert err.startswith("fedlgr: error: data.clients=40: more clients than the 36 training")
 
 
-def test_demo_synthesises_when_absent_then_reuses(tmp_path, cache_dir, capsys):
+def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path, cache_dir, capsys):
     data = tmp_path / "synth"
-    args = ["demo", "--data", str(data), "--scenes", "24", "--clients", "3"]
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    fast = [
+        "federated.rounds=1",
+        "train.max_batches=2",
+        "data.image_size=32",
+        "model.width=0.1",
+        f"data.cache_dir={cache_dir}",
+        "runtime.progress=false",
+    ]
+    args = ["demo", "--data", str(data), "--scenes", "24", "--tracking-uri", store, *fast]
     assert main(args) == 0
     out = capsys.readouterr().out
     assert out.startswith(f"no dataset in {data}: synthesising 24 scenes")
-    assert "24 scenes from" in out and "client 2" in out
+    assert "FedAvg-2c-aug: 1 rounds" in out and "FedRootAvg-2c-aug: 1 rounds" in out
+    table = out[out.index("FedAvg vs FedRootAvg") :].splitlines()
+    assert table[1].split()[:4] == ["method", "loss", "RMSE", "PCC"]
+    assert table[3].startswith("FedAvg ") and table[4].startswith("FedRootAvg ")
+    import mlflow
+
+    client = mlflow.MlflowClient(store)
+    runs = client.search_runs([client.get_experiment_by_name("demo").experiment_id])
+    assert sorted(r.info.run_name for r in runs) == ["FedAvg-2c-aug", "FedRootAvg-2c-aug"]
+    assert all(r.info.status == "FINISHED" for r in runs)
     csv_before = (data / "all_data.csv").read_bytes()
     assert main(args) == 0
     assert "synthesising" not in capsys.readouterr().out

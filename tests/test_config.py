@@ -1,0 +1,140 @@
+"""Configs: every YAML in conf/ loads and builds its experiment; overrides and errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from fedlgr.config import CONF_DIR, METHODS, ExperimentConfig, flatten, load_config, to_yaml
+from fedlgr.errors import ConfigError
+from fedlgr.federated.scope import shared_keys
+from fedlgr.federated.strategies import STRATEGIES
+from fedlgr.models.scholar import build_scholar
+
+CONFIGS = sorted(CONF_DIR.rglob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[str(p.relative_to(CONF_DIR)) for p in CONFIGS])
+def test_every_config_loads_and_builds(path, synth_dir):
+    overrides = [f"data.path={synth_dir}"]
+    config = load_config(path, overrides)
+    assert isinstance(config, ExperimentConfig)
+    assert config.method_name in METHODS
+    # Build what the run builds (no weight download here: random init).
+    built = load_config(path, [*overrides, "model.weights=none", "model.width=0.1"])
+    model = build_scholar(built)
+    keys = shared_keys(
+        model, built.federated.scope, STRATEGIES[built.federated.strategy](built.federated)
+    )
+    assert keys and all(k in model.state_dict() for k in keys)
+    assert yaml_round_trip(config) == config
+
+
+def yaml_round_trip(config: ExperimentConfig) -> ExperimentConfig:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "resolved.yaml"
+        path.write_text(to_yaml(config))
+        return load_config(path)
+
+
+def test_table1_presets_follow_the_paper():
+    for clients, aug, batch in (
+        (2, "noaug", 16),
+        (10, "noaug", 8),
+        (2, "aug", 16),
+        (10, "aug", 16),
+    ):
+        c = load_config(
+            CONF_DIR / "experiment" / "table1" / f"clients{clients}_{aug}.yaml",
+            ["data.path=/somewhere"],
+        )
+        assert (c.data.clients, c.data.augment, c.train.batch_size) == (
+            clients,
+            aug == "aug",
+            batch,
+        )
+        assert c.data.crop == (295, None, 1313, None) and c.model.weights == "imagenet"
+        assert (c.federated.rounds, c.train.epochs, c.train.lr_root) == (10, 10, 1e-3)
+
+
+def test_method_shorthand_and_later_layers_win(tmp_path):
+    c = load_config(None, ["method=FedRootProx"])
+    assert (c.federated.strategy, c.federated.scope, c.method) == ("prox", "root", "FedRootProx")
+    c = load_config(CONF_DIR / "experiment" / "demo.yaml", ["federated.scope=root"])
+    assert c.method == "FedRootAvg"
+    with pytest.raises(ConfigError, match="method=FedMagic: unknown; known methods: FedAvg, FedBN"):
+        load_config(None, ["method=FedMagic"])
+
+
+def test_defaults_and_run_name():
+    c = load_config()
+    assert c.run_name == "FedAvg-2c-noaug" and c.root_kind == "mobilenet_v2"
+    assert load_config(None, ["data.modality=features"]).root_kind == "mlp"
+    params = flatten(c)
+    assert params["data.clients"] == "2" and params["federated.strategy"] == "avg"
+    assert params["model.mlp_hidden"] == "[256, 256]"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["federated.rounds=many"], "command line: federated.rounds: Value 'many'"),
+        (["federated.nope=1"], "command line: federated.nope: Key 'nope' not in 'FederatedConfig'"),
+        (["federated.rounds"], "override 'federated.rounds': expected key=value"),
+        (["federated.rounds=0"], "federated.rounds=0: must be >= 1"),
+        (["train.precision=fp8"], "train.precision='fp8': must be one of 32-true"),
+        (["model.root=mlp"], "model.root=mlp reads the descriptors: set data.modality=features"),
+        (["data.modality=features", "model.root=mobilenet_v2"], "use model.root=mlp"),
+        (["runtime.devices=3"], "3 processes for data.clients=2"),
+        (
+            ["model.weights=imagenet", "model.width=0.5"],
+            "model.weights=imagenet needs model.width=1.0",
+        ),
+        (["data.clients=0"], "data.clients=0: need at least 1 client"),
+    ],
+)
+def test_bad_settings_name_the_setting(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_config(None, overrides)
+    assert message in str(err.value)
+
+
+def test_missing_data_path_says_how_to_set_it():
+    with pytest.raises(
+        ConfigError,
+        match=r"data.path: no value \(required by .*manners.yaml\); set it, e.g. data.path=",
+    ):
+        load_config(CONF_DIR / "experiment" / "table1" / "clients2_noaug.yaml")
+
+
+def test_file_errors_name_the_file(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("federated: [unclosed\n")
+    with pytest.raises(ConfigError, match=f"{bad}: not valid YAML"):
+        load_config(bad)
+    loop = tmp_path / "loop.yaml"
+    loop.write_text(f"includes: [{loop}]\n")
+    with pytest.raises(ConfigError, match="includes itself"):
+        load_config(loop)
+    with pytest.raises(ConfigError, match=r"missing\.yaml: config file not found"):
+        load_config(tmp_path / "missing.yaml")
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text("train:\n  epochs: ten\n")
+    with pytest.raises(ConfigError, match=f"{wrong}: train.epochs: Value 'ten'"):
+        load_config(wrong)
+
+
+def test_includes_resolve_relative_to_conf_and_to_the_file(tmp_path):
+    (tmp_path / "base.yaml").write_text("federated:\n  rounds: 7\n")
+    top = tmp_path / "top.yaml"
+    top.write_text("includes: [base, model/mlp]\ntrain:\n  epochs: 3\n")
+    c = load_config(top)
+    assert (c.federated.rounds, c.train.epochs, c.model.root, c.data.modality) == (
+        7,
+        3,
+        "mlp",
+        "features",
+    )

@@ -1,0 +1,84 @@
+"""The scholar: root and top shapes, parameter groups, weights sources and their errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from fedlgr.config import load_config
+from fedlgr.errors import ConfigError
+from fedlgr.models.scholar import OFFLINE_ENV, MLPRoot, MobileNetRoot, Scholar, Top, build_scholar
+
+
+def test_mobilenet_root_pools_to_1280():
+    root = MobileNetRoot(width=0.1).eval()
+    out = root(torch.randn(2, 3, 32, 32))
+    assert out.shape == (2, 1280) and root.out_dim == 1280
+
+
+def test_top_is_bn_32_bn_8_with_linear_activations():
+    top = Top(1280)
+    kinds = [type(m) for m in top.net]
+    assert kinds == [nn.BatchNorm1d, nn.Linear, nn.BatchNorm1d, nn.Linear]
+    assert (top.net[1].in_features, top.net[1].out_features, top.net[3].out_features) == (
+        1280,
+        32,
+        8,
+    )
+    assert torch.all(top.net[3].bias == 3.0)  # starts mid-Likert
+
+
+def test_mlp_root_reads_29_features():
+    root = MLPRoot(hidden=(16, 8)).eval()
+    assert root(torch.randn(3, 29)).shape == (3, 8) and root.out_dim == 8
+
+
+def test_separate_parameter_groups_and_learning_rates():
+    config = load_config(None, ["train.lr_root=1e-5", "train.lr_top=2e-3", "model.width=0.1"])
+    model = build_scholar(config)
+    groups = model.configure_optimizers().param_groups
+    assert [(g["name"], g["lr"]) for g in groups] == [("root", 1e-5), ("top", 2e-3)]
+    assert sum(p.numel() for p in groups[0]["params"]) == sum(
+        p.numel() for p in model.root.parameters()
+    )
+    assert all(name.startswith(("root.", "top.")) for name in model.state_dict())
+
+
+def test_imagenet_weights_unavailable_fail_with_a_clear_message(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))  # an empty hub cache
+    monkeypatch.setenv(OFFLINE_ENV, "1")  # and no download attempt
+    with pytest.raises(ConfigError) as err:
+        MobileNetRoot(weights="imagenet")
+    message = str(err.value)
+    assert message.startswith("model.weights=imagenet: ")
+    assert "model.weights=none" in message and "mobilenet_v2-b0353104.pth" in message
+
+
+def test_weights_from_a_local_file(tmp_path):
+    torch.manual_seed(1)
+    source = Scholar(MobileNetRoot(width=0.1), Top(1280))
+    path = tmp_path / "root.pt"
+    torch.save(source.state_dict(), path)
+    loaded = MobileNetRoot(weights=str(path), width=0.1)
+    assert torch.equal(loaded.features[0][0].weight, source.root.features[0][0].weight)
+    # A full torchvision MobileNetV2 state dict works too.
+    from torchvision.models import mobilenet_v2
+
+    net = mobilenet_v2(width_mult=0.1)
+    torch.save(net.state_dict(), tmp_path / "tv.pt")
+    assert torch.equal(
+        MobileNetRoot(str(tmp_path / "tv.pt"), 0.1).features[1].conv[0][0].weight,
+        net.features[1].conv[0][0].weight,
+    )
+
+
+def test_bad_weight_files_name_the_setting(tmp_path):
+    with pytest.raises(ConfigError, match=r"model\.weights=.*nope\.pt: file not found"):
+        MobileNetRoot(weights=str(tmp_path / "nope.pt"))
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    with pytest.raises(ConfigError, match=r"junk\.pt: cannot read a state dict"):
+        MobileNetRoot(weights=str(tmp_path / "junk.pt"))
+    torch.save(MobileNetRoot(width=0.1).state_dict(), tmp_path / "narrow.pt")
+    with pytest.raises(ConfigError, match="not MobileNetV2 weights for this width"):
+        MobileNetRoot(weights=str(tmp_path / "narrow.pt"), width=1.0)

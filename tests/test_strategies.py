@@ -1,0 +1,153 @@
+"""Aggregation on hand-computed numbers: two clients, known tensors, known sample counts."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from fedlgr.config import FederatedConfig, method_name
+from fedlgr.federated.aggregate import weighted_mean
+from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.scope import batchnorm_keys, nbytes, shared_keys
+from fedlgr.federated.strategies import STRATEGIES, FedAvg, FedBN, FedOpt, FedProx
+from fedlgr.federated.strategies.fedprox import ProximalTerm
+
+
+class Tiny(nn.Module):
+    """A root (linear + BN) and a top (linear): the names FedRoot filters on."""
+
+    def __init__(self):
+        super().__init__()
+        self.root = nn.Sequential(nn.Linear(2, 2), nn.BatchNorm1d(2))
+        self.top = nn.Linear(2, 1)
+
+
+def test_fedavg_is_the_sample_weighted_mean():
+    a = {"w": torch.tensor([1.0, 2.0]), "b": torch.tensor([0.0])}
+    b = {"w": torch.tensor([5.0, -2.0]), "b": torch.tensor([4.0])}
+    mean = weighted_mean([(1, a), (3, b)], ["w", "b"])
+    # (1 * a + 3 * b) / 4
+    assert torch.equal(mean["w"], torch.tensor([4.0, -1.0]))
+    assert torch.equal(mean["b"], torch.tensor([3.0]))
+    assert FedAvg(FederatedConfig()).server_update(a, mean) is mean
+
+
+def test_fedbn_keeps_batchnorm_local():
+    model = Tiny()
+    assert batchnorm_keys(model) == {
+        "root.1.weight",
+        "root.1.bias",
+        "root.1.running_mean",
+        "root.1.running_var",
+        "root.1.num_batches_tracked",
+    }
+    assert shared_keys(model, "full", FedBN(FederatedConfig(strategy="bn"))) == [
+        "root.0.weight",
+        "root.0.bias",
+        "top.weight",
+        "top.bias",
+    ]
+    # FedAvg shares BatchNorm too, but never the integer batch counter.
+    assert shared_keys(model, "full", FedAvg(FederatedConfig())) == [
+        "root.0.weight",
+        "root.0.bias",
+        "root.1.weight",
+        "root.1.bias",
+        "root.1.running_mean",
+        "root.1.running_var",
+        "top.weight",
+        "top.bias",
+    ]
+
+
+def test_root_scope_shares_only_the_root():
+    model = Tiny()
+    keys = shared_keys(model, "root", FedAvg(FederatedConfig(scope="root")))
+    assert keys == [
+        "root.0.weight",
+        "root.0.bias",
+        "root.1.weight",
+        "root.1.bias",
+        "root.1.running_mean",
+        "root.1.running_var",
+    ]
+    assert shared_keys(model, "root", FedBN(FederatedConfig(strategy="bn"))) == [
+        "root.0.weight",
+        "root.0.bias",
+    ]
+    state = model.state_dict()
+    assert nbytes({k: state[k] for k in keys}) == (4 + 2 + 2 + 2 + 2 + 2) * 4
+
+
+def test_fedprox_adds_the_proximal_gradient():
+    model = Tiny()
+    with torch.no_grad():
+        model.top.weight.copy_(torch.tensor([[1.0, -2.0]]))
+        model.top.bias.fill_(0.5)
+    anchor = {"top.weight": torch.tensor([[0.0, 1.0]]), "top.bias": torch.tensor([2.0])}
+    term = ProximalTerm(mu=0.1)
+    ctx = LocalContext(0, 1, model, anchor, torch.device("cpu"))
+    term.on_round_start(ctx)
+    base = torch.zeros((), requires_grad=True)
+    loss = term.loss(ctx, None, None, None, base + 0.0)
+    # mu/2 * ((1-0)^2 + (-2-1)^2 + (0.5-2)^2) = 0.05 * (1 + 9 + 2.25)
+    assert loss.item() == pytest.approx(0.05 * 12.25)
+    loss.backward()
+    # d/dw = mu (w - w_global)
+    assert torch.allclose(model.top.weight.grad, torch.tensor([[0.1, -0.3]]))
+    assert torch.allclose(model.top.bias.grad, torch.tensor([-0.15]))
+    assert model.root[0].weight.grad is None  # not anchored: not received this round
+    assert [type(p) for p in FedProx(FederatedConfig(strategy="prox")).client_plugins(0)] == [
+        ProximalTerm
+    ]
+
+
+def test_fedopt_takes_a_server_adam_step():
+    config = FederatedConfig(
+        strategy="opt", server_lr=0.1, server_betas=(0.9, 0.99), server_tau=0.01
+    )
+    strategy = FedOpt(config)
+    strategy.trainable = {"w"}
+    x = {"w": torch.tensor([1.0, 1.0]), "stat": torch.tensor([3.0])}
+    mean = {"w": torch.tensor([1.5, 0.0]), "stat": torch.tensor([5.0])}
+    new = strategy.server_update(x, mean)
+    # Delta = (0.5, -1); m = 0.1 * Delta; v = 0.01 * Delta^2; x + 0.1 m / (sqrt(v) + 0.01)
+    expected = [1.0 + 0.1 * 0.05 / (0.05 + 0.01), 1.0 + 0.1 * -0.1 / (0.1 + 0.01)]
+    assert torch.allclose(new["w"], torch.tensor(expected))
+    assert torch.equal(new["stat"], mean["stat"])  # running statistics: plain mean
+    # Second round: the moments carry over.
+    new2 = strategy.server_update(new, {"w": new["w"] + 1.0, "stat": torch.tensor([5.0])})
+    m = 0.9 * 0.1 * torch.tensor([0.5, -1.0]) + 0.1 * 1.0
+    v = 0.99 * 0.01 * torch.tensor([0.25, 1.0]) + 0.01 * 1.0
+    assert torch.allclose(new2["w"], new["w"] + 0.1 * m / (v.sqrt() + 0.01))
+    assert set(strategy.state_dict()["m"]) == {"w"}
+
+
+@pytest.mark.parametrize(
+    ("strategy", "scope", "name"),
+    [
+        ("avg", "full", "FedAvg"),
+        ("bn", "full", "FedBN"),
+        ("prox", "full", "FedProx"),
+        ("opt", "full", "FedOpt"),
+        ("distill", "full", "FedDistill"),
+        ("avg", "root", "FedRootAvg"),
+        ("bn", "root", "FedRootBN"),
+        ("prox", "root", "FedRootProx"),
+        ("opt", "root", "FedRootOpt"),
+        ("distill", "root", "FedRootDistill"),
+    ],
+)
+def test_method_names_follow_the_paper(strategy, scope, name):
+    assert method_name(strategy, scope) == name
+    assert FederatedConfig(strategy=strategy, scope=scope).method == name
+    assert STRATEGIES[strategy].name in name
+
+
+def test_weighted_mean_needs_samples():
+    with pytest.raises(ValueError, match="no samples"):
+        weighted_mean([(0, {"w": torch.ones(1)})], ["w"])
+    assert math.isclose(float(weighted_mean([(2, {"w": torch.ones(1)})], ["w"])["w"]), 1.0)

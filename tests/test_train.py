@@ -1,0 +1,229 @@
+"""Fast dev runs of every method, tracked in a real MLflow store, and the orchestrator."""
+
+from __future__ import annotations
+
+import csv
+import math
+import shutil
+import subprocess
+import sys
+
+import mlflow
+import pytest
+import torch
+
+from fedlgr.config import CONF_DIR, METHODS, load_config
+from fedlgr.data.dataset import load_scenes
+from fedlgr.data.splits import make_split
+from fedlgr.federated.experiment import make_fabric, run_experiment
+from fedlgr.federated.orchestrator import Orchestrator
+from fedlgr.federated.scope import nbytes
+
+FAST = CONF_DIR / "debug" / "fast.yaml"
+ACTIONS = ("vacuum", "conversation")
+STRATEGY = {"Avg": "avg", "BN": "bn", "Prox": "prox", "Opt": "opt", "Distill": "distill"}
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('mlflow')}/mlflow.db"
+
+
+def fast_config(synth_dir, cache_dir, store, *overrides):
+    return load_config(
+        FAST,
+        [
+            f"data.path={synth_dir}",
+            f"data.cache_dir={cache_dir}",
+            f"tracking.uri={store}",
+            *overrides,
+        ],
+    )
+
+
+def read_run(store: str, run_id: str):
+    client = mlflow.MlflowClient(store)
+    run = client.get_run(run_id)
+    artifacts = {a.path for a in client.list_artifacts(run_id)}
+    return client, run, artifacts
+
+
+def results_csv(client, run_id) -> list[dict[str, str]]:
+    path = client.download_artifacts(run_id, "results.csv")
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, store, capsys):
+    result = run_experiment(fast_config(synth_dir, cache_dir, store, f"method={method}"))
+    client, run, artifacts = read_run(store, result.run_id)
+
+    assert run.info.status == "FINISHED" and run.info.run_name == f"{method}-2c-noaug"
+    tags = run.data.tags
+    scope = "root" if method.startswith("FedRoot") else "full"
+    strategy = STRATEGY[method.removeprefix("FedRoot").removeprefix("Fed")]
+    assert (tags["method"], tags["scope"], tags["strategy"]) == (method, scope, strategy)
+    assert (tags["dataset"], tags["clients"], tags["augmentation"]) == ("synthetic", "2", "false")
+    params = run.data.params
+    assert params["method"] == method and params["federated.scope"] == scope
+    assert params["data.clients"] == "2" and params["train.max_batches"] == "2"
+
+    metrics = run.data.metrics
+    expected = [
+        "test/loss",
+        "test/rmse",
+        "test/pcc",
+        "train/loss",
+        "cost/cpu_s",
+        "cost/wall_s",
+        "cost/bytes_up",
+        "cost/bytes_down",
+        "round/seconds",
+    ]
+    expected += [f"test/{m}/{a}" for m in ("mse", "rmse", "pcc") for a in ACTIONS]
+    expected += [f"client{c}/{k}" for c in (0, 1) for k in ("test/rmse", "test/pcc", "cost/cpu_s")]
+    for key in expected:
+        assert key in metrics, key
+        assert math.isfinite(metrics[key]), key
+    assert "cost/gpu_util" not in metrics  # no NVIDIA GPU: absent, not an error
+    assert [m.step for m in client.get_metric_history(result.run_id, "test/rmse")] == [1]
+    assert metrics["cost/bytes_up"] > 0 and metrics["cost/cpu_s"] > 0
+
+    assert {"config.yaml", "results.csv", "curves.png"} <= artifacts
+    rows = results_csv(client, result.run_id)
+    assert [(r["round"], r["client"]) for r in rows] == [("1", "0"), ("1", "1")]
+    assert float(rows[0]["test_rmse"]) == pytest.approx(metrics["client0/test/rmse"])
+    with open(client.download_artifacts(result.run_id, "config.yaml")) as f:
+        config_text = f.read()
+    assert f"method: {method}" in config_text
+    assert f"{method}-2c-noaug after 1 rounds" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("method", ["FedAvg", "FedRootAvg"])
+def test_features_modality_needs_only_the_csv(method, synth_dir, tmp_path, cache_dir, store):
+    folder = tmp_path / "csv-only"
+    folder.mkdir()
+    shutil.copy(synth_dir / "all_data.csv", folder)
+    config = fast_config(folder, cache_dir, store, f"method={method}", "data.modality=features")
+    assert config.root_kind == "mlp"
+    result = run_experiment(config)
+    _, run, artifacts = read_run(store, result.run_id)
+    assert run.info.status == "FINISHED" and run.data.tags["modality"] == "features"
+    assert math.isfinite(run.data.metrics["test/pcc"]) and "results.csv" in artifacts
+
+
+def test_root_scope_keeps_each_top_and_uploads_the_root(synth_dir, cache_dir):
+    config = load_config(
+        FAST,
+        [
+            f"data.path={synth_dir}",
+            f"data.cache_dir={cache_dir}",
+            "method=FedRootAvg",
+            "tracking.enabled=false",
+        ],
+    )
+    scenes = load_scenes(config.data)
+    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    trained = orch.train_round(1)
+    tops = [{k: v.clone() for k, v in c.model.top.state_dict().items()} for c in orch.clients]
+    roots = [{k: v.clone() for k, v in c.model.root.state_dict().items()} for c in orch.clients]
+    assert not torch.equal(tops[0]["net.1.weight"], tops[1]["net.1.weight"])  # they trained apart
+    orch.aggregate()
+    for client, top in zip(orch.clients, tops, strict=True):
+        for key, value in client.model.top.state_dict().items():
+            assert torch.equal(value, top[key]), key  # bit-identical: the top never left
+    root_float = {
+        k: v for k, v in orch.clients[0].model.root.state_dict().items() if v.is_floating_point()
+    }
+    for client in orch.clients:
+        assert trained[client.index][2] == nbytes(root_float)  # uploaded: the root's size
+        w = client.n_samples / sum(c.n_samples for c in orch.clients)
+        mean = roots[0]["features.0.0.weight"] * w + roots[1]["features.0.0.weight"] * (1 - w)
+        assert torch.allclose(
+            client.model.root.state_dict()["features.0.0.weight"], mean, atol=1e-6
+        )
+
+
+def test_a_failing_run_is_marked_failed_and_keeps_what_was_logged(
+    synth_dir, cache_dir, store, monkeypatch
+):
+    real = Orchestrator.evaluate_clients
+    calls = []
+
+    def fail_in_round_two(self):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("disk on fire")
+        return real(self)
+
+    monkeypatch.setattr(Orchestrator, "evaluate_clients", fail_in_round_two)
+    config = fast_config(
+        synth_dir, cache_dir, store, "federated.rounds=3", "tracking.run_name=doomed"
+    )
+    with pytest.raises(RuntimeError, match="disk on fire"):
+        run_experiment(config)
+    runs = mlflow.MlflowClient(store).search_runs(
+        [mlflow.MlflowClient(store).get_experiment_by_name("fedlgr-debug").experiment_id],
+        "attributes.run_name = 'doomed'",
+    )
+    (run,) = runs
+    client, run, artifacts = read_run(store, run.info.run_id)
+    assert run.info.status == "FAILED"
+    assert [m.step for m in client.get_metric_history(run.info.run_id, "test/rmse")] == [1]
+    assert "results.csv" in artifacts and {
+        r["round"] for r in results_csv(client, run.info.run_id)
+    } == {"1"}
+
+
+def _cli_run(args, cwd):
+    done = subprocess.run(
+        [sys.executable, "-m", "fedlgr", "run", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+@pytest.mark.slow
+def test_two_processes_give_the_same_numbers_as_one(synth_dir, cache_dir, tmp_path):
+    """Fabric DDP on CPU (gloo), clients sharded over 2 processes, vs one process."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    common = [
+        str(FAST),
+        f"data.path={synth_dir}",
+        f"data.cache_dir={cache_dir}",
+        "federated.rounds=2",
+        "method=FedRootProx",
+        "runtime.accelerator=cpu",
+        "runtime.threads=1",
+    ]
+    _cli_run([*common, "tracking.run_name=one", f"--tracking-uri={store}"], tmp_path)
+    out = _cli_run(
+        [*common, "tracking.run_name=two", "runtime.devices=2", f"--tracking-uri={store}"], tmp_path
+    )
+    assert "2 processes" in out
+    client = mlflow.MlflowClient(store)
+    experiment = client.get_experiment_by_name("fedlgr-debug").experiment_id
+    runs = {r.info.run_name: r for r in client.search_runs([experiment])}
+    one, two = runs["one"], runs["two"]
+    assert two.data.params["runtime.devices"] == "2"
+    keys = [
+        k for k in one.data.metrics if k.startswith(("test/", "client0/test/", "client1/test/"))
+    ]
+    assert len(keys) > 20
+    for key in keys:
+        assert two.data.metrics[key] == pytest.approx(one.data.metrics[key], abs=1e-5), key
+    rows = [results_csv(client, r.info.run_id) for r in (one, two)]
+    assert [(r["round"], r["client"]) for r in rows[1]] == [
+        ("1", "0"),
+        ("1", "1"),
+        ("2", "0"),
+        ("2", "1"),
+    ]
+    for a, b in zip(*rows, strict=True):
+        assert float(a["train_loss"]) == pytest.approx(float(b["train_loss"]), abs=1e-5)
+        assert a["bytes_up"] == b["bytes_up"] and a["bytes_down"] == b["bytes_down"]
