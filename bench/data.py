@@ -18,6 +18,8 @@ import time
 from datetime import date
 from pathlib import Path
 
+from figures import report  # bench/figures.py, beside this script
+
 TARGETS = {  # figure -> (target, "max" | "min")
     "synthesis_s": (60.0, "max"),
     "warm_load_s": (2.0, "max"),
@@ -90,16 +92,7 @@ def main() -> int:
         f"{args.scenes} scenes at {args.size} px; augmented pipeline: batch 16, 10 copies per "
         f"scene, {args.epochs} epochs = {n} images"
     )
-    failed = 0
-    for name, value in figures.items():
-        target = TARGETS.get(name)
-        verdict = ""
-        if target is not None:
-            limit, kind = target
-            ok = value <= limit if kind == "max" else value >= limit
-            failed += not ok
-            verdict = f"  ({'<=' if kind == 'max' else '>='} {limit:g}: {'ok' if ok else 'MISSED'})"
-        print(f"  {name:<22}{value:10.2f}{verdict}")
+    failed = report(figures, TARGETS)
     return 1 if failed else 0
 
 

@@ -19,6 +19,8 @@ import time
 from datetime import date
 from pathlib import Path
 
+from figures import report  # bench/figures.py, beside this script
+
 TARGETS = {"ratio": (1.10, "max"), "client_img_per_s": (140.0, "min")}
 
 
@@ -126,15 +128,7 @@ def main() -> int:
         f"{len(split.clients[0].train)} scenes, one round of FedAvg, batch 16, random-init "
         f"MobileNetV2, channels_last; best of {args.repeats}"
     )
-    failed = 0
-    for name, value in best.items():
-        verdict = ""
-        if name in TARGETS:
-            limit, kind = TARGETS[name]
-            ok = value <= limit if kind == "max" else value >= limit
-            failed += not ok
-            verdict = f"  ({'<=' if kind == 'max' else '>='} {limit:g}: {'ok' if ok else 'MISSED'})"
-        print(f"  {name:<24}{value:10.2f}{verdict}")
+    failed = report(best, TARGETS)
     return 1 if failed else 0
 
 

@@ -151,3 +151,12 @@ def test_weighted_mean_needs_samples():
     with pytest.raises(ValueError, match="no samples"):
         weighted_mean([(0, {"w": torch.ones(1)})], ["w"])
     assert math.isclose(float(weighted_mean([(2, {"w": torch.ones(1)})], ["w"])["w"]), 1.0)
+
+
+def test_config_and_registry_name_the_same_strategies():
+    """A new strategy is registered in both places: fedlgr.config.STRATEGIES (its paper
+    suffix) and fedlgr.federated.strategies.STRATEGIES (its class)."""
+    from fedlgr.config import STRATEGIES as NAMES
+
+    assert set(NAMES) == set(STRATEGIES)
+    assert all(NAMES[key] == cls.name for key, cls in STRATEGIES.items())
