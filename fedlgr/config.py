@@ -25,12 +25,36 @@ ROOTS = ("auto", "mobilenet_v2", "mlp")
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
 
 
-def method_name(strategy: str, scope: str) -> str:
-    """The paper's name: ``("avg", "full")`` -> ``FedAvg``, ``("bn", "root")`` -> ``FedRootBN``."""
-    return SCOPES[scope] + STRATEGIES[strategy]
+CONTINUAL = {
+    "none": "FT",
+    "ewc": "EWC",
+    "ewc_online": "EWCOnline",
+    "si": "SI",
+    "mas": "MAS",
+    "nr": "NR",
+    "lgr": "LGR",
+}
 
 
-METHODS = {method_name(st, sc): (st, sc) for sc in SCOPES for st in STRATEGIES}
+def method_name(strategy: str, scope: str, continual: str | None = None) -> str:
+    """The paper's name: ``("avg", "full")`` -> ``FedAvg``, ``("bn", "root")`` ->
+    ``FedRootBN``; with a task schedule, Table II's ``FedAvg-EWC``, ``FedRoot-NR``,
+    ``FedLGR`` (FedRoot + latent generative replay), and ``FedRoot-FT`` for training on the
+    tasks in sequence with no continual-learning method (the forgetting baseline)."""
+    base = SCOPES[scope] + STRATEGIES[strategy]
+    if continual is None:
+        return base
+    if continual == "lgr" and (strategy, scope) == ("avg", "root"):
+        return "FedLGR"
+    return f"{'FedRoot' if base == 'FedRootAvg' else base}-{CONTINUAL[continual]}"
+
+
+# Paper name -> (strategy, scope, continual method or None for FL).
+METHODS = {method_name(st, sc): (st, sc, None) for sc in SCOPES for st in STRATEGIES}
+FCL_METHODS = {
+    method_name("avg", sc, cl): ("avg", sc, cl) for sc in SCOPES for cl in CONTINUAL if cl != "lgr"
+}
+FCL_METHODS["FedLGR"] = ("avg", "root", "lgr")
 
 
 @dataclass(frozen=True)
@@ -159,6 +183,67 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class ContinualConfig:
+    """Federated continual learning (SPEC 4.2): a task schedule and a CL method.
+
+    ``tasks`` lists task names of ``data.tasks`` in training order; empty means plain FL
+    (all training scenes at once, ``federated.rounds`` rounds). With tasks, each task is
+    trained for ``rounds_per_task`` rounds and ``federated.rounds`` is not used.
+    """
+
+    tasks: tuple[str, ...] = ()
+    rounds_per_task: int = 5
+    method: str = "none"  # none | ewc | ewc_online | si | mas | nr | lgr
+    importance_batches: int | None = None  # batches for Fisher / MAS importance (None: all)
+    ewc_lambda: float = 100.0  # EWC and EWC-Online: lambda * sum F (theta - theta*)^2
+    ewc_fisher: str = "empirical"  # empirical: gradients of the MSE to the labels | model
+    ewc_gamma: float = 0.9  # EWC-Online: decay of the running Fisher
+    si_c: float = 1.0  # SI: penalty coefficient
+    si_xi: float = 0.1  # SI: damping
+    mas_lambda: float = 1.0  # MAS: penalty coefficient
+    nr_memory: int = 100  # NR: scenes kept per client (all past tasks together)
+    nr_replay_ratio: float = 0.5  # NR: memory samples added per current sample in a batch
+    lgr_hidden: int = 512  # FedLGR's VAE: hidden width
+    lgr_latent: int = 64  # FedLGR's VAE: latent size
+    lgr_epochs: int = 50  # FedLGR's VAE: epochs at the end of each task
+    lgr_batch_size: int = 32
+    lgr_lr: float = 1e-4  # the generator's learning rate
+    lgr_lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
+    lgr_replay_ratio: float = 1.0  # pseudo-samples per real sample when training the top
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tasks", tuple(self.tasks))
+        _choice("continual.method", self.method, tuple(CONTINUAL))
+        _choice("continual.ewc_fisher", self.ewc_fisher, ("empirical", "model"))
+        _positive("continual.rounds_per_task", self.rounds_per_task)
+        for name in ("lgr_hidden", "lgr_latent", "lgr_epochs", "lgr_batch_size"):
+            _positive(f"continual.{name}", getattr(self, name))
+        if self.importance_batches is not None:
+            _positive("continual.importance_batches", self.importance_batches)
+        if self.nr_memory < 0:
+            raise ConfigError(f"continual.nr_memory={self.nr_memory}: must be >= 0")
+        for name in (
+            "ewc_lambda",
+            "si_c",
+            "si_xi",
+            "mas_lambda",
+            "nr_replay_ratio",
+            "lgr_replay_ratio",
+            "lgr_lr",
+            "lgr_lr_root",
+        ):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"continual.{name}={getattr(self, name)}: must be >= 0")
+        if not 0.0 <= self.ewc_gamma <= 1.0:
+            raise ConfigError(f"continual.ewc_gamma={self.ewc_gamma}: must be in 0..1")
+        if self.method != "none" and not self.tasks:
+            raise ConfigError(
+                f"continual.method={self.method} needs a task schedule: set continual.tasks "
+                "(e.g. [circle, arrow]) or use a Table II method name (method=FedRoot-EWC)"
+            )
+
+
+@dataclass(frozen=True)
 class ExperimentConfig:
     method: str | None = None  # paper name; sets federated.strategy and federated.scope
     seed: int = 0  # model initialisation, batch order, augmentation (data.seed: the split)
@@ -168,10 +253,19 @@ class ExperimentConfig:
     federated: FederatedConfig = field(default_factory=FederatedConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    continual: ContinualConfig = field(default_factory=ContinualConfig)
 
     def __post_init__(self) -> None:
-        if self.method is not None and self.method != self.federated.method:
-            raise ConfigError(f"method={self.method} disagrees with federated.strategy/scope")
+        if self.continual.method == "lgr" and self.federated.scope != "root":
+            raise ConfigError(
+                "continual.method=lgr (FedLGR) shares the root only: set federated.scope=root"
+            )
+        if self.method is not None and self.method != self.method_name:
+            raise ConfigError(f"method={self.method} disagrees with federated/continual settings")
+        known = [t.name for t in self.data.tasks]
+        unknown = [t for t in self.continual.tasks if t not in known]
+        if unknown:
+            raise ConfigError(f"continual.tasks: unknown task(s) {unknown}; data.tasks has {known}")
         root = self.root_kind
         if self.data.modality == "features" and root != "mlp":
             raise ConfigError(
@@ -193,8 +287,19 @@ class ExperimentConfig:
         return "mlp" if self.data.modality == "features" else "mobilenet_v2"
 
     @property
+    def continual_learning(self) -> bool:
+        """Is there a task schedule (FCL) rather than all data at once (FL)?"""
+        return bool(self.continual.tasks)
+
+    @property
     def method_name(self) -> str:
-        return self.federated.method
+        f, c = self.federated, self.continual
+        return method_name(f.strategy, f.scope, c.method if c.tasks else None)
+
+    @property
+    def total_rounds(self) -> int:
+        c = self.continual
+        return len(c.tasks) * c.rounds_per_task if c.tasks else self.federated.rounds
 
     @property
     def run_name(self) -> str:
@@ -261,16 +366,17 @@ def load_config(
     for source, node in layers:
         try:
             if "method" in node and node["method"] is not None:
-                node = _expand_method(node)
+                node = _expand_method(node, merged)
             merged = OmegaConf.merge(merged, node)
         except OmegaConfBaseException as err:
             raise ConfigError(f"{source}: {_omegaconf_message(err)}") from err
         except ConfigError as err:
             raise ConfigError(f"{source}: {err}") from err
     # ``method`` is input shorthand: afterwards it names what the settings say.
-    fed = merged.federated
-    if fed.strategy in STRATEGIES and fed.scope in SCOPES:
-        merged = OmegaConf.merge(merged, {"method": method_name(fed.strategy, fed.scope)})
+    fed, cont = merged.federated, merged.continual
+    if fed.strategy in STRATEGIES and fed.scope in SCOPES and cont.method in CONTINUAL:
+        name = method_name(fed.strategy, fed.scope, cont.method if cont.tasks else None)
+        merged = OmegaConf.merge(merged, {"method": name})
     try:
         return OmegaConf.to_object(merged)
     except MissingMandatoryValue as err:
@@ -309,14 +415,33 @@ def _missing_keys(node, prefix: str = "") -> list[str]:
     return keys
 
 
-def _expand_method(node):
+def _expand_method(node, merged):
+    """``method=NAME`` -> strategy and scope; a Table II name sets the CL method too, and,
+    if no task schedule is set yet, the schedule of every task in ``data.tasks``; an FL
+    name clears the schedule and the CL method."""
     from omegaconf import OmegaConf
 
     name = str(node["method"])
-    if name not in METHODS:
-        raise ConfigError(f"method={name}: unknown; known methods: {', '.join(METHODS)}")
-    strategy, scope = METHODS[name]
-    return OmegaConf.merge(node, {"federated": {"strategy": strategy, "scope": scope}})
+    if name in METHODS:
+        strategy, scope, _ = METHODS[name]
+        fl = {"strategy": strategy, "scope": scope}
+        return OmegaConf.merge(
+            {"federated": fl, "continual": {"tasks": [], "method": "none"}}, node
+        )
+    if name not in FCL_METHODS:
+        known = ", ".join([*METHODS, *FCL_METHODS])
+        raise ConfigError(f"method={name}: unknown; known methods: {known}")
+    strategy, scope, continual = FCL_METHODS[name]
+    update: dict = {
+        "federated": {"strategy": strategy, "scope": scope},
+        "continual": {"method": continual},
+    }
+    here = OmegaConf.select(node, "continual.tasks", default=None)
+    if not here and not merged.continual.tasks:
+        tasks = OmegaConf.select(node, "data.tasks", default=None) or merged.data.tasks
+        update["continual"]["tasks"] = [t["name"] for t in tasks]
+    # Settings given next to the name (in the same file or command line) win over it.
+    return OmegaConf.merge(update, node)
 
 
 def _omegaconf_message(err: Exception) -> str:

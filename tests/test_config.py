@@ -6,7 +6,15 @@ from pathlib import Path
 
 import pytest
 
-from fedlgr.config import CONF_DIR, METHODS, ExperimentConfig, flatten, load_config, to_yaml
+from fedlgr.config import (
+    CONF_DIR,
+    FCL_METHODS,
+    METHODS,
+    ExperimentConfig,
+    flatten,
+    load_config,
+    to_yaml,
+)
 from fedlgr.errors import ConfigError
 from fedlgr.federated.scope import shared_keys
 from fedlgr.federated.strategies import STRATEGIES
@@ -20,7 +28,7 @@ def test_every_config_loads_and_builds(path, synth_dir):
     overrides = [f"data.path={synth_dir}"]
     config = load_config(path, overrides)
     assert isinstance(config, ExperimentConfig)
-    assert config.method_name in METHODS
+    assert config.method_name in (FCL_METHODS if config.continual_learning else METHODS)
     # Build what the run builds (no weight download here: random init).
     built = load_config(path, [*overrides, "model.weights=none", "model.width=0.1"])
     model = build_scholar(built)
@@ -138,3 +146,40 @@ def test_includes_resolve_relative_to_conf_and_to_the_file(tmp_path):
         "mlp",
         "features",
     )
+
+
+def test_table2_names_set_strategy_scope_method_and_schedule():
+    c = load_config(None, ["method=FedRoot-EWC"])
+    assert (c.federated.strategy, c.federated.scope, c.continual.method) == ("avg", "root", "ewc")
+    assert c.continual.tasks == ("circle", "arrow") and c.total_rounds == 10
+    assert c.run_name == "FedRoot-EWC-2c-noaug"
+    c = load_config(None, ["method=FedLGR", "continual.rounds_per_task=3"])
+    assert (c.federated.scope, c.continual.method, c.total_rounds) == ("root", "lgr", 6)
+    assert load_config(None, ["method=FedAvg-FT"]).continual.method == "none"
+    # An FL name clears the schedule; an explicit schedule survives a later Table II name.
+    c = load_config(
+        CONF_DIR / "experiment" / "table2" / "clients2_noaug.yaml",
+        ["data.path=/x", "method=FedAvg"],
+    )
+    assert c.continual.tasks == () and c.method == "FedAvg"
+    c = load_config(None, ["continual.tasks=[arrow, circle]", "method=FedAvg-SI"])
+    assert c.continual.tasks == ("arrow", "circle")
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["continual.method=ewc"], "continual.method=ewc needs a task schedule"),
+        (["continual.tasks=[circle, square]"], "continual.tasks: unknown task(s) ['square']"),
+        (
+            ["method=FedLGR", "federated.scope=full"],
+            "FedLGR) shares the root only: set federated.scope=root",
+        ),
+        (["method=FedAvg-SI", "continual.ewc_gamma=2"], "continual.ewc_gamma=2.0: must be in 0..1"),
+        (["method=FedAvg-NR", "continual.nr_memory=-1"], "continual.nr_memory=-1: must be >= 0"),
+    ],
+)
+def test_bad_continual_settings_name_the_setting(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_config(None, overrides)
+    assert message in str(err.value)
