@@ -1,18 +1,28 @@
 """Hooks into a client's local training (Avalanche-style plugins).
 
-A strategy's client-side behaviour (FedProx's proximal term, FedDistill's teacher) and,
-later, continual-learning methods are plugins: the local training loop calls every
-plugin's hooks, so any of them composes with any strategy and scope. A plugin instance
-belongs to one client; everything it keeps is in ``state_dict()`` (in memory, so a resume
-feature can checkpoint it).
+A strategy's client-side behaviour (FedProx's proximal term, FedDistill's teacher) and the
+continual-learning methods (EWC, SI, MAS, naive rehearsal, FedLGR's latent replay) are
+plugins: the local training loop calls every plugin's hooks, so any of them composes with
+any strategy and scope without per-combination code. A plugin instance belongs to one
+client; everything it keeps is in ``state_dict()`` (in memory, so a resume feature can
+checkpoint it).
+
+Order of calls for one client: ``on_task_start`` (first round of a task) ->
+``on_round_start`` -> per batch: ``batch`` -> forward -> ``loss`` -> backward ->
+``before_step`` -> optimiser step -> ``after_step`` -> ``on_round_end`` -> (upload,
+aggregation, download) -> ``on_task_end`` (last round of a task, on the model the client
+goes on with).
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 
 import torch
 from torch import nn
+
+from fedlgr.data.augment import SceneBatches
 
 
 @dataclass
@@ -22,10 +32,26 @@ class LocalContext:
     client: int
     round: int
     model: nn.Module
-    global_weights: dict[str, torch.Tensor]  # what the client received this round
+    global_weights: dict[str, torch.Tensor]  # what the client received last
     device: torch.device
-    autocast: object = None  # a context-manager factory for mixed precision
+    autocast: object = contextlib.nullcontext  # a context-manager factory for mixed precision
+    task: int = 0  # position of the current task in the schedule
+    task_name: str = "all"
+    batches: SceneBatches | None = None  # the current task's training batches
+    optimizer: torch.optim.Optimizer | None = None
     extra: dict = field(default_factory=dict)
+
+    def plain_batches(self, batch_size: int | None = None) -> SceneBatches:
+        """The current task's scenes in order, normalised but not augmented, once each."""
+        b = self.batches
+        return SceneBatches(
+            b.inputs,
+            b.targets,
+            b.positions.numpy(),
+            batch_size or b.batch_size,
+            shuffle=False,
+            device=b.device,
+        )
 
 
 class ClientPlugin:
@@ -33,8 +59,17 @@ class ClientPlugin:
 
     name = "plugin"
 
+    def on_task_start(self, ctx: LocalContext) -> None:
+        """Before the first round of a task."""
+
     def on_round_start(self, ctx: LocalContext) -> None:
         """Before the first local step of a round."""
+
+    def batch(
+        self, ctx: LocalContext, x: torch.Tensor, y: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The batch to train on (e.g. with rehearsal samples mixed in)."""
+        return x, y
 
     def loss(
         self,
@@ -48,11 +83,18 @@ class ClientPlugin:
         teacher's outputs, ...). Called in plugin order before ``backward``."""
         return loss
 
+    def before_step(self, ctx: LocalContext) -> None:
+        """After ``backward``, before the optimiser step (gradients are in ``.grad``)."""
+
     def after_step(self, ctx: LocalContext) -> None:
         """After each optimiser step."""
 
     def on_round_end(self, ctx: LocalContext) -> None:
         """After the last local step of a round, before the upload."""
+
+    def on_task_end(self, ctx: LocalContext) -> None:
+        """After the last round of a task (aggregation included): importance, memories,
+        generators are updated here."""
 
     def state_dict(self) -> dict:
         return {}

@@ -1,0 +1,247 @@
+"""Continual-learning methods on tiny models with hand-checkable numbers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from fedlgr.continual import EWC, MAS, SI, EWCOnline, LatentReplay, NaiveRehearsal
+from fedlgr.continual.ewc import fisher
+from fedlgr.continual.mas import output_norm_importance
+from fedlgr.data.augment import SceneBatches
+from fedlgr.federated.plugins import LocalContext
+from fedlgr.models.generator import LatentVAE
+from fedlgr.models.scholar import MLPRoot, Scholar, Top
+
+
+def linear(w, b=0.0) -> nn.Linear:
+    model = nn.Linear(len(w), 1)
+    with torch.no_grad():
+        model.weight.copy_(torch.tensor([w]))
+        model.bias.fill_(b)
+    return model
+
+
+def context(
+    model, inputs, targets, positions=None, task=0, batch_size=1, optimizer=None
+) -> LocalContext:
+    positions = np.arange(len(inputs)) if positions is None else np.asarray(positions)
+    batches = SceneBatches(inputs, targets, positions, batch_size, shuffle=False)
+    return LocalContext(
+        0, 1, model, {}, torch.device("cpu"), task=task, batches=batches, optimizer=optimizer
+    )
+
+
+X = torch.tensor([[1.0, 2.0], [3.0, -1.0]])
+Y = torch.tensor([[0.0], [1.0]])
+
+
+def test_empirical_fisher_by_hand():
+    model = linear([0.5, -1.0])
+    f = fisher(model, context(model, X, Y).plain_batches(1))
+    # Sample 1: out -1.5, d MSE/dw = 2 (out - y) x = (-3, -6), d/db = -3.
+    # Sample 2: out 2.5, error 1.5: (9, -3), 3. Fisher = mean of squares.
+    assert f["weight"].flatten().tolist() == pytest.approx([(9 + 81) / 2, (36 + 9) / 2])
+    assert f["bias"].tolist() == pytest.approx([(9 + 9) / 2])
+
+
+def test_model_fisher_uses_no_labels_and_is_non_negative():
+    model = linear([0.5, -1.0])
+    a = fisher(
+        model,
+        context(model, X, Y).plain_batches(1),
+        "model",
+        generator=torch.Generator().manual_seed(0),
+    )
+    b = fisher(
+        model,
+        context(model, X, Y + 100).plain_batches(1),
+        "model",
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert torch.equal(a["weight"], b["weight"]) and (a["weight"] >= 0).all()
+
+
+def test_ewc_penalty_value_and_one_term_per_task():
+    model = linear([0.5, -1.0])
+    ewc = EWC(lam=2.0)
+    ctx = context(model, X, Y)
+    ewc.on_task_end(ctx)
+    assert ewc.penalty(model).item() == 0.0  # at the anchor
+    with torch.no_grad():
+        model.weight += torch.tensor([[0.1, -0.2]])
+        model.bias += 0.5
+    # 2 * (45 * 0.1^2 + 22.5 * 0.2^2 + 9 * 0.5^2)
+    assert ewc.penalty(model).item() == pytest.approx(2 * (0.45 + 0.9 + 2.25))
+    ewc.on_task_end(ctx)
+    assert len(ewc.terms) == 2
+    loss = ewc.loss(ctx, None, None, None, torch.tensor(1.0))
+    assert loss.item() == pytest.approx(1.0 + ewc.penalty(model).item())
+
+
+def test_ewc_online_keeps_one_decayed_fisher():
+    model = linear([0.5, -1.0])
+    online = EWCOnline(lam=1.0, gamma=0.5)
+    ctx = context(model, X, Y)
+    online.on_task_end(ctx)
+    first = online.terms[0][0]["weight"].clone()
+    with torch.no_grad():
+        model.weight.copy_(torch.tensor([[1.0, 1.0]]))
+    second = fisher(model, ctx.plain_batches(1))["weight"]
+    online.on_task_end(ctx)
+    assert len(online.terms) == 1
+    assert torch.allclose(online.terms[0][0]["weight"], 0.5 * first + second)
+    assert torch.equal(online.terms[0][1]["weight"], torch.tensor([[1.0, 1.0]]))  # latest anchor
+
+
+class WithIdle(nn.Module):
+    """A linear model plus a parameter that never touches the output."""
+
+    def __init__(self):
+        super().__init__()
+        self.lin = linear([0.5, -1.0])
+        self.idle = nn.Parameter(torch.ones(3))
+
+    def forward(self, x):
+        return self.lin(x)
+
+
+def test_si_importance_only_for_moved_parameters_and_non_negative():
+    torch.manual_seed(0)
+    model = WithIdle()
+    optimizer = torch.optim.Adam(model.parameters(), lr=0.1)
+    si = SI(c=1.0, xi=0.1)
+    ctx = context(model, X, Y, optimizer=optimizer)
+    si.on_task_start(ctx)
+    for _ in range(20):
+        loss = nn.functional.mse_loss(model(X), Y)
+        optimizer.zero_grad()
+        loss.backward()
+        si.before_step(ctx)
+        optimizer.step()
+        si.after_step(ctx)
+    si.on_task_end(ctx)
+    importance, anchor = si.terms[0]
+    assert torch.equal(importance["idle"], torch.zeros(3))  # never moved: nothing
+    assert (importance["lin.weight"] > 0).all() and (importance["lin.bias"] >= 0).all()
+    assert all((w >= 0).all() for w in importance.values())
+    assert torch.equal(anchor["lin.weight"], model.lin.weight.detach())
+    # A second task adds to the importance.
+    si.on_task_start(ctx)
+    si.on_task_end(ctx)
+    assert torch.allclose(si.terms[0][0]["lin.weight"], importance["lin.weight"])  # no steps: +0
+
+
+def test_mas_importance_by_hand_and_zero_where_output_does_not_depend():
+    model = WithIdle()
+    imp = output_norm_importance(model, context(model, X, Y).plain_batches(1))
+    # ||w.x + b||^2: d/dw = 2 out x; out = -1.5 and 2.5 for the two samples.
+    assert imp["lin.weight"].flatten().tolist() == pytest.approx([(3 + 15) / 2, (6 + 5) / 2])
+    assert imp["lin.bias"].tolist() == pytest.approx([(3 + 5) / 2])
+    assert torch.equal(imp["idle"], torch.zeros(3))
+    mas = MAS(lam=1.0)
+    ctx = context(model, X, Y)
+    mas.on_task_end(ctx)
+    mas.on_task_end(ctx)
+    assert torch.allclose(mas.terms[0][0]["lin.weight"], 2 * imp["lin.weight"])  # accumulates
+
+
+def test_naive_rehearsal_memory_is_bounded_and_holds_only_past_tasks():
+    inputs = torch.arange(60, dtype=torch.float32).view(30, 2)
+    targets = torch.arange(30, dtype=torch.float32).view(30, 1)
+    tasks = [np.arange(0, 10), np.arange(10, 20), np.arange(20, 30)]
+    nr = NaiveRehearsal(capacity=8, replay_ratio=0.5, seed=1)
+    model = linear([1.0, 0.0])
+    assert len(nr.memory) == 0
+    x, y = context(model, inputs, targets, tasks[0], task=0, batch_size=4).batches.gather(
+        torch.arange(4)
+    )
+    assert nr.batch(None, x, y)[0].shape[0] == 4  # nothing to rehearse during task 1
+    for t, positions in enumerate(tasks):
+        ctx = context(model, inputs, targets, positions, task=t, batch_size=4)
+        if t > 0:  # during task t: batches get memory samples of earlier tasks only
+            xb, yb = ctx.batches.gather(torch.as_tensor(positions[:4]))
+            xm, ym = nr.batch(ctx, xb, yb)
+            assert xm.shape == (6, 2)
+            assert set(ym[4:].flatten().int().tolist()) <= set(np.concatenate(tasks[:t]).tolist())
+        nr.on_task_end(ctx)
+        memory = nr.memory
+        assert len(memory) <= 8 and len(set(memory.tolist())) == len(memory)
+        assert set(memory.tolist()) <= set(np.concatenate(tasks[: t + 1]).tolist())
+        assert all(len(p) == 8 // (t + 1) for p in nr.by_task.values())  # an equal share each
+
+
+def test_vae_loss_decreases_on_a_fixed_latent_set():
+    torch.manual_seed(0)
+    # Low-rank ReLU features, like a root's: 4 factors spread over 32 dimensions.
+    latents = torch.relu(torch.randn(256, 4) @ torch.randn(4, 32))
+    vae = LatentVAE(32, hidden=64, latent=8, lr=1e-3)
+    history = vae.fit(latents, epochs=40, batch_size=32, generator=torch.Generator().manual_seed(0))
+    assert history[-1] < 0.6 * history[0]
+    samples = vae.sample(100, torch.Generator().manual_seed(1))
+    assert samples.shape == (100, 32)
+    assert torch.allclose(samples.mean(0), latents.mean(0), atol=0.6 * latents.std(0).max())
+
+
+def tiny_scholar() -> Scholar:
+    torch.manual_seed(0)
+    root = MLPRoot(in_dim=4, hidden=(6,))
+    return Scholar(root, Top(root.out_dim, hidden=5))
+
+
+def test_fedlgr_pseudo_labels_come_from_the_pre_update_top():
+    model = tiny_scholar()
+    optimizer = model.configure_optimizers()
+    inputs, targets = torch.randn(20, 4), torch.rand(20, 8) * 4 + 1
+    lgr = LatentReplay(hidden=16, latent=3, epochs=5, batch_size=8, lr=1e-3, lr_root=1e-5, seed=3)
+    ctx1 = context(model, inputs, targets, np.arange(10), task=0, batch_size=5, optimizer=optimizer)
+    lgr.on_task_start(ctx1)
+    lgr.on_round_start(ctx1)
+    assert lgr.generator is None and optimizer.param_groups[0]["lr"] == 1e-3  # task 1: as usual
+    lgr.on_task_end(ctx1)  # the generator learns task 1's latents
+    assert lgr.generator is not None and lgr.tasks_learnt == 1
+
+    ctx2 = context(
+        model, inputs, targets, np.arange(10, 20), task=1, batch_size=5, optimizer=optimizer
+    )
+    lgr.on_task_start(ctx2)
+    lgr.on_round_start(ctx2)
+    lr = {g["name"]: g["lr"] for g in optimizer.param_groups}
+    assert lr == {"root": 1e-5, "top": 1e-3}  # lr_R << lr_T from task 2 on
+    before = {k: v.clone() for k, v in model.top.state_dict().items()}
+    x, y = ctx2.batches.gather(torch.arange(10, 15))
+    for _ in range(3):  # train: the top moves
+        out = model(x)
+        loss = lgr.loss(ctx2, x, y, out, nn.functional.mse_loss(out, y))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert not torch.equal(model.top.state_dict()["net.1.weight"], before["net.1.weight"])
+    latents, labels = lgr.pseudo_samples(7)
+    frozen = Top(model.root.out_dim, hidden=5).eval()
+    frozen.load_state_dict(before)
+    with torch.no_grad():
+        assert torch.allclose(labels, frozen(latents))  # the top as it was when the task began
+        assert not torch.allclose(labels, model.top.eval()(latents))
+
+
+def test_fedlgr_replay_term_mixes_pseudo_samples_into_the_loss():
+    model = tiny_scholar()
+    optimizer = model.configure_optimizers()
+    inputs, targets = torch.randn(10, 4), torch.rand(10, 8) * 4 + 1
+    lgr = LatentReplay(hidden=16, latent=3, epochs=2, batch_size=8, replay_ratio=0.5, seed=3)
+    ctx = context(model, inputs, targets, np.arange(10), batch_size=4, optimizer=optimizer)
+    x, y = ctx.batches.gather(torch.arange(4))
+    base = torch.tensor(2.0)
+    assert lgr.loss(ctx, x, y, None, base) is base  # no generator yet: the task loss alone
+    lgr.on_task_end(ctx)
+    lgr.on_task_start(ctx)
+    state = lgr.generator_rng.get_state()
+    latents, labels = lgr.pseudo_samples(2)
+    lgr.generator_rng.set_state(state)
+    replay = nn.functional.mse_loss(model.top(latents), labels)
+    assert lgr.loss(ctx, x, y, None, base).item() == pytest.approx(
+        (2.0 * 4 + replay.item() * 2) / 6, rel=1e-5
+    )
