@@ -64,7 +64,7 @@ def main() -> int:
     from fedlgr.data.splits import make_split
     from fedlgr.data.synth import synthesize
     from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.orchestrator import FIELDS, Orchestrator, torch_threads
+    from fedlgr.federated.orchestrator import Orchestrator, torch_threads
     from fedlgr.models.scholar import build_scholar
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -110,9 +110,7 @@ def main() -> int:
             plain_times.append(
                 plain_loop(model, optimizer, batches, steps, config.model.channels_last)
             )
-        wall, trained, cpu = (
-            log.table[:, FIELDS.index(f)].tolist() for f in ("wall_s", "train_samples", "cpu_s")
-        )
+        wall, trained, cpu = (log.column(f).tolist() for f in ("wall_s", "train_samples", "cpu_s"))
         samples = sum(trained)
         train_times.append(sum(wall))
         cpus.append(sum(cpu) / len(cpu))

@@ -6,10 +6,14 @@ import csv
 import shutil
 from pathlib import Path
 
+import mlflow
 import pytest
 
+from fedlgr.config import CONF_DIR, load_config
 from fedlgr.data.columns import ALL_COLUMNS
 from fedlgr.data.synth import synthesize
+
+FAST = CONF_DIR / "debug" / "fast.yaml"
 
 
 @pytest.fixture(scope="session")
@@ -53,3 +57,36 @@ def rating_row(stamp: int, circle: bool, labels: list[float], descriptor: float 
 
 
 HEADER = list(ALL_COLUMNS)
+
+
+# --------------------------------------------------------------------------- training runs
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('mlflow')}/mlflow.db"
+
+
+def fast_config(synth_dir, cache_dir, store, *overrides):
+    return load_config(
+        FAST,
+        [
+            f"data.path={synth_dir}",
+            f"data.cache_dir={cache_dir}",
+            f"tracking.uri={store}",
+            *overrides,
+        ],
+    )
+
+
+def read_run(store: str, run_id: str):
+    client = mlflow.MlflowClient(store)
+    run = client.get_run(run_id)
+    artifacts = {a.path for a in client.list_artifacts(run_id)}
+    return client, run, artifacts
+
+
+def results_csv(client, run_id) -> list[dict[str, str]]:
+    path = client.download_artifacts(run_id, "results.csv")
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))

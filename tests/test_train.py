@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import math
 import shutil
 import subprocess
@@ -12,46 +11,16 @@ import mlflow
 import pytest
 import torch
 
-from fedlgr.config import CONF_DIR, METHODS, load_config
+from fedlgr.config import METHODS, load_config
 from fedlgr.data.dataset import load_scenes
 from fedlgr.data.splits import make_split
 from fedlgr.federated.experiment import make_fabric, run_experiment
 from fedlgr.federated.orchestrator import Orchestrator
 from fedlgr.federated.scope import nbytes
+from tests.conftest import FAST, fast_config, read_run, results_csv
 
-FAST = CONF_DIR / "debug" / "fast.yaml"
 ACTIONS = ("vacuum", "conversation")
 STRATEGY = {"Avg": "avg", "BN": "bn", "Prox": "prox", "Opt": "opt", "Distill": "distill"}
-
-
-@pytest.fixture(scope="module")
-def store(tmp_path_factory) -> str:
-    return f"sqlite:///{tmp_path_factory.mktemp('mlflow')}/mlflow.db"
-
-
-def fast_config(synth_dir, cache_dir, store, *overrides):
-    return load_config(
-        FAST,
-        [
-            f"data.path={synth_dir}",
-            f"data.cache_dir={cache_dir}",
-            f"tracking.uri={store}",
-            *overrides,
-        ],
-    )
-
-
-def read_run(store: str, run_id: str):
-    client = mlflow.MlflowClient(store)
-    run = client.get_run(run_id)
-    artifacts = {a.path for a in client.list_artifacts(run_id)}
-    return client, run, artifacts
-
-
-def results_csv(client, run_id) -> list[dict[str, str]]:
-    path = client.download_artifacts(run_id, "results.csv")
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
 
 
 @pytest.mark.parametrize("method", list(METHODS))
@@ -151,11 +120,11 @@ def test_a_failing_run_is_marked_failed_and_keeps_what_was_logged(
     real = Orchestrator.evaluate_clients
     calls = []
 
-    def fail_in_round_two(self):
+    def fail_in_round_two(self, task):
         calls.append(1)
         if len(calls) == 2:
             raise RuntimeError("disk on fire")
-        return real(self)
+        return real(self, task)
 
     monkeypatch.setattr(Orchestrator, "evaluate_clients", fail_in_round_two)
     config = fast_config(

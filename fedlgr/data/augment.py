@@ -136,17 +136,20 @@ class SceneBatches:
         if self.shuffle:
             order = order[torch.randperm(len(order), generator=self.generator)]
         for k in range(len(self)):
-            yield self._batch(
-                order[k * self.batch_size : (k + 1) * self.batch_size], self.generator
-            )
+            yield self.gather(order[k * self.batch_size : (k + 1) * self.batch_size])
 
     def peek(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """The first batch in position order, drawing nothing from the batches' generator."""
-        yield self._batch(self.positions[: self.batch_size], torch.Generator().manual_seed(0))
+        yield self.gather(self.positions[: self.batch_size], torch.Generator().manual_seed(0))
 
-    def _batch(
-        self, index: torch.Tensor, generator: torch.Generator
+    def gather(
+        self, index: torch.Tensor, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The scenes at ``index`` (positions into the stores) as a training batch: on the
+        device, normalised, and augmented (drawing from ``generator``, by default the
+        batches' own) if these batches augment."""
+        generator = self.generator if generator is None else generator
+        index = torch.as_tensor(index, dtype=torch.long)
         x = self.inputs[index].to(self.device, non_blocking=True)
         y = self.targets[index].to(self.device, non_blocking=True)
         if self.images:

@@ -1,6 +1,6 @@
 """A client: its model, optimiser, plugins and data, all in memory, and its local training.
 
-The local loop is deliberately plain - gather a batch, forward, the plugins' loss hooks,
+The local loop is deliberately plain - gather a batch, forward, the plugins' hooks,
 backward, step - with no per-step host synchronisation beyond what the plugins need, so it
 trains as fast as a hand-written PyTorch loop (``bench/train.py`` measures the ratio).
 """
@@ -21,16 +21,27 @@ from fedlgr.federated.plugins import ClientPlugin, LocalContext
 @dataclass
 class Client:
     index: int
-    positions: np.ndarray  # the client's training scenes (positions into the Scenes)
     model: nn.Module
     optimizer: torch.optim.Optimizer
-    batches: SceneBatches
+    data: dict[str, SceneBatches]  # task name -> the client's training batches of that task
     plugins: list[ClientPlugin] = field(default_factory=list)
+    task: str = ""  # the task being trained
+
+    def __post_init__(self) -> None:
+        self.task = self.task or next(iter(self.data))
+
+    @property
+    def batches(self) -> SceneBatches:
+        return self.data[self.task]
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.batches.positions.numpy()
 
     @property
     def n_samples(self) -> int:
-        """Aggregation weight: the client's number of training scenes."""
-        return len(self.positions)
+        """Aggregation weight: the client's number of training scenes in the current task."""
+        return len(self.batches.positions)
 
     def state_dict(self) -> dict:
         """Everything the client keeps between rounds (for checkpoints)."""
@@ -38,7 +49,8 @@ class Client:
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "plugins": {p.name: p.state_dict() for p in self.plugins},
-            "batches_rng": self.batches.generator.get_state(),
+            "batches_rng": {t: b.generator.get_state() for t, b in self.data.items()},
+            "task": self.task,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -46,7 +58,9 @@ class Client:
         self.optimizer.load_state_dict(state["optimizer"])
         for p in self.plugins:
             p.load_state_dict(state["plugins"].get(p.name, {}))
-        self.batches.generator.set_state(state["batches_rng"])
+        for t, rng in state["batches_rng"].items():
+            self.data[t].generator.set_state(rng)
+        self.task = state["task"]
 
     def download(self, weights: dict[str, torch.Tensor]) -> None:
         """Copy the server's tensors into the local model (in place, no reallocation)."""
@@ -62,8 +76,8 @@ class Client:
 
 @dataclass
 class LocalStats:
-    samples: int = 0  # images (or feature rows) trained on, all epochs
-    loss: float = 0.0  # mean training loss over the round
+    samples: int = 0  # images (or feature rows) trained on, all epochs, rehearsal included
+    loss: float = 0.0  # mean task loss over the round
 
 
 def train_locally(
@@ -75,7 +89,7 @@ def train_locally(
     autocast=contextlib.nullcontext,
     on_epoch=None,
 ) -> LocalStats:
-    """``epochs`` passes over the client's shard (``max_batches`` per epoch at most)."""
+    """``epochs`` passes over the client's current task (``max_batches`` per epoch at most)."""
     model, optimizer, plugins = client.model, client.optimizer, client.plugins
     model.train()
     for plugin in plugins:
@@ -86,6 +100,8 @@ def train_locally(
         for step, (x, y) in enumerate(client.batches):
             if max_batches is not None and step >= max_batches:
                 break
+            for plugin in plugins:
+                x, y = plugin.batch(ctx, x, y)
             if len(x) < 2:  # BatchNorm cannot train on a single sample
                 continue
             if channels_last:
@@ -98,6 +114,8 @@ def train_locally(
                 loss = plugin.loss(ctx, x, y, outputs.float(), loss)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            for plugin in plugins:
+                plugin.before_step(ctx)
             optimizer.step()
             for plugin in plugins:
                 plugin.after_step(ctx)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from fedlgr.config import ExperimentConfig
 from fedlgr.console import Progress, table
-from fedlgr.federated.orchestrator import FIELDS, Orchestrator, RoundLog, torch_threads
+from fedlgr.federated.orchestrator import Orchestrator, RoundLog, torch_threads
 
 
 @dataclass
@@ -24,6 +24,7 @@ class ExperimentResult:
     rounds: list[RoundLog] = field(default_factory=list)
     run_id: str | None = None
     seconds: float = 0.0
+    after_tasks: list[dict[str, float]] = field(default_factory=list)  # FCL: per finished task
 
     @property
     def final(self) -> RoundLog:
@@ -33,19 +34,52 @@ class ExperimentResult:
         return [row for r in self.rounds for row in r.rows()]
 
     def summary(self) -> str:
-        """Final per-client scores and costs, and their means."""
+        """Final per-client scores; costs averaged over all rounds (as Table III reports them);
+        FCL: the scores after each task and the forgetting too."""
+        import numpy as np
+
         last = self.final
-        names = ["test_loss", "test_rmse", "test_pcc", "cpu_s", "wall_s", "bytes_up"]
+        scores = ["test_loss", "test_rmse", "test_pcc"]
+        costs = ["cpu_s", "wall_s", "bytes_up"]
+        per_round = {n: np.mean([r.column(n) for r in self.rounds], axis=0) for n in costs}
         rows = [
-            [f"client {c}", *(float(last.table[c, FIELDS.index(n)]) for n in names)]
+            [
+                f"client {c}",
+                *(float(last.column(n)[c]) for n in scores),
+                *(float(per_round[n][c]) for n in costs),
+            ]
             for c in range(len(last.table))
         ]
-        rows.append(["mean", *(last.mean(n) for n in names)])
+        rows.append(
+            ["mean", *(last.mean(n) for n in scores), *(float(per_round[n].mean()) for n in costs)]
+        )
         for row in rows:
             row[-1] = _human_bytes(row[-1])
-        return table(
-            ["client", "loss", "RMSE", "PCC", "CPU s/round", "wall s/round", "upload/round"], rows
-        )
+        headers = ["client", "loss", "RMSE", "PCC", "CPU s/round", "wall s/round", "upload/round"]
+        text = table(headers, rows)
+        if self.after_tasks:
+            text += "\n\n" + self.task_summary()
+        return text
+
+    def task_summary(self) -> str:
+        """After each task: scores on all tasks seen so far, and each past task's forgetting
+        (positive: forgotten; loss/RMSE now - then, PCC then - now)."""
+        tasks = list(self.config.continual.tasks)
+        rows = []
+        for k, after in enumerate(self.after_tasks):
+            seen = "+".join(tasks[: k + 1])
+            row = [
+                f"after {tasks[k]}",
+                seen,
+                *(after[f"after_task{k + 1}/test/{m}"] for m in ("loss", "rmse", "pcc")),
+            ]
+            forgot = [
+                f"{t}: RMSE {after[f'after_task{k + 1}/forgetting/{t}/rmse']:+.3f} "
+                f"PCC {after[f'after_task{k + 1}/forgetting/{t}/pcc']:+.3f}"
+                for t in tasks[:k]
+            ]
+            rows.append([*row, "; ".join(forgot) or "-"])
+        return table(["task", "tested on", "loss", "RMSE", "PCC", "forgetting"], rows)
 
 
 def _human_bytes(n: float | None) -> str:
@@ -109,6 +143,8 @@ def _main(fabric, config: ExperimentConfig, parent_run_id, tags, echo) -> Experi
     import torch
     from lightning.fabric import seed_everything
 
+    from fedlgr.continual.forgetting import ForgettingTracker
+    from fedlgr.continual.schedule import schedule
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
     from fedlgr.tracking.mlflow_run import Tracker
@@ -125,25 +161,41 @@ def _main(fabric, config: ExperimentConfig, parent_run_id, tags, echo) -> Experi
     orchestrator = Orchestrator(fabric, config, scenes, split)
     tracker = Tracker(config, tags, parent_run_id) if rank0 and config.tracking.enabled else None
     result = ExperimentResult(config, run_id=tracker.run_id if tracker else None)
-    fc = config.federated
+    plan = (
+        f"{len(config.continual.tasks)} tasks ({', '.join(config.continual.tasks)}) x "
+        f"{config.continual.rounds_per_task} rounds"
+        if config.continual.tasks
+        else f"{config.federated.rounds} rounds"
+    )
     say(
-        f"{config.run_name}: {fc.rounds} rounds x {config.train.epochs} local epochs, "
+        f"{config.run_name}: {plan} x {config.train.epochs} local epochs, "
         f"{config.data.clients} clients, {len(split.train)} training / {len(split.test)} test "
         "scenes" + (f", {fabric.world_size} processes" if fabric.world_size > 1 else "")
     )
+    tasks = list(config.continual.tasks)
+    steps = schedule(config)
+    forgetting = ForgettingTracker(tasks)
+    total = len(steps)
     try:
-        for round_ in range(1, fc.rounds + 1):
+        for step in steps:
+            round_, k = step.round, step.task
             show = rank0 and config.runtime.progress
-            with Progress(f"round {round_}/{fc.rounds} (client epochs)", "epoch", show) as bar:
+            label = f"round {round_}/{total}" + (f" (task {tasks[k]})" if tasks else "")
+            with Progress(f"{label}, client epochs", "epoch", show) as bar:
+                epochs = len(orchestrator.clients) * config.train.epochs
                 log = orchestrator.run_round(
-                    round_, _epoch_counter(bar, len(orchestrator.clients) * config.train.epochs)
+                    round_, k, step.first_of_task, step.last_of_task, _epoch_counter(bar, epochs)
                 )
             result.rounds.append(log)
+            metrics = {**log.metrics(), **forgetting.forgetting(log)}
+            if step.last_of_task:
+                metrics.update(forgetting.end_of_task(log, k))
+                result.after_tasks = forgetting.after
             if tracker is not None:
-                tracker.log_round(round_, log.metrics())
+                tracker.log_round(round_, metrics)
             loss, rmse, pcc = (log.mean(f"test_{m}") for m in ("loss", "rmse", "pcc"))
             say(
-                f"round {round_}/{fc.rounds}: loss {loss:.3f}  RMSE {rmse:.3f}  PCC {pcc:.3f}  "
+                f"{label}: loss {loss:.3f}  RMSE {rmse:.3f}  PCC {pcc:.3f}  "
                 f"CPU {log.mean('cpu_s'):.1f} s/client  ({log.seconds:.1f} s)"
             )
     except BaseException as err:
@@ -159,6 +211,6 @@ def _main(fabric, config: ExperimentConfig, parent_run_id, tags, echo) -> Experi
         tracker.finish()
     if not rank0:
         return None
-    say(f"\n{config.run_name} after {fc.rounds} rounds ({result.seconds:.0f} s):")
+    say(f"\n{config.run_name} after {total} rounds ({result.seconds:.0f} s):")
     say(result.summary())
     return result

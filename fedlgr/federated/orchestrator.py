@@ -1,14 +1,18 @@
 """The Fabric-based federated round orchestrator (SPEC 4.3).
 
 ``setup`` -> ``fabric.launch(main)`` -> an explicit round loop. In each round every client
-trains its local model for E epochs on its shard, uploads the tensors its strategy and
-scope share, the server aggregates (sample-weighted mean, then the strategy's server
-update), every client downloads the new global tensors and evaluates its own model on the
-shared test set. All client and server state lives in memory (see ``Client.state_dict``).
+trains its local model for E epochs on its shard of the current task, uploads the tensors
+its strategy and scope share, the server aggregates (sample-weighted mean, then the
+strategy's server update), every client downloads the new global tensors, at a task's last
+round ends the task (importance, memories, generators: plugins' ``on_task_end``), and
+evaluates its own model on the shared test set - the scenes of every task seen so far, and
+each task's scenes on their own. All client and server state lives in memory (see
+``Client.state_dict``).
 
-By default all clients run in one process on one device. With ``runtime.devices=N`` (and
+Plain FL is a schedule of one task, "all", of ``federated.rounds`` rounds. By default all
+clients run in one process on one device. With ``runtime.devices=N`` (and
 ``runtime.num_nodes``) the clients are dealt round-robin to the processes, each process
-trains its own, and aggregation is one weighted ``all_reduce``; per-client metrics are
+trains its own, and aggregation is one weighted ``all_reduce``; per-client rows are
 reduced to rank 0, which alone logs. Seeds are per client, so both modes compute the same
 numbers.
 """
@@ -19,57 +23,68 @@ import copy
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from fedlgr.config import ExperimentConfig
+from fedlgr.continual import continual_plugins
+from fedlgr.continual.schedule import ALL
 from fedlgr.data.augment import Augment, SceneBatches, normalize
 from fedlgr.data.columns import LABEL_SHORT_NAMES
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
 from fedlgr.federated.aggregate import finish_mean, weighted_sum
 from fedlgr.federated.client import Client, LocalStats, train_locally
-from fedlgr.federated.evaluation import evaluate
+from fedlgr.federated.evaluation import predict
 from fedlgr.federated.plugins import LocalContext
 from fedlgr.federated.scope import nbytes, parameter_keys, shared_keys
 from fedlgr.federated.strategies import STRATEGIES, FedOpt
 from fedlgr.models.scholar import build_scholar
-from fedlgr.tracking.metrics import RegressionScores
+from fedlgr.tracking.metrics import regression_scores
 from fedlgr.tracking.resources import Usage, measure
 
-# One row of numbers per client per round; the order is the layout of the collective.
-COST_FIELDS = (
-    "train_loss",
-    "train_samples",
-    "cpu_s",
-    "wall_s",
-    "gpu_util",
-    "gpu_mem_mb",
-    "bytes_up",
-    "bytes_down",
-)
-SCORE_FIELDS = (
-    "test_loss",
-    "test_rmse",
-    "test_pcc",
-    *(f"test_mse_{a}" for a in LABEL_SHORT_NAMES),
-    *(f"test_rmse_{a}" for a in LABEL_SHORT_NAMES),
-    *(f"test_pcc_{a}" for a in LABEL_SHORT_NAMES),
-)
-FIELDS = (*SCORE_FIELDS, *COST_FIELDS)
+
+@dataclass(frozen=True)
+class Field:
+    """One number per client per round: its results.csv column and its MLflow key."""
+
+    name: str
+    key: str
 
 
-def score_row(scores: RegressionScores) -> list[float]:
-    return [
-        scores.loss,
-        scores.mean_rmse,
-        scores.mean_pcc,
-        *scores.mse.tolist(),
-        *scores.rmse.tolist(),
-        *scores.pcc.tolist(),
-    ]
+def _score_fields(name: str, key: str, per_action: bool) -> list[Field]:
+    fields = [Field(f"{name}_{m}", f"{key}/{m}") for m in ("loss", "rmse", "pcc")]
+    if per_action:
+        fields += [
+            Field(f"{name}_{m}_{a}", f"{key}/{m}/{a}")
+            for m in ("mse", "rmse", "pcc")
+            for a in LABEL_SHORT_NAMES
+        ]
+    return fields
+
+
+COST_FIELDS = [
+    Field("train_loss", "train/loss"),
+    Field("train_samples", "train/samples"),
+    Field("cpu_s", "cost/cpu_s"),
+    Field("wall_s", "cost/wall_s"),
+    Field("gpu_util", "cost/gpu_util"),
+    Field("gpu_mem_mb", "cost/gpu_mem_mb"),
+    Field("bytes_up", "cost/bytes_up"),
+    Field("bytes_down", "cost/bytes_down"),
+]
+
+
+def make_fields(tasks: list[str]) -> list[Field]:
+    """``test_*``: all seen tasks' test scenes (the whole test set in FL), per action too;
+    ``task_<name>_*``: each task's test scenes (FCL only); then the costs."""
+    fields = _score_fields("test", "test", per_action=True)
+    if tasks != [ALL]:
+        for task in tasks:
+            fields += _score_fields(f"task_{task}", f"task/{task}", per_action=False)
+    return fields + COST_FIELDS
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -81,61 +96,60 @@ class RoundLog:
     """Per-client rows of one round (after the collective: all clients)."""
 
     round: int
-    table: np.ndarray  # (clients, len(FIELDS))
+    task: str
+    fields: list[Field]
+    table: np.ndarray  # (clients, len(fields))
     seconds: float
+
+    def column(self, name: str) -> np.ndarray:
+        return self.table[:, [f.name for f in self.fields].index(name)]
+
+    def mean(self, name: str) -> float | None:
+        column = self.column(name)
+        return None if np.isnan(column).all() else float(np.nanmean(column))
 
     def rows(self) -> list[dict[str, object]]:
         out = []
         for client, values in enumerate(self.table):
-            row: dict[str, object] = {"round": self.round, "client": client}
+            row: dict[str, object] = {"round": self.round, "task": self.task, "client": client}
             row.update(
                 {
-                    f: (None if math.isnan(v) else float(v))
-                    for f, v in zip(FIELDS, values, strict=True)
+                    f.name: None if math.isnan(v) else float(v)
+                    for f, v in zip(self.fields, values, strict=True)
                 }
             )
             out.append(row)
         return out
 
-    def mean(self, name: str) -> float | None:
-        column = self.table[:, FIELDS.index(name)]
-        return None if np.isnan(column).all() else float(np.nanmean(column))
-
     def metrics(self) -> dict[str, float]:
         """MLflow metrics of this round: means over clients and per-client values."""
         out: dict[str, float] = {"round/seconds": self.seconds}
-        for j, name in enumerate(FIELDS):
-            key = _metric_key(name)
-            column = self.table[:, j]
+        for f, column in zip(self.fields, self.table.T, strict=True):
             if not np.isnan(column).all():
-                out[key] = float(np.nanmean(column))
+                out[f.key] = float(np.nanmean(column))
             for client, value in enumerate(column):
                 if not math.isnan(value):
-                    out[f"client{client}/{key}"] = float(value)
+                    out[f"client{client}/{f.key}"] = float(value)
         return out
 
 
-def _metric_key(field_name: str) -> str:
-    """``test_rmse_vacuum`` -> ``test/rmse/vacuum``; ``cpu_s`` -> ``cost/cpu_s``."""
-    if field_name.startswith("test_"):
-        return "test/" + field_name[5:].replace("_", "/", 1)
-    if field_name.startswith("train_"):
-        return "train/" + field_name[6:]
-    return "cost/" + field_name
+def _combine(a: Usage, b: Usage) -> Usage:
+    """The cost of two consecutive pieces of a client's work."""
+    gpu = None
+    if a.gpu_util is not None and b.gpu_util is not None:
+        gpu = (a.gpu_util * a.wall_s + b.gpu_util * b.wall_s) / max(a.wall_s + b.wall_s, 1e-9)
+    mem = max((m for m in (a.gpu_mem_mb, b.gpu_mem_mb) if m is not None), default=None)
+    return Usage(a.cpu_s + b.cpu_s, a.wall_s + b.wall_s, gpu, mem)
 
 
-@dataclass
 class Orchestrator:
-    fabric: object
-    config: ExperimentConfig
-    scenes: Scenes
-    split: FederatedSplit
-    clients: list[Client] = field(init=False)
-
-    def __post_init__(self) -> None:
-        cfg, fabric = self.config, self.fabric
+    def __init__(self, fabric, config: ExperimentConfig, scenes: Scenes, split: FederatedSplit):
+        self.fabric, self.config, self.scenes, self.split = fabric, config, scenes, split
+        cfg = config
         self.device = fabric.device
         self.rank, self.world = fabric.global_rank, fabric.world_size
+        self.tasks = list(cfg.continual.tasks) or [ALL]
+        self.fields = make_fields(self.tasks)
         self.strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)
         torch.manual_seed(cfg.seed)  # the same initial model in every process
         initial = build_scholar(cfg).to(self.device)
@@ -148,35 +162,41 @@ class Orchestrator:
         # With nothing kept locally every client holds the same model after aggregation:
         # one evaluation per process gives every client's (identical) figures.
         self.identical_models = float_keys == set(self.keys)
-        self.channels_last = cfg.model.channels_last and self.scenes.images is not None
-        augment = Augment() if cfg.data.augment and self.scenes.images is not None else None
+        self.channels_last = cfg.model.channels_last and scenes.images is not None
+        augment = Augment() if cfg.data.augment and scenes.images is not None else None
         copies = cfg.data.augment_copies if augment is not None else 1
-        self.clients = []
-        for shard in self.split.clients:
+        self.clients: list[Client] = []
+        for shard in split.clients:
             if shard.client % self.world != self.rank:
                 continue
             model = build_scholar(cfg).to(self.device)
             model.load_state_dict(initial.state_dict())
-            batches = SceneBatches(
-                self.scenes.inputs,
-                self.scenes.targets,
-                shard.train,
-                cfg.train.batch_size,
-                copies=copies,
-                augment=augment,
-                seed=client_seed(cfg.seed, shard.client),
-                device=self.device,
-            )
-            self.clients.append(
-                Client(
-                    shard.client,
-                    shard.train,
-                    model,
-                    model.configure_optimizers(),
-                    batches,
-                    self.strategy.client_plugins(shard.client),
+            seed = client_seed(cfg.seed, shard.client)
+            data = {
+                task: SceneBatches(
+                    scenes.inputs,
+                    scenes.targets,
+                    shard.train if task == ALL else shard.tasks[task],
+                    cfg.train.batch_size,
+                    copies=copies,
+                    augment=augment,
+                    seed=seed + t,
+                    device=self.device,
                 )
+                for t, task in enumerate(self.tasks)
+            }
+            plugins = [
+                *self.strategy.client_plugins(shard.client),
+                *continual_plugins(cfg.continual, shard.client, cfg.seed),
+            ]
+            self.clients.append(
+                Client(shard.client, model, model.configure_optimizers(), data, plugins)
             )
+        self._prepare_test_set()
+        self.initial_bytes = nbytes(self.global_weights)
+        self._warm_up(initial)
+
+    def _prepare_test_set(self) -> None:
         test = self.split.test
         inputs = self.scenes.inputs[torch.as_tensor(test)]
         if self.scenes.images is not None:
@@ -185,8 +205,15 @@ class Orchestrator:
                 inputs = inputs.contiguous(memory_format=torch.channels_last)
         self.test_inputs = inputs.to(self.device)
         self.test_targets = self.scenes.targets[torch.as_tensor(test)]
-        self.initial_bytes = nbytes(self.global_weights)
-        self._warm_up(initial)
+        # Rows of the test set per task, and of every task seen up to each point.
+        where = {t: np.searchsorted(test, self.split.test_tasks[t]) for t in self.tasks if t != ALL}
+        self.test_rows = {t: torch.as_tensor(r) for t, r in where.items()}
+        self.seen_rows = [
+            torch.as_tensor(np.sort(np.concatenate([where[t] for t in self.tasks[: k + 1]])))
+            if self.tasks != [ALL]
+            else torch.arange(len(test))
+            for k in range(len(self.tasks))
+        ]
 
     def _warm_up(self, model: torch.nn.Module) -> None:
         """One untimed training step on a throwaway copy, so that kernel selection and
@@ -203,22 +230,35 @@ class Orchestrator:
 
     # ------------------------------------------------------------------ one round
 
-    def train_round(self, round_: int, progress=None) -> dict[int, tuple[LocalStats, Usage, int]]:
+    def context(self, client: Client, round_: int, task: int) -> LocalContext:
+        return LocalContext(
+            client.index,
+            round_,
+            client.model,
+            self.global_weights,
+            self.device,
+            self.fabric.autocast,
+            task,
+            self.tasks[task],
+            client.batches,
+            client.optimizer,
+        )
+
+    def train_round(
+        self, round_: int, task: int = 0, first_of_task: bool = False, progress=None
+    ) -> dict[int, tuple[LocalStats, Usage, int]]:
         cfg = self.config
         out = {}
         for client in self.clients:
+            client.task = self.tasks[task]
             if cfg.train.reset_optimizer:
                 client.optimizer = client.model.configure_optimizers()
-            ctx = LocalContext(
-                client.index,
-                round_,
-                client.model,
-                self.global_weights,
-                self.device,
-                self.fabric.autocast,
-            )
+            ctx = self.context(client, round_, task)
             on_epoch = None if progress is None else (lambda e, c=client.index: progress(c, e))
             with measure(self.device) as usage:
+                if first_of_task:
+                    for plugin in client.plugins:
+                        plugin.on_task_start(ctx)
                 stats = train_locally(
                     client,
                     ctx,
@@ -256,28 +296,51 @@ class Orchestrator:
         for client in self.clients:
             client.download(self.global_weights)
 
-    def evaluate_clients(self) -> dict[int, RegressionScores]:
-        cfg = self.config.train
-        scores: dict[int, RegressionScores] = {}
+    def end_task(self, round_: int, task: int) -> dict[int, Usage]:
+        """Each client's end of task (plugins' ``on_task_end``), measured as its work."""
+        costs = {}
         for client in self.clients:
-            if self.identical_models and scores:
-                scores[client.index] = next(iter(scores.values()))
-                continue
-            scores[client.index] = evaluate(
-                client.model,
-                self.test_inputs,
-                self.test_targets,
-                cfg.eval_batch_size,
-                self.fabric.autocast,
-                cfg.compat_batch_metrics,
-            )
-        return scores
+            ctx = self.context(client, round_, task)
+            with measure(self.device) as usage:
+                for plugin in client.plugins:
+                    plugin.on_task_end(ctx)
+            costs[client.index] = usage
+        return costs
 
-    def gather(self, round_: int, trained, scores, seconds: float) -> RoundLog:
+    def evaluate_clients(self, task: int) -> dict[int, list[float]]:
+        """Each client's score fields: all tasks seen so far, then each task on its own."""
+        cfg = self.config.train
+        out: dict[int, list[float]] = {}
+        for client in self.clients:
+            if self.identical_models and out:
+                out[client.index] = next(iter(out.values()))
+                continue
+            pred = predict(
+                client.model, self.test_inputs, cfg.eval_batch_size, self.fabric.autocast
+            )
+            seen = self.seen_rows[task]
+            s = regression_scores(pred[seen], self.test_targets[seen], cfg.compat_batch_metrics)
+            values = [
+                s.loss,
+                s.mean_rmse,
+                s.mean_pcc,
+                *s.mse.tolist(),
+                *s.rmse.tolist(),
+                *s.pcc.tolist(),
+            ]
+            for rows in self.test_rows.values():
+                t = regression_scores(pred[rows], self.test_targets[rows], cfg.compat_batch_metrics)
+                values += [t.loss, t.mean_rmse, t.mean_pcc]
+            out[client.index] = values
+        return out
+
+    def gather(self, round_: int, task: int, trained, ended, scores, seconds: float) -> RoundLog:
         """Every client's row, from every process (rows of other processes are zero)."""
-        table = torch.zeros(len(self.split.clients), len(FIELDS), dtype=torch.float64)
+        table = torch.zeros(len(self.split.clients), len(self.fields), dtype=torch.float64)
         for client in self.clients:
             stats, usage, up = trained[client.index]
+            if client.index in ended:
+                usage = _combine(usage, ended[client.index])
             down = nbytes(self.global_weights) + (self.initial_bytes if round_ == 1 else 0)
             costs = [
                 stats.loss,
@@ -289,19 +352,25 @@ class Orchestrator:
                 up,
                 down,
             ]
-            table[client.index] = torch.tensor(
-                score_row(scores[client.index]) + costs, dtype=torch.float64
-            )
+            table[client.index] = torch.tensor(scores[client.index] + costs, dtype=torch.float64)
         if self.world > 1:
             table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
-        return RoundLog(round_, table.numpy(), seconds)
+        return RoundLog(round_, self.tasks[task], self.fields, table.numpy(), seconds)
 
-    def run_round(self, round_: int, progress=None) -> RoundLog:
+    def run_round(
+        self,
+        round_: int,
+        task: int = 0,
+        first_of_task: bool = False,
+        last_of_task: bool = False,
+        progress=None,
+    ) -> RoundLog:
         start = time.perf_counter()
-        trained = self.train_round(round_, progress)
+        trained = self.train_round(round_, task, first_of_task, progress)
         self.aggregate()
-        scores = self.evaluate_clients()
-        return self.gather(round_, trained, scores, time.perf_counter() - start)
+        ended = self.end_task(round_, task) if last_of_task else {}
+        scores = self.evaluate_clients(task)
+        return self.gather(round_, task, trained, ended, scores, time.perf_counter() - start)
 
 
 def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:

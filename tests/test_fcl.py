@@ -1,0 +1,184 @@
+"""Fast dev runs of every Table II method through two tasks, tracked in a real MLflow store."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from fedlgr.config import FCL_METHODS
+from fedlgr.federated.experiment import run_experiment
+from fedlgr.federated.scope import nbytes
+from fedlgr.models.scholar import build_scholar
+from tests.conftest import fast_config, read_run, results_csv
+
+TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT")]
+
+
+def test_table2_has_eleven_methods():
+    assert len(TABLE2) == 11 and "FedLGR" in TABLE2 and "FedRoot-EWCOnline" in TABLE2
+
+
+@pytest.mark.parametrize("method", TABLE2)
+def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir, store):
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        f"method={method}",
+        "continual.rounds_per_task=1",
+        "continual.lgr_epochs=2",
+    )
+    assert config.continual.tasks == ("circle", "arrow") and config.total_rounds == 2
+    result = run_experiment(config)
+    client, run, artifacts = read_run(store, result.run_id)
+    assert run.info.status == "FINISHED" and run.data.tags["method"] == method
+    assert run.data.params["continual.tasks"] == "['circle', 'arrow']"
+
+    metrics = run.data.metrics
+    keys = [
+        f"{p}/{m}"
+        for p in (
+            "test",
+            "task/circle",
+            "task/arrow",
+            "forgetting/circle",
+            "after_task1/test",
+            "after_task2/test",
+            "after_task2/task/circle",
+            "after_task2/forgetting/circle",
+            "client1/task/circle",
+        )
+        for m in ("loss", "rmse", "pcc")
+    ]
+    for key in keys:
+        assert key in metrics and math.isfinite(metrics[key]), key
+    history = lambda key: [(m.step, m.value) for m in client.get_metric_history(result.run_id, key)]  # noqa: E731
+    assert [s for s, _ in history("task/circle/rmse")] == [1, 2]
+    assert [s for s, _ in history("forgetting/circle/rmse")] == [2]
+    assert [s for s, _ in history("after_task1/test/rmse")] == [1]
+
+    # Forgetting by hand from the per-client CSV: circle's RMSE after arrow minus after circle.
+    rows = results_csv(client, result.run_id)
+    assert [(r["round"], r["task"]) for r in rows] == [("1", "circle")] * 2 + [("2", "arrow")] * 2
+    by_hand = (
+        sum(
+            float(rows[2 + c]["task_circle_rmse"]) - float(rows[c]["task_circle_rmse"])
+            for c in (0, 1)
+        )
+        / 2
+    )
+    assert metrics["forgetting/circle/rmse"] == pytest.approx(by_hand, abs=1e-9)
+    pcc = (
+        sum(
+            float(rows[c]["task_circle_pcc"]) - float(rows[2 + c]["task_circle_pcc"])
+            for c in (0, 1)
+        )
+        / 2
+    )
+    assert metrics["forgetting/circle/pcc"] == pytest.approx(pcc, abs=1e-9)
+    # "After Task 1" is on circle's test scenes; "after Task 2" on circle + arrow.
+    assert metrics["after_task1/test/rmse"] == pytest.approx(
+        sum(float(rows[c]["task_circle_rmse"]) for c in (0, 1)) / 2, abs=1e-9
+    )
+    assert "results.csv" in artifacts and "curves.png" in artifacts
+
+
+def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store):
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        "method=FedLGR",
+        "continual.rounds_per_task=2",
+        "continual.lgr_epochs=2",
+    )
+    result = run_experiment(config)
+    root = build_scholar(config).root.state_dict()
+    root_bytes = nbytes({k: v for k, v in root.items() if v.is_floating_point()})
+    client, _, _ = read_run(store, result.run_id)
+    for c in (0, 1):
+        ups = [
+            m.value for m in client.get_metric_history(result.run_id, f"client{c}/cost/bytes_up")
+        ]
+        assert ups == [root_bytes] * 4
+
+
+def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, store, monkeypatch):
+    """FedLGR's generator training happens at the end of a task: its CPU time must appear in
+    that round's cost of the client (a busy loop of 0.4 CPU s stands in for it here)."""
+    import time as clock
+
+    from fedlgr.continual.lgr import LatentReplay
+
+    real = LatentReplay.on_task_end
+
+    def busy(self, ctx):
+        end = clock.process_time() + 0.4
+        while clock.process_time() < end:
+            pass
+        real(self, ctx)
+
+    monkeypatch.setattr(LatentReplay, "on_task_end", busy)
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        "method=FedLGR",
+        "continual.rounds_per_task=2",
+        "continual.lgr_epochs=1",
+    )
+    result = run_experiment(config)
+    cpu = [log.column("cpu_s") for log in result.rounds]  # rounds 2 and 4 end a task
+    for c in (0, 1):
+        assert cpu[1][c] >= 0.4 and cpu[3][c] >= 0.4
+        assert cpu[0][c] < 0.4 and cpu[2][c] < 0.4
+
+
+def test_schedule_steps_mark_task_boundaries():
+    from fedlgr.config import load_config
+    from fedlgr.continual.schedule import schedule
+
+    fl = schedule(load_config(None, ["federated.rounds=3"]))
+    assert [(s.round, s.task_name, s.first_of_task, s.last_of_task) for s in fl] == [
+        (1, "all", True, False),
+        (2, "all", False, False),
+        (3, "all", False, False),
+    ]
+    fcl = schedule(load_config(None, ["method=FedRoot-SI", "continual.rounds_per_task=2"]))
+    assert [(s.round, s.task_name, s.first_of_task, s.last_of_task) for s in fcl] == [
+        (1, "circle", True, False),
+        (2, "circle", False, True),
+        (3, "arrow", True, False),
+        (4, "arrow", False, True),
+    ]
+
+
+def test_three_tasks_forget_the_two_before(tmp_path, cache_dir, store):
+    """Tasks are data: three tasks by number of animals (0, 1, 2), in that order."""
+    from fedlgr.data.synth import synthesize
+
+    synthesize(tmp_path / "d", scenes=90, seed=2, size=16)
+    spec = ", ".join(
+        f"{{name: {name}, column: Number of animals, value: {value}}}"
+        for name, value in (("none", 0), ("one", 0.5), ("two", 1))
+    )
+    tasks = f"data.tasks=[{spec}]"
+    config = fast_config(
+        tmp_path / "d",
+        cache_dir,
+        store,
+        tasks,
+        "data.clients=1",
+        "method=FedRoot-MAS",
+        "continual.rounds_per_task=1",
+        "data.image_size=16",
+    )
+    assert config.continual.tasks == ("none", "one", "two")
+    result = run_experiment(config)
+    # loss/RMSE/PCC on all seen tasks, on each seen task, and the forgetting of each past one
+    assert [len(a) for a in result.after_tasks] == [3 + 3, 3 + 6 + 3, 3 + 9 + 6]
+    after3 = result.after_tasks[2]
+    for task in ("none", "one"):
+        assert math.isfinite(after3[f"after_task3/forgetting/{task}/rmse"])
+    assert "after_task3/forgetting/two/rmse" not in after3
