@@ -54,6 +54,24 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--scenes", type=int, default=1000, help="scenes to synthesise if absent")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--tracking-uri", help="MLflow tracking URI")
+    demo.add_argument(
+        "--fcl",
+        action="store_true",
+        help="show forgetting instead: FedRoot "
+        "without a CL method vs FedLGR, circle then arrow (pretrains a root once)",
+    )
+    demo.add_argument(
+        "--pretrain-scenes",
+        type=int,
+        default=2000,
+        help="--fcl: scenes (of another seed) the root is pretrained on (default %(default)s)",
+    )
+    demo.add_argument(
+        "--pretrain-images",
+        type=int,
+        default=16000,
+        help="--fcl: augmented images the root is pretrained on (default %(default)s)",
+    )
     demo.set_defaults(run="fedlgr.cli.demo:demo")
 
     run = verbs.add_parser(
@@ -70,6 +88,25 @@ def build_parser() -> argparse.ArgumentParser:
         "or sqlite:///mlflow.db with artifacts in mlruns/)",
     )
     run.set_defaults(run="fedlgr.cli.run:run")
+
+    pre = verbs.add_parser(
+        "pretrain",
+        help="pretrain a MobileNetV2 root on scene descriptors (no labels), offline",
+        description="Train a MobileNetV2 root to predict each scene's 27 descriptors and 2 mode "
+        "flags from its image (no appropriateness labels) and save it for model.weights=FILE: an "
+        "offline stand-in for ImageNet weights. Use a dataset other than the one you evaluate on, "
+        "e.g. fedlgr data synth --out data/pretrain-synth --seed 1000 --scenes 2000.",
+    )
+    pre.add_argument("--data", type=Path, required=True, help="a MANNERS-DB-layout folder")
+    pre.add_argument("--out", type=Path, required=True, help="the root's state-dict file to write")
+    pre.add_argument("--width", type=float, default=1.0, help="MobileNetV2 width multiplier")
+    pre.add_argument("--images", type=int, default=16000, help="augmented images to train on")
+    pre.add_argument("--size", type=int, default=128)
+    pre.add_argument(
+        "--crop", type=_crop, default=None, help="LEFT,TOP,RIGHT,BOTTOM before resizing"
+    )
+    pre.add_argument("--seed", type=int, default=0)
+    pre.set_defaults(run="fedlgr.cli.pretrain:pretrain")
 
     data = verbs.add_parser("data", help="create, inspect and check datasets")
     data_verbs = data.add_subparsers(dest="data_verb", metavar="VERB", required=True)

@@ -4,6 +4,10 @@ Generates the synthetic living room if the folder has no ``all_data.csv``, then 
 short FedAvg vs FedRootAvg comparison on it (``conf/experiment/demo.yaml``: 2 clients,
 random-init MobileNetV2, augmentation) tracked in MLflow, and prints a table of test
 scores and per-client costs.
+
+``fedlgr demo --fcl`` shows forgetting instead: FedRoot without a CL method (FedRoot-FT)
+vs FedLGR, circle then arrow (``conf/experiment/demo_fcl.yaml``), from a root pretrained
+once, offline, on another synthetic set's descriptors (``fedlgr.models.pretrain``).
 """
 
 from __future__ import annotations
@@ -14,7 +18,9 @@ from fedlgr.config import CONF_DIR
 from fedlgr.console import Progress, table
 
 DEMO_CONFIG = CONF_DIR / "experiment" / "demo.yaml"
+FCL_CONFIG = CONF_DIR / "experiment" / "demo_fcl.yaml"
 METHODS = ("FedAvg", "FedRootAvg")
+FCL_METHODS = ("FedRoot-FT", "FedLGR")
 
 
 def demo(args: argparse.Namespace) -> int:
@@ -29,6 +35,8 @@ def demo(args: argparse.Namespace) -> int:
     overrides = [f"data.path={args.data}", f"seed={args.seed}", *args.overrides]
     if args.tracking_uri:
         overrides.append(f"tracking.uri={args.tracking_uri}")
+    if args.fcl:
+        return _fcl_demo(args, overrides)
     results = []
     for method in METHODS:
         config = load_config(DEMO_CONFIG, [*overrides, f"method={method}"])
@@ -55,3 +63,68 @@ def demo(args: argparse.Namespace) -> int:
     print(table(["method", "loss", "RMSE", "PCC", "CPU s", "upload", "run s"], rows))
     print("\nCompare the runs: uv run mlflow ui --backend-store-uri sqlite:///mlflow.db")
     return 0
+
+
+def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
+    from fedlgr.config import load_config
+    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.models.pretrain import synthetic_root
+
+    probe = load_config(FCL_CONFIG, overrides)
+    with Progress("pretraining", unit="img") as bar:
+        root = synthetic_root(
+            args.data.parent / "pretrain",
+            seed=args.seed,
+            scenes=args.pretrain_scenes,
+            width=probe.model.width,
+            images=args.pretrain_images,
+            size=probe.data.image_size,
+            cache_dir=probe.data.cache_dir,
+            progress=bar,
+        )
+    results = []
+    for method in FCL_METHODS:
+        config = load_config(FCL_CONFIG, [f"model.weights={root}", *overrides, f"method={method}"])
+        print()
+        results.append(run_experiment(config))
+    print(
+        f"\nForgetting on {args.data}: Task 1 = circle, then Task 2 = arrow "
+        "(mean over clients; forgetting > 0: circle got worse)"
+    )
+    print(forgetting_table(results))
+    print("\nCompare the runs: uv run mlflow ui --backend-store-uri sqlite:///mlflow.db")
+    return 0
+
+
+def forgetting_table(results, label=lambda r: r.config.method_name) -> str:
+    """Per run: circle after Task 1 and after Task 2, its forgetting, arrow after Task 2."""
+    rows = []
+    for r in results:
+        t1, t2 = r.after_tasks[0], r.after_tasks[1]
+        rows.append(
+            [
+                label(r),
+                t1["after_task1/task/circle/rmse"],
+                t1["after_task1/task/circle/pcc"],
+                t2["after_task2/task/circle/rmse"],
+                t2["after_task2/task/circle/pcc"],
+                t2["after_task2/forgetting/circle/rmse"],
+                t2["after_task2/forgetting/circle/pcc"],
+                t2["after_task2/task/arrow/rmse"],
+                t2["after_task2/task/arrow/pcc"],
+            ]
+        )
+    return table(
+        [
+            "method",
+            "circle RMSE T1",
+            "PCC T1",
+            "circle RMSE T2",
+            "PCC T2",
+            "forgot RMSE",
+            "forgot PCC",
+            "arrow RMSE T2",
+            "PCC T2",
+        ],
+        rows,
+    )

@@ -34,8 +34,8 @@ forget circle:
 * arrow: the zone is the corridor ahead of the robot (the arrow's length, +-0.12 wide);
   people behind the robot do not count, people in the corridor who do not face the robot
   count 1.6x, children 1.5x and animals 1.4x more; music and the sofa weigh only 0.2 as
-  much; serving needs the person ahead of the robot; carrying actions gain +0.4 and
-  cleaning loses 0.2.
+  much; serving needs the person ahead of the robot; carrying food and drinks gains +0.9,
+  carrying objects +0.8, starting a conversation +0.3, and cleaning loses 0.6.
 
 Raters: a pool of 60 simulated raters with a personal bias (sd 0.35); each scene is rated
 by 4-6 of them, each rating ``round(truth + bias + N(0, 0.5^2))`` clipped to 1..5. The
