@@ -58,6 +58,11 @@ def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, st
     assert "cost/gpu_util" not in metrics  # no NVIDIA GPU: absent, not an error
     assert [m.step for m in client.get_metric_history(result.run_id, "test/rmse")] == [1]
     assert metrics["cost/bytes_up"] > 0 and metrics["cost/cpu_s"] > 0
+    # Run-level costs for Tables III/IV: one round here, so the mean over rounds is that round.
+    assert metrics["mean/cost/cpu_s"] == pytest.approx(metrics["cost/cpu_s"])
+    assert metrics["mean/cost/bytes_up"] == pytest.approx(metrics["cost/bytes_up"])
+    assert "mean/cost/gpu_util" not in metrics
+    assert (tags["benchmark"], tags["continual"]) == ("FL", "none")
 
     assert {"config.yaml", "results.csv", "curves.png"} <= artifacts
     rows = results_csv(client, result.run_id)

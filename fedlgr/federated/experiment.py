@@ -33,6 +33,26 @@ class ExperimentResult:
     def rows(self) -> list[dict[str, object]]:
         return [row for r in self.rounds for row in r.rows()]
 
+    def cost_means(self) -> dict[str, float]:
+        """Per client per round, averaged over clients and rounds (Tables III/IV):
+        ``mean/cost/cpu_s``, ``mean/cost/wall_s``, ``mean/cost/bytes_up``, ... (GPU ones
+        only where measured)."""
+        import numpy as np
+
+        out = {}
+        for name, key in (
+            ("cpu_s", "cpu_s"),
+            ("wall_s", "wall_s"),
+            ("gpu_util", "gpu_util"),
+            ("gpu_mem_mb", "gpu_mem_mb"),
+            ("bytes_up", "bytes_up"),
+            ("bytes_down", "bytes_down"),
+        ):
+            column = np.concatenate([r.column(name) for r in self.rounds]) if self.rounds else []
+            if len(column) and not np.isnan(column).all():
+                out[f"mean/cost/{key}"] = float(np.nanmean(column))
+        return out
+
     def summary(self) -> str:
         """Final per-client scores; costs averaged over all rounds (as Table III reports them);
         FCL: the scores after each task and the forgetting too."""
@@ -128,18 +148,25 @@ def run_experiment(
     parent_run_id: str | None = None,
     tags: dict[str, str] | None = None,
     echo=None,
+    on_round=None,
 ) -> ExperimentResult | None:
-    """Run ``config`` end to end; the result in rank 0, ``None`` in other processes."""
+    """Run ``config`` end to end; the result in rank 0, ``None`` in other processes.
+
+    ``on_round(round, metrics)`` (rank 0, after each round is logged) may raise to stop the
+    run, e.g. a sweep's pruner: the run is then ended KILLED if the exception has
+    ``mlflow_status = "KILLED"``, FAILED otherwise, keeping what was logged."""
     from lightning.fabric.connector import _is_using_cli
 
     echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
     fabric = make_fabric(config)
     if config.runtime.world_size == 1 or _is_using_cli():
-        return _main(fabric, config, parent_run_id, tags, echo)
-    return fabric.launch(_main, config, parent_run_id, tags, echo)
+        return _main(fabric, config, parent_run_id, tags, echo, on_round)
+    return fabric.launch(_main, config, parent_run_id, tags, echo, on_round)
 
 
-def _main(fabric, config: ExperimentConfig, parent_run_id, tags, echo) -> ExperimentResult | None:
+def _main(
+    fabric, config: ExperimentConfig, parent_run_id, tags, echo, on_round=None
+) -> ExperimentResult | None:
     import torch
     from lightning.fabric import seed_everything
 
@@ -198,16 +225,23 @@ def _main(fabric, config: ExperimentConfig, parent_run_id, tags, echo) -> Experi
                 f"{label}: loss {loss:.3f}  RMSE {rmse:.3f}  PCC {pcc:.3f}  "
                 f"CPU {log.mean('cpu_s'):.1f} s/client  ({log.seconds:.1f} s)"
             )
+            if on_round is not None and rank0:
+                on_round(round_, metrics)
     except BaseException as err:
         if tracker is not None:
             tracker.save_results(
                 result.rows(), curves_png(result.rows()) if result.rounds else None
             )
-            tracker.fail(interrupted=isinstance(err, KeyboardInterrupt))
+            tracker.log_summary(result.cost_means())
+            killed = (
+                isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
+            )
+            tracker.fail(interrupted=killed)
         raise
     result.seconds = time.perf_counter() - start
     if tracker is not None:
         tracker.save_results(result.rows(), curves_png(result.rows()))
+        tracker.log_summary(result.cost_means())
         tracker.finish()
     if not rank0:
         return None

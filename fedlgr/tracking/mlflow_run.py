@@ -5,8 +5,10 @@ artifacts under ``mlruns/`` (the plain file store is refused by MLflow 3);
 ``$MLFLOW_TRACKING_URI`` or ``tracking.uri`` (``--tracking-uri``) point elsewhere, e.g. at
 an ``mlflow server``. Params are the flattened resolved config; metrics are logged per
 round with ``step=round``; artifacts are the resolved config, the per-round/per-client
-results CSV and a PNG of RMSE/PCC per round. A run that fails is ended FAILED (KILLED
-on Ctrl-C) after saving what it had.
+results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` hold the costs
+per client per round averaged over clients and rounds (what Tables III/IV report). A run
+that fails is ended FAILED (KILLED on Ctrl-C or when a sweep prunes it) after saving what
+it had.
 """
 
 from __future__ import annotations
@@ -60,6 +62,8 @@ class Tracker:
             "modality": config.data.modality,
             "clients": str(config.data.clients),
             "augmentation": str(config.data.augment).lower(),
+            "benchmark": "FCL" if config.continual_learning else "FL",
+            "continual": config.continual.method if config.continual_learning else "none",
             **(tags or {}),
         }
         if parent_run_id:
@@ -82,6 +86,11 @@ class Tracker:
         items = [Metric(k, float(v), now, round_) for k, v in metrics.items()]
         for i in range(0, len(items), 1000):
             self.client.log_batch(self.run_id, metrics=items[i : i + 1000])
+
+    def log_summary(self, metrics: dict[str, float]) -> None:
+        """Run-level values (no round): e.g. ``mean/cost/cpu_s`` over clients and rounds."""
+        if metrics:
+            self.log_round(0, metrics)
 
     def save_results(self, rows: Sequence[dict[str, object]], curves_png: bytes | None) -> None:
         if rows:
