@@ -33,6 +33,15 @@ class ExperimentResult:
     def rows(self) -> list[dict[str, object]]:
         return [row for r in self.rounds for row in r.rows()]
 
+    def final_metrics(self) -> dict[str, float]:
+        """Everything the run logged, as it stood at the end: the last round's metrics, the
+        after-task summaries and the run-level costs (what a sweep's objective reads)."""
+        out = dict(self.final.metrics()) if self.rounds else {}
+        for after in self.after_tasks:
+            out.update(after)
+        out.update(self.cost_means())
+        return out
+
     def cost_means(self) -> dict[str, float]:
         """Per client per round, averaged over clients and rounds (Tables III/IV):
         ``mean/cost/cpu_s``, ``mean/cost/wall_s``, ``mean/cost/bytes_up``, ... (GPU ones

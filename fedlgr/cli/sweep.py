@@ -1,0 +1,31 @@
+"""``fedlgr sweep SWEEP [key=value ...]``: run or resume an Optuna sweep."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def sweep(args: argparse.Namespace) -> int:
+    from fedlgr.sweep import load_sweep, run_sweep
+
+    overrides = list(args.overrides)
+    if args.workers > 1 and not any(o.startswith("runtime.threads=") for o in overrides):
+        # Share this machine's cores between the workers instead of oversubscribing them.
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        overrides.append(f"runtime.threads={max(1, (cores or 1) // args.workers)}")
+    spec = load_sweep(args.sweep, overrides)
+    if args.heartbeat is not None:
+        from dataclasses import replace
+
+        spec = replace(spec, heartbeat_s=args.heartbeat)
+    result = run_sweep(
+        spec,
+        storage=args.storage,
+        study_name=args.study,
+        workers=args.workers,
+        tracking_uri=args.tracking_uri,
+        cli_overrides=overrides,
+        worker_id=args.worker_id,
+    )
+    return 0 if result.done else 1

@@ -1,0 +1,303 @@
+"""Sweep files: what a sweep varies, over which base config, towards which objective.
+
+A sweep file (``sweeps/NAME.yaml``)::
+
+    description: EWC's lambda, FedAvg and FedRoot (Table II's EWC rows)
+    base: experiment/table2/clients2_noaug.yaml   # under conf/, or a path
+    overrides: [continual.rounds_per_task=5]      # fixed for every trial
+    objective: {metric: test/rmse, direction: minimize}
+    space:
+      method: [FedAvg-EWC, FedRoot-EWC]           # a list: a grid of values
+      continual.ewc_lambda: [1, 10, 100, 1000]
+
+Each key of ``space`` is a config key (``key=value`` as on the command line); the special
+key ``config`` chooses the base config file itself (for grids over the paper's presets). A
+list is a grid of values; ``{low, high}`` (optionally ``log: true``, ``step``) is a range
+and ``{choices: [...]}`` a categorical, both for TPE. ``sampler`` is ``grid`` when every
+parameter is a list (Optuna's ``GridSampler``: every combination once), ``tpe`` otherwise
+(``TPESampler``; ``trials`` then says how many). The objective's metric is any metric a run
+logs, read after the last round (``test/rmse`` = the final mean RMSE, after the last task
+for FCL; ``after_task1/test/pcc``, ``mean/cost/cpu_s``, ...). ``pruner`` (``median`` |
+``none``) stops hopeless trials from their per-round values; on by default for TPE, off
+for grids (a grid wants every point measured).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fedlgr.config import CONF_DIR
+from fedlgr.errors import ConfigError
+
+SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
+CONFIG_KEY = "config"  # the space key that chooses the base config file
+DIRECTIONS = ("minimize", "maximize")
+SAMPLERS = ("grid", "tpe")
+PRUNERS = ("median", "none")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One searched setting: a grid (``values``), a range (``low``/``high``) or categorical
+    choices (``values`` with ``categorical``) for TPE."""
+
+    name: str
+    values: tuple[Any, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    step: float | None = None
+    categorical: bool = False
+
+    @property
+    def is_grid(self) -> bool:
+        return bool(self.values) and not self.categorical
+
+    def distribution(self):
+        """Optuna's distribution for this parameter."""
+        from optuna.distributions import (
+            CategoricalDistribution,
+            FloatDistribution,
+            IntDistribution,
+        )
+
+        if self.values:
+            return CategoricalDistribution(list(self.values))
+        integer_step = self.step is None or float(self.step).is_integer()
+        if isinstance(self.low, int) and isinstance(self.high, int) and integer_step:
+            return IntDistribution(self.low, self.high, log=self.log, step=int(self.step or 1))
+        return FloatDistribution(float(self.low), float(self.high), log=self.log, step=self.step)
+
+    def suggest(self, trial) -> Any:
+        """Draw this parameter for an Optuna trial (grid points come from GridSampler)."""
+        from optuna.distributions import CategoricalDistribution, IntDistribution
+
+        d = self.distribution()
+        if isinstance(d, CategoricalDistribution):
+            return trial.suggest_categorical(self.name, d.choices)
+        if isinstance(d, IntDistribution):
+            return trial.suggest_int(self.name, d.low, d.high, step=d.step, log=d.log)
+        return trial.suggest_float(self.name, d.low, d.high, step=d.step, log=d.log)
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    name: str
+    path: Path | None
+    base: Path | None
+    params: tuple[Param, ...]
+    metric: str = "test/rmse"
+    direction: str = "minimize"
+    sampler: str = "grid"
+    trials: int | None = None  # TPE: how many; grid: the grid's size
+    pruner: str = "none"
+    prune_warmup_rounds: int = 2
+    seed: int = 0
+    overrides: tuple[str, ...] = ()
+    experiment: str = ""
+    description: str = ""
+    heartbeat_s: int = 30  # a trial whose worker is silent for 2 heartbeats is retried
+
+    @property
+    def grid(self) -> dict[str, list[Any]]:
+        """GridSampler's search space (grid sweeps)."""
+        return {p.name: list(p.values) for p in self.params}
+
+    def grid_points(self) -> list[dict[str, Any]]:
+        names = [p.name for p in self.params]
+        return [
+            dict(zip(names, combo, strict=True))
+            for combo in itertools.product(*(p.values for p in self.params))
+        ]
+
+    @property
+    def n_trials(self) -> int:
+        return len(self.grid_points()) if self.sampler == "grid" else int(self.trials or 0)
+
+    def search_space(self) -> dict[str, Any]:
+        """Optuna distributions per parameter (what the trials are drawn from)."""
+        return {p.name: p.distribution() for p in self.params}
+
+    def trial_config_args(self, params: dict[str, Any]) -> tuple[Path | None, list[str]]:
+        """The base config file and ``key=value`` overrides of a trial with ``params``."""
+        base = self.base
+        overrides = list(self.overrides)
+        for name, value in params.items():
+            if name == CONFIG_KEY:
+                base = resolve_config(value, self.path)
+            else:
+                overrides.append(f"{name}={_as_override(value)}")
+        return base, overrides
+
+
+def _as_override(value: Any) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_as_override(v) for v in value) + "]"
+    return str(value)
+
+
+def resolve_config(name: str | Path, sweep_path: Path | None = None) -> Path:
+    """A base config named relative to ``conf/`` (``experiment/table1/clients2_noaug.yaml``),
+    to the sweep file, or as a path."""
+    for candidate in (
+        Path(name),
+        CONF_DIR / name,
+        *([sweep_path.parent / name] if sweep_path else []),
+    ):
+        if candidate.is_file():
+            return candidate.resolve()
+    raise ConfigError(f"config {name}: no such file (looked in ., conf/ and next to the sweep)")
+
+
+def find_sweep(name: str | Path) -> Path:
+    """``sweeps/ewc.yaml``, ``ewc.yaml`` or ``ewc`` -> the sweep file."""
+    path = Path(name)
+    for candidate in (path, SWEEPS_DIR / path, SWEEPS_DIR / f"{path}.yaml"):
+        if candidate.is_file():
+            return candidate
+    known = ", ".join(sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml")))
+    raise ConfigError(f"sweep {name}: no such file; shipped sweeps: {known}")
+
+
+def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SweepSpec:
+    """Read and check a sweep file; ``overrides`` (``key=value``) apply to every trial."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    path = find_sweep(path)
+    try:
+        raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    except (OmegaConfBaseException, OSError, ValueError) as err:
+        raise ConfigError(f"{path}: not a readable YAML sweep file: {err}") from err
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: a sweep file is a mapping (base, objective, space, ...)")
+
+    def fail(key: str, message: str) -> ConfigError:
+        return ConfigError(f"{path}: {key}: {message}")
+
+    known = {
+        "name",
+        "description",
+        "base",
+        "overrides",
+        "objective",
+        "space",
+        "sampler",
+        "trials",
+        "pruner",
+        "prune_warmup_rounds",
+        "seed",
+        "experiment",
+        "heartbeat_s",
+    }
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise fail(unknown[0], f"unknown setting; known: {', '.join(sorted(known))}")
+    space = raw.get("space")
+    if not isinstance(space, dict) or not space:
+        raise fail("space", "needs at least one parameter (key: [values] or key: {low, high})")
+    params = tuple(_param(name, value, fail) for name, value in space.items())
+    all_grid = all(p.is_grid for p in params)
+    sampler = raw.get("sampler", "grid" if all_grid else "tpe")
+    if sampler not in SAMPLERS:
+        raise fail("sampler", f"{sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    if sampler == "grid" and not all_grid:
+        ranges = [p.name for p in params if not p.is_grid]
+        raise fail("sampler", f"grid needs a list of values for every parameter, not {ranges}")
+    trials = raw.get("trials")
+    if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
+        raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
+    objective = raw.get("objective") or {}
+    if not isinstance(objective, dict) or not isinstance(objective.get("metric", ""), str):
+        raise fail("objective", "expected {metric: NAME, direction: minimize|maximize}")
+    direction = objective.get("direction", "minimize")
+    if direction not in DIRECTIONS:
+        raise fail("objective.direction", f"{direction!r}; choose minimize or maximize")
+    pruner = raw.get("pruner", "median" if sampler == "tpe" else "none")
+    if pruner not in PRUNERS:
+        raise fail("pruner", f"{pruner!r}; choose one of {', '.join(PRUNERS)}")
+    base = raw.get("base")
+    base_path = resolve_config(base, path) if base else None
+    fixed = raw.get("overrides") or []
+    if not isinstance(fixed, list) or not all(isinstance(o, str) and "=" in o for o in fixed):
+        raise fail("overrides", "expected a list of key=value strings")
+    name = str(raw.get("name") or path.stem)
+    spec = SweepSpec(
+        name=name,
+        path=path.resolve(),
+        base=base_path,
+        params=params,
+        metric=objective.get("metric", "test/rmse"),
+        direction=direction,
+        sampler=sampler,
+        trials=trials,
+        pruner=pruner,
+        prune_warmup_rounds=int(raw.get("prune_warmup_rounds", 2)),
+        seed=int(raw.get("seed", 0)),
+        overrides=(*fixed, *overrides),
+        experiment=str(raw.get("experiment") or f"sweep-{name}"),
+        description=str(raw.get("description", "")),
+        heartbeat_s=int(raw.get("heartbeat_s", 30)),
+    )
+    check_trial_configs(spec)
+    return spec
+
+
+def _param(name: str, value: Any, fail) -> Param:
+    key = f"space.{name}"
+    if isinstance(value, list):
+        if not value:
+            raise fail(key, "an empty grid")
+        for v in value:
+            if not (v is None or isinstance(v, str | int | float | bool)):
+                raise fail(key, f"grid values must be numbers, strings or booleans, not {v!r}")
+        return Param(name, values=tuple(value))
+    if isinstance(value, dict):
+        if "choices" in value:
+            choices = value["choices"]
+            if not isinstance(choices, list) or not choices:
+                raise fail(key, "choices: a non-empty list")
+            return Param(name, values=tuple(choices), categorical=True)
+        if "low" not in value or "high" not in value:
+            raise fail(key, "a range needs low and high (or use a list for a grid)")
+        low, high = value["low"], value["high"]
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (low, high)):
+            raise fail(key, "low and high must be numbers")
+        if low >= high:
+            raise fail(key, f"low ({low}) must be below high ({high})")
+        log = bool(value.get("log", False))
+        if log and low <= 0:
+            raise fail(key, "a log range needs low > 0")
+        extra = sorted(set(value) - {"low", "high", "log", "step"})
+        if extra:
+            raise fail(key, f"unknown range setting(s) {extra}; use low, high, log, step")
+        return Param(name, low=low, high=high, log=log, step=value.get("step"))
+    raise fail(key, f"expected a list (grid) or {{low, high}} / {{choices}}, not {value!r}")
+
+
+def check_trial_configs(spec: SweepSpec) -> None:
+    """Every grid point (or, for TPE, every range's ends and choice) must make a valid
+    config, so a typo in a key fails now rather than in every trial. A ``data.path`` left
+    to the user (``???`` in the MANNERS-DB presets) is filled with a placeholder here."""
+    from fedlgr.config import load_config
+
+    if spec.sampler == "grid":
+        points = spec.grid_points()
+    else:
+        points = [
+            {p.name: (p.values[0] if p.values else p.low) for p in spec.params},
+            {p.name: (p.values[-1] if p.values else p.high) for p in spec.params},
+        ]
+    for point in points:
+        base, overrides = spec.trial_config_args(point)
+        try:
+            load_config(base, overrides)
+        except ConfigError as err:
+            if "data.path: no value" not in str(err):
+                raise ConfigError(f"{spec.path}: trial {point}: {err}") from err
+            load_config(base, [*overrides, "data.path=/path/to/manners-db"])

@@ -1,0 +1,554 @@
+"""Run a sweep as an Optuna study: resumable, parallel, pruned, tracked in MLflow.
+
+The study lives in an Optuna RDB storage (``sqlite:///optuna.db`` in the working directory
+by default; a PostgreSQL/MySQL URL lets several machines share one study). Every worker -
+this process, the ``--workers N`` extra processes it starts, or ``fedlgr sweep`` run again
+elsewhere on the same storage - runs trials one at a time until the study is done:
+
+* a grid is done when every point has finished (complete, pruned or failed); a TPE study
+  when ``trials`` trials have;
+* a trial that raises is recorded FAILED with its error (user attr ``error``) and the sweep
+  goes on; Ctrl-C re-queues the running trial, so the next launch redoes it;
+* a worker that dies (killed, machine lost) stops sending heartbeats; after two missed
+  heartbeats another worker (or the next launch) marks its trial FAILED and Optuna's
+  ``RetryFailedTrialCallback`` re-queues it;
+* with parallel workers Optuna's GridSampler can hand a point out twice (LIBRARY-NOTES);
+  a trial whose point an earlier trial already covers is skipped (PRUNED, user attr
+  ``duplicate_of``) before it trains.
+
+MLflow: one parent run per sweep (tag ``fedlgr.kind=sweep``: the study's settings and, at
+the end, the best trial and its params) and one child run per trial - the same run as
+``fedlgr run`` - tagged ``sweep`` and ``trial`` and linked with ``parent_run_id`` (the
+active-run stack is thread-local, so ``nested=True`` is not used).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from fedlgr.errors import FedlgrError
+from fedlgr.sweep.spec import SweepSpec
+
+DEFAULT_STORAGE = "sqlite:///optuna.db"
+PARENT_ATTR = "mlflow_parent_run_id"
+
+
+class PrunedRun(Exception):
+    """Raised from a run's ``on_round`` hook when the pruner stops a trial; the run ends
+    KILLED (see :func:`fedlgr.federated.experiment.run_experiment`)."""
+
+    mlflow_status = "KILLED"
+
+
+@dataclass
+class SweepResult:
+    study: Any
+    parent_run_id: str
+    done: bool
+
+
+class RetryStaleTrial:
+    """Optuna's ``RetryHeartbeatStaleTrialCallback`` for a trial whose worker died, which
+    also ends that trial's MLflow run KILLED (its process can no longer do it)."""
+
+    def __init__(self) -> None:
+        from optuna.storages import RetryHeartbeatStaleTrialCallback
+
+        self.retry = RetryHeartbeatStaleTrialCallback(max_retry=3)
+        self.client = None  # set by the Worker once MLflow is open
+        self.experiment_id: str | None = None
+
+    def __call__(self, study, trial) -> None:
+        self.retry(study, trial)
+        if self.client is None:
+            return
+        runs = self.client.search_runs(
+            [self.experiment_id],
+            f"tags.study = '{study.study_name}' and tags.trial = '{trial.number}' "
+            "and attributes.status = 'RUNNING'",
+        )
+        for run in runs:
+            self.client.set_terminated(run.info.run_id, "KILLED")
+
+
+def open_study(spec: SweepSpec, storage: str, study_name: str | None = None, worker: int = 0):
+    """Create or load the study (``load_if_exists``) with heartbeats and retry of dead
+    workers' trials; returns the study and its :class:`RetryStaleTrial`."""
+    import optuna
+    from optuna.storages import RDBStorage
+
+    try:
+        with warnings.catch_warnings():
+            # Heartbeats and their retry callback are "experimental" since Optuna 2.8/2.9.
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            retry = RetryStaleTrial()
+            rdb = RDBStorage(
+                storage,
+                heartbeat_interval=spec.heartbeat_s,
+                grace_period=2 * spec.heartbeat_s,
+                heartbeat_stale_trial_callback=retry,
+                engine_kwargs=(
+                    {"connect_args": {"timeout": 60}} if storage.startswith("sqlite") else {}
+                ),
+            )
+    except Exception as err:
+        raise FedlgrError(f"--storage {storage}: cannot open the study storage: {err}") from err
+    if spec.sampler == "grid":
+        sampler = optuna.samplers.GridSampler(spec.grid, seed=spec.seed)
+    else:
+        # Parallel workers with one seed would propose the same first points.
+        sampler = optuna.samplers.TPESampler(seed=spec.seed * 1000 + worker)
+    pruner = (
+        optuna.pruners.MedianPruner(n_startup_trials=2, n_warmup_steps=spec.prune_warmup_rounds)
+        if spec.pruner == "median"
+        else optuna.pruners.NopPruner()
+    )
+    study = optuna.create_study(
+        study_name=study_name or spec.name,
+        storage=rdb,
+        sampler=sampler,
+        pruner=pruner,
+        direction=spec.direction,
+        load_if_exists=True,
+    )
+    return study, retry
+
+
+def _same(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    return a.keys() == b.keys() and all(a[k] == b[k] for k in a)
+
+
+def _counts(study, spec: SweepSpec) -> tuple[int, int, int]:
+    """(trials still to start, running, waiting) - what is left of the study."""
+    from optuna.trial import TrialState
+
+    trials = study.get_trials(deepcopy=False)
+    retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+    running = [t for t in trials if t.state == TrialState.RUNNING]
+    waiting = [t for t in trials if t.state == TrialState.WAITING]
+    finished = [
+        t
+        for t in trials
+        if t.state.is_finished()
+        and "duplicate_of" not in t.user_attrs
+        and not (t.state == TrialState.FAIL and t.number in retried)
+    ]
+    if spec.sampler == "grid":
+        points = spec.grid_points()
+        open_points = [p for p in points if not any(_same(p, t.params) for t in finished)]
+        # Wait only for running trials that may still cover an open point.
+        running = [
+            t for t in running if not t.params or any(_same(p, t.params) for p in open_points)
+        ]
+        covered = [t.params for t in running]
+        todo = sum(not any(_same(p, c) for c in covered) for p in open_points)
+    else:
+        todo = max(0, spec.n_trials - len(finished) - len(running) - len(waiting))
+    return todo, len(running), len(waiting)
+
+
+def duplicate_of(study, number: int, params: dict[str, Any]) -> int | None:
+    """An earlier trial that covers the same grid point (running or finished without
+    failing), if any: GridSampler can hand a point out twice to parallel workers."""
+    from optuna.trial import TrialState
+
+    for t in study.get_trials(deepcopy=False):
+        if t.number >= number or "duplicate_of" in t.user_attrs:
+            continue
+        alive = t.state in (TrialState.RUNNING, TrialState.COMPLETE, TrialState.PRUNED)
+        if alive and _same(t.params, params):
+            return t.number
+    return None
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+class Worker:
+    """Runs trials of one study until it is done (or interrupted)."""
+
+    def __init__(
+        self,
+        spec: SweepSpec,
+        storage: str = DEFAULT_STORAGE,
+        *,
+        study_name: str | None = None,
+        tracking_uri: str | None = None,
+        worker: int = 0,
+        echo: Callable[..., None] = print,
+    ):
+        self.spec, self.storage, self.worker, self.echo = spec, storage, worker, echo
+        self.study, self.retry = open_study(spec, storage, study_name, worker)
+        self.tracking_uri = tracking_uri
+        self.client, self.experiment_id = self._mlflow()
+        self.retry.client, self.retry.experiment_id = self.client, self.experiment_id
+        self.parent_run_id = self._parent()
+        self.last_trial: int | None = None
+
+    # ------------------------------------------------------------------ MLflow parent run
+
+    def _tracking(self) -> list[str]:
+        out = [f"tracking.experiment={self.spec.experiment}"]
+        if self.tracking_uri:
+            out.append(f"tracking.uri={self.tracking_uri}")
+        return out
+
+    def _mlflow(self):
+        import mlflow
+
+        from fedlgr.config import load_config
+        from fedlgr.tracking.mlflow_run import tracking_uri
+
+        base, overrides = self.spec.trial_config_args({})
+        try:
+            probe = load_config(base, [*overrides, *self._tracking()])
+            uri = tracking_uri(probe)
+        except FedlgrError:  # e.g. data.path left to the grid's config choice
+            uri = (
+                self.tracking_uri or os.environ.get("MLFLOW_TRACKING_URI") or "sqlite:///mlflow.db"
+            )
+        self.tracking_uri = uri
+        client = mlflow.MlflowClient(uri)
+        experiment = client.get_experiment_by_name(self.spec.experiment)
+        experiment_id = (
+            experiment.experiment_id
+            if experiment is not None
+            else client.create_experiment(self.spec.experiment)
+        )
+        return client, experiment_id
+
+    def _parent(self) -> str:
+        """The sweep's parent run: created by the first worker, found by the others (its id
+        is a study user attribute), set RUNNING again when a sweep resumes."""
+        from mlflow.entities import Param
+
+        run_id = self.study.user_attrs.get(PARENT_ATTR)
+        if run_id:
+            if self.client.get_run(run_id).info.status != "RUNNING":
+                self.client.update_run(run_id, status="RUNNING")
+            return run_id
+        spec = self.spec
+        run = self.client.create_run(
+            self.experiment_id,
+            run_name=f"sweep {self.study.study_name}",
+            tags={
+                "fedlgr.kind": "sweep",
+                "sweep": spec.name,
+                "study": self.study.study_name,
+                "sampler": spec.sampler,
+                "objective": f"{spec.direction} {spec.metric}",
+            },
+        )
+        run_id = run.info.run_id
+        params = {
+            "sweep": spec.name,
+            "study": self.study.study_name,
+            "storage": self.storage,
+            "sampler": spec.sampler,
+            "pruner": spec.pruner,
+            "objective.metric": spec.metric,
+            "objective.direction": spec.direction,
+            "trials": spec.n_trials,
+            "base": spec.base or "",
+            "overrides": " ".join(spec.overrides),
+            "space": json.dumps({p.name: _describe(p) for p in spec.params}),
+        }
+        self.client.log_batch(run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
+        if spec.path is not None:
+            self.client.log_artifact(run_id, str(spec.path))
+        self.study.set_user_attr(PARENT_ATTR, run_id)
+        return run_id
+
+    def finish_parent(self) -> dict[str, Any] | None:
+        """Log the best trial (tags ``best.*``, metric ``best/<metric>``, ``best_trial.json``)
+        and end the parent run FINISHED."""
+        from optuna.trial import TrialState
+
+        best = None
+        if any(t.state == TrialState.COMPLETE for t in self.study.get_trials(deepcopy=False)):
+            trial = self.study.best_trial
+            best = {
+                "trial": trial.number,
+                "value": trial.value,
+                "metric": self.spec.metric,
+                "params": trial.params,
+                "mlflow_run_id": trial.user_attrs.get("mlflow_run_id"),
+            }
+            tags = {"best.trial": str(trial.number), "best.run_id": str(best["mlflow_run_id"])}
+            tags.update({f"best.{k}": str(v) for k, v in trial.params.items()})
+            for key, value in tags.items():
+                self.client.set_tag(self.parent_run_id, key, value)
+            self.client.log_metric(self.parent_run_id, f"best/{self.spec.metric}", trial.value)
+            self.client.log_dict(self.parent_run_id, best, "best_trial.json")
+        self.client.log_dict(self.parent_run_id, trial_table(self.study), "trials.json")
+        self.client.set_terminated(self.parent_run_id, "FINISHED")
+        return best
+
+    # ------------------------------------------------------------------ trials
+
+    def objective(self, trial) -> float:
+        import optuna
+
+        spec = self.spec
+        self.last_trial = trial.number
+        trial.set_user_attr("worker", self.worker)
+        if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
+            trial.set_user_attr("interrupted", False)
+            trial.set_user_attr("requeued", False)
+        params = {p.name: p.suggest(trial) for p in spec.params}
+        twin = duplicate_of(self.study, trial.number, params)
+        if twin is not None:
+            trial.set_user_attr("duplicate_of", twin)
+            raise optuna.TrialPruned(f"the same point as trial {twin}")
+        from fedlgr.config import load_config
+        from fedlgr.federated.experiment import run_experiment
+
+        shown = " ".join(f"{k}={v}" for k, v in params.items())
+        self.echo(f"\n=== {spec.name} trial {trial.number} (worker {self.worker}): {shown}")
+        intermediate = (
+            spec.metric
+            if not spec.metric.startswith(("after_task", "mean/"))
+            else "test/" + spec.metric.rsplit("/", 1)[-1]
+        )
+
+        def on_round(round_: int, metrics: dict[str, float]) -> None:
+            if intermediate in metrics:
+                trial.report(metrics[intermediate], round_)
+                if trial.should_prune():
+                    trial.set_user_attr("pruned_at_round", round_)
+                    raise PrunedRun(f"pruned after round {round_}")
+
+        try:
+            base, overrides = spec.trial_config_args(params)
+            config = load_config(base, [*overrides, *self._tracking()])
+            tags = {
+                "sweep": spec.name,
+                "study": self.study.study_name,
+                "trial": str(trial.number),
+                "fedlgr.kind": "trial",
+            }
+            result = run_experiment(
+                config,
+                parent_run_id=self.parent_run_id,
+                tags=tags,
+                echo=self.echo,
+                on_round=on_round,
+            )
+        except PrunedRun as err:
+            raise optuna.TrialPruned(str(err)) from None
+        except KeyboardInterrupt:
+            trial.set_user_attr("interrupted", True)
+            raise
+        except Exception as err:
+            trial.set_user_attr("error", _one_line(err)[:1000])
+            raise
+        trial.set_user_attr("mlflow_run_id", result.run_id)
+        final = result.final_metrics()
+        if spec.metric not in final:
+            known = ", ".join(sorted(k for k in final if "client" not in k))
+            raise FedlgrError(
+                f"objective.metric={spec.metric}: this run did not log it; it logged {known}"
+            )
+        return final[spec.metric]
+
+    def run(self) -> bool:
+        """Run trials until the study is done; True when it is."""
+        import optuna
+
+        optuna.logging.set_verbosity(optuna.logging.ERROR)  # we print one line per trial
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return self._run()
+
+    def _run(self) -> bool:
+        import optuna
+
+        spec = self.spec
+        while True:
+            optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
+            self._fail_unborn_trials()
+            if self._someone_is_drawing():
+                time.sleep(0.5)  # let it take its point first (GridSampler may hand it out twice)
+                continue
+            todo, running, waiting = _counts(self.study, spec)
+            if todo == 0 and waiting == 0:
+                if running == 0:
+                    return True
+                # Another worker is still busy: wait, in case it dies and its trial returns.
+                time.sleep(min(5.0, spec.heartbeat_s / 2))
+                continue
+            start = time.perf_counter()
+            try:
+                self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
+            except KeyboardInterrupt:
+                self._requeue_interrupted()
+                raise
+            self._report_last(time.perf_counter() - start)
+
+    def _someone_is_drawing(self) -> bool:
+        """Another worker has started a trial but not yet drawn its parameters."""
+        from optuna.trial import TrialState
+
+        running = self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+        return any(not t.params for t in running)
+
+    def _fail_unborn_trials(self) -> None:
+        """A worker killed between creating a trial and drawing its parameters leaves a
+        RUNNING trial with no params and no heartbeat, which Optuna never fails: fail it
+        once it is older than the heartbeat grace period (a live trial draws its
+        parameters within milliseconds)."""
+        from datetime import datetime, timedelta
+
+        from optuna.trial import TrialState
+
+        limit = datetime.now() - timedelta(seconds=2 * self.spec.heartbeat_s + 10)
+        for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            if not t.params and t.datetime_start is not None and t.datetime_start < limit:
+                self.study._storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
+
+    def _requeue_interrupted(self) -> None:
+        """Ctrl-C: Optuna records the running trial FAILED; queue it again so the next
+        launch redoes it (as for a worker that died)."""
+        for t in self.study.get_trials(deepcopy=False):
+            interrupted = t.user_attrs.get("interrupted") and t.state.name == "FAIL"
+            if interrupted and not t.user_attrs.get("requeued"):
+                self.study._storage.set_trial_user_attr(t._trial_id, "requeued", True)
+                self.retry.retry(self.study, t)
+        self.client.set_terminated(self.parent_run_id, "KILLED")
+
+    def _report_last(self, seconds: float) -> None:
+        if self.last_trial is None:
+            return
+        t = self.study.get_trials(deepcopy=False)[self.last_trial]
+        if "duplicate_of" in t.user_attrs or not t.state.is_finished():
+            return
+        what = {
+            "COMPLETE": f"{self.spec.metric} {t.value:.4f}" if t.value is not None else "",
+            "PRUNED": f"pruned after round {t.user_attrs.get('pruned_at_round', '?')}",
+            "FAIL": f"FAILED: {t.user_attrs.get('error', 'see the log above')}",
+        }[t.state.name]
+        self.echo(f"=== trial {t.number}: {what} ({seconds:.0f} s)")
+        self.last_trial = None
+
+
+def _describe(p) -> Any:
+    if p.values:
+        return {"choices": list(p.values)} if p.categorical else list(p.values)
+    return {"low": p.low, "high": p.high, "log": p.log, "step": p.step}
+
+
+def trial_table(study) -> list[dict[str, Any]]:
+    """Every trial: number, state, value, params, error / duplicate / MLflow run."""
+    rows = []
+    for t in study.get_trials(deepcopy=False):
+        rows.append(
+            {
+                "trial": t.number,
+                "state": t.state.name,
+                "value": t.value,
+                "params": t.params,
+                **{
+                    k: t.user_attrs[k]
+                    for k in ("error", "duplicate_of", "mlflow_run_id")
+                    if k in t.user_attrs
+                },
+            }
+        )
+    return rows
+
+
+def run_sweep(
+    spec: SweepSpec,
+    *,
+    storage: str = DEFAULT_STORAGE,
+    study_name: str | None = None,
+    workers: int = 1,
+    tracking_uri: str | None = None,
+    cli_overrides: list[str] | None = None,
+    worker_id: int = 0,
+    echo: Callable[..., None] = print,
+) -> SweepResult:
+    """Run (or resume) the sweep with ``workers`` processes: this one and ``workers - 1``
+    ``fedlgr sweep`` subprocesses on the same storage."""
+    worker = Worker(
+        spec,
+        storage,
+        study_name=study_name,
+        tracking_uri=tracking_uri,
+        worker=worker_id,
+        echo=echo,
+    )
+    todo, running, waiting = _counts(worker.study, spec)
+    total = spec.n_trials
+    echo(
+        f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
+        f"study {worker.study.study_name!r} in {storage} "
+        f"({total - todo - running - waiting if spec.sampler == 'tpe' else total - todo} "
+        f"done, {running} running, {waiting} queued); MLflow experiment {spec.experiment!r}, "
+        f"parent run {worker.parent_run_id}"
+    )
+    helpers = []
+    for k in range(1, workers):
+        command = [
+            sys.executable,
+            "-m",
+            "fedlgr",
+            "sweep",
+            str(spec.path),
+            *(cli_overrides or []),
+            "--storage",
+            storage,
+            "--study",
+            worker.study.study_name,
+            "--tracking-uri",
+            worker.tracking_uri,
+            "--worker-id",
+            str(k),
+        ]
+        helpers.append(subprocess.Popen(command))
+    try:
+        done = worker.run()
+    finally:
+        for process in helpers:
+            try:
+                process.wait()
+            except KeyboardInterrupt:
+                process.terminate()
+    best = worker.finish_parent() if done else None
+    echo("\n" + summary(worker.study, spec, best))
+    return SweepResult(worker.study, worker.parent_run_id, done)
+
+
+def summary(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
+    from fedlgr.console import table
+
+    rows = []
+    for row in trial_table(study):
+        if "duplicate_of" in row:
+            continue
+        note = row.get("error", "")
+        mark = " *" if best and row["trial"] == best["trial"] else ""
+        rows.append(
+            [
+                f"{row['trial']}{mark}",
+                row["state"],
+                "-" if row["value"] is None else f"{row['value']:.4f}",
+                " ".join(f"{k}={v}" for k, v in row["params"].items()),
+                note[:60],
+            ]
+        )
+    text = table(["trial", "state", spec.metric, "params", "error"], rows)
+    if best:
+        shown = " ".join(f"{k}={v}" for k, v in best["params"].items())
+        text += f"\n\nbest (*): trial {best['trial']}, {spec.metric} {best['value']:.4f}: {shown}"
+    return text

@@ -1,0 +1,297 @@
+"""Sweeps: every shipped sweep builds its space; a grid runs as an Optuna study with one
+MLflow child run per trial under a parent; a killed sweep resumes; two workers share one."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import optuna
+import pytest
+from optuna.distributions import CategoricalDistribution, FloatDistribution
+
+from fedlgr.errors import ConfigError
+from fedlgr.sweep import load_sweep, run_sweep
+from fedlgr.sweep.spec import SWEEPS_DIR
+
+from .conftest import FAST
+
+SWEEPS = sorted(SWEEPS_DIR.glob("*.yaml"))
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("path", SWEEPS, ids=[p.stem for p in SWEEPS])
+def test_every_shipped_sweep_loads_and_builds_its_search_space(path):
+    spec = load_sweep(path)  # also builds the config of every grid point
+    space = spec.search_space()
+    assert space and set(space) == {p.name for p in spec.params}
+    if spec.sampler == "grid":
+        assert spec.pruner == "none"
+        assert spec.n_trials == math.prod(len(v) for v in spec.grid.values())
+        assert all(isinstance(d, CategoricalDistribution) for d in space.values())
+        optuna.samplers.GridSampler(spec.grid)  # Optuna accepts the grid as it is
+    else:
+        assert spec.pruner == "median" and spec.n_trials > 0
+
+
+def test_the_paper_grids_cover_every_method_and_setting():
+    from fedlgr.config import FCL_METHODS, METHODS
+
+    fl, fcl = load_sweep("paper_fl"), load_sweep("paper_fcl")
+    assert fl.n_trials == 10 * 4 and set(fl.grid["method"]) == set(METHODS)
+    table2 = {m for m in FCL_METHODS if not m.endswith("-FT")}
+    assert fcl.n_trials == 11 * 4 and set(fcl.grid["method"]) == table2
+    assert {Path(c).name for c in fl.grid["config"]} == {
+        "clients2_noaug.yaml",
+        "clients2_aug.yaml",
+        "clients10_noaug.yaml",
+        "clients10_aug.yaml",
+    }
+    tpe = load_sweep("fedlgr_tpe").search_space()
+    assert isinstance(tpe["continual.lgr_lr_root"], FloatDistribution)
+    assert tpe["continual.lgr_lr_root"].log
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ("space: {}\n", "space: needs at least one parameter"),
+        ("space: {train.lr_top: {low: 1}}\n", "space.train.lr_top: a range needs low and high"),
+        ("space: {train.lr_top: [0.1]}\nsampler: bayes\n", "sampler: 'bayes'"),
+        ("space: {train.lr_top: {low: 0.1, high: 1}}\nsampler: grid\n", "grid needs a list"),
+        ("space: {train.lr_top: {low: 0.1, high: 1}}\n", "trials: a TPE sweep needs trials"),
+        ("space: {train.lr_top: [0.1]}\nobjective: {direction: up}\n", "objective.direction"),
+        ("space: {train.lr_topp: [0.1]}\n", "train.lr_topp"),
+        ("space: {train.lr_top: [0.1]}\nworkers: 2\n", "workers: unknown setting"),
+    ],
+)
+def test_bad_sweep_files_name_the_file_and_key(tmp_path, body, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"base: {FAST}\n{body}")
+    with pytest.raises(ConfigError) as err:
+        load_sweep(path)
+    assert str(path) in str(err.value) and message in str(err.value)
+
+
+# --------------------------------------------------------------------------- real studies
+
+
+def write_sweep(tmp_path: Path, synth_dir: Path, cache_dir: Path, name: str = "grid4") -> Path:
+    """A 4-point grid on the fast-dev-run config: 2 methods x 2 top learning rates."""
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1]\n"
+        "objective: {metric: test/rmse, direction: minimize}\n"
+        "space:\n"
+        "  method: [FedAvg, FedRootAvg]\n"
+        "  train.lr_top: [0.001, 0.01]\n"
+    )
+    return path
+
+
+def trials_by_state(storage: str, name: str) -> dict[str, list[optuna.trial.FrozenTrial]]:
+    study = optuna.load_study(study_name=name, storage=storage)
+    out: dict[str, list] = {}
+    for t in study.get_trials():
+        out.setdefault(t.state.name, []).append(t)
+    return out
+
+
+def child_runs(store: str, experiment: str):
+    client = mlflow.MlflowClient(store)
+    exp = client.get_experiment_by_name(experiment)
+    runs = client.search_runs([exp.experiment_id])
+    parents = [r for r in runs if r.data.tags.get("fedlgr.kind") == "sweep"]
+    children = [r for r in runs if r.data.tags.get("fedlgr.kind") == "trial"]
+    return client, parents, children
+
+
+def point(params: dict) -> tuple:
+    return tuple(sorted(params.items()))
+
+
+def test_a_grid_sweep_runs_every_point_once_under_one_parent_run(
+    tmp_path, synth_dir, cache_dir, capsys
+):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    spec = load_sweep(write_sweep(tmp_path, synth_dir, cache_dir))
+    result = run_sweep(spec, storage=storage, tracking_uri=store, echo=print)
+    assert result.done
+
+    states = trials_by_state(storage, "grid4")
+    assert list(states) == ["COMPLETE"] and len(states["COMPLETE"]) == 4
+    assert len({point(t.params) for t in states["COMPLETE"]}) == 4
+
+    client, parents, children = child_runs(store, "sweep-grid4")
+    assert len(parents) == 1 and len(children) == 4
+    parent = parents[0]
+    assert parent.info.run_id == result.parent_run_id and parent.info.status == "FINISHED"
+    assert {c.data.tags["mlflow.parentRunId"] for c in children} == {parent.info.run_id}
+    assert sorted(c.data.tags["trial"] for c in children) == ["0", "1", "2", "3"]
+    assert all(c.info.status == "FINISHED" for c in children)
+    # Each child is a full run (params, metrics, artifacts) and the trial's value is its RMSE.
+    by_trial = {int(c.data.tags["trial"]): c for c in children}
+    for t in states["COMPLETE"]:
+        child = by_trial[t.number]
+        assert t.value == pytest.approx(child.data.metrics["test/rmse"])
+        assert child.data.params["train.lr_top"] == str(t.params["train.lr_top"])
+        assert child.data.tags["method"] == t.params["method"]
+        assert {"config.yaml", "results.csv"} <= {
+            a.path for a in client.list_artifacts(child.info.run_id)
+        }
+    # The parent holds the study's settings and the best trial.
+    best = min(states["COMPLETE"], key=lambda t: t.value)
+    assert parent.data.params["sampler"] == "grid" and parent.data.params["trials"] == "4"
+    assert parent.data.tags["best.trial"] == str(best.number)
+    assert parent.data.tags["best.method"] == best.params["method"]
+    assert parent.data.metrics["best/test/rmse"] == pytest.approx(best.value)
+    out = capsys.readouterr().out
+    assert f"best (*): trial {best.number}" in out
+
+    # Launching a finished sweep again runs nothing.
+    again = run_sweep(spec, storage=storage, tracking_uri=store, echo=print)
+    assert again.done and len(trials_by_state(storage, "grid4")["COMPLETE"]) == 4
+    assert len(child_runs(store, "sweep-grid4")[2]) == 4
+
+
+def test_a_failing_trial_is_recorded_failed_and_the_sweep_goes_on(tmp_path, synth_dir, cache_dir):
+    path = tmp_path / "fails.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1]\n"
+        "space:\n"
+        "  data.clients: [2, 100]\n"  # 100 clients > training scenes: a clear error
+    )
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    result = run_sweep(load_sweep(path), storage=storage, tracking_uri=store, echo=print)
+    assert result.done
+    states = trials_by_state(storage, "fails")
+    assert len(states["COMPLETE"]) == 1 and states["COMPLETE"][0].params == {"data.clients": 2}
+    (failed,) = states["FAIL"]
+    assert failed.params == {"data.clients": 100}
+    assert "100" in failed.user_attrs["error"] and "client" in failed.user_attrs["error"]
+
+
+def test_pruned_trials_end_killed_in_mlflow(tmp_path, synth_dir, cache_dir):
+    """A TPE sweep with the median pruner and a prune-everything warm-up of 0: trials after
+    the startup ones that are worse than the median at a round stop there."""
+    path = tmp_path / "tpe.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1, "
+        "federated.rounds=3]\n"
+        "sampler: tpe\ntrials: 6\npruner: median\nprune_warmup_rounds: 0\n"
+        "space:\n"
+        "  train.lr_top: {low: 0.00001, high: 0.1, log: true}\n"
+    )
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    run_sweep(load_sweep(path), storage=storage, tracking_uri=store, echo=print)
+    study = optuna.load_study(study_name="tpe", storage=storage)
+    trials = study.get_trials()
+    assert len(trials) == 6
+    for t in trials:  # every trial reported its per-round RMSE as intermediate values
+        assert t.intermediate_values and set(t.intermediate_values) <= {1, 2, 3}
+    pruned = [t for t in trials if t.state.name == "PRUNED"]
+    assert pruned, [(t.state.name, t.intermediate_values) for t in trials]
+    _, _, children = child_runs(store, "sweep-tpe")
+    status = {int(c.data.tags["trial"]): c.info.status for c in children}
+    for t in pruned:
+        assert status[t.number] == "KILLED"
+        assert max(t.intermediate_values) == t.user_attrs["pruned_at_round"] < 3
+    for t in trials:
+        if t.state.name == "COMPLETE":
+            assert status[t.number] == "FINISHED"
+
+
+def _sweep_command(path: Path, storage: str, store: str, *extra: str) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "fedlgr",
+        "sweep",
+        str(path),
+        "--storage",
+        storage,
+        "--tracking-uri",
+        store,
+        "--heartbeat",
+        "1",
+        *extra,
+    ]
+
+
+def test_a_killed_sweep_resumes_without_redoing_finished_trials(tmp_path, synth_dir, cache_dir):
+    path = write_sweep(tmp_path, synth_dir, cache_dir, name="resume")
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    process = subprocess.Popen(
+        _sweep_command(path, storage, store),
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 240
+    first = []
+    while time.monotonic() < deadline and not first:
+        time.sleep(0.5)
+        try:
+            first = trials_by_state(storage, "resume").get("COMPLETE", [])
+        except (KeyError, Exception):  # the study does not exist yet
+            first = []
+    os.killpg(process.pid, signal.SIGKILL)  # a real kill: no clean-up runs
+    process.wait()
+    assert first, "the first trial never finished"
+    done_before = {
+        t.number: point(t.params) for t in trials_by_state(storage, "resume")["COMPLETE"]
+    }
+    assert 1 <= len(done_before) < 4
+
+    finished = subprocess.run(
+        _sweep_command(path, storage, store), env=env, capture_output=True, text=True
+    )
+    assert finished.returncode == 0, finished.stderr[-2000:]
+    states = trials_by_state(storage, "resume")
+    complete = states["COMPLETE"]
+    assert len(complete) == 4 and len({point(t.params) for t in complete}) == 4
+    for number, params in done_before.items():  # finished trials are not redone
+        assert [t.number for t in complete if point(t.params) == params] == [number]
+    # The trial the kill interrupted (if any) is FAILED and was retried.
+    for t in states.get("FAIL", []):
+        assert any(t.number in c.system_attrs.get("retry_history", []) for c in complete)
+    _, parents, children = child_runs(store, "sweep-resume")
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    assert sum(c.info.status == "FINISHED" for c in children) == 4
+    assert all(c.info.status in ("FINISHED", "KILLED") for c in children)
+
+
+def test_two_workers_share_one_study_and_run_no_point_twice(
+    tmp_path, synth_dir, cache_dir, monkeypatch
+):
+    path = write_sweep(tmp_path, synth_dir, cache_dir, name="parallel")
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.setenv("PYTHONPATH", str(REPO))
+    result = run_sweep(load_sweep(path), storage=storage, tracking_uri=store, workers=2, echo=print)
+    assert result.done
+    states = trials_by_state(storage, "parallel")
+    complete = states["COMPLETE"]
+    assert len(complete) == 4 and len({point(t.params) for t in complete}) == 4
+    # Any extra trial is a skipped duplicate that never trained.
+    for t in states.get("PRUNED", []):
+        assert "duplicate_of" in t.user_attrs
+    _, parents, children = child_runs(store, "sweep-parallel")
+    assert len(parents) == 1 and len(children) == 4
+    assert len({(c.data.tags["method"], c.data.params["train.lr_top"]) for c in children}) == 4
+    assert {t.user_attrs["worker"] for t in complete} <= {0, 1}
