@@ -89,6 +89,63 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.set_defaults(run="fedlgr.cli.run:run")
 
+    rep = verbs.add_parser(
+        "report",
+        help="the paper's tables (Markdown, LaTeX, CSV) and plots from the runs in MLflow",
+        description="Read the finished runs of an experiment (or the trials of a sweep) from "
+        "MLflow and write Tables I-IV (tableN.md/.tex/.csv: FL and FCL results, FL and FCL "
+        "costs) and PNG plots to --out, then log that folder to MLflow (a run named 'report', "
+        "or the sweep's parent run) under report/. Several runs of one method and setting "
+        "(e.g. seeds) are averaged.",
+    )
+    rep.add_argument(
+        "--experiment",
+        help="MLflow experiment (default: tracking.experiment's default, unless --sweep is given)",
+    )
+    rep.add_argument(
+        "--sweep",
+        help="only the trials of this sweep (tag sweep=NAME), in every experiment or in "
+        "--experiment",
+    )
+    rep.add_argument("--out", type=Path, help="output folder (default: reports/NAME)")
+    rep.add_argument(
+        "--tracking-uri",
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)",
+    )
+    rep.add_argument("--dataset", help="only runs on this dataset (tag dataset, e.g. synthetic)")
+    rep.add_argument("--modality", choices=["image", "features"], help="only runs of this modality")
+    rep.add_argument("--no-log", action="store_true", help="write the files but log nothing")
+    rep.set_defaults(run="fedlgr.cli.report:report")
+
+    sweep = verbs.add_parser(
+        "sweep",
+        help="run or resume an Optuna sweep (grid or TPE) of experiments",
+        description="Run the trials of SWEEP (a file in sweeps/, e.g. sweeps/ewc.yaml or just "
+        "ewc) as an Optuna study, each trial an experiment tracked in MLflow under one parent "
+        "run. Launching it again resumes the study; --workers N (or launches elsewhere on the "
+        "same --storage) work on it in parallel. Overrides apply to every trial, e.g. "
+        "data.path=/path/to/manners-db.",
+    )
+    sweep.add_argument("sweep", help="sweep file or name (see sweeps/)")
+    sweep.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    sweep.add_argument(
+        "--storage",
+        default="sqlite:///optuna.db",
+        help="Optuna RDB storage URL (default %(default)s; a PostgreSQL/MySQL URL for several "
+        "machines)",
+    )
+    sweep.add_argument("--study", help="study name (default: the sweep's name)")
+    sweep.add_argument("--workers", type=int, default=1, help="processes on this machine")
+    sweep.add_argument("--tracking-uri", help="MLflow tracking URI")
+    sweep.add_argument(
+        "--heartbeat",
+        type=int,
+        default=None,
+        help="seconds between a worker's heartbeats; a trial silent for two is retried",
+    )
+    sweep.add_argument("--worker-id", type=int, default=0, help=argparse.SUPPRESS)
+    sweep.set_defaults(run="fedlgr.cli.sweep:sweep")
+
     pre = verbs.add_parser(
         "pretrain",
         help="pretrain a MobileNetV2 root on scene descriptors (no labels), offline",

@@ -1,0 +1,95 @@
+"""``fedlgr report``: the paper's Tables I-IV and plots, regenerated from what MLflow holds.
+
+:func:`make_report` reads the finished runs of an experiment or a sweep
+(:mod:`~fedlgr.report.runs`), builds the tables (:mod:`~fedlgr.report.tables`, pure),
+writes each as ``tableN.md``, ``.tex`` and ``.csv`` (:mod:`~fedlgr.report.render`) next to
+the PNGs (:mod:`~fedlgr.report.plots`), and logs the folder back to MLflow under
+``report/``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fedlgr.report.runs import ReportError, RunRecord
+
+__all__ = ["ReportError", "ReportResult", "RunRecord", "default_out", "make_report"]
+
+TITLES = {
+    "table1": "FL results",
+    "table2": "FCL results",
+    "table3": "FL costs",
+    "table4": "FCL costs",
+}
+BENCHMARK = {"table1": "FL", "table2": "FCL", "table3": "FL", "table4": "FCL"}
+
+
+@dataclass
+class ReportResult:
+    out: Path
+    source: str
+    uri: str
+    runs: int
+    tables: list[tuple[str, int]] = field(default_factory=list)  # (name, runs)
+    plots: list[str] = field(default_factory=list)
+    logged_to: str | None = None  # the MLflow run holding the report
+
+    def summary(self) -> str:
+        s = "s" if self.runs != 1 else ""
+        lines = [f"Report on {self.runs} finished run{s} of {self.source} ({self.uri}):"]
+        for name, runs in self.tables:
+            s = "s" if runs != 1 else ""
+            title = f"{name} ({TITLES[name]})"
+            lines.append(f"  {title:<22} {name}.md/.tex/.csv from {runs} run{s}")
+        written = {BENCHMARK[name] for name, _ in self.tables}
+        for benchmark in sorted({"FL", "FCL"} - written):
+            names = [n for n, b in BENCHMARK.items() if b == benchmark]
+            lines.append(f"  {' and '.join(names)}: not written, no finished {benchmark} runs")
+        lines.append(f"  plots: {', '.join(self.plots) or 'none (no data)'}")
+        where = f"written to {self.out}"
+        if self.logged_to:
+            where += f"; logged to MLflow run {self.logged_to} under report/"
+        lines.append(where)
+        return "\n".join(lines)
+
+
+def default_out(name: str) -> Path:
+    """``reports/<experiment or sweep name>``."""
+    return Path("reports") / name.replace("/", "_").replace("\\", "_")
+
+
+def make_report(
+    uri: str,
+    *,
+    experiment: str | None = None,
+    sweep: str | None = None,
+    out: Path | None = None,
+    dataset: str | None = None,
+    modality: str | None = None,
+    log: bool = True,
+) -> ReportResult:
+    """Write the tables and plots of ``experiment`` or ``sweep`` to ``out`` (default
+    ``reports/<name>``) and, with ``log``, log them to MLflow."""
+    from fedlgr.report.plots import write_plots
+    from fedlgr.report.render import to_csv, to_latex, to_markdown
+    from fedlgr.report.runs import log_report, metric_histories, open_store, select_runs
+    from fedlgr.report.tables import build_tables
+
+    client = open_store(uri)
+    selection = select_runs(
+        client, uri, experiment=experiment, sweep=sweep, dataset=dataset, modality=modality
+    )
+    records = selection.records
+    out = Path(out) if out is not None else default_out(selection.name)
+    out.mkdir(parents=True, exist_ok=True)
+    result = ReportResult(out, selection.source, uri, len(records))
+    for table in build_tables(records, selection.source):
+        for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
+            (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
+        result.tables.append((table.name, table.runs))
+    histories = {m: metric_histories(client, records, m) for m in ("test/rmse", "test/pcc")}
+    result.plots = write_plots(records, histories, out)
+    if log:
+        result.logged_to = log_report(selection, out, len(records))
+    return result

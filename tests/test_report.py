@@ -1,0 +1,357 @@
+"""fedlgr report: Tables I-IV from real fast-dev runs read back from MLflow, the marking of
+best values and FedRoot reductions on hand-made numbers, sweeps, and the command line."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import mlflow
+import pytest
+
+from fedlgr.cli import main
+from fedlgr.config import FCL_METHODS, METHODS
+from fedlgr.federated.experiment import run_experiment
+from fedlgr.report import ReportError, make_report
+from fedlgr.report.tables import mark_best, mark_lower_of_pair, reduction_percent
+from tests.conftest import fast_config
+
+EXPERIMENT = "report-test"
+TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT")]
+SCORES = ("loss", "rmse", "pcc")
+
+
+# --------------------------------------------------------------------------- marking
+
+
+def test_best_is_lowest_for_errors_and_highest_for_pcc():
+    assert mark_best([0.30, 0.10, 0.20], lower_is_better=True, decimals=3) == [
+        "",
+        "best",
+        "second",
+    ]
+    assert mark_best([0.30, 0.10, 0.20], lower_is_better=False, decimals=3) == [
+        "best",
+        "",
+        "second",
+    ]
+
+
+def test_ties_as_shown_share_a_mark_and_missing_values_get_none():
+    # 0.2641 and 0.2644 both show as 0.264: both best; the next value is second.
+    values = [0.2641, None, 0.2644, 0.300, math.nan, 0.500]
+    assert mark_best(values, True, 3) == ["best", "", "best", "second", "", ""]
+    assert mark_best(values, True, 4) == ["best", "", "second", "", "", ""]
+    assert mark_best([None, 0.4], False, 3) == ["", "best"]  # a lone value is the best
+    assert mark_best([None, None], True, 3) == ["", ""]
+
+
+def test_cost_pairs_mark_the_lower_and_the_reduction_is_against_the_full_model():
+    assert mark_lower_of_pair(19.06, 2.55, 2) == ["", "best"]
+    assert mark_lower_of_pair(2.0, 3.0, 2) == ["best", ""]
+    assert mark_lower_of_pair(2.001, 2.004, 2) == ["", ""]  # equal as shown
+    assert mark_lower_of_pair(None, 2.0, 2) == ["", ""]
+    assert reduction_percent(19.06, 2.55) == pytest.approx(86.62, abs=0.01)  # the paper's
+    assert reduction_percent(0.63, 0.24) == pytest.approx(61.9, abs=0.05)
+    assert reduction_percent(2.0, 3.0) == pytest.approx(-50.0)  # FedRoot costs more
+    assert reduction_percent(None, 1.0) is None and reduction_percent(0.0, 1.0) is None
+
+
+# --------------------------------------------------------------------------- real runs
+
+
+@pytest.fixture(scope="module")
+def runs(synth_dir, store, tmp_path_factory) -> dict[str, list[str]]:
+    """Fast dev runs: FedAvg twice (seeds: one cell of two runs), FedRootAvg, FedAvg with
+    augmentation, FedLGR through two tasks; and a FAILED FedBN run that must not count.
+    Returns run ids per label."""
+    client = mlflow.MlflowClient(store)
+    artifacts = tmp_path_factory.mktemp("artifacts")
+    client.create_experiment(EXPERIMENT, artifact_location=artifacts.as_uri())
+    cache = tmp_path_factory.mktemp("cache")
+    # One torch thread: far quicker than two when the machine is busy.
+    common = [f"tracking.experiment={EXPERIMENT}", "runtime.threads=1"]
+    plans = {
+        "FedAvg": [["method=FedAvg", "seed=0"], ["method=FedAvg", "seed=1"]],
+        "FedRootAvg": [["method=FedRootAvg"]],
+        "FedAvg-aug": [["method=FedAvg", "data.augment=true"]],
+        "FedLGR": [
+            ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=2"],
+        ],
+    }
+    ids = {}
+    for label, overrides in plans.items():
+        ids[label] = [
+            run_experiment(fast_config(synth_dir, cache, store, *common, *o)).run_id
+            for o in overrides
+        ]
+    experiment_id = client.get_experiment_by_name(EXPERIMENT).experiment_id
+    tags = {
+        "method": "FedBN",
+        "benchmark": "FL",
+        "clients": "2",
+        "augmentation": "false",
+        "dataset": "synthetic",
+        "modality": "image",
+    }
+    failed = client.create_run(experiment_id, run_name="FedBN-2c-noaug", tags=tags).info.run_id
+    for m in SCORES:
+        client.log_metric(failed, f"test/{m}", 0.0 if m != "pcc" else 1.0, step=1)
+    client.set_terminated(failed, "FAILED")
+    return ids
+
+
+@pytest.fixture(scope="module")
+def report(runs, store, tmp_path_factory):
+    return make_report(store, experiment=EXPERIMENT, out=tmp_path_factory.mktemp("report"))
+
+
+def metrics_of(store, run_ids: list[str]) -> dict[str, float]:
+    """The mean over ``run_ids`` of each metric, as MLflow holds it."""
+    client = mlflow.MlflowClient(store)
+    runs = [client.get_run(r).data.metrics for r in run_ids]
+    return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0] if all(k in r for r in runs)}
+
+
+def markdown_blocks(path) -> dict[str, tuple[list[str], dict[str, list[str]]]]:
+    """``{block title: (header, {row label: cells})}`` from a report's Markdown file."""
+    blocks, title = {}, None
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.startswith("**") and line.endswith("**"):
+            title = line.strip("*")
+        elif line.startswith("| ") and title is not None and not line.startswith("| ---"):
+            cells = line[2:-2].split(" | ")
+            if title not in blocks:
+                blocks[title] = (cells, {})
+            else:
+                blocks[title][1][cells[0]] = cells[1:]
+    return blocks
+
+
+def parse(cell: str) -> tuple[str | None, str]:
+    """(number as shown or None, mark) of a Markdown cell."""
+    number = cell.split(" (")[0]
+    if number == "—":
+        return None, ""
+    if number.startswith("**"):
+        return number.strip("*"), "best"
+    if number.startswith("["):
+        return number.strip("[]"), "second"
+    return number, ""
+
+
+def test_table1_rows_columns_values_and_bold_best(report, runs, store):
+    blocks = markdown_blocks(report.out / "table1.md")
+    assert list(blocks) == ["W/O augmentation", "W/ augmentation"]
+    header, rows = blocks["W/O augmentation"]
+    arrows = {"loss": "Loss ▼", "rmse": "RMSE ▼", "pcc": "PCC ▲"}
+    assert header == ["Method"] + [f"{c} clients · {arrows[m]}" for c in (2, 10) for m in SCORES]
+    assert list(rows) == list(METHODS)  # the paper's ten, in order, with or without runs
+
+    values = {m: metrics_of(store, runs[m]) for m in ("FedAvg", "FedRootAvg")}
+    for j, m in enumerate(SCORES):
+        shown = {k: f"{values[k][f'test/{m}']:.3f}" for k in values}
+        lower = m != "pcc"
+        best = min(shown.values(), key=float) if lower else max(shown.values(), key=float)
+        for method, text in shown.items():
+            assert parse(rows[method][j]) == (
+                text,
+                "best" if text == best else "second",
+            ), (method, m)
+    for method in METHODS:
+        if method not in values:  # FedBN: only a FAILED run; the others: none
+            assert rows[method] == ["—"] * 6, method
+        assert rows[method][3:] == ["—"] * 3  # no run with ten clients
+
+    _, augmented = blocks["W/ augmentation"]
+    aug = metrics_of(store, runs["FedAvg-aug"])
+    assert [parse(c) for c in augmented["FedAvg"][:3]] == [
+        (f"{aug[f'test/{m}']:.3f}", "best") for m in SCORES
+    ]
+    assert augmented["FedRootAvg"] == ["—"] * 6
+    text = (report.out / "table1.md").read_text(encoding="utf-8")
+    assert "Built from 4 finished runs of experiment `report-test`" in text
+    assert "(1 to 2 runs per value)" in text
+
+
+def latex_rows(path) -> dict[tuple[str, str], list[str]]:
+    """``{(block title, row label): cells}`` from a report's LaTeX file."""
+    rows, title = {}, None
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.startswith(r"\multicolumn") and line.endswith(r"\\\midrule") and " & " not in line:
+            title = line.split(r"\textit{")[1].split("}")[0]
+        elif title is not None and line.endswith(r"\\"):
+            label, *cells = line.removesuffix(r"\\").split(" & ")
+            rows[title, label.split(" $")[0].replace(r"\%", "%")] = cells
+    return rows
+
+
+def test_csv_and_latex_hold_the_same_numbers_as_the_markdown(report):
+    for name in ("table1", "table2", "table3", "table4"):
+        blocks = markdown_blocks(report.out / f"{name}.md")
+        with (report.out / f"{name}.csv").open(newline="") as f:
+            table = list(csv.reader(f))
+        tex = latex_rows(report.out / f"{name}.tex")
+        header = table[0]
+        numbers_at = [j for j, h in enumerate(header) if j > 1 and "reduction" not in h]
+        assert len(table) - 1 == sum(len(rows) for _, rows in blocks.values()) == len(tex)
+        for row in table[1:]:
+            title, label = row[0], row[1]
+            md_header, md_rows = blocks[title]
+            cells = md_rows.get(label) or md_rows[f"{label} ▼"]
+            assert len(numbers_at) == len(cells) == len(md_header) - 1
+            tex_cells = []
+            for j, cell in zip(numbers_at, cells, strict=True):
+                shown, mark = parse(cell)
+                assert (shown is None) == (row[j] == ""), (name, label, cell, row[j])
+                if shown is not None:
+                    decimals = len(shown.split(".")[1])
+                    assert f"{float(row[j]):.{decimals}f}" == shown, (name, label)
+                wrap = {"best": r"\textbf{{{}}}", "second": "[{}]"}.get(mark, "{}")
+                tex_cells.append("—" if shown is None else wrap.format(shown))
+            assert [c.split(" (")[0] for c in tex[title, label]] == tex_cells, (name, label)
+
+
+def test_table2_and_the_cost_tables(report, runs, store):
+    blocks = markdown_blocks(report.out / "table2.md")
+    header, rows = blocks["W/O augmentation"]
+    assert list(rows) == TABLE2 and len(header) == 1 + 12
+    assert header[1:4] == [f"2 clients · After Task 1 · {h}" for h in ("Loss ▼", "RMSE ▼", "PCC ▲")]
+    assert header[4] == "2 clients · After Task 2 · Loss ▼"
+    lgr = metrics_of(store, runs["FedLGR"])
+    expected = [f"{lgr[f'after_task{k}/test/{m}']:.3f}" for k in (1, 2) for m in SCORES]
+    assert [parse(c) for c in rows["FedLGR"][:6]] == [(v, "best") for v in expected]
+    assert rows["FedAvg-EWC"] == ["—"] * 12
+
+    header, rows = markdown_blocks(report.out / "table3.md")["2 clients, W/O augmentation"]
+    assert header[1:5] == ["FedAvg", "FedRootAvg", "FedBN", "FedRootBN"]
+    full, root = metrics_of(store, runs["FedAvg"]), metrics_of(store, runs["FedRootAvg"])
+    cpu = rows["CPU usage (s) ▼"]
+    cut = reduction_percent(full["mean/cost/cpu_s"], root["mean/cost/cpu_s"])
+    arrow = "▼" if cut >= 0 else "▲"
+    assert cpu[1].endswith(f"({arrow} {abs(cut):.1f}%)")
+    marks = mark_lower_of_pair(full["mean/cost/cpu_s"], root["mean/cost/cpu_s"], 2)
+    assert [parse(c)[1] for c in cpu[:2]] == marks
+    assert parse(cpu[0])[0] == f"{full['mean/cost/cpu_s']:.2f}"
+    assert cpu[2:4] == ["—", "—"]  # FedBN's run failed
+    if "mean/cost/gpu_util" not in full:  # no NVIDIA GPU here: not measured
+        assert rows["GPU usage (%) ▼"][:2] == ["—", "—"]
+
+    header, rows = markdown_blocks(report.out / "table4.md")["2 clients, W/O augmentation"]
+    assert header[1:] == [
+        "FedAvg-EWC",
+        "FedRoot-EWC",
+        "FedAvg-EWCOnline",
+        "FedRoot-EWCOnline",
+        "FedAvg-SI",
+        "FedRoot-SI",
+        "FedAvg-MAS",
+        "FedRoot-MAS",
+        "FedAvg-NR",
+        "FedRoot-NR",
+        "FedLGR",
+    ]
+    assert rows["CPU usage (s) ▼"][-1] == f"{lgr['mean/cost/cpu_s']:.2f}"  # no pair, no mark
+
+
+def test_report_is_logged_back_to_mlflow(report, store):
+    client = mlflow.MlflowClient(store)
+    run = client.get_run(report.logged_to)
+    assert run.info.run_name == "report" and run.info.status == "FINISHED"
+    assert run.data.tags["fedlgr.kind"] == "report"
+    logged = {
+        a.path.removeprefix("report/") for a in client.list_artifacts(run.info.run_id, "report")
+    }
+    tables = {f"table{k}{s}" for k in (1, 2, 3, 4) for s in (".md", ".tex", ".csv")}
+    plots = {"fl_curves.png", "fcl_curves.png", "forgetting.png", "fl_costs.png", "fcl_costs.png"}
+    assert tables | plots <= logged and set(report.plots) == plots
+    assert (report.out / "fl_curves.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_cli_reports_again_without_counting_report_runs(report, store, tmp_path, capsys):
+    out = tmp_path / "again"
+    args = ["report", "--tracking-uri", store, "--experiment", EXPERIMENT, "--out", str(out)]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "Report on 5 finished runs of experiment `report-test`" in text  # not the report run
+    assert "table1 (FL results)" in text and "from 4 runs" in text and str(out) in text
+    assert (out / "table1.md").read_text(encoding="utf-8") == (report.out / "table1.md").read_text(
+        encoding="utf-8"
+    )
+
+
+def test_cli_names_an_unknown_experiment_in_one_line(store, capsys):
+    assert main(["report", "--tracking-uri", store, "--experiment", "nope"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith("fedlgr: error: no MLflow experiment named 'nope'")
+
+
+# --------------------------------------------------------------------------- sweeps
+
+
+def _finished_run(client, experiment_id, tags, metrics) -> str:
+    run_id = client.create_run(experiment_id, tags=tags).info.run_id
+    for key, value in metrics.items():
+        client.log_metric(run_id, key, value, step=1)
+    client.set_terminated(run_id, "FINISHED")
+    return run_id
+
+
+def test_sweep_report_shows_the_best_trial_per_cell_and_goes_into_the_parent_run(store, tmp_path):
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("sweeps", artifact_location=tmp_path.as_uri())
+    tags = {"method": "FedAvg-EWC", "benchmark": "FCL", "clients": "2", "augmentation": "false"}
+    # The parent run, finished and holding the best trial's tags and score, is not a trial.
+    parent = _finished_run(
+        client,
+        experiment_id,
+        {**tags, "fedlgr.kind": "sweep", "sweep": "s1", "objective": "minimize test/loss"},
+        {"after_task1/test/loss": 0.2},
+    )
+    for trial, (loss, cpu) in enumerate([(0.2, 10.0), (0.4, 30.0)]):
+        trial_tags = {**tags, "sweep": "s1", "trial": str(trial), "mlflow.parentRunId": parent}
+        _finished_run(
+            client,
+            experiment_id,
+            trial_tags,
+            {"after_task1/test/loss": loss, "test/loss": loss + 1, "mean/cost/cpu_s": cpu},
+        )
+    _finished_run(client, experiment_id, {**tags, "sweep": "s2"}, {"after_task1/test/loss": 9.0})
+
+    result = make_report(store, sweep="s1", out=tmp_path / "out")
+    # The grid's best trial by the sweep's objective (test/loss: trial 0), not the mean.
+    assert result.runs == 1 and [n for n, _ in result.tables] == ["table2", "table4"]
+    _, rows = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
+    assert rows["FedAvg-EWC"][0] == "**0.200**" and rows["FedAvg-EWC"][1] == "—"
+    _, rows = markdown_blocks(tmp_path / "out" / "table4.md")["2 clients, W/O augmentation"]
+    assert rows["CPU usage (s) ▼"][0] == "10.00"
+    assert result.logged_to == parent
+    logged = {a.path for a in client.list_artifacts(parent, "report")}
+    assert {"report/table2.md", "report/table4.csv"} <= logged
+
+    with pytest.raises(ReportError, match="sweep `nothing` has no finished fedlgr runs"):
+        make_report(store, sweep="nothing", out=tmp_path / "none")
+
+
+def test_runs_of_several_datasets_must_be_told_apart(store, tmp_path):
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("mixed", artifact_location=tmp_path.as_uri())
+    for dataset, loss in (("synthetic", 0.5), ("manners-db", 0.3)):
+        tags = {
+            "method": "FedAvg",
+            "benchmark": "FL",
+            "clients": "2",
+            "augmentation": "false",
+            "dataset": dataset,
+            "modality": "image",
+        }
+        _finished_run(client, experiment_id, tags, {"test/loss": loss})
+    with pytest.raises(ReportError, match=r"mixes datasets.*--dataset"):
+        make_report(store, experiment="mixed", out=tmp_path / "a", log=False)
+    result = make_report(
+        store, experiment="mixed", dataset="manners-db", out=tmp_path / "b", log=False
+    )
+    assert result.runs == 1 and result.logged_to is None
+    _, rows = markdown_blocks(tmp_path / "b" / "table1.md")["W/O augmentation"]
+    assert rows["FedAvg"][0] == "**0.300**"
