@@ -1,4 +1,4 @@
-"""FCL benchmark (issue: FCL). Run: ``uv run python bench/fcl.py`` (~20 minutes on 2 cores).
+"""FCL benchmark (issue: FCL). Run: ``uv run python bench/fcl.py`` (~25 minutes on 2 cores).
 
 On the synthetic living room (1000 scenes, 128 px, 2 clients), Task 1 = circle then Task 2 =
 arrow, ``--rounds-per-task`` rounds of ``--epochs`` local epochs each, every Table II method
@@ -43,7 +43,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--methods", nargs="*", default=TABLE2)
     parser.add_argument("--seeds", nargs="*", type=int, default=[0, 1], help="seeds of FedRoot-FT")
-    parser.add_argument("--rounds-per-task", type=int, default=5)
+    parser.add_argument("--rounds-per-task", type=int, default=8)
     parser.add_argument("--epochs", type=int, default=2)
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--width", type=float, default=0.5)

@@ -85,6 +85,7 @@ def open_study(spec: SweepSpec, storage: str, study_name: str | None = None, wor
     import optuna
     from optuna.storages import RDBStorage
 
+    optuna.logging.set_verbosity(optuna.logging.WARNING)  # no INFO line per study/trial
     try:
         with warnings.catch_warnings():
             # Heartbeats and their retry callback are "experimental" since Optuna 2.8/2.9.
