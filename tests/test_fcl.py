@@ -106,7 +106,8 @@ def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store
 
 def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, store, monkeypatch):
     """FedLGR's generator training happens at the end of a task: its CPU time must appear in
-    that round's cost of the client (a busy loop of 0.4 CPU s stands in for it here)."""
+    that round's cost of the client (a busy loop of 2 CPU s stands in for it here; the
+    other rounds of this fast run take well under that, replay included)."""
     import time as clock
 
     from fedlgr.continual.lgr import LatentReplay
@@ -114,7 +115,7 @@ def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, s
     real = LatentReplay.on_task_end
 
     def busy(self, ctx):
-        end = clock.process_time() + 0.4
+        end = clock.process_time() + 2.0
         while clock.process_time() < end:
             pass
         real(self, ctx)
@@ -127,12 +128,13 @@ def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, s
         "method=FedLGR",
         "continual.rounds_per_task=2",
         "continual.lgr_epochs=1",
+        "runtime.threads=1",  # no OpenMP spin-waiting to inflate the other rounds' CPU time
     )
     result = run_experiment(config)
     cpu = [log.column("cpu_s") for log in result.rounds]  # rounds 2 and 4 end a task
     for c in (0, 1):
-        assert cpu[1][c] >= 0.4 and cpu[3][c] >= 0.4
-        assert cpu[0][c] < 0.4 and cpu[2][c] < 0.4
+        assert cpu[1][c] >= 2.0 and cpu[3][c] >= 2.0, cpu
+        assert cpu[0][c] < 2.0 and cpu[2][c] < 2.0, cpu
 
 
 def test_schedule_steps_mark_task_boundaries():
