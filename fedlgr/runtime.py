@@ -11,6 +11,13 @@ _MMAP_THRESHOLD = 32 * 1024 * 1024  # glibc's largest allowed value on 64-bit
 _TRIM_THRESHOLD = 512 * 1024 * 1024
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
 def tune_allocator() -> bool:
     """Have glibc keep freed blocks of up to 32 MB for reuse instead of unmapping them.
 

@@ -31,29 +31,12 @@ def test_pretrained_root_loads_as_model_weights(synth_dir, cache_dir, tmp_path):
 
 def test_synthetic_root_is_made_once_from_other_scenes(tmp_path, cache_dir):
     messages = []
-    path = synthetic_root(
-        tmp_path,
-        seed=3,
-        scenes=24,
-        width=0.1,
-        images=32,
-        size=32,
-        cache_dir=cache_dir,
-        echo=messages.append,
-    )
+    settings = dict(seed=3, scenes=24, width=0.1, images=32, size=32, cache_dir=cache_dir)
+    path = synthetic_root(tmp_path, **settings, echo=messages.append)
     assert path.is_file() and (tmp_path / "synth-seed1003-24" / "all_data.csv").is_file()
     assert any("pretraining a width-0.1 MobileNetV2 root" in m for m in messages)
     stamp = os.stat(path).st_mtime_ns
-    again = synthetic_root(
-        tmp_path,
-        seed=3,
-        scenes=24,
-        width=0.1,
-        images=32,
-        size=32,
-        cache_dir=cache_dir,
-        echo=messages.append,
-    )
+    again = synthetic_root(tmp_path, **settings, echo=messages.append)
     assert again == path and os.stat(path).st_mtime_ns == stamp and len(messages) == 2
 
 

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import os
 
 
 def report(args: argparse.Namespace) -> int:
     from fedlgr.config import TrackingConfig
     from fedlgr.report import make_report
-    from fedlgr.tracking.mlflow_run import DEFAULT_URI
+    from fedlgr.tracking.mlflow_run import resolve_uri
 
-    uri = args.tracking_uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+    uri = resolve_uri(args.tracking_uri)
     experiment = args.experiment
     if experiment is None and args.sweep is None:
         experiment = TrackingConfig().experiment

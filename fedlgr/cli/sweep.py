@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
+
+from fedlgr.runtime import available_cores
 
 
 def sweep(args: argparse.Namespace) -> int:
@@ -12,8 +13,7 @@ def sweep(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     if args.workers > 1 and not any(o.startswith("runtime.threads=") for o in overrides):
         # Share this machine's cores between the workers instead of oversubscribing them.
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        overrides.append(f"runtime.threads={max(1, (cores or 1) // args.workers)}")
+        overrides.append(f"runtime.threads={max(1, available_cores() // args.workers)}")
     spec = load_sweep(args.sweep, overrides)
     if args.heartbeat is not None:
         from dataclasses import replace

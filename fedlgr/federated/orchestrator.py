@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import copy
 import math
-import os
 import time
 from dataclasses import dataclass
 
@@ -42,6 +41,7 @@ from fedlgr.federated.plugins import LocalContext
 from fedlgr.federated.scope import nbytes, parameter_keys, shared_keys
 from fedlgr.federated.strategies import STRATEGIES, FedOpt
 from fedlgr.models.scholar import build_scholar
+from fedlgr.runtime import available_cores
 from fedlgr.tracking.metrics import regression_scores
 from fedlgr.tracking.resources import Usage, measure
 
@@ -377,7 +377,4 @@ def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:
     """Threads per process: the setting, else this machine's cores over its processes."""
     if config.runtime.threads is not None:
         return config.runtime.threads
-    cores = (
-        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    )
-    return max(1, cores // local_world_size)
+    return max(1, available_cores() // local_world_size)

@@ -25,7 +25,6 @@ active-run stack is thread-local, so ``nested=True`` is not used).
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
@@ -208,25 +207,17 @@ class Worker:
         import mlflow
 
         from fedlgr.config import load_config
-        from fedlgr.tracking.mlflow_run import tracking_uri
+        from fedlgr.tracking.mlflow_run import experiment_id, resolve_uri, tracking_uri
 
         base, overrides = self.spec.trial_config_args({})
         try:
             probe = load_config(base, [*overrides, *self._tracking()])
             uri = tracking_uri(probe)
         except FedlgrError:  # e.g. data.path left to the grid's config choice
-            uri = (
-                self.tracking_uri or os.environ.get("MLFLOW_TRACKING_URI") or "sqlite:///mlflow.db"
-            )
+            uri = resolve_uri(self.tracking_uri)
         self.tracking_uri = uri
         client = mlflow.MlflowClient(uri)
-        experiment = client.get_experiment_by_name(self.spec.experiment)
-        experiment_id = (
-            experiment.experiment_id
-            if experiment is not None
-            else client.create_experiment(self.spec.experiment)
-        )
-        return client, experiment_id
+        return client, experiment_id(client, self.spec.experiment)
 
     def _parent(self) -> str:
         """The sweep's parent run: created by the first worker, found by the others (its id

@@ -26,8 +26,19 @@ from fedlgr.config import ExperimentConfig, flatten, to_yaml
 DEFAULT_URI = "sqlite:///mlflow.db"
 
 
+def resolve_uri(uri: str | None) -> str:
+    """``uri`` if given, else ``$MLFLOW_TRACKING_URI``, else the local sqlite store."""
+    return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+
+
 def tracking_uri(config: ExperimentConfig) -> str:
-    return config.tracking.uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+    return resolve_uri(config.tracking.uri)
+
+
+def experiment_id(client, name: str) -> str:
+    """The id of MLflow experiment ``name``, created if it does not exist yet."""
+    experiment = client.get_experiment_by_name(name)
+    return experiment.experiment_id if experiment is not None else client.create_experiment(name)
 
 
 def dataset_name(config: ExperimentConfig) -> str:
@@ -48,12 +59,7 @@ class Tracker:
 
         self.mlflow = mlflow
         self.client = mlflow.MlflowClient(tracking_uri(config))
-        experiment = self.client.get_experiment_by_name(config.tracking.experiment)
-        experiment_id = (
-            experiment.experiment_id
-            if experiment is not None
-            else self.client.create_experiment(config.tracking.experiment)
-        )
+        self.experiment_id = experiment_id(self.client, config.tracking.experiment)
         run_tags = {
             "method": config.method_name,
             "strategy": config.federated.strategy,
@@ -68,9 +74,8 @@ class Tracker:
         }
         if parent_run_id:
             run_tags["mlflow.parentRunId"] = parent_run_id
-        run = self.client.create_run(experiment_id, run_name=config.run_name, tags=run_tags)
+        run = self.client.create_run(self.experiment_id, run_name=config.run_name, tags=run_tags)
         self.run_id = run.info.run_id
-        self.experiment_id = experiment_id
         params = flatten(config)
         from mlflow.entities import Param
 
