@@ -203,18 +203,34 @@ class ContinualConfig:
     mas_lambda: float = 1.0  # MAS: penalty coefficient
     nr_memory: int = 100  # NR: scenes kept per client (all past tasks together)
     nr_replay_ratio: float = 0.5  # NR: memory samples added per current sample in a batch
+    freeze_root_bn: bool = False  # EWC/SI/MAS/NR/FT: root BatchNorm statistics frozen from task 2
+    lgr_schedule: str = "two_phase"  # FedLGR: two_phase (top, then root) | joint (one pass)
+    lgr_replay: str = "generator"  # generator | stored (the oracle: real past latents kept)
+    lgr_freeze_root_bn: bool = True  # FedLGR: root BatchNorm statistics frozen from task 2
     lgr_hidden: int = 512  # FedLGR's VAE: hidden width
-    lgr_latent: int = 64  # FedLGR's VAE: latent size
-    lgr_epochs: int = 50  # FedLGR's VAE: epochs at the end of each task
+    lgr_latent: int = 16  # FedLGR's VAE: latent size
+    lgr_epochs: int = 300  # FedLGR's VAE: most epochs at the end of each task
+    lgr_patience: int = 20  # ... stop after this many epochs without held-out gain (0: never)
+    lgr_holdout: float = 0.2  # ... fraction of a task's latents held out for early stopping
     lgr_batch_size: int = 32
-    lgr_lr: float = 1e-4  # the generator's learning rate
+    lgr_lr: float = 1e-3  # the generator's learning rate
+    lgr_beta: float = 4.0  # weight of the VAE's KL term
     lgr_lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
-    lgr_replay_ratio: float = 1.0  # pseudo-samples per real sample when training the top
+    lgr_root_epochs: int | None = None  # two_phase: root epochs per round (None: train.epochs)
+    lgr_replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
         _choice("continual.method", self.method, tuple(CONTINUAL))
         _choice("continual.ewc_fisher", self.ewc_fisher, ("empirical", "model"))
+        _choice("continual.lgr_schedule", self.lgr_schedule, ("two_phase", "joint"))
+        _choice("continual.lgr_replay", self.lgr_replay, ("generator", "stored"))
+        if not 0.0 <= self.lgr_holdout < 1.0:
+            raise ConfigError(f"continual.lgr_holdout={self.lgr_holdout}: must be in [0, 1)")
+        for name in ("lgr_patience", "lgr_root_epochs"):
+            value = getattr(self, name)
+            if value is not None and value < 0:
+                raise ConfigError(f"continual.{name}={value}: must be >= 0")
         _positive("continual.rounds_per_task", self.rounds_per_task)
         for name in ("lgr_hidden", "lgr_latent", "lgr_epochs", "lgr_batch_size"):
             _positive(f"continual.{name}", getattr(self, name))
@@ -231,6 +247,7 @@ class ContinualConfig:
             "lgr_replay_ratio",
             "lgr_lr",
             "lgr_lr_root",
+            "lgr_beta",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"continual.{name}={getattr(self, name)}: must be >= 0")

@@ -11,9 +11,20 @@ from fedlgr.continual import EWC, MAS, SI, EWCOnline, LatentReplay, NaiveRehears
 from fedlgr.continual.ewc import fisher
 from fedlgr.continual.mas import output_norm_importance
 from fedlgr.data.augment import SceneBatches
+from fedlgr.federated.client import Client, train_locally
 from fedlgr.federated.plugins import LocalContext
 from fedlgr.models.generator import LatentVAE
 from fedlgr.models.scholar import MLPRoot, Scholar, Top
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors: one thread is fastest, and immune to other processes' load (two threads
+    on a busy two-core machine slow the VAE fit down 20-fold)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def linear(w, b=0.0) -> nn.Linear:
@@ -178,8 +189,11 @@ def test_vae_loss_decreases_on_a_fixed_latent_set():
     # Low-rank ReLU features, like a root's: 4 factors spread over 32 dimensions.
     latents = torch.relu(torch.randn(256, 4) @ torch.randn(4, 32))
     vae = LatentVAE(32, hidden=64, latent=8, lr=1e-3)
-    history = vae.fit(latents, epochs=40, batch_size=32, generator=torch.Generator().manual_seed(0))
-    assert history[-1] < 0.6 * history[0]
+    report = vae.fit(latents, epochs=40, batch_size=32, generator=torch.Generator().manual_seed(0))
+    # No held-out latents: every epoch runs and the last one's weights are kept.
+    assert report.epochs == 40 and report.best_epoch == 40 and report.heldout == []
+    assert report.train[-1] < 0.6 * report.train[0]
+    assert not vae.training  # fit leaves the generator in eval mode
     samples = vae.sample(100, torch.Generator().manual_seed(1))
     assert samples.shape == (100, 32)
     assert torch.allclose(samples.mean(0), latents.mean(0), atol=0.6 * latents.std(0).max())
@@ -191,57 +205,96 @@ def tiny_scholar() -> Scholar:
     return Scholar(root, Top(root.out_dim, hidden=5))
 
 
+def lgr_client(model, inputs, targets, lgr, batch_size=5) -> Client:
+    """One client whose task "a" is scenes 0-9 and task "b" scenes 10-19."""
+    data = {
+        name: SceneBatches(inputs, targets, positions, batch_size, shuffle=False)
+        for name, positions in (("a", np.arange(10)), ("b", np.arange(10, 20)))
+    }
+    return Client(0, model, model.configure_optimizers(), data, [lgr])
+
+
+def lgr_context(client: Client, task: int) -> LocalContext:
+    client.task = "ab"[task]
+    return LocalContext(
+        0,
+        task + 1,
+        client.model,
+        {},
+        torch.device("cpu"),
+        task=task,
+        task_name=client.task,
+        batches=client.batches,
+        optimizer=client.optimizer,
+        seen=[client.data[t] for t in "ab"[: task + 1]],
+    )
+
+
 def test_fedlgr_pseudo_labels_come_from_the_pre_update_top():
     model = tiny_scholar()
-    optimizer = model.configure_optimizers()
     inputs, targets = torch.randn(20, 4), torch.rand(20, 8) * 4 + 1
     lgr = LatentReplay(hidden=16, latent=3, epochs=5, batch_size=8, lr=1e-3, lr_root=1e-5, seed=3)
-    ctx1 = context(model, inputs, targets, np.arange(10), task=0, batch_size=5, optimizer=optimizer)
+    client = lgr_client(model, inputs, targets, lgr)
+    optimizer = client.optimizer
+    ctx1 = lgr_context(client, 0)
     lgr.on_task_start(ctx1)
-    lgr.on_round_start(ctx1)
-    assert lgr.generator is None and optimizer.param_groups[0]["lr"] == 1e-3  # task 1: as usual
-    lgr.on_task_end(ctx1)  # the generator learns task 1's latents
-    assert lgr.generator is not None and lgr.tasks_learnt == 1
-
-    ctx2 = context(
-        model, inputs, targets, np.arange(10, 20), task=1, batch_size=5, optimizer=optimizer
-    )
-    lgr.on_task_start(ctx2)
-    lgr.on_round_start(ctx2)
+    assert lgr.labeller is None  # nothing to replay in task 1
+    train_locally(client, ctx1, epochs=1)
     lr = {g["name"]: g["lr"] for g in optimizer.param_groups}
-    assert lr == {"root": 1e-5, "top": 1e-3}  # lr_R << lr_T from task 2 on
+    assert lr == {"root": 1e-3, "top": 1e-3}  # task 1: lr_R not applied yet
+    assert lgr.generator is None and lgr.forward(ctx1, *next(ctx1.batches.peek())) is None
+    lgr.on_task_end(ctx1)  # the generator learns task 1's latents (5 epochs at most)
+    assert lgr.generator is not None and lgr.tasks_learnt == 1
+    assert 1 <= lgr.fit_report.epochs <= 5 and len(lgr.history) == lgr.fit_report.epochs
+
+    ctx2 = lgr_context(client, 1)
     before = {k: v.clone() for k, v in model.top.state_dict().items()}
-    x, y = ctx2.batches.gather(torch.arange(10, 15))
-    for _ in range(3):  # train: the top moves
-        out = model(x)
-        loss = lgr.loss(ctx2, x, y, out, nn.functional.mse_loss(out, y))
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    lgr.on_task_start(ctx2)  # the labeller: a frozen copy of the top as the task begins
+    assert not lgr.labeller.training
+    assert all(not p.requires_grad for p in lgr.labeller.parameters())
+    for _ in range(2):  # two rounds of task 2: the top moves, the labeller does not
+        train_locally(client, ctx2, epochs=1)
+        lr = {g["name"]: g["lr"] for g in optimizer.param_groups}
+        assert lr == {"root": 1e-5, "top": 1e-3}  # lr_R << lr_T from task 2 on
     assert not torch.equal(model.top.state_dict()["net.1.weight"], before["net.1.weight"])
     latents, labels = lgr.pseudo_samples(7)
+    assert latents.shape == (7, model.root.out_dim) and labels.shape == (7, 8)
     frozen = Top(model.root.out_dim, hidden=5).eval()
     frozen.load_state_dict(before)
     with torch.no_grad():
         assert torch.allclose(labels, frozen(latents))  # the top as it was when the task began
         assert not torch.allclose(labels, model.top.eval()(latents))
+    lgr.on_task_end(ctx2)
+    assert lgr.labeller is None and lgr.tasks_learnt == 2
 
 
-def test_fedlgr_replay_term_mixes_pseudo_samples_into_the_loss():
+def test_fedlgr_joint_forward_puts_real_and_pseudo_latents_in_one_loss():
     model = tiny_scholar()
-    optimizer = model.configure_optimizers()
-    inputs, targets = torch.randn(10, 4), torch.rand(10, 8) * 4 + 1
-    lgr = LatentReplay(hidden=16, latent=3, epochs=2, batch_size=8, replay_ratio=0.5, seed=3)
-    ctx = context(model, inputs, targets, np.arange(10), batch_size=4, optimizer=optimizer)
-    x, y = ctx.batches.gather(torch.arange(4))
-    base = torch.tensor(2.0)
-    assert lgr.loss(ctx, x, y, None, base) is base  # no generator yet: the task loss alone
-    lgr.on_task_end(ctx)
-    lgr.on_task_start(ctx)
+    inputs, targets = torch.randn(20, 4), torch.rand(20, 8) * 4 + 1
+    lgr = LatentReplay(
+        schedule="joint", hidden=16, latent=3, epochs=2, batch_size=8, replay_ratio=0.5, seed=3
+    )
+    client = lgr_client(model, inputs, targets, lgr, batch_size=4)
+    ctx1 = lgr_context(client, 0)
+    x, y = client.batches.gather(torch.arange(4))
+    assert lgr.forward(ctx1, x, y) is None  # no generator yet: the model's own outputs
+    assert lgr.epochs(ctx1, 3) is None  # train.epochs
+    lgr.on_task_end(ctx1)
+    ctx2 = lgr_context(client, 1)
+    lgr.on_task_start(ctx2)
+    assert lgr.epochs(ctx2, 3) is None  # joint: train.epochs, root and top together
+    x, y = client.batches.gather(torch.arange(10, 14))
     state = lgr.generator_rng.get_state()
-    latents, labels = lgr.pseudo_samples(2)
+    latents, labels = lgr.pseudo_samples(2)  # replay_ratio 0.5 x 4 real samples
     lgr.generator_rng.set_state(state)
-    replay = nn.functional.mse_loss(model.top(latents), labels)
-    assert lgr.loss(ctx, x, y, None, base).item() == pytest.approx(
-        (2.0 * 4 + replay.item() * 2) / 6, rel=1e-5
+    model.train()
+    outputs, union = lgr.forward(ctx2, x, y)
+    with torch.no_grad():
+        expected = model.top(torch.cat([model.root(x), latents]))
+    assert torch.allclose(outputs, expected, atol=1e-6)
+    assert torch.equal(union, torch.cat([y, labels]))
+    real = nn.functional.mse_loss(outputs[:4], y).item()
+    replay = nn.functional.mse_loss(outputs[4:], labels).item()
+    assert nn.functional.mse_loss(outputs, union).item() == pytest.approx(
+        (real * 4 + replay * 2) / 6, rel=1e-5
     )

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from fedlgr.config import ContinualConfig
+from fedlgr.continual.batchnorm import FrozenRootStatistics
 from fedlgr.continual.ewc import EWC, EWCOnline
 from fedlgr.continual.lgr import LatentReplay
 from fedlgr.continual.mas import MAS
@@ -36,18 +37,35 @@ def continual_plugins(config: ContinualConfig, client: int, seed: int) -> list[C
         "mas": lambda: MAS(c.mas_lambda, c.importance_batches),
         "nr": lambda: NaiveRehearsal(c.nr_memory, c.nr_replay_ratio, s),
         "lgr": lambda: LatentReplay(
+            schedule=c.lgr_schedule,
+            replay=c.lgr_replay,
             hidden=c.lgr_hidden,
             latent=c.lgr_latent,
             epochs=c.lgr_epochs,
             batch_size=c.lgr_batch_size,
             lr=c.lgr_lr,
+            beta=c.lgr_beta,
+            patience=c.lgr_patience,
+            holdout=c.lgr_holdout,
             lr_root=c.lgr_lr_root,
+            root_epochs=c.lgr_root_epochs,
             replay_ratio=c.lgr_replay_ratio,
             seed=s,
         ),
     }
     plugin = make[config.method]()
-    return [] if plugin is None else [plugin]
+    freeze = c.lgr_freeze_root_bn if c.method == "lgr" else c.freeze_root_bn
+    plugins = [FrozenRootStatistics()] if freeze and c.tasks else []
+    return plugins + ([] if plugin is None else [plugin])
 
 
-__all__ = ["EWC", "MAS", "SI", "EWCOnline", "LatentReplay", "NaiveRehearsal", "continual_plugins"]
+__all__ = [
+    "EWC",
+    "MAS",
+    "SI",
+    "EWCOnline",
+    "FrozenRootStatistics",
+    "LatentReplay",
+    "NaiveRehearsal",
+    "continual_plugins",
+]

@@ -89,11 +89,14 @@ def train_locally(
     autocast=contextlib.nullcontext,
     on_epoch=None,
 ) -> LocalStats:
-    """``epochs`` passes over the client's current task (``max_batches`` per epoch at most)."""
+    """``epochs`` passes over the client's current task (``max_batches`` per epoch at most;
+    plugins may ask for fewer passes, and train on their own before them)."""
     model, optimizer, plugins = client.model, client.optimizer, client.plugins
     model.train()
     for plugin in plugins:
         plugin.on_round_start(ctx)
+    asked = [n for plugin in plugins if (n := plugin.epochs(ctx, epochs)) is not None]
+    epochs = min(asked, default=epochs)
     total_loss = torch.zeros((), device=ctx.device)
     seen = 0
     for epoch in range(epochs):
@@ -107,11 +110,15 @@ def train_locally(
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with autocast():
-                outputs = model(x)
-                loss = nn.functional.mse_loss(outputs.float(), y)
-            task_loss = loss.detach()
+                union = next(
+                    (out for p in plugins if (out := p.forward(ctx, x, y)) is not None), None
+                )
+                outputs, targets = (model(x), y) if union is None else union
+                loss = nn.functional.mse_loss(outputs.float(), targets)
+            outputs = outputs[: len(y)].float()
+            task_loss = (loss if union is None else nn.functional.mse_loss(outputs, y)).detach()
             for plugin in plugins:
-                loss = plugin.loss(ctx, x, y, outputs.float(), loss)
+                loss = plugin.loss(ctx, x, y, outputs, loss)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             for plugin in plugins:
@@ -125,4 +132,5 @@ def train_locally(
             on_epoch(epoch + 1)
     for plugin in plugins:
         plugin.on_round_end(ctx)
-    return LocalStats(seen, float(total_loss) / max(seen, 1))
+    seen += ctx.trained_samples
+    return LocalStats(seen, (float(total_loss) + ctx.trained_loss) / max(seen, 1))

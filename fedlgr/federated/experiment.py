@@ -88,7 +88,30 @@ class ExperimentResult:
         text = table(headers, rows)
         if self.after_tasks:
             text += "\n\n" + self.task_summary()
+        fidelity = self.replay_fidelity()
+        if fidelity:
+            text += "\n\n" + fidelity
         return text
+
+    def replay_fidelity(self) -> str:
+        """FedLGR: the replay's fidelity at each task end, mean over clients (README)."""
+        names = {"fd_latent": "FD latents", "recon_mse": "recon MSE (held-out)"}
+        names |= {"fd_labels": "FD labeller outputs", "vae_epochs": "VAE epochs kept"}
+        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        rows = []
+        for log in self.rounds:
+            values = [log.mean(f"lgr_{n}") for n in present]
+            if any(v is not None for v in values):
+                rows.append(
+                    [
+                        f"end of {log.task} (round {log.round})",
+                        *("-" if v is None else v for v in values),
+                    ]
+                )
+        if not rows:
+            return ""
+        headers = ["", *(names[n] for n in present)]
+        return "replay fidelity (0 = the real latents):\n" + table(headers, rows)
 
     def task_summary(self) -> str:
         """After each task: scores on all tasks seen so far, and each past task's forgetting

@@ -77,14 +77,18 @@ COST_FIELDS = [
 ]
 
 
-def make_fields(tasks: list[str]) -> list[Field]:
+def make_fields(tasks: list[str], plugins=()) -> list[Field]:
     """``test_*``: all seen tasks' test scenes (the whole test set in FL), per action too;
-    ``task_<name>_*``: each task's test scenes (FCL only); then the costs."""
+    ``task_<name>_*``: each task's test scenes (FCL only); then the costs; then what the
+    plugins measure at task ends (``<plugin>_<name>``, MLflow ``<plugin>/<name>``)."""
     fields = _score_fields("test", "test", per_action=True)
     if tasks != [ALL]:
         for task in tasks:
             fields += _score_fields(f"task_{task}", f"task/{task}", per_action=False)
-    return fields + COST_FIELDS
+    plugin_fields = [
+        Field(f"{p.name}_{m}", f"{p.name}/{m}") for p in plugins for m in p.metric_names
+    ]
+    return fields + COST_FIELDS + plugin_fields
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -101,8 +105,12 @@ class RoundLog:
     table: np.ndarray  # (clients, len(fields))
     seconds: float
 
+    @property
+    def column_names(self) -> list[str]:
+        return [f.name for f in self.fields]
+
     def column(self, name: str) -> np.ndarray:
-        return self.table[:, [f.name for f in self.fields].index(name)]
+        return self.table[:, self.column_names.index(name)]
 
     def mean(self, name: str) -> float | None:
         column = self.column(name)
@@ -149,7 +157,6 @@ class Orchestrator:
         self.device = fabric.device
         self.rank, self.world = fabric.global_rank, fabric.world_size
         self.tasks = list(cfg.continual.tasks) or [ALL]
-        self.fields = make_fields(self.tasks)
         self.strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)
         torch.manual_seed(cfg.seed)  # the same initial model in every process
         initial = build_scholar(cfg).to(self.device)
@@ -192,6 +199,9 @@ class Orchestrator:
             self.clients.append(
                 Client(shard.client, model, model.configure_optimizers(), data, plugins)
             )
+        # Every client has the same kinds of plugin (the first client of rank 0 says which).
+        kinds = continual_plugins(cfg.continual, 0, cfg.seed)
+        self.fields = make_fields(self.tasks, kinds)
         self._prepare_test_set()
         self.initial_bytes = nbytes(self.global_weights)
         self._warm_up(initial)
@@ -239,9 +249,12 @@ class Orchestrator:
             self.device,
             self.fabric.autocast,
             task,
+            self.config.train.epochs,
+            self.config.train.max_batches,
             self.tasks[task],
             client.batches,
             client.optimizer,
+            seen=[client.data[t] for t in self.tasks[: task + 1]],
         )
 
     def train_round(
@@ -296,16 +309,20 @@ class Orchestrator:
         for client in self.clients:
             client.download(self.global_weights)
 
-    def end_task(self, round_: int, task: int) -> dict[int, Usage]:
-        """Each client's end of task (plugins' ``on_task_end``), measured as its work."""
-        costs = {}
+    def end_task(self, round_: int, task: int) -> dict[int, tuple[Usage, dict[str, float]]]:
+        """Each client's end of task (plugins' ``on_task_end``), measured as its work, and
+        what its plugins measured then (``<plugin>_<name>``)."""
+        out = {}
         for client in self.clients:
             ctx = self.context(client, round_, task)
             with measure(self.device) as usage:
                 for plugin in client.plugins:
                     plugin.on_task_end(ctx)
-            costs[client.index] = usage
-        return costs
+            figures = {  # outside the measurement: diagnostics are not the client's work
+                f"{p.name}_{k}": v for p in client.plugins for k, v in p.task_metrics(ctx).items()
+            }
+            out[client.index] = (usage, figures)
+        return out
 
     def evaluate_clients(self, task: int) -> dict[int, list[float]]:
         """Each client's score fields: all tasks seen so far, then each task on its own."""
@@ -337,10 +354,14 @@ class Orchestrator:
     def gather(self, round_: int, task: int, trained, ended, scores, seconds: float) -> RoundLog:
         """Every client's row, from every process (rows of other processes are zero)."""
         table = torch.zeros(len(self.split.clients), len(self.fields), dtype=torch.float64)
+        names = [f.name for f in self.fields]
+        plugin_names = names[names.index(COST_FIELDS[-1].name) + 1 :]
         for client in self.clients:
             stats, usage, up = trained[client.index]
+            figures: dict[str, float] = {}
             if client.index in ended:
-                usage = _combine(usage, ended[client.index])
+                usage = _combine(usage, ended[client.index][0])
+                figures = ended[client.index][1]
             down = nbytes(self.global_weights) + (self.initial_bytes if round_ == 1 else 0)
             costs = [
                 stats.loss,
@@ -352,7 +373,10 @@ class Orchestrator:
                 up,
                 down,
             ]
-            table[client.index] = torch.tensor(scores[client.index] + costs, dtype=torch.float64)
+            measured = [figures.get(n, math.nan) for n in plugin_names]
+            table[client.index] = torch.tensor(
+                scores[client.index] + costs + measured, dtype=torch.float64
+            )
         if self.world > 1:
             table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
         return RoundLog(round_, self.tasks[task], self.fields, table.numpy(), seconds)

@@ -8,10 +8,10 @@ client; everything it keeps is in ``state_dict()`` (in memory, so a resume featu
 checkpoint it).
 
 Order of calls for one client: ``on_task_start`` (first round of a task) ->
-``on_round_start`` -> per batch: ``batch`` -> forward -> ``loss`` -> backward ->
-``before_step`` -> optimiser step -> ``after_step`` -> ``on_round_end`` -> (upload,
-aggregation, download) -> ``on_task_end`` (last round of a task, on the model the client
-goes on with).
+``on_round_start`` -> ``epochs`` -> per batch: ``batch`` -> ``forward`` -> ``loss`` ->
+backward -> ``before_step`` -> optimiser step -> ``after_step`` -> ``on_round_end`` ->
+(upload, aggregation, download) -> ``on_task_end`` (last round of a task, on the model the
+client goes on with) -> ``task_metrics`` (logged with that round).
 """
 
 from __future__ import annotations
@@ -36,14 +36,22 @@ class LocalContext:
     device: torch.device
     autocast: object = contextlib.nullcontext  # a context-manager factory for mixed precision
     task: int = 0  # position of the current task in the schedule
+    epochs: int = 1  # local epochs of the round (train.epochs)
+    max_batches: int | None = None  # batches per epoch at most (train.max_batches)
     task_name: str = "all"
     batches: SceneBatches | None = None  # the current task's training batches
     optimizer: torch.optim.Optimizer | None = None
     extra: dict = field(default_factory=dict)
+    seen: list[SceneBatches] = field(default_factory=list)  # every task's batches so far
+    trained_samples: int = 0  # samples a plugin trained on outside the batch loop
+    trained_loss: float = 0.0  # their summed task loss
 
-    def plain_batches(self, batch_size: int | None = None) -> SceneBatches:
-        """The current task's scenes in order, normalised but not augmented, once each."""
-        b = self.batches
+    def plain_batches(
+        self, batch_size: int | None = None, batches: SceneBatches | None = None
+    ) -> SceneBatches:
+        """The current task's scenes (or ``batches``' scenes) in order, normalised but not
+        augmented, once each."""
+        b = self.batches if batches is None else batches
         return SceneBatches(
             b.inputs,
             b.targets,
@@ -65,11 +73,25 @@ class ClientPlugin:
     def on_round_start(self, ctx: LocalContext) -> None:
         """Before the first local step of a round."""
 
+    metric_names: tuple[str, ...] = ()  # what ``task_metrics`` reports (MLflow: name/key)
+
+    def epochs(self, ctx: LocalContext, epochs: int) -> int | None:
+        """How many passes the batch loop makes this round instead of ``epochs``; ``None``:
+        no opinion (the smallest answer wins)."""
+        return None
+
     def batch(
         self, ctx: LocalContext, x: torch.Tensor, y: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The batch to train on (e.g. with rehearsal samples mixed in)."""
         return x, y
+
+    def forward(
+        self, ctx: LocalContext, x: torch.Tensor, y: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(outputs, targets) to train on, whose first ``len(y)`` rows are the batch's own;
+        ``None``: the model's outputs on ``x`` and ``y`` (one plugin at most answers)."""
+        return None
 
     def loss(
         self,
@@ -95,6 +117,11 @@ class ClientPlugin:
     def on_task_end(self, ctx: LocalContext) -> None:
         """After the last round of a task (aggregation included): importance, memories,
         generators are updated here."""
+
+    def task_metrics(self, ctx: LocalContext) -> dict[str, float]:
+        """Diagnostics measured right after ``on_task_end`` (names from ``metric_names``);
+        not billed to the client's costs: they are the experimenter's, not the method's."""
+        return {}
 
     def state_dict(self) -> dict:
         return {}
