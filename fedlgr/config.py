@@ -215,6 +215,7 @@ class ContinualConfig:
     lgr_batch_size: int = 32
     lgr_lr: float = 1e-3  # the generator's learning rate
     lgr_beta: float = 4.0  # weight of the VAE's KL term
+    lgr_sampler: str = "posterior"  # VAE codes from a Gaussian fitted to the training codes | prior
     lgr_lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
     lgr_root_epochs: int | None = None  # two_phase: root epochs per round (None: train.epochs)
     lgr_replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
@@ -225,6 +226,7 @@ class ContinualConfig:
         _choice("continual.ewc_fisher", self.ewc_fisher, ("empirical", "model"))
         _choice("continual.lgr_schedule", self.lgr_schedule, ("two_phase", "joint"))
         _choice("continual.lgr_replay", self.lgr_replay, ("generator", "stored"))
+        _choice("continual.lgr_sampler", self.lgr_sampler, ("posterior", "prior"))
         if not 0.0 <= self.lgr_holdout < 1.0:
             raise ConfigError(f"continual.lgr_holdout={self.lgr_holdout}: must be in [0, 1)")
         for name in ("lgr_patience", "lgr_root_epochs"):

@@ -50,6 +50,7 @@ def continual_plugins(config: ContinualConfig, client: int, seed: int) -> list[C
             lr_root=c.lgr_lr_root,
             root_epochs=c.lgr_root_epochs,
             replay_ratio=c.lgr_replay_ratio,
+            sampler=c.lgr_sampler,
             seed=s,
         ),
     }

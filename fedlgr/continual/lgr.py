@@ -85,7 +85,8 @@ class LatentReplay(ClientPlugin):
         holdout: float = 0.2,
         lr_root: float = 1e-5,
         root_epochs: int | None = None,
-        replay_ratio: float = 2.0,
+        replay_ratio: float = 4.0,
+        sampler: str = "posterior",
         seed: int = 0,
     ):
         if schedule not in SCHEDULES or replay not in REPLAYS:
@@ -95,6 +96,7 @@ class LatentReplay(ClientPlugin):
         self.vae_epochs = epochs
         self.lr, self.beta, self.patience, self.holdout = lr, beta, patience, holdout
         self.lr_root, self.root_epochs, self.replay_ratio = lr_root, root_epochs, replay_ratio
+        self.sampler = sampler  # prior: codes from N(0, I) | posterior: a Gaussian fitted to them
         self.generator_rng = torch.Generator().manual_seed(seed)
         self.generator: LatentVAE | None = None
         self.memory: torch.Tensor | None = None  # stored replay: past tasks' real latents
@@ -222,6 +224,8 @@ class LatentReplay(ClientPlugin):
             report = self.generator.fit(
                 train, self.vae_epochs, self.batch_size, self.generator_rng, held, self.patience
             )
+        if self.sampler == "posterior":
+            self.generator.fit_code_density(train)
         self.history = report.train
         self.fit_report = report
         return held[:n_held]

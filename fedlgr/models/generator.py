@@ -60,6 +60,10 @@ class LatentVAE(L.LightningModule):
         )
         self.register_buffer("shift", torch.zeros(in_dim))
         self.register_buffer("scale", torch.ones(in_dim))
+        # Where codes are drawn from: N(0, I) (the prior), or - with ``fit_code_density`` -
+        # a full-covariance Gaussian fitted to the codes of the training latents.
+        self.register_buffer("code_mean", torch.zeros(latent))
+        self.register_buffer("code_chol", torch.eye(latent))
 
     def standardise(self, r: torch.Tensor) -> torch.Tensor:
         return (r - self.shift) / self.scale
@@ -91,9 +95,25 @@ class LatentVAE(L.LightningModule):
         return torch.optim.Adam(self.parameters(), lr=self.lr)
 
     @torch.no_grad()
+    def fit_code_density(self, latents: torch.Tensor) -> None:
+        """Draw codes from a Gaussian fitted to the posterior means of ``latents`` instead of
+        N(0, I) (ex-post density estimation, Ghosh et al. 2020, "From Variational to
+        Deterministic Autoencoders"): with a few hundred training latents the aggregate
+        posterior does not fill the prior, and prior samples decode off the data."""
+        was = self.training
+        self.eval()
+        codes = self(latents)[1].double()
+        self.train(was)
+        cov = torch.cov(codes.T).reshape(self.latent, self.latent)
+        cov += 1e-6 * torch.eye(self.latent, dtype=cov.dtype, device=cov.device)
+        self.code_mean.copy_(codes.mean(dim=0))
+        self.code_chol.copy_(torch.linalg.cholesky(cov))
+
+    @torch.no_grad()
     def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """``n`` pseudo-latents decoded from N(0, I), in the root's scale."""
-        z = torch.randn(n, self.latent, generator=generator).to(self.shift.device)
+        """``n`` pseudo-latents decoded from the code distribution, in the root's scale."""
+        eps = torch.randn(n, self.latent, generator=generator).to(self.shift.device)
+        z = self.code_mean + eps @ self.code_chol.T
         was = self.training
         self.eval()
         out = self.decoder(z) * self.scale + self.shift
@@ -130,6 +150,8 @@ class LatentVAE(L.LightningModule):
         ``heldout`` latents and ``patience`` > 0, stop once the held-out loss has not
         improved for ``patience`` epochs and keep the weights of its best epoch."""
         with torch.no_grad():
+            self.code_mean.zero_()
+            self.code_chol.copy_(torch.eye(self.latent))
             self.shift.copy_(latents.mean(dim=0))
             self.scale.copy_(latents.std(dim=0).nan_to_num(1.0).clamp_min(1e-3))
         optimizer = self.configure_optimizers()
