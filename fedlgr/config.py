@@ -217,7 +217,7 @@ class ContinualConfig:
     lgr_beta: float = 4.0  # weight of the VAE's KL term
     lgr_sampler: str = "posterior"  # VAE codes from a Gaussian fitted to the training codes | prior
     lgr_lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
-    lgr_root_epochs: int | None = None  # two_phase: root epochs per round (None: train.epochs)
+    lgr_root_epochs: int | None = 1  # two_phase: root epochs per round (None: train.epochs)
     lgr_replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
 
     def __post_init__(self) -> None:

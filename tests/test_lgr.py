@@ -216,7 +216,7 @@ def test_two_phase_trains_the_top_then_the_root_alone():
     snap = Snapshot()
     client, ctx = after_task_one(lgr, snapshot=snap)
     root0, top0 = state(client.model.root), state(client.model.top)
-    assert lgr.epochs(ctx, 1) is None  # the root phase takes train.epochs
+    assert lgr.epochs(ctx, 1) == 1  # lgr_root_epochs (default 1)
 
     train_locally(client, ctx, 1)
 
@@ -490,6 +490,28 @@ def test_vae_reconstruct_and_sample_are_in_the_root_scale():
         expected = vae(latents)[0] * vae.scale + vae.shift  # posterior mean, decoded
     assert torch.allclose(vae.reconstruct(latents), expected)
     assert (vae.sample(32, g).mean() - 100).abs() < 20
+
+
+def test_posterior_sampler_draws_codes_like_the_training_codes():
+    g = torch.Generator().manual_seed(0)
+    latents = torch.relu(torch.randn(200, 3, generator=g) @ torch.randn(3, 10, generator=g))
+    vae = LatentVAE(10, hidden=16, latent=3, lr=1e-2)
+    vae.fit(latents, 20, 32, g)
+    assert torch.equal(vae.code_mean, torch.zeros(3)) and torch.equal(vae.code_chol, torch.eye(3))
+    vae.fit_code_density(latents)
+    with torch.no_grad():
+        codes = vae(latents)[1]  # posterior means (eval mode)
+    assert torch.allclose(vae.code_mean.float(), codes.mean(0), atol=1e-5)
+    cov = vae.code_chol.double() @ vae.code_chol.double().T
+    assert torch.allclose(cov, torch.cov(codes.T.double()), atol=1e-4)
+    # Samples are the decoded codes of N(mean, cov): with a fixed generator, by hand.
+    eps = torch.randn(5, 3, generator=torch.Generator().manual_seed(4))
+    z = vae.code_mean + eps @ vae.code_chol.T
+    with torch.no_grad():
+        expected = vae.decoder(z) * vae.scale + vae.shift
+    assert torch.allclose(vae.sample(5, torch.Generator().manual_seed(4)), expected)
+    vae.fit(latents, 1, 32, g)  # a new fit starts from the prior again
+    assert torch.equal(vae.code_chol, torch.eye(3))
 
 
 # --------------------------------------------------------------------------- 7. config

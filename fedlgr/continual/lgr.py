@@ -19,8 +19,8 @@ of a later task:
      over the current scenes' latents - computed once per round, root in eval mode, one
      pass of the client's batches (augmented if augmentation is on) - each batch with its
      pseudo-samples; then the root alone, at lr_R on the current data with the top frozen
-     (eval mode, no gradients), for ``lgr_root_epochs`` epochs (default ``train.epochs``;
-     none when lr_R is 0);
+     (eval mode, no gradients), for ``lgr_root_epochs`` epochs (default 1; ``None``:
+     ``train.epochs`` as in the authors' code; none when lr_R is 0);
    * ``joint``: one pass per batch, root and top together: top(root(x) U R').
 
 ``lgr_replay=stored`` replays the client's real latents of past tasks (kept at each task
@@ -76,15 +76,15 @@ class LatentReplay(ClientPlugin):
         schedule: str = "two_phase",
         replay: str = "generator",
         hidden: int = 512,
-        latent: int = 64,
+        latent: int = 16,
         epochs: int = 300,
         batch_size: int = 32,
         lr: float = 1e-3,
-        beta: float = 1.0,
+        beta: float = 4.0,
         patience: int = 20,
         holdout: float = 0.2,
         lr_root: float = 1e-5,
-        root_epochs: int | None = None,
+        root_epochs: int | None = 1,
         replay_ratio: float = 4.0,
         sampler: str = "posterior",
         seed: int = 0,
