@@ -15,6 +15,7 @@ from fedlgr.federated.client import Client, train_locally
 from fedlgr.federated.plugins import LocalContext
 from fedlgr.models.generator import LatentVAE
 from fedlgr.models.scholar import MLPRoot, Scholar, Top
+from tests.test_lgr import context as lgr_context
 
 
 @pytest.fixture(autouse=True)
@@ -212,22 +213,6 @@ def lgr_client(model, inputs, targets, lgr, batch_size=5) -> Client:
         for name, positions in (("a", np.arange(10)), ("b", np.arange(10, 20)))
     }
     return Client(0, model, model.configure_optimizers(), data, [lgr])
-
-
-def lgr_context(client: Client, task: int) -> LocalContext:
-    client.task = "ab"[task]
-    return LocalContext(
-        0,
-        task + 1,
-        client.model,
-        {},
-        torch.device("cpu"),
-        task=task,
-        task_name=client.task,
-        batches=client.batches,
-        optimizer=client.optimizer,
-        seen=[client.data[t] for t in "ab"[: task + 1]],
-    )
 
 
 def test_fedlgr_pseudo_labels_come_from_the_pre_update_top():

@@ -82,6 +82,8 @@ def test_fcl_demo_compares_fedroot_without_cl_and_fedlgr(tmp_path, cache_dir, ca
     args = [
         "demo",
         "--fcl",
+        "--modality",
+        "image",
         "--data",
         str(tmp_path / "synth"),
         "--scenes",
@@ -105,4 +107,23 @@ def test_fcl_demo_compares_fedroot_without_cl_and_fedlgr(tmp_path, cache_dir, ca
     assert sorted(r.data.tags["method"] for r in runs) == ["FedLGR", "FedRoot-FT"]
     for r in runs:
         assert r.data.params["model.weights"].endswith(".pt")  # from the pretrained root
+        assert "after_task2/forgetting/circle/rmse" in r.data.metrics
+
+
+def test_fcl_demo_on_the_descriptors_needs_no_pretrained_root(tmp_path, capsys):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    data = tmp_path / "synth"
+    args = ["demo", "--fcl", "--data", str(data), "--scenes", "48", "--tracking-uri", store]
+    fast = ["continual.rounds_per_task=2", "train.epochs=1", "continual.lgr_epochs=3"]
+    assert main([*args, *fast, "runtime.progress=false"]) == 0
+    out = capsys.readouterr().out
+    assert f"Forgetting on {data} (features)" in out and "pretraining" not in out
+    assert not (tmp_path / "pretrain").exists()
+    client = mlflow.MlflowClient(store)
+    runs = client.search_runs([client.get_experiment_by_name("demo-fcl").experiment_id])
+    assert sorted(r.data.tags["method"] for r in runs) == ["FedLGR", "FedRoot-FT"]
+    for r in runs:
+        assert r.data.params["data.modality"] == "features"
+        assert r.data.params["model.root"] == "mlp"
+        assert r.data.params["continual.rounds_per_task"] == "2"  # the user's setting wins
         assert "after_task2/forgetting/circle/rmse" in r.data.metrics

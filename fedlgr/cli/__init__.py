@@ -58,7 +58,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--fcl",
         action="store_true",
         help="show forgetting instead: FedRoot "
-        "without a CL method vs FedLGR, circle then arrow (pretrains a root once)",
+        "without a CL method vs FedLGR, circle then arrow (see --modality)",
+    )
+    demo.add_argument(
+        "--modality",
+        choices=["features", "image"],
+        default="features",
+        help="--fcl: the descriptors (MLP root, about a minute, default) or the images "
+        "(a root pretrained once, about 4 minutes)",
     )
     demo.add_argument(
         "--pretrain-scenes",
