@@ -211,7 +211,7 @@ class ContinualConfig:
     lgr_latent: int = 16  # FedLGR's VAE: latent size
     lgr_epochs: int = 300  # FedLGR's VAE: most epochs at the end of each task
     lgr_patience: int = 20  # ... stop after this many epochs without held-out gain (0: never)
-    lgr_holdout: float = 0.2  # ... fraction of a task's latents held out for early stopping
+    lgr_holdout: float = 0.2  # ... share of a task's latents held out (none under 10 latents)
     lgr_batch_size: int = 32
     lgr_lr: float = 1e-3  # the generator's learning rate
     lgr_beta: float = 4.0  # weight of the VAE's KL term

@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--modality",
         choices=["features", "image"],
         default="features",
-        help="--fcl: the descriptors (MLP root, about a minute, default) or the images "
+        help="--fcl: the descriptors (MLP root, about 35 s, default) or the images "
         "(a root pretrained once, about 4 minutes)",
     )
     demo.add_argument(

@@ -7,8 +7,8 @@ scores and per-client costs.
 
 ``fedlgr demo --fcl`` shows forgetting instead: FedRoot without a CL method (FedRoot-FT)
 vs FedLGR, circle then arrow (``conf/experiment/demo_fcl.yaml``). By default on the
-scenes' descriptors (``--modality features``: an MLP root, 8 rounds per task, about a
-minute), where FedLGR's latent space stays put and replay protects circle; with
+scenes' descriptors (``--modality features``: an MLP root, 8 rounds per task, about
+35 s), where FedLGR's latent space stays put and replay protects circle; with
 ``--modality image`` on the images, from a root pretrained once, offline, on another
 synthetic set's descriptors (``fedlgr.models.pretrain``) - there a MobileNetV2 root's
 latents drift in Task 2 and replay protects circle only in part (bench/README.md).

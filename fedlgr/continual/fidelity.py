@@ -7,8 +7,9 @@
   the real latents; about 2 x the feature count for one that knows nothing of them.
 * ``recon_mse``: the generator's reconstruction error on held-out latents (posterior mean,
   squared error per standardised feature): 0 is exact, 1 is no better than the mean.
-* ``fd_labels``: the Fréchet distance between the labeller's 8 outputs on replayed latents
-  and on the real ones - what replay teaches the top, seen from the top.
+* ``fd_labels``: the Fréchet distance between the top's 8 outputs on replayed latents and
+  on the real ones, the top as the task left it (the next task's labeller) - what replay
+  would teach, seen from the top.
 
 The real latents of past tasks are read here for the measurement only: on a robot the
 client would no longer hold them. torchmetrics' FID needs Inception features of images, so

@@ -191,8 +191,8 @@ class LatentReplay(ClientPlugin):
         return self._union(ctx.model.top, ctx.model.root(x), y)
 
     def on_round_end(self, ctx: LocalContext) -> None:
-        if self.replaying and self.schedule == "two_phase":
-            ctx.model.top.requires_grad_(True)
+        if self.replaying and self.schedule == "two_phase":  # the top as the round found it
+            ctx.model.top.requires_grad_(True).train(ctx.model.training)
 
     def on_task_end(self, ctx: LocalContext) -> None:
         current = latents_of(ctx.model.root, ctx.plain_batches())[0]
@@ -253,8 +253,9 @@ class LatentReplay(ClientPlugin):
                 heldout,
                 None if self.generator is None else self.generator.reconstruct,
             )
-        if self.generator is not None:
-            self.fidelity["vae_epochs"] = float(self.fit_report.best_epoch)
+        report = getattr(self, "fit_report", None)
+        if self.generator is not None and report is not None:
+            self.fidelity["vae_epochs"] = float(report.best_epoch)
         return dict(self.fidelity)
 
     # ------------------------------------------------------------------ state
@@ -269,14 +270,17 @@ class LatentReplay(ClientPlugin):
         }
 
     def load_state_dict(self, state: dict) -> None:
-        if state.get("generator") is not None:
+        """Restore ``state_dict()``'s figures (onto the device its tensors are on)."""
+        if state.get("generator") is None:
+            self.generator = None
+        else:
             if self.generator is None:
                 shift = state["generator"]["shift"]
                 self.generator = LatentVAE(
                     shift.shape[0], self.hidden, self.latent, self.lr, self.beta
                 ).to(shift.device)
             self.generator.load_state_dict(state["generator"])
-        self._labeller_state = state.get("labeller")
+        self.labeller, self._labeller_state = None, state.get("labeller")
         self.memory = state.get("memory")
         self.tasks_learnt = state.get("tasks_learnt", 0)
         if "rng" in state:

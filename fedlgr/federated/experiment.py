@@ -10,6 +10,7 @@ spawns them from Python.
 from __future__ import annotations
 
 import functools
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -145,9 +146,10 @@ def _human_bytes(n: float | None) -> str:
 
 
 def _epoch_counter(bar: Progress, total: int):
-    """A ``progress(client, epoch)`` callback that advances ``bar`` by one epoch per call."""
-    done = iter(range(1, total + 1))
-    return lambda client, epoch: bar(next(done), total)
+    """A ``progress(client, epoch)`` callback that advances ``bar`` by one epoch per call
+    (plugins may run more or fewer epochs than planned: the bar never overflows)."""
+    done = itertools.count(1)
+    return lambda client, epoch: bar(min(next(done), total), total)
 
 
 def make_fabric(config: ExperimentConfig):
