@@ -105,6 +105,7 @@ class LatentReplay(ClientPlugin):
         self.history: list[float] = []  # the generator's training loss per epoch, last fit
         self.fidelity: dict[str, float] = {}  # the last task end's figures
         self._heldout: torch.Tensor | None = None  # real latents the generator did not see
+        self._current: torch.Tensor | None = None  # the last task's latents, at its end
         self._labeller_state: dict | None = None  # a restored labeller, until a top is at hand
 
     @property
@@ -204,7 +205,7 @@ class LatentReplay(ClientPlugin):
             heldout = self._fit_generator(current)
         self.tasks_learnt += 1
         self.labeller = None
-        self._heldout = heldout
+        self._heldout, self._current = heldout, current
 
     def _fit_generator(self, current: torch.Tensor) -> torch.Tensor:
         """Train the generator on R (and R' of past tasks); its held-out real latents."""
@@ -233,12 +234,8 @@ class LatentReplay(ClientPlugin):
     def task_metrics(self, ctx: LocalContext) -> dict[str, float]:
         """Replay fidelity against the real latents of every task seen so far."""
         heldout = self._heldout
-        real = torch.cat(
-            [
-                latents_of(ctx.model.root, ctx.plain_batches(batches=b))[0]
-                for b in ctx.seen or [ctx.batches]
-            ]
-        )
+        past = [latents_of(ctx.model.root, ctx.plain_batches(batches=b))[0] for b in ctx.seen[:-1]]
+        real = torch.cat([*past, self._current])  # the current task's: from on_task_end
         top = ctx.model.top
         with eval_mode(top):
             self.fidelity = replay_fidelity(

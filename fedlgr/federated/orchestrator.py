@@ -77,18 +77,19 @@ COST_FIELDS = [
 ]
 
 
-def make_fields(tasks: list[str], plugins=()) -> list[Field]:
+def plugin_fields(plugins) -> list[Field]:
+    """What the plugins measure at task ends: ``<plugin>_<name>``, MLflow ``<plugin>/<name>``."""
+    return [Field(f"{p.name}_{m}", f"{p.name}/{m}") for p in plugins for m in p.metric_names]
+
+
+def make_fields(tasks: list[str]) -> list[Field]:
     """``test_*``: all seen tasks' test scenes (the whole test set in FL), per action too;
-    ``task_<name>_*``: each task's test scenes (FCL only); then the costs; then what the
-    plugins measure at task ends (``<plugin>_<name>``, MLflow ``<plugin>/<name>``)."""
+    ``task_<name>_*``: each task's test scenes (FCL only); then the costs."""
     fields = _score_fields("test", "test", per_action=True)
     if tasks != [ALL]:
         for task in tasks:
             fields += _score_fields(f"task_{task}", f"task/{task}", per_action=False)
-    plugin_fields = [
-        Field(f"{p.name}_{m}", f"{p.name}/{m}") for p in plugins for m in p.metric_names
-    ]
-    return fields + COST_FIELDS + plugin_fields
+    return fields + COST_FIELDS
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -199,9 +200,10 @@ class Orchestrator:
             self.clients.append(
                 Client(shard.client, model, model.configure_optimizers(), data, plugins)
             )
-        # Every client has the same kinds of plugin (the first client of rank 0 says which).
-        kinds = continual_plugins(cfg.continual, 0, cfg.seed)
-        self.fields = make_fields(self.tasks, kinds)
+        # Every client of every process has the same kinds of plugin (and every process has
+        # a client: the config refuses more processes than clients): the first says which.
+        self.plugin_fields = plugin_fields(self.clients[0].plugins)
+        self.fields = make_fields(self.tasks) + self.plugin_fields
         self._prepare_test_set()
         self.initial_bytes = nbytes(self.global_weights)
         self._warm_up(initial)
@@ -354,8 +356,6 @@ class Orchestrator:
     def gather(self, round_: int, task: int, trained, ended, scores, seconds: float) -> RoundLog:
         """Every client's row, from every process (rows of other processes are zero)."""
         table = torch.zeros(len(self.split.clients), len(self.fields), dtype=torch.float64)
-        names = [f.name for f in self.fields]
-        plugin_names = names[names.index(COST_FIELDS[-1].name) + 1 :]
         for client in self.clients:
             stats, usage, up = trained[client.index]
             figures: dict[str, float] = {}
@@ -373,7 +373,7 @@ class Orchestrator:
                 up,
                 down,
             ]
-            measured = [figures.get(n, math.nan) for n in plugin_names]
+            measured = [figures.get(f.name, math.nan) for f in self.plugin_fields]
             table[client.index] = torch.tensor(
                 scores[client.index] + costs + measured, dtype=torch.float64
             )
