@@ -56,7 +56,9 @@ class SweepResult:
 
 class RetryStaleTrial:
     """Optuna's ``RetryHeartbeatStaleTrialCallback`` for a trial whose worker died, which
-    also ends that trial's MLflow run KILLED (its process can no longer do it)."""
+    also ends that trial's MLflow run KILLED (its process can no longer do it) - a FINISHED
+    one too: a worker killed between ending the run and telling the study leaves a run the
+    study never counted, and the retry makes the point's result."""
 
     def __init__(self) -> None:
         from optuna.storages import RetryHeartbeatStaleTrialCallback
@@ -71,11 +73,11 @@ class RetryStaleTrial:
             return
         runs = self.client.search_runs(
             [self.experiment_id],
-            f"tags.study = '{study.study_name}' and tags.trial = '{trial.number}' "
-            "and attributes.status = 'RUNNING'",
+            f"tags.study = '{study.study_name}' and tags.trial = '{trial.number}'",
         )
         for run in runs:
-            self.client.set_terminated(run.info.run_id, "KILLED")
+            if run.info.status in ("RUNNING", "FINISHED"):
+                self.client.set_terminated(run.info.run_id, "KILLED")
 
 
 def open_study(spec: SweepSpec, storage: str, study_name: str | None = None, worker: int = 0):
