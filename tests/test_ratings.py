@@ -100,9 +100,52 @@ BAD_INPUTS = {
     ),
     "fractional stamp": (
         lambda r: _mutate(r, 3, "Stamp", "251.5"),
-        ["row 3 (line 4)", "'Stamp'", "not an integer"],
+        ["row 3 (line 4)", "'Stamp'", "stamp '251.5' is not an integer"],
+    ),
+    "stamp beyond int64": (
+        lambda r: _mutate(r, 3, "Stamp", "9223372036854775808"),
+        ["row 3 (line 4)", "'Stamp'", "stamp '9223372036854775808' is outside the 64-bit"],
+    ),
+    "stamp far beyond int64": (
+        lambda r: _mutate(r, 2, "Stamp", "1e400"),
+        ["row 2 (line 3)", "'Stamp'", "stamp '1e400' is outside the 64-bit integer range"],
+    ),
+    "stamp not a number": (
+        lambda r: _mutate(r, 1, "Stamp", "inf"),
+        ["row 1 (line 2)", "'Stamp'", "stamp 'inf' is not an integer"],
+    ),
+    "infinite descriptor": (
+        lambda r: _mutate(r, 2, "Group radius", "inf"),
+        ["row 2 (line 3)", "'Group radius'", "infinite value 'inf'"],
+    ),
+    "negative infinite descriptor": (
+        lambda r: _mutate(r, 4, "Distance to closest child", "-Infinity"),
+        ["row 4 (line 5)", "'Distance to closest child'", "infinite value '-Infinity'"],
+    ),
+    "absurd descriptor": (
+        lambda r: _mutate(r, 1, "Music playing?", "-2.5e7"),
+        ["row 1 (line 2)", "'Music playing?'", "value -2.5e7 is beyond +-1e+06"],
     ),
 }
+
+
+def test_stamps_are_read_exactly_beyond_float_precision(tmp_path):
+    """float64 holds integers exactly only up to 2**53: 2**53 and 2**53 + 1 are two scenes."""
+    big = 2**53
+    rows = [HEADER, rating_row(big, True, L1), rating_row(big + 1, False, [5] * 8)]
+    rows.append(rating_row(2**63 - 1, True, [4] * 8))
+    rows.append(rating_row(-(2**63), True, [3] * 8))
+    table = read_ratings(write_rows(tmp_path / "all_data.csv", rows))
+    assert table.stamps.tolist() == [-(2**63), big, big + 1, 2**63 - 1]
+    assert table.n_ratings.tolist() == [1, 1, 1, 1]
+    np.testing.assert_allclose(table.targets[:, 0], [3, 1, 5, 4])
+
+
+def test_descriptors_up_to_the_bound_and_integral_stamp_text_are_accepted(tmp_path):
+    rows = _mutate(_mutate(_good_rows(), 3, "Group radius", "-1e6"), 3, "Stamp", "2.51e2")
+    table = read_ratings(write_rows(tmp_path / "all_data.csv", rows))
+    assert table.stamps.tolist() == [250, 251]
+    assert table.values["Group radius"][1] == -1e6
 
 
 @pytest.mark.parametrize("case", BAD_INPUTS)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,13 @@ from fedlgr.errors import DataError, join_problems
 
 CSV_NAME = "all_data.csv"
 _VALUE_COLUMNS = (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS, *LABEL_COLUMNS)
+
+# MANNERS-DB normalises its descriptors to 0..1, and even raw counts and distances stay in
+# the tens, so a magnitude above a million can only be a unit or typing error or a
+# sentinel (1e308, -9999999). Let in, it dominates the standardised inputs and overflows
+# float32 (max 3.4e38) once squared in a variance or a loss.
+DESCRIPTOR_LIMIT = 1e6
+_INT64 = np.iinfo(np.int64)
 
 
 @dataclass(frozen=True)
@@ -96,6 +104,8 @@ def _parse_cell(text: str, column: str, where: str, problems: list[str]) -> floa
     if math.isnan(value):
         kind = "NaN label" if column in LABEL_COLUMNS else "NaN value"
         problems.append(f"{where}, column {column!r}: {kind}")
+    elif math.isinf(value):
+        problems.append(f"{where}, column {column!r}: infinite value {text.strip()!r}")
     elif column in LABEL_COLUMNS and not LIKERT_MIN <= value <= LIKERT_MAX:
         problems.append(
             f"{where}, column {column!r}: Likert value {text.strip()} outside "
@@ -103,9 +113,32 @@ def _parse_cell(text: str, column: str, where: str, problems: list[str]) -> floa
         )
     elif column in MODE_COLUMNS and value not in (0.0, 1.0):
         problems.append(f"{where}, column {column!r}: mode flag {text.strip()} is not 0 or 1")
-    elif column == STAMP and not value.is_integer():
-        problems.append(f"{where}, column {column!r}: stamp {text.strip()} is not an integer")
+    elif column in DESCRIPTOR_COLUMNS and abs(value) > DESCRIPTOR_LIMIT:
+        problems.append(
+            f"{where}, column {column!r}: value {text.strip()} is beyond +-{DESCRIPTOR_LIMIT:g} "
+            "(descriptors are normalised to 0..1)"
+        )
     return value
+
+
+def _parse_stamp(text: str, where: str, problems: list[str]) -> int:
+    """The stamp as an exact integer: float64 would merge stamps beyond 2**53 into one scene."""
+    raw = text.strip()
+    try:
+        number = Decimal(raw)  # exact; also reads "251.0" and "2.51e2"
+        integral = number.is_finite() and number == number.to_integral_value()
+    except InvalidOperation:
+        integral = False
+    if not integral:
+        problems.append(f"{where}, column {STAMP!r}: stamp {raw!r} is not an integer")
+        return 0
+    # adjusted() is the decimal exponent: it bounds the size before int() builds the number
+    if number.adjusted() > 19 or not _INT64.min <= int(number) <= _INT64.max:
+        problems.append(
+            f"{where}, column {STAMP!r}: stamp {raw!r} is outside the 64-bit integer range"
+        )
+        return 0
+    return int(number)
 
 
 def read_ratings(path: Path | str) -> SceneTable:
@@ -131,15 +164,17 @@ def read_ratings(path: Path | str) -> SceneTable:
         raise DataError(f"{path}: no data rows below the header")
 
     problems: list[str] = []
-    parsed = np.full((len(data), len(ALL_COLUMNS)), np.nan)
+    stamps = np.zeros(len(data), dtype=np.int64)
+    parsed = np.full((len(data), len(_VALUE_COLUMNS)), np.nan)
     for r, row in enumerate(data, start=1):
         where = f"row {r} (line {r + 1})"
         if len(row) != len(rows[0]):
             problems.append(f"{where}: {len(row)} fields, the header has {len(rows[0])}")
             continue
-        for j, column in enumerate(ALL_COLUMNS):
+        stamps[r - 1] = _parse_stamp(row[index[STAMP]], where, problems)
+        for j, column in enumerate(_VALUE_COLUMNS):
             parsed[r - 1, j] = _parse_cell(row[index[column]], column, where, problems)
-        circle, arrow = parsed[r - 1, 1], parsed[r - 1, 2]
+        circle, arrow = parsed[r - 1, 0], parsed[r - 1, 1]
         if {circle, arrow} <= {0.0, 1.0} and circle + arrow != 1.0:
             problems.append(
                 f"{where}, columns {MODE_COLUMNS[0]!r}/{MODE_COLUMNS[1]!r}: "
@@ -147,16 +182,15 @@ def read_ratings(path: Path | str) -> SceneTable:
             )
     if problems:
         raise DataError(join_problems(str(path), problems))
-    return _average(path, parsed)
+    return _average(path, stamps, parsed)
 
 
-def _average(path: Path, parsed: np.ndarray) -> SceneTable:
-    stamps, inverse, counts = np.unique(
-        parsed[:, 0].astype(np.int64), return_inverse=True, return_counts=True
-    )
+def _average(path: Path, row_stamps: np.ndarray, parsed: np.ndarray) -> SceneTable:
+    """Mean of ``parsed`` (one row per rating, ``_VALUE_COLUMNS``) over each stamp's rows."""
+    stamps, inverse, counts = np.unique(row_stamps, return_inverse=True, return_counts=True)
     problems = []
     for column in MODE_COLUMNS:
-        j = ALL_COLUMNS.index(column)
+        j = _VALUE_COLUMNS.index(column)
         lo = np.full(len(stamps), np.inf)
         hi = np.full(len(stamps), -np.inf)
         np.minimum.at(lo, inverse, parsed[:, j])
@@ -167,7 +201,7 @@ def _average(path: Path, parsed: np.ndarray) -> SceneTable:
     if problems:
         raise DataError(join_problems(str(path), problems))
     sums = np.zeros((len(stamps), len(_VALUE_COLUMNS)))
-    np.add.at(sums, inverse, parsed[:, 1:])
+    np.add.at(sums, inverse, parsed)
     means = sums / counts[:, None]
     values = {c: means[:, j] for j, c in enumerate(_VALUE_COLUMNS)}
     return SceneTable(path, stamps, values, counts)
