@@ -166,3 +166,23 @@ def test_missing_image_is_an_error_by_default(synth_copy, cache_dir):
     (synth_copy / "images" / "260.png").unlink()
     with pytest.raises(DataError, match=r"no image for 1 stamp\(s\) of the CSV: 260"):
         load_scenes(DataConfig(path=synth_copy, image_size=24, cache_dir=cache_dir))
+
+
+@pytest.mark.parametrize("name", ["notes.txt", "all_data.csv"])
+def test_a_file_as_data_path_asks_for_the_folder(synth_copy, cache_dir, name, capsys):
+    from fedlgr.cli import main
+
+    file = synth_copy / name
+    if not file.exists():
+        file.write_text("not a dataset\n")
+    hint = f"; here data.path={synth_copy}" if name == "all_data.csv" else ""
+    expected = (
+        f"data.path={file} is a file; expected the dataset folder "
+        f"(the one holding all_data.csv and images/{hint})"
+    )
+    for modality in ("image", "features"):
+        with pytest.raises(DataError) as err:
+            load_scenes(DataConfig(path=file, modality=modality, cache_dir=cache_dir))
+        assert str(err.value) == expected
+    assert main(["data", "check", str(file)]) == 1
+    assert capsys.readouterr().err == f"fedlgr: error: {expected}\n"

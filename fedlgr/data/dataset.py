@@ -17,7 +17,8 @@ import torch
 
 from fedlgr.data.config import DataConfig
 from fedlgr.data.images import load_image_store
-from fedlgr.data.ratings import SceneTable, read_ratings
+from fedlgr.data.ratings import CSV_NAME, SceneTable, read_ratings
+from fedlgr.errors import DataError
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,12 @@ class Scenes:
 
 def load_scenes(config: DataConfig, progress: Callable[[int, int], None] | None = None) -> Scenes:
     """Load ``config.path`` for ``config.modality`` (decoding images at most once)."""
-    table = read_ratings(Path(config.path))
+    folder = _dataset_folder(Path(config.path))
+    table = read_ratings(folder)
     images = None
     if config.modality == "image":
         store = load_image_store(
-            Path(config.path) / "images",
+            folder / "images",
             table.stamps,
             config.image_size,
             config.crop,
@@ -78,3 +80,15 @@ def load_scenes(config: DataConfig, progress: Callable[[int, int], None] | None 
         torch.as_tensor(table.features, dtype=torch.float32),
         images,
     )
+
+
+def _dataset_folder(path: Path) -> Path:
+    """``path`` itself, refused when it is a file (the CSV would be read and then the
+    images looked for under it, or any other file reported as a CSV without its columns)."""
+    if path.is_file():
+        hint = f"; here data.path={path.parent}" if path.name == CSV_NAME else ""
+        raise DataError(
+            f"data.path={path} is a file; expected the dataset folder (the one holding "
+            f"{CSV_NAME} and images/{hint})"
+        )
+    return path
