@@ -202,3 +202,82 @@ def test_store_order_follows_the_stamps(synth_dir, cache_dir):
         store = load_image_store(synth_dir / "images", np.array([260, 250, 255]), 16)
     assert store.stamps.tolist() == [260, 250, 255]
     assert torch.equal(store.images[1], decode(synth_dir / "images" / "250.png", 16, None))
+
+
+def _wrong_shape(saved):
+    return {**saved, "images": saved["images"][:, :, :16, :16].contiguous()}
+
+
+def _wrong_dtype(saved):
+    return {**saved, "images": saved["images"].float()}
+
+
+def _one_image_short(saved):
+    return {**saved, "stamps": saved["stamps"][1:], "images": saved["images"][1:]}
+
+
+def _other_stamps(saved):
+    return {**saved, "stamps": saved["stamps"] + 1000}
+
+
+@pytest.mark.parametrize(
+    ("damage", "problem"),
+    [
+        (_wrong_shape, "images (48, 3, 16, 16) uint8, expected (48, 3, 20, 20) uint8"),
+        (_wrong_dtype, "images (48, 3, 20, 20) float32, expected (48, 3, 20, 20) uint8"),
+        (_one_image_short, "47 images and 0 skipped, expected 48 scenes in all"),
+        (_other_stamps, "its stamps are not those of the image files"),
+        (lambda saved: saved["images"], "not a dict of stamps, images and skipped"),
+    ],
+)
+def test_readable_cache_that_does_not_match_its_key_is_rebuilt(
+    synth_dir, cache_dir, monkeypatch, damage, problem
+):
+    config = DataConfig(path=synth_dir, image_size=20, cache_dir=cache_dir)
+    fresh = load_scenes(config)
+    (cache_file,) = cache_dir.glob("images-*.pt")
+    torch.save(damage(torch.load(cache_file, weights_only=True)), cache_file)
+    calls = _count_decodes(monkeypatch)
+    with pytest.warns(UserWarning) as caught:
+        scenes = load_scenes(config)
+    assert [str(w.message) for w in caught] == [
+        f"{cache_file}: image cache does not match its key ({problem}), decoding again"
+    ]
+    assert len(calls) == 48
+    assert torch.equal(scenes.images, fresh.images)
+    np.testing.assert_array_equal(scenes.stamps, fresh.stamps)
+    again = load_scenes(config)  # the rebuilt cache is used as is
+    assert len(calls) == 48 and torch.equal(again.images, fresh.images)
+
+
+def test_cache_with_skipped_images_is_accepted(synth_copy, cache_dir, monkeypatch):
+    (synth_copy / "images" / "255.png").write_bytes(b"garbage")
+    (synth_copy / "images" / "260.png").unlink()
+    config = DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir, on_bad_image="skip")
+    with pytest.warns(UserWarning):
+        load_scenes(config)
+    calls = _count_decodes(monkeypatch)
+    with pytest.warns(UserWarning, match="skipping, for want of an image, 1 stamp"):
+        scenes = load_scenes(config)
+    assert calls == [] and len(scenes.images) == 46
+
+
+def test_cache_dir_that_is_a_file_names_the_setting(synth_dir, tmp_path, capsys, monkeypatch):
+    file = tmp_path / "cache-file"
+    file.write_text("not a folder")
+    with pytest.raises(ConfigError) as err:
+        load_scenes(DataConfig(path=synth_dir, image_size=16, cache_dir=file))
+    assert str(err.value) == (
+        f"data.cache_dir={file} is a file; the image cache needs a folder "
+        "(point data.cache_dir at one, or turn the cache off with data.cache=false)"
+    )
+    with pytest.raises(ConfigError, match=rf"data.cache_dir={file / 'sub'}: {file} is a file"):
+        load_scenes(DataConfig(path=synth_dir, image_size=16, cache_dir=file / "sub"))
+    monkeypatch.setenv("FEDLGR_CACHE_DIR", str(file))
+    assert main(["data", "check", str(synth_dir), "--size", "16"]) == 1
+    assert capsys.readouterr().err == (
+        f"fedlgr: error: FEDLGR_CACHE_DIR={file} is a file; the image cache needs a folder "
+        "(point FEDLGR_CACHE_DIR at one, or turn the cache off with data.cache=false)\n"
+    )
+    # the features modality reads no cache, so a misplaced one does not stop it
+    assert len(load_scenes(DataConfig(path=synth_dir, modality="features"))) == 48

@@ -22,6 +22,12 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fedlgr"
 
 
+def cache_dir_setting(cache_dir: Path) -> str:
+    """The name of the setting that chose ``cache_dir``, for error messages."""
+    from_env = os.environ.get("FEDLGR_CACHE_DIR")
+    return "FEDLGR_CACHE_DIR" if from_env and Path(from_env) == cache_dir else "data.cache_dir"
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     """A continual-learning task: the scenes whose ``column`` equals ``value``."""

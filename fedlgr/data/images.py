@@ -23,7 +23,8 @@ import torch
 from PIL import Image, UnidentifiedImageError
 from torchvision.transforms.v2 import functional as F
 
-from fedlgr.errors import DataError, join_problems
+from fedlgr.data.config import cache_dir_setting
+from fedlgr.errors import ConfigError, DataError, join_problems
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _STAMP_PREFIX = re.compile(r"^(\d+)(?!\d)")
@@ -149,26 +150,96 @@ def load_image_store(
     files = [match.files[s] for s in wanted]
     cache_file = None
     if cache_dir is not None:
+        _check_cache_dir(cache_dir)
         cache_file = cache_dir / f"images-{_cache_key(files, size, crop, on_bad_image)}.pt"
         if cache_file.is_file():
-            try:
-                saved = torch.load(cache_file, weights_only=True)
-                return ImageStore(
-                    saved["stamps"].numpy(),
-                    saved["images"],
-                    tuple(saved["skipped"]),
-                    from_cache=True,
-                )
-            except Exception as err:
-                # raises IndexError, UnpicklingError, ... on damage) is rebuilt, never fatal
-                warnings.warn(
-                    f"{cache_file}: unreadable image cache, decoding again ({err})", stacklevel=2
-                )
+            cached = _read_cache(cache_file, wanted, size, len(match.missing))
+            if cached is not None:
+                return cached
 
     store = _decode_all(files, wanted, size, crop, on_bad_image, skipped, progress)
     if cache_file is not None:
         _save_atomically(store, cache_file)
     return store
+
+
+def _check_cache_dir(cache_dir: Path) -> None:
+    """Refuse a cache folder that is, or lies under, a file (before decoding, not after)."""
+    existing = next(p for p in (cache_dir, *cache_dir.parents) if p.exists())
+    if not existing.is_dir():
+        setting = cache_dir_setting(cache_dir)
+        where = "" if existing == cache_dir else f": {existing}"
+        raise ConfigError(
+            f"{setting}={cache_dir}{where} is a file; the image cache needs a folder "
+            f"(point {setting} at one, or turn the cache off with data.cache=false)"
+        )
+
+
+def _read_cache(cache_file: Path, wanted: list[int], size: int, n_missing: int):
+    """The store saved in ``cache_file`` if it is what its key promises, else ``None``
+    (after a one-line warning: the caller decodes again and overwrites it)."""
+    try:
+        saved = torch.load(cache_file, weights_only=True)
+    except Exception as err:
+        # torch.load raises IndexError, UnpicklingError, RuntimeError, EOFError, ... on
+        # damage; a damaged cache is rebuilt, never fatal
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        warnings.warn(
+            f"{cache_file}: unreadable image cache, decoding again ({reason})", stacklevel=3
+        )
+        return None
+    problem = _cache_mismatch(saved, wanted, size, n_missing)
+    if problem is not None:
+        warnings.warn(
+            f"{cache_file}: image cache does not match its key ({problem}), decoding again",
+            stacklevel=3,
+        )
+        return None
+    return ImageStore(
+        saved["stamps"].numpy(), saved["images"], tuple(saved["skipped"]), from_cache=True
+    )
+
+
+def _describe(value) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"{tuple(value.shape)} {str(value.dtype).removeprefix('torch.')}"
+    return type(value).__name__
+
+
+def _cache_mismatch(saved, wanted: list[int], size: int, n_missing: int) -> str | None:
+    """Why ``saved`` is not the store of the ``wanted`` stamps at ``size`` px, or ``None``.
+
+    The key covers the files, the size, the crop and the policy, so a matching store holds
+    uint8 ``(N, 3, size, size)`` images of stamps taken in order from ``wanted``, and
+    ``skipped`` names the ``n_missing`` stamps without an image plus one entry per image
+    left out, so that ``N + len(skipped) == len(wanted) + n_missing``.
+    """
+    if not isinstance(saved, dict) or not {"stamps", "images", "skipped"} <= saved.keys():
+        return "not a dict of stamps, images and skipped"
+    stamps, images, skipped = saved["stamps"], saved["images"], saved["skipped"]
+    if not (isinstance(stamps, torch.Tensor) and stamps.dtype == torch.int64 and stamps.ndim == 1):
+        return f"stamps {_describe(stamps)}, expected (N,) int64"
+    expected = (len(stamps), 3, size, size)
+    if not (
+        isinstance(images, torch.Tensor)
+        and images.dtype == torch.uint8
+        and tuple(images.shape) == expected
+    ):
+        return f"images {_describe(images)}, expected {expected} uint8"
+    position = {s: k for k, s in enumerate(wanted)}
+    order = [position.get(s, -1) for s in stamps.tolist()]
+    if not order or -1 in order or order != sorted(set(order)):
+        return "its stamps are not those of the image files"
+    if (
+        not isinstance(skipped, list | tuple)
+        or len(stamps) + len(skipped) != len(wanted) + n_missing
+    ):
+        n_skipped = len(skipped) if isinstance(skipped, list | tuple) else "?"
+        return (
+            f"{len(stamps)} images and {n_skipped} skipped, "
+            f"expected {len(wanted) + n_missing} scenes in all"
+        )
+    return None
 
 
 def _decode_all(files, stamps, size, crop, on_bad_image, skipped, progress) -> ImageStore:
@@ -199,7 +270,6 @@ def _decode_all(files, stamps, size, crop, on_bad_image, skipped, progress) -> I
 
 
 def _save_atomically(store: ImageStore, cache_file: Path) -> None:
-    cache_file.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache_file.with_suffix(f".tmp{os.getpid()}")
     payload = {
         "stamps": torch.from_numpy(store.stamps),
@@ -207,6 +277,7 @@ def _save_atomically(store: ImageStore, cache_file: Path) -> None:
         "skipped": list(store.skipped),
     }
     try:
+        cache_file.parent.mkdir(parents=True, exist_ok=True)
         torch.save(payload, tmp)
         tmp.replace(cache_file)
     except OSError as err:  # a read-only cache folder must not stop the run
