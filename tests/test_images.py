@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -281,3 +283,48 @@ def test_cache_dir_that_is_a_file_names_the_setting(synth_dir, tmp_path, capsys,
     )
     # the features modality reads no cache, so a misplaced one does not stop it
     assert len(load_scenes(DataConfig(path=synth_dir, modality="features"))) == 48
+
+
+# A 64x64 PNG among 32x32 ones, with Pillow's decompression-bomb limit lowered in between:
+# at 1500 pixels Pillow refuses it (4096 > 2 * 1500), at 2500 it only warns (and would decode).
+BOMB_LIMITS = {1500: "4096", 2500: "64x64 = 4096"}
+
+
+def _oversized_image(folder, monkeypatch, limit):
+    bad = _png(folder / "images" / "255.png", size=(64, 64))
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", limit)
+    reason = (
+        f"{bad}: image too large to decode safely ({BOMB_LIMITS[limit]} pixels, over Pillow's "
+        f"decompression-bomb limit PIL.Image.MAX_IMAGE_PIXELS={limit})"
+    )
+    return bad, reason
+
+
+def _messages(caught, category=UserWarning):
+    return [str(w.message) for w in caught if w.category is category]
+
+
+@pytest.mark.parametrize("limit", BOMB_LIMITS)
+def test_oversized_image_is_a_bad_image(synth_copy, cache_dir, monkeypatch, capsys, limit):
+    _, reason = _oversized_image(synth_copy, monkeypatch, limit)
+    config = DataConfig(path=synth_copy, image_size=16, cache_dir=cache_dir)
+    with pytest.raises(DataError) as err, warnings.catch_warnings(record=True):
+        load_scenes(config)
+    assert str(err.value) == reason
+    with warnings.catch_warnings(record=True):
+        assert main(["data", "check", str(synth_copy), "--size", "16"]) == 1
+    assert capsys.readouterr().err.splitlines()[-1] == f"fedlgr: error: {reason}"
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scenes = load_scenes(dataclasses.replace(config, on_bad_image="skip"))
+    assert _messages(caught) == [f"skipping stamp 255: {reason}"]
+    assert 255 not in scenes.stamps.tolist() and scenes.images.shape == (47, 3, 16, 16)
+
+
+def test_oversized_image_is_refused_where_warnings_are_errors(synth_copy, monkeypatch):
+    bad, _ = _oversized_image(synth_copy, monkeypatch, 2500)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", Image.DecompressionBombWarning)
+        with pytest.raises(DataError, match=r"255.png: image too large to decode safely \(4096 "):
+            decode(bad, 16, None)

@@ -81,7 +81,12 @@ def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
     """
     try:
         with Image.open(path) as file:
+            _refuse_oversized(path, file)
             pixels = np.array(file.convert("RGB"))  # a writable copy for torch
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as err:
+        # over twice the limit (or once, where warnings are errors): Pillow refuses to open
+        pixels = re.search(r"\((\d+) pixels\)", str(err))
+        raise DataError(_oversized(path, pixels.group(1) if pixels else "too many")) from err
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
         raise DataError(f"{path}: cannot decode image ({str(err).splitlines()[0]})") from err
     image = torch.from_numpy(pixels).permute(2, 0, 1)
@@ -97,6 +102,21 @@ def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
             )
         image = image[:, top:bottom, left:right]
     return F.resize(image, [size, size], antialias=True).contiguous()
+
+
+def _refuse_oversized(path: Path, file: Image.Image) -> None:
+    """Refuse an image over Pillow's decompression-bomb limit, which Pillow itself only
+    warns about up to twice the limit (and would decode, at any memory cost)."""
+    width, height = file.size
+    if Image.MAX_IMAGE_PIXELS is not None and width * height > Image.MAX_IMAGE_PIXELS:
+        raise DataError(_oversized(path, f"{width}x{height} = {width * height}"))
+
+
+def _oversized(path: Path, pixels: str) -> str:
+    return (
+        f"{path}: image too large to decode safely ({pixels} pixels, over Pillow's "
+        f"decompression-bomb limit PIL.Image.MAX_IMAGE_PIXELS={Image.MAX_IMAGE_PIXELS})"
+    )
 
 
 @dataclass(frozen=True)
