@@ -35,6 +35,7 @@ from typing import Any
 
 from fedlgr.errors import FedlgrError
 from fedlgr.sweep.spec import SweepSpec
+from fedlgr.sweep.storage import fail_and_retry, open_study
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
 PARENT_ATTR = "mlflow_parent_run_id"
@@ -52,76 +53,6 @@ class SweepResult:
     study: Any
     parent_run_id: str
     done: bool
-
-
-class RetryStaleTrial:
-    """Optuna's ``RetryHeartbeatStaleTrialCallback`` for a trial whose worker died, which
-    also ends that trial's MLflow run KILLED (its process can no longer do it) - a FINISHED
-    one too: a worker killed between ending the run and telling the study leaves a run the
-    study never counted, and the retry makes the point's result."""
-
-    def __init__(self) -> None:
-        from optuna.storages import RetryHeartbeatStaleTrialCallback
-
-        self.retry = RetryHeartbeatStaleTrialCallback(max_retry=3)
-        self.client = None  # set by the Worker once MLflow is open
-        self.experiment_id: str | None = None
-
-    def __call__(self, study, trial) -> None:
-        self.retry(study, trial)
-        if self.client is None:
-            return
-        runs = self.client.search_runs(
-            [self.experiment_id],
-            f"tags.study = '{study.study_name}' and tags.trial = '{trial.number}'",
-        )
-        for run in runs:
-            if run.info.status in ("RUNNING", "FINISHED"):
-                self.client.set_terminated(run.info.run_id, "KILLED")
-
-
-def open_study(spec: SweepSpec, storage: str, study_name: str | None = None, worker: int = 0):
-    """Create or load the study (``load_if_exists``) with heartbeats and retry of dead
-    workers' trials; returns the study and its :class:`RetryStaleTrial`."""
-    import optuna
-    from optuna.storages import RDBStorage
-
-    optuna.logging.set_verbosity(optuna.logging.WARNING)  # no INFO line per study/trial
-    try:
-        with warnings.catch_warnings():
-            # Heartbeats and their retry callback are "experimental" since Optuna 2.8/2.9.
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            retry = RetryStaleTrial()
-            rdb = RDBStorage(
-                storage,
-                heartbeat_interval=spec.heartbeat_s,
-                grace_period=2 * spec.heartbeat_s,
-                heartbeat_stale_trial_callback=retry,
-                engine_kwargs=(
-                    {"connect_args": {"timeout": 60}} if storage.startswith("sqlite") else {}
-                ),
-            )
-    except Exception as err:
-        raise FedlgrError(f"--storage {storage}: cannot open the study storage: {err}") from err
-    if spec.sampler == "grid":
-        sampler = optuna.samplers.GridSampler(spec.grid, seed=spec.seed)
-    else:
-        # Parallel workers with one seed would propose the same first points.
-        sampler = optuna.samplers.TPESampler(seed=spec.seed * 1000 + worker)
-    pruner = (
-        optuna.pruners.MedianPruner(n_startup_trials=2, n_warmup_steps=spec.prune_warmup_rounds)
-        if spec.pruner == "median"
-        else optuna.pruners.NopPruner()
-    )
-    study = optuna.create_study(
-        study_name=study_name or spec.name,
-        storage=rdb,
-        sampler=sampler,
-        pruner=pruner,
-        direction=spec.direction,
-        load_if_exists=True,
-    )
-    return study, retry
 
 
 def _same(a: dict[str, Any], b: dict[str, Any]) -> bool:
@@ -400,7 +331,10 @@ class Worker:
         """A worker killed between creating a trial and drawing its parameters leaves a
         RUNNING trial with no params and no heartbeat, which Optuna never fails: fail it
         once it is older than the heartbeat grace period (a live trial draws its
-        parameters within milliseconds)."""
+        parameters within milliseconds) and queue it again. GridSampler has already given
+        it a point (system attr ``grid_id``) and counts a failed trial's point as visited,
+        so without the retry - whose copy keeps ``grid_id`` - that point would come back
+        only by chance."""
         from datetime import datetime, timedelta
 
         from optuna.trial import TrialState
@@ -408,7 +342,7 @@ class Worker:
         limit = datetime.now() - timedelta(seconds=2 * self.spec.heartbeat_s + 10)
         for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
             if not t.params and t.datetime_start is not None and t.datetime_start < limit:
-                self.study._storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
+                fail_and_retry(self.study, self.retry, t._trial_id)
 
     def _requeue_interrupted(self) -> None:
         """Ctrl-C: Optuna records the running trial FAILED; queue it again so the next
