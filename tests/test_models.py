@@ -82,3 +82,34 @@ def test_bad_weight_files_name_the_setting(tmp_path):
     torch.save(MobileNetRoot(width=0.1).state_dict(), tmp_path / "narrow.pt")
     with pytest.raises(ConfigError, match="not MobileNetV2 weights for this width"):
         MobileNetRoot(weights=str(tmp_path / "narrow.pt"), width=1.0)
+
+
+def _truncated_checkpoint(path):
+    torch.save({"features.0.0.weight": torch.ones(4, 3, 3, 3)}, path)
+    path.write_bytes(path.read_bytes()[:200])
+
+
+WEIGHT_FILES = {
+    "notes.txt": (lambda p: p.write_text("weights: none\n"), "not a torch.save file"),
+    "hello.txt": (lambda p: p.write_text("hello\n"), "not a torch.save file"),
+    "empty.pt": (lambda p: p.write_bytes(b""), "a truncated or damaged torch.save file"),
+    "cut.pt": (_truncated_checkpoint, "a truncated or damaged torch.save file"),
+    "module.pt": (
+        lambda p: torch.save(torch.nn.Linear(2, 2), p),
+        "it holds a pickled torch.nn.modules.linear.Linear, not only tensors",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", WEIGHT_FILES)
+def test_a_weights_file_that_is_no_checkpoint_is_one_line(tmp_path, name):
+    write, reason = WEIGHT_FILES[name]
+    path = tmp_path / name
+    write(path)
+    with pytest.raises(ConfigError) as err:
+        MobileNetRoot(weights=str(path), width=0.1)
+    assert str(err.value) == (
+        f"model.weights={path}: cannot read a state dict ({reason}); expected the tensors "
+        "of a model saved with torch.save(model.state_dict(), file)"
+    )
+    assert "weights_only" not in str(err.value)

@@ -14,6 +14,7 @@ Parameter names start with ``root.`` or ``top.``: that prefix is what FedRoot sh
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import lightning as L
@@ -56,8 +57,11 @@ def _file_state_dict(path: Path) -> dict[str, torch.Tensor]:
         )
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise ConfigError(f"model.weights={path}: cannot read a state dict ({err})") from err
+    except Exception as err:  # torch.load raises KeyError, EOFError, RuntimeError, ...
+        raise ConfigError(
+            f"model.weights={path}: cannot read a state dict ({_unreadable(err)}); expected "
+            "the tensors of a model saved with torch.save(model.state_dict(), file)"
+        ) from err
     if isinstance(state, dict) and "state_dict" in state:
         state = state["state_dict"]
     if not isinstance(state, dict):
@@ -65,6 +69,18 @@ def _file_state_dict(path: Path) -> dict[str, torch.Tensor]:
             f"model.weights={path}: expected a state dict, got {type(state).__name__}"
         )
     return state
+
+
+def _unreadable(err: Exception) -> str:
+    """Why torch.load failed, in a few words. torch's own text runs to several lines and
+    recommends ``weights_only=False``, which would run whatever code the file holds."""
+    text = str(err)
+    found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+    if found:
+        return f"it holds a pickled {found.group(1)}, not only tensors"
+    if "PytorchStreamReader" in text or isinstance(err, EOFError):
+        return "a truncated or damaged torch.save file"
+    return "not a torch.save file"
 
 
 class MobileNetRoot(L.LightningModule):
