@@ -176,10 +176,19 @@ class TrackingConfig:
     uri: str | None = None  # default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db
     experiment: str = "fedlgr"
     run_name: str | None = None  # default: the method and setting, e.g. FedAvg-2c-noaug
+    checkpoint: int = 1  # a checkpoint every N rounds (and after the last); 0: none
+    keep_checkpoints: int = 2  # the newest K are kept while the run goes on
+    checkpoint_dir: str | None = None  # default: checkpoints/ next to a sqlite store, else ./
+    heartbeat_s: float = 30.0  # a live run's tag fedlgr.heartbeat is never older than this
 
     def __post_init__(self) -> None:
         if not self.experiment:
             raise ConfigError("tracking.experiment: must not be empty")
+        if self.checkpoint < 0:
+            raise ConfigError(f"tracking.checkpoint={self.checkpoint}: must be >= 0 (0: none)")
+        _positive("tracking.keep_checkpoints", self.keep_checkpoints)
+        if not self.heartbeat_s > 0:
+            raise ConfigError(f"tracking.heartbeat_s={self.heartbeat_s}: must be > 0")
 
 
 @dataclass(frozen=True)

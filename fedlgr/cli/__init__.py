@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -93,6 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--tracking-uri",
         help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI "
         "or sqlite:///mlflow.db with artifacts in mlruns/)",
+    )
+    run.add_argument(
+        "--resume",
+        nargs="?",
+        const=True,
+        metavar="RUN_ID",
+        help="continue an interrupted run from its last checkpoint, in the same MLflow run: "
+        "RUN_ID, or (without one) the latest unfinished run of the same config",
     )
     run.set_defaults(run="fedlgr.cli.run:run")
 
@@ -215,8 +224,24 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     return f"fedlgr: warning: {message}\n"
 
 
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """Options may come between and after overrides (``run CONFIG --tracking-uri U a=1``):
+    argparse stops collecting a verb's ``key=value`` list at the first option, so the rest
+    are taken back here (its intermixed parsing does not support sub-commands)."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    listed = next((name for name in ("items", "overrides") if hasattr(args, name)), None)
+    if extra and (listed is None or any("=" not in e or e.startswith("-") for e in extra)):
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if extra:
+        getattr(args, listed).extend(extra)
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    # MLflow 3 reports usage to its makers on every run unless told not to.
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    args = parse(argv)
     module_name, func_name = args.run.split(":")
     standard_format, warnings.formatwarning = warnings.formatwarning, _one_line_warning
     try:

@@ -14,12 +14,14 @@ def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]
 def run(args: argparse.Namespace) -> int:
     from fedlgr.config import load_config
     from fedlgr.federated.experiment import run_experiment
+    from fedlgr.signals import terminate_as_interrupt
 
     path, overrides = split_config_and_overrides(args.items)
     if args.tracking_uri:
         overrides.append(f"tracking.uri={args.tracking_uri}")
     config = load_config(path, overrides)
-    result = run_experiment(config)
+    with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C
+        result = run_experiment(config, resume=args.resume)
     if result is not None and result.run_id:
         print(f"MLflow run {result.run_id} (experiment {config.tracking.experiment!r})")
     return 0

@@ -58,6 +58,14 @@ class EWC(QuadraticPenalty):
     def on_task_end(self, ctx: LocalContext) -> None:
         self.terms.append((self.estimate(ctx), snapshot(ctx.model)))
 
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "rng": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        if "rng" in state:
+            self.generator.set_state(state["rng"])
+
 
 class EWCOnline(EWC):
     name = "ewc_online"

@@ -260,7 +260,9 @@ class LatentReplay(ClientPlugin):
     def state_dict(self) -> dict:
         return {
             "generator": None if self.generator is None else self.generator.state_dict(),
-            "labeller": None if self.labeller is None else self.labeller.state_dict(),
+            "labeller": self._labeller_state
+            if self.labeller is None
+            else self.labeller.state_dict(),
             "memory": self.memory,
             "tasks_learnt": self.tasks_learnt,
             "rng": self.generator_rng.get_state(),

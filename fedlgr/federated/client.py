@@ -8,6 +8,7 @@ trains as fast as a hand-written PyTorch loop (``bench/train.py`` measures the r
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,6 +16,7 @@ import torch
 from torch import nn
 
 from fedlgr.data.augment import SceneBatches
+from fedlgr.errors import FedlgrError
 from fedlgr.federated.plugins import ClientPlugin, LocalContext
 
 
@@ -133,4 +135,11 @@ def train_locally(
     for plugin in plugins:
         plugin.on_round_end(ctx)
     seen += ctx.trained_samples
-    return LocalStats(seen, (float(total_loss) + ctx.trained_loss) / max(seen, 1))
+    mean = (float(total_loss) + ctx.trained_loss) / max(seen, 1)
+    if not math.isfinite(mean):  # one check per round: no host sync per step
+        raise FedlgrError(
+            f"round {ctx.round}, client {client.index}: the training loss is {mean} "
+            "(not a finite number); lower the learning rates (train.lr_root, train.lr_top) "
+            "or check the data for extreme values (fedlgr data check)"
+        )
+    return LocalStats(seen, mean)

@@ -13,6 +13,7 @@ import functools
 import itertools
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from fedlgr.config import ExperimentConfig
 from fedlgr.console import Progress, table
@@ -183,23 +184,62 @@ def run_experiment(
     tags: dict[str, str] | None = None,
     echo=None,
     on_round=None,
+    on_start=None,
+    resume: str | bool | None = None,
 ) -> ExperimentResult | None:
     """Run ``config`` end to end; the result in rank 0, ``None`` in other processes.
 
-    ``on_round(round, metrics)`` (rank 0, after each round is logged) may raise to stop the
-    run, e.g. a sweep's pruner: the run is then ended KILLED if the exception has
-    ``mlflow_status = "KILLED"``, FAILED otherwise, keeping what was logged."""
+    ``resume``: a run id, or True for the latest unfinished run of this config, to
+    continue from its last checkpoint inside the same MLflow run. ``on_start(run_id)``
+    (rank 0) is called once the MLflow run exists. ``on_round(round, metrics)`` (rank 0,
+    after each round is logged and checkpointed) may raise to stop the run, e.g. a sweep's
+    pruner: the run is then ended KILLED if the exception has ``mlflow_status =
+    "KILLED"``, FAILED otherwise, keeping what was logged."""
     from lightning.fabric.connector import _is_using_cli
 
     echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
     fabric = make_fabric(config)
+    hooks = Hooks(echo, on_round, on_start)
     if config.runtime.world_size == 1 or _is_using_cli():
-        return _main(fabric, config, parent_run_id, tags, echo, on_round)
-    return fabric.launch(_main, config, parent_run_id, tags, echo, on_round)
+        return _main(fabric, config, parent_run_id, tags, hooks, resume)
+    return fabric.launch(_main, config, parent_run_id, tags, hooks, resume)
+
+
+@dataclass
+class Hooks:
+    echo: object
+    on_round: object = None
+    on_start: object = None
+
+
+def _resume_point(fabric, config: ExperimentConfig, resume) -> tuple[str, dict] | None:
+    """Rank 0 finds the run and its checkpoint; every process then reads it (one machine,
+    or a checkpoint folder every node can reach). A refusal is raised in every process."""
+    from fedlgr.errors import FedlgrError
+    from fedlgr.federated.resume import find_checkpoint, load_checkpoint
+    from fedlgr.tracking.mlflow_run import open_client, tracking_uri
+
+    if not resume:
+        return None
+    if not config.tracking.enabled:
+        raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
+    found: tuple[str, str] | str = ""
+    if fabric.global_rank == 0:
+        try:
+            run_id, path = find_checkpoint(config, resume, open_client(tracking_uri(config)))
+            found = (run_id, str(path))
+        except FedlgrError as err:
+            found = str(err)
+    if fabric.world_size > 1:
+        found = fabric.broadcast(found, src=0)
+    if isinstance(found, str):
+        raise FedlgrError(found)
+    run_id, path = found
+    return run_id, load_checkpoint(config, run_id, Path(path))
 
 
 def _main(
-    fabric, config: ExperimentConfig, parent_run_id, tags, echo, on_round=None
+    fabric, config: ExperimentConfig, parent_run_id, tags, hooks: Hooks, resume=None
 ) -> ExperimentResult | None:
     import torch
     from lightning.fabric import seed_everything
@@ -208,24 +248,44 @@ def _main(
     from fedlgr.continual.schedule import schedule
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
-    from fedlgr.tracking.mlflow_run import Tracker
-    from fedlgr.tracking.plots import curves_png
+    from fedlgr.federated.resume import restore, save_checkpoint
+    from fedlgr.tracking.checkpoint import checkpoint_root, remove
+    from fedlgr.tracking.mlflow_run import Tracker, tracking_uri
 
     rank0 = fabric.global_rank == 0
-    say = echo if rank0 else (lambda *a, **k: None)
+    say = hooks.echo if rank0 else (lambda *a, **k: None)
     if fabric.device.type == "cpu":
         torch.set_num_threads(torch_threads(config, fabric.world_size // config.runtime.num_nodes))
     seed_everything(config.seed, verbose=False)
     start = time.perf_counter()
+    point = _resume_point(fabric, config, resume)
     scenes = load_scenes(config.data)
     split = make_split(scenes.table, config.data)
     orchestrator = Orchestrator(fabric, config, scenes, split)
-    tracker = Tracker(config, tags, parent_run_id) if rank0 and config.tracking.enabled else None
-    result = ExperimentResult(config, run_id=tracker.run_id if tracker else None)
+    tasks = list(config.continual.tasks)
+    steps = schedule(config)
+    forgetting = ForgettingTracker(tasks)
+    result = ExperimentResult(config)
+    elapsed = 0.0
+    if point is not None:
+        result.rounds = restore(fabric, orchestrator, point[1])
+        for log, step in zip(result.rounds, steps, strict=False):
+            if step.last_of_task:  # the "after task" figures, as they were computed then
+                forgetting.end_of_task(log, step.task)
+        result.after_tasks = forgetting.after
+        elapsed = point[1]["elapsed"]
+    tracker, folder = None, None
+    if rank0 and config.tracking.enabled:
+        run_id = point[0] if point is not None else None
+        tracker = Tracker(config, tags, parent_run_id, run_id=run_id)
+        folder = checkpoint_root(config, tracking_uri(config)) / tracker.run_id
+        tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
+        result.run_id = tracker.run_id
+        if hooks.on_start is not None:
+            hooks.on_start(tracker.run_id)
     plan = (
-        f"{len(config.continual.tasks)} tasks ({', '.join(config.continual.tasks)}) x "
-        f"{config.continual.rounds_per_task} rounds"
-        if config.continual.tasks
+        f"{len(tasks)} tasks ({', '.join(tasks)}) x {config.continual.rounds_per_task} rounds"
+        if tasks
         else f"{config.federated.rounds} rounds"
     )
     say(
@@ -233,12 +293,12 @@ def _main(
         f"{config.data.clients} clients, {len(split.train)} training / {len(split.test)} test "
         "scenes" + (f", {fabric.world_size} processes" if fabric.world_size > 1 else "")
     )
-    tasks = list(config.continual.tasks)
-    steps = schedule(config)
-    forgetting = ForgettingTracker(tasks)
+    if point is not None:
+        say(f"resuming run {point[0]} after round {len(result.rounds)} of {len(steps)}")
+    every = config.tracking.checkpoint if config.tracking.enabled else 0
     total = len(steps)
     try:
-        for step in steps:
+        for step in steps[len(result.rounds) :]:
             round_, k = step.round, step.task
             show = rank0 and config.runtime.progress
             label = f"round {round_}/{total}" + (f" (task {tasks[k]})" if tasks else "")
@@ -254,31 +314,72 @@ def _main(
                 result.after_tasks = forgetting.after
             if tracker is not None:
                 tracker.log_round(round_, metrics)
-            loss, rmse, pcc = (log.mean(f"test_{m}") for m in ("loss", "rmse", "pcc"))
-            say(
-                f"{label}: loss {loss:.3f}  RMSE {rmse:.3f}  PCC {pcc:.3f}  "
-                f"CPU {log.mean('cpu_s'):.1f} s/client  ({log.seconds:.1f} s)"
-            )
-            if on_round is not None and rank0:
-                on_round(round_, metrics)
+            if every and (round_ % every == 0 or round_ == total):
+                spent = elapsed + time.perf_counter() - start
+                keep = config.tracking.keep_checkpoints
+                run_id = result.run_id
+                save_checkpoint(fabric, folder, orchestrator, result.rounds, run_id, spent, keep)
+            say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s)")
+            if hooks.on_round is not None and rank0:
+                hooks.on_round(round_, metrics)
     except BaseException as err:
         if tracker is not None:
-            tracker.save_results(
-                result.rows(), curves_png(result.rows()) if result.rounds else None
-            )
-            tracker.log_summary(result.cost_means())
-            killed = (
-                isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
-            )
-            tracker.fail(interrupted=killed)
+            _record_failure(tracker, result, err, say)
         raise
-    result.seconds = time.perf_counter() - start
+    result.seconds = elapsed + time.perf_counter() - start
     if tracker is not None:
+        from fedlgr.tracking.plots import curves_png
+
         tracker.save_results(result.rows(), curves_png(result.rows()))
         tracker.log_summary(result.cost_means())
         tracker.finish()
+        remove(folder)  # a finished run needs no checkpoint
     if not rank0:
         return None
     say(f"\n{config.run_name} after {total} rounds ({result.seconds:.0f} s):")
     say(result.summary())
     return result
+
+
+def _scores(log: RoundLog) -> str:
+    """One round's line; a score that is not a number (a diverged run) shows as such."""
+    figures = [
+        (name, log.mean(column))
+        for name, column in (
+            ("loss", "test_loss"),
+            ("RMSE", "test_rmse"),
+            ("PCC", "test_pcc"),
+        )
+    ]
+    shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
+    cpu = log.mean("cpu_s")
+    return shown + f"  CPU {'-' if cpu is None else f'{cpu:.1f}'} s/client"
+
+
+def _record_failure(tracker, result: ExperimentResult, err: BaseException, say) -> None:
+    """Keep what the run had (results.csv, curves, costs) and end it KILLED or FAILED.
+    Every step may fail on its own (a diverged run's NaNs, a store gone away): the run is
+    still ended, and the original error is what the user sees."""
+    from fedlgr.tracking.plots import curves_png
+
+    steps = [
+        ("results.csv", lambda: tracker.save_results(result.rows(), None)),
+        ("curves.png", lambda: tracker.save_results([], curves_png(result.rows()))),
+        ("cost summary", lambda: tracker.log_summary(result.cost_means())),
+    ]
+    if result.rounds:
+        for what, action in steps:
+            try:
+                action()
+            except Exception as problem:  # reported; never raised over err
+                say(f"(while failing: could not record {what}: {_one_line(problem)})")
+    killed = isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
+    try:
+        tracker.fail(interrupted=killed)
+    except Exception as problem:
+        say(f"(while failing: could not end MLflow run {tracker.run_id}: {_one_line(problem)})")
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__

@@ -381,6 +381,25 @@ class Orchestrator:
             table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
         return RoundLog(round_, self.tasks[task], self.fields, table.numpy(), seconds)
 
+    # ------------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict:
+        """This process's part of the run's state: the server's (global tensors, strategy
+        state; the same in every process) and its own clients'."""
+        return {
+            "server": {"global": self.global_weights, "strategy": self.strategy.state_dict()},
+            "clients": {c.index: c.state_dict() for c in self.clients},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a checkpoint's server state and this process's clients (``state`` holds
+        every client of every process)."""
+        server = state["server"]
+        self.global_weights = {k: v.to(self.device) for k, v in server["global"].items()}
+        self.strategy.load_state_dict(_to(server["strategy"], self.device))
+        for client in self.clients:
+            client.load_state_dict(_to(state["clients"][client.index], self.device))
+
     def run_round(
         self,
         round_: int,
@@ -395,6 +414,18 @@ class Orchestrator:
         ended = self.end_task(round_, task) if last_of_task else {}
         scores = self.evaluate_clients(task)
         return self.gather(round_, task, trained, ended, scores, time.perf_counter() - start)
+
+
+def _to(value, device: torch.device):
+    """``value`` with every tensor moved to ``device`` (dicts, lists, tuples walked)."""
+    if isinstance(value, torch.Tensor):
+        # Generator states are CPU byte tensors whatever the device; keep them there.
+        return value if value.dtype == torch.uint8 else value.to(device)
+    if isinstance(value, dict):
+        return {k: _to(v, device) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(_to(v, device) for v in value)
+    return value
 
 
 def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:

@@ -9,15 +9,26 @@ results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` hold the
 per client per round averaged over clients and rounds (what Tables III/IV report). A run
 that fails is ended FAILED (KILLED on Ctrl-C or when a sweep prunes it) after saving what
 it had.
+
+A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``) and a heartbeat
+(``fedlgr.heartbeat``, seconds since the epoch, refreshed every ``tracking.heartbeat_s``
+by a background thread and at every round), so that ``--resume``, ``fedlgr report`` and
+sweeps tell a run whose process was killed outright (SIGKILL, a lost machine) from a live
+one, and mark it KILLED (:func:`end_dead_runs`). ``Tracker.resume`` reopens a run: status
+RUNNING again, and nothing logged twice (rounds already logged are skipped).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import os
+import socket
 import tempfile
+import threading
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -36,9 +47,49 @@ def tracking_uri(config: ExperimentConfig) -> str:
 
 
 def experiment_id(client, name: str) -> str:
-    """The id of MLflow experiment ``name``, created if it does not exist yet."""
+    """The id of MLflow experiment ``name``, created if it does not exist yet (by this
+    process or, at the same moment, by another one)."""
     experiment = client.get_experiment_by_name(name)
-    return experiment.experiment_id if experiment is not None else client.create_experiment(name)
+    if experiment is not None:
+        return experiment.experiment_id
+    try:
+        return client.create_experiment(name)
+    except Exception:
+        experiment = client.get_experiment_by_name(name)  # another process created it first
+        if experiment is None:
+            raise
+        return experiment.experiment_id
+
+
+@contextlib.contextmanager
+def store_lock(uri: str):
+    """Held while a process opens a local sqlite store: the first use of a fresh store
+    runs MLflow's schema migrations, which two processes must not run at once (one would
+    die on ``duplicate column name``). Other stores need no lock."""
+    if not uri.startswith("sqlite:///"):
+        yield
+        return
+    import fcntl
+
+    path = Path(uri.removeprefix("sqlite:///")).expanduser()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(f"{path}.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def open_client(uri: str):
+    """An ``MlflowClient`` on ``uri`` whose store is created and migrated (under
+    :func:`store_lock`)."""
+    import mlflow
+
+    client = mlflow.MlflowClient(uri)
+    with store_lock(uri):
+        client.search_experiments(max_results=1)  # creates / migrates the store now
+    return client
 
 
 def dataset_name(config: ExperimentConfig) -> str:
@@ -46,56 +97,132 @@ def dataset_name(config: ExperimentConfig) -> str:
     return "synthetic" if (path / "synth.json").is_file() else path.name
 
 
+SENTINEL = "round/seconds"  # logged last in each round: the round is wholly logged
+
+
 class Tracker:
-    """Starts the run on creation; ``log_round`` per round; ``finish`` or ``fail`` at the end."""
+    """Starts the run on creation (or reopens one: :meth:`resume`); ``log_round`` per
+    round; ``finish`` or ``fail`` at the end."""
 
     def __init__(
         self,
         config: ExperimentConfig,
         tags: dict[str, str] | None = None,
         parent_run_id: str | None = None,
+        *,
+        run_id: str | None = None,
     ):
-        import mlflow
+        from fedlgr.tracking.checkpoint import fingerprint
 
-        self.mlflow = mlflow
-        self.client = mlflow.MlflowClient(tracking_uri(config))
-        self.experiment_id = experiment_id(self.client, config.tracking.experiment)
-        run_tags = {
-            "method": config.method_name,
-            "strategy": config.federated.strategy,
-            "scope": config.federated.scope,
-            "dataset": dataset_name(config),
-            "modality": config.data.modality,
-            "clients": str(config.data.clients),
-            "augmentation": str(config.data.augment).lower(),
-            "benchmark": "FCL" if config.continual_learning else "FL",
-            "continual": config.continual.method if config.continual_learning else "none",
-            **(tags or {}),
-        }
-        if parent_run_id:
-            run_tags["mlflow.parentRunId"] = parent_run_id
-        run = self.client.create_run(self.experiment_id, run_name=config.run_name, tags=run_tags)
-        self.run_id = run.info.run_id
-        params = flatten(config)
-        from mlflow.entities import Param
+        self.config = config
+        self.uri = tracking_uri(config)
+        self.client = open_client(self.uri)
+        with store_lock(self.uri):
+            self.experiment_id = experiment_id(self.client, config.tracking.experiment)
+        self.done: set[int] = set()  # rounds already wholly logged (a resumed run)
+        self.partial: int | None = None  # the round a kill may have cut mid-logging
+        self.summary_logged: set[str] = set()
+        if run_id is not None:
+            self.run_id = run_id
+            self._reopen()
+        else:
+            run_tags = {
+                "method": config.method_name,
+                "strategy": config.federated.strategy,
+                "scope": config.federated.scope,
+                "dataset": dataset_name(config),
+                "modality": config.data.modality,
+                "clients": str(config.data.clients),
+                "augmentation": str(config.data.augment).lower(),
+                "benchmark": "FCL" if config.continual_learning else "FL",
+                "continual": config.continual.method if config.continual_learning else "none",
+                "fedlgr.config_hash": fingerprint(config),
+                **(tags or {}),
+            }
+            if parent_run_id:
+                run_tags["mlflow.parentRunId"] = parent_run_id
+            run = self.client.create_run(
+                self.experiment_id, run_name=config.run_name, tags=run_tags
+            )
+            self.run_id = run.info.run_id
+            params = flatten(config)
+            from mlflow.entities import Param
 
-        items = [Param(k, v[:6000]) for k, v in params.items()]
-        for i in range(0, len(items), 100):  # the REST API takes 100 params per batch
-            self.client.log_batch(self.run_id, params=items[i : i + 100])
-        self.client.log_text(self.run_id, to_yaml(config), "config.yaml")
+            items = [Param(k, v[:6000]) for k, v in params.items()]
+            for i in range(0, len(items), 100):  # the REST API takes 100 params per batch
+                self.client.log_batch(self.run_id, params=items[i : i + 100])
+            self._log_bytes(to_yaml(config).encode(), "config.yaml")
+        self._start_heartbeat()
+
+    def _reopen(self) -> None:
+        """Resume: RUNNING again; find what is already logged, so it is not logged twice."""
+        self.client.update_run(self.run_id, status="RUNNING")
+        history = self.client.get_metric_history(self.run_id, SENTINEL)
+        self.done = {m.step for m in history}
+        self.partial = max(self.done, default=0) + 1
+        run = self.client.get_run(self.run_id)
+        self.summary_logged = set(run.data.metrics)
+
+    # ------------------------------------------------------------------ liveness
+
+    def _start_heartbeat(self) -> None:
+        self.client.set_tag(self.run_id, "fedlgr.host", socket.gethostname())
+        self.client.set_tag(self.run_id, "fedlgr.pid", str(os.getpid()))
+        interval = str(self.config.tracking.heartbeat_s)
+        self.client.set_tag(self.run_id, "fedlgr.heartbeat_s", interval)
+        self.heartbeat()
+        self._stop = threading.Event()
+        self._beat = threading.Thread(target=self._beating, name="fedlgr-heartbeat", daemon=True)
+        self._beat.start()
+
+    def heartbeat(self) -> None:
+        self.client.set_tag(self.run_id, "fedlgr.heartbeat", f"{time.time():.0f}")
+
+    def _beating(self) -> None:
+        warned = False
+        while not self._stop.wait(self.config.tracking.heartbeat_s):
+            try:
+                self.heartbeat()
+            except Exception as err:  # the store is away for a moment: the run goes on
+                if not warned:
+                    message = f"MLflow heartbeat of run {self.run_id} failed: {err}"
+                    warnings.warn(message, stacklevel=1)
+                    warned = True
+
+    def _stop_heartbeat(self) -> None:
+        self._stop.set()
+        self._beat.join(timeout=5)
+
+    # ------------------------------------------------------------------ logging
 
     def log_round(self, round_: int, metrics: dict[str, float]) -> None:
+        """Log a round's metrics at ``step=round``, the sentinel last; a round a resumed run
+        had already logged is skipped (its values are the same: the run is deterministic)."""
         from mlflow.entities import Metric
 
+        if round_ in self.done:
+            return
         now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, round_) for k, v in metrics.items()]
-        for i in range(0, len(items), 1000):
+        keys = [k for k in metrics if k != SENTINEL] + ([SENTINEL] if SENTINEL in metrics else [])
+        if round_ == self.partial and len(keys) > 1000:  # cut between two batches?
+            keys = [k for k in keys if not self._logged_at(k, round_)]
+        items = [Metric(k, float(metrics[k]), now, round_) for k in keys]
+        for i in range(0, len(items), 1000):  # the REST API takes 1000 metrics per batch
             self.client.log_batch(self.run_id, metrics=items[i : i + 1000])
+        self.heartbeat()
+
+    def _logged_at(self, key: str, step: int) -> bool:
+        return any(m.step == step for m in self.client.get_metric_history(self.run_id, key))
 
     def log_summary(self, metrics: dict[str, float]) -> None:
         """Run-level values (no round): e.g. ``mean/cost/cpu_s`` over clients and rounds."""
-        if metrics:
-            self.log_round(0, metrics)
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
+        items = [m for m in items if m.key not in self.summary_logged]
+        if items:
+            self.client.log_batch(self.run_id, metrics=items)
 
     def save_results(self, rows: Sequence[dict[str, object]], curves_png: bytes | None) -> None:
         if rows:
@@ -103,18 +230,68 @@ class Tracker:
             writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
             writer.writeheader()
             writer.writerows(rows)
-            self.client.log_text(self.run_id, buffer.getvalue(), "results.csv")
+            self._log_bytes(buffer.getvalue().encode(), "results.csv")
         if curves_png:
             self._log_bytes(curves_png, "curves.png")
 
     def _log_bytes(self, data: bytes, name: str) -> None:
-        with tempfile.TemporaryDirectory() as tmp:
+        # Not ``MlflowClient.log_text``: it leaves a folder in the system temp directory.
+        with tempfile.TemporaryDirectory(prefix="fedlgr-") as tmp:
             path = Path(tmp) / name
             path.write_bytes(data)
             self.client.log_artifact(self.run_id, str(path))
 
     def finish(self) -> None:
+        self._stop_heartbeat()
         self.client.set_terminated(self.run_id, "FINISHED")
 
     def fail(self, interrupted: bool = False) -> None:
+        self._stop_heartbeat()
         self.client.set_terminated(self.run_id, "KILLED" if interrupted else "FAILED")
+
+
+# --------------------------------------------------------------------------- dead runs
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # a killed child its parent has not reaped yet is a zombie: dead
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return True
+
+
+def dead_reason(run, now: float | None = None) -> str | None:
+    """Why a RUNNING run is dead (its process is gone, or its heartbeat stopped), or None
+    while it may be alive. Runs without a heartbeat (sweep parents, older fedlgr) are
+    never called dead."""
+    tags = run.data.tags
+    if run.info.status != "RUNNING" or "fedlgr.heartbeat" not in tags:
+        return None
+    pid = tags.get("fedlgr.pid", "")
+    here = tags.get("fedlgr.host") == socket.gethostname()
+    if here and pid.isdigit() and not _process_alive(int(pid)):
+        return f"its process {pid} on this machine is gone"
+    age = (now or time.time()) - float(tags["fedlgr.heartbeat"])
+    limit = 3 * float(tags.get("fedlgr.heartbeat_s", 30))
+    if age > limit:
+        return f"no heartbeat for {age:.0f} s (limit {limit:.0f} s)"
+    return None
+
+
+def end_dead_runs(client, experiment_ids: list[str]) -> list[str]:
+    """Mark the dead RUNNING runs of these experiments KILLED; their ids."""
+    runs = client.search_runs(experiment_ids, "attributes.status = 'RUNNING'", max_results=5000)
+    ended = []
+    for run in runs:
+        reason = dead_reason(run)
+        if reason is not None:
+            client.set_tag(run.info.run_id, "fedlgr.ended", f"marked KILLED: {reason}")
+            client.set_terminated(run.info.run_id, "KILLED")
+            ended.append(run.info.run_id)
+    return ended

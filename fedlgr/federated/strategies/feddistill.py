@@ -26,11 +26,16 @@ class Teacher(ClientPlugin):
         self.weight = weight
         self.model: nn.Module | None = None
         self.optimizer: torch.optim.Optimizer | None = None
+        self._restored: dict | None = None  # a checkpoint's teacher, until there is a model
 
     def on_round_start(self, ctx: LocalContext) -> None:
         if self.model is None:  # born from the client's first model, then on its own
             self.model = copy.deepcopy(ctx.model)
             self.optimizer = self.model.configure_optimizers()
+            if self._restored is not None:
+                self.model.load_state_dict(self._restored["model"])
+                self.optimizer.load_state_dict(self._restored["optimizer"])
+                self._restored = None
         self.model.train()
 
     def loss(self, ctx, x, y, outputs, loss):
@@ -45,11 +50,17 @@ class Teacher(ClientPlugin):
 
     def state_dict(self) -> dict:
         if self.model is None:
-            return {}
+            return self._restored or {}
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
-        if state:
+        """A teacher is built from the client's model at its first round: until then the
+        state waits (a run resumed from a checkpoint has no teacher yet)."""
+        if not state:
+            return
+        if self.model is None:
+            self._restored = state
+        else:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
 

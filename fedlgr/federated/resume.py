@@ -1,0 +1,165 @@
+"""A running experiment's checkpoints, and picking a run up again (``fedlgr run --resume``).
+
+A checkpoint holds everything the next round depends on, so that a resumed run computes
+bit for bit what the uninterrupted run would have (on CPU, for the same thread count):
+every client's model, optimiser, plug-in state (CL importance, rehearsal memory, FedLGR's
+generator and labeller, FedDistill's teacher) and batch/augmentation generators; the
+server's global tensors and strategy state (FedOpt's moments); each process's global RNG
+states; the rows of every round so far; the resolved config; the MLflow run id. Files,
+their place and atomic writing: :mod:`fedlgr.tracking.checkpoint`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from fedlgr import __version__
+from fedlgr.config import ExperimentConfig, flatten
+from fedlgr.errors import FedlgrError
+from fedlgr.federated.orchestrator import Orchestrator, RoundLog
+from fedlgr.tracking import checkpoint as ckpt
+
+
+def _cpu(value: Any) -> Any:
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: _cpu(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(_cpu(v) for v in value)
+    return value
+
+
+def _gather(fabric, part: dict) -> list[dict] | None:
+    """Every process's ``part`` on rank 0 (None elsewhere). Fabric's collectives move
+    tensors only; client states are nested dicts, hence torch.distributed's object
+    gather (gloo on CPU, the backend Fabric set up otherwise)."""
+    if fabric.world_size == 1:
+        return [part]
+    import torch.distributed as dist
+
+    parts = [None] * fabric.world_size if fabric.global_rank == 0 else None
+    dist.gather_object(part, parts, dst=0)
+    return parts
+
+
+def save_checkpoint(
+    fabric,
+    folder: Path | None,
+    orchestrator: Orchestrator,
+    rounds: list[RoundLog],
+    run_id: str | None,
+    elapsed: float,
+    keep: int,
+) -> Path | None:
+    """Checkpoint the run after its last round in ``rounds`` (every process calls this;
+    rank 0 writes)."""
+    state = orchestrator.state_dict()
+    part = {"clients": _cpu(state["clients"]), "rng": ckpt.rng_states()}
+    parts = _gather(fabric, part)
+    whole: dict[str, Any] = {}
+    if parts is not None:
+        whole = {
+            "format": ckpt.FORMAT,
+            "fedlgr": __version__,
+            "run_id": run_id,
+            "round": rounds[-1].round,
+            "config": flatten(orchestrator.config),
+            "server": _cpu(state["server"]),
+            "clients": {i: c for p in parts for i, c in p["clients"].items()},
+            "rng": [p["rng"] for p in parts],  # per process
+            "rows": [
+                {"round": r.round, "task": r.task, "table": r.table, "seconds": r.seconds}
+                for r in rounds
+            ],
+            "elapsed": elapsed,
+        }
+    target = folder if folder is not None else Path(".")  # only rank 0's folder is used
+    return ckpt.save(fabric, target, rounds[-1].round, whole, keep)
+
+
+def restore(fabric, orchestrator: Orchestrator, state: dict[str, Any]) -> list[RoundLog]:
+    """Load ``state`` into the orchestrator and this process's RNGs; the rounds so far."""
+    orchestrator.load_state_dict(state)
+    ckpt.set_rng_states(state["rng"][fabric.global_rank])
+    return [
+        RoundLog(r["round"], r["task"], orchestrator.fields, np.asarray(r["table"]), r["seconds"])
+        for r in state["rows"]
+    ]
+
+
+# --------------------------------------------------------------------------- which run
+
+
+def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tuple[str, Path]:
+    """The run to resume (``resume``: its id, or True for the latest unfinished run of
+    this config) and its newest checkpoint; dead RUNNING runs are marked KILLED, a live
+    one is refused."""
+    from fedlgr.tracking.mlflow_run import dead_reason, experiment_id, tracking_uri
+
+    uri = tracking_uri(config)
+    if resume is True:
+        run = _latest_unfinished(config, client, experiment_id(client, config.tracking.experiment))
+    else:
+        try:
+            run = client.get_run(str(resume))
+        except Exception:
+            raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
+    run_id = run.info.run_id
+    if run.info.status == "FINISHED":
+        raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
+    if run.info.status == "RUNNING":
+        reason = dead_reason(run)
+        if reason is None:
+            tags = run.data.tags
+            raise FedlgrError(
+                f"--resume: run {run_id} is still running (process {tags.get('fedlgr.pid')} "
+                f"on {tags.get('fedlgr.host')}); stop it first, or wait until it ends"
+            )
+        client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
+        client.set_terminated(run_id, "KILLED")
+    folder = Path(
+        run.data.tags.get("fedlgr.checkpoints") or ckpt.checkpoint_root(config, uri) / run_id
+    )
+    found = ckpt.checkpoints(folder)
+    if not found:
+        raise FedlgrError(
+            f"--resume: run {run_id} has no checkpoint in {folder} (it stopped before its first "
+            "checkpoint, or tracking.checkpoint=0); start it over without --resume"
+        )
+    return run_id, found[-1]
+
+
+def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
+    query = (
+        f"tags.`fedlgr.config_hash` = '{ckpt.fingerprint(config)}' "
+        "and attributes.status != 'FINISHED'"
+    )
+    runs = client.search_runs([experiment], query, order_by=["attributes.start_time DESC"])
+    if not runs:
+        raise FedlgrError(
+            f"--resume: no unfinished run of this config in MLflow experiment "
+            f"{config.tracking.experiment!r}; give a run id (--resume RUN_ID), or start the "
+            "run without --resume"
+        )
+    return runs[0]
+
+
+def load_checkpoint(config: ExperimentConfig, run_id: str, path: Path) -> dict[str, Any]:
+    """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``."""
+    state = ckpt.load(path)
+    if state["run_id"] != run_id:
+        raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")
+    changed = ckpt.differences(state["config"], flatten(config))
+    if changed:
+        more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
+        shown = "; ".join(changed[:5]) + more
+        raise FedlgrError(
+            f"--resume: the config differs from run {run_id}'s checkpoint in {shown}; resume "
+            "with the run's own settings, or start a new run without --resume"
+        )
+    return state
