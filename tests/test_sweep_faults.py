@@ -3,15 +3,24 @@ kill, Ctrl-C and SIGTERM, bad sweep files and data, two sweeps started at once."
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import sqlite3
+import subprocess
+import time
 from datetime import datetime, timedelta
+from pathlib import Path
 
+import pytest
 from optuna.trial import TrialState
 
 from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.storage import open_study
 
-from .test_sweep import point, trials_by_state, write_sweep
+from .test_sweep import REPO, _sweep_command, child_runs, point, trials_by_state, write_sweep
+
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 
 
 def test_a_trial_killed_before_drawing_its_point_is_retried_on_that_point(
@@ -42,3 +51,65 @@ def test_a_trial_killed_before_drawing_its_point_is_retried_on_that_point(
     (copy,) = [c for c in complete if unborn.number in c.system_attrs.get("retry_history", [])]
     assert copy.system_attrs["grid_id"] == left.system_attrs["grid_id"]
     assert "PRUNED" not in states  # no point drawn twice on the way
+
+
+def _reporting_trial(db: Path) -> int | None:
+    """The number of a RUNNING trial that has reported a round, read from the sqlite file
+    read-only (opening it with Optuna could race the sweep creating its tables)."""
+    if not db.is_file():
+        return None
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as con:
+            row = con.execute(
+                "SELECT t.number FROM trials t JOIN trial_intermediate_values v"
+                " ON v.trial_id = t.trial_id WHERE t.state = 'RUNNING' LIMIT 1"
+            ).fetchone()
+    except sqlite3.OperationalError:  # no tables yet
+        return None
+    return row[0] if row else None
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
+    tmp_path, synth_dir, cache_dir, signum
+):
+    """SIGINT (Ctrl-C) or SIGTERM (timeout, Slurm, docker stop) in the middle of a trial:
+    the trial is queued again, the parent run ends KILLED, and the next launch runs every
+    point of the grid."""
+    path = write_sweep(tmp_path, synth_dir, cache_dir, name="stopped")
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    log = (tmp_path / "first.log").open("w")
+    # Long trials at first, so that the signal surely lands in the middle of one.
+    process = subprocess.Popen(
+        _sweep_command(path, storage, store, "federated.rounds=100"),
+        env=ENV,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    deadline = time.monotonic() + 120
+    while (number := _reporting_trial(tmp_path / "optuna.db")) is None:
+        assert process.poll() is None and time.monotonic() < deadline, (
+            tmp_path / "first.log"
+        ).read_text()[-3000:]
+        time.sleep(0.1)
+    os.kill(process.pid, signum)
+    assert process.wait(timeout=60) == 130, (tmp_path / "first.log").read_text()[-3000:]
+
+    states = trials_by_state(storage, "stopped")
+    (stopped,) = states["FAIL"]
+    assert stopped.number == number and stopped.params
+    (queued,) = states["WAITING"]
+    assert queued.params == stopped.params and queued.system_attrs["retry_history"] == [number]
+    _, (parent,), (child,) = child_runs(store, "sweep-stopped")
+    assert parent.info.status == "KILLED" and child.info.status == "KILLED"
+
+    assert run_sweep(load_sweep(path), storage=storage, tracking_uri=store).done  # relaunch
+    states = trials_by_state(storage, "stopped")
+    complete = states["COMPLETE"]
+    assert len(complete) == 4 and len({point(t.params) for t in complete}) == 4
+    assert [t.number for t in states["FAIL"]] == [number]
+    assert any(number in t.system_attrs.get("retry_history", []) for t in complete)
+    _, (parent,), children = child_runs(store, "sweep-stopped")
+    assert parent.info.status == "FINISHED"
+    assert sorted(c.info.status for c in children) == ["FINISHED"] * 4 + ["KILLED"]

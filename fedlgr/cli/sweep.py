@@ -8,6 +8,13 @@ from fedlgr.runtime import available_cores
 
 
 def sweep(args: argparse.Namespace) -> int:
+    from fedlgr.signals import terminate_as_interrupt
+
+    with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C
+        return _sweep(args)
+
+
+def _sweep(args: argparse.Namespace) -> int:
     from fedlgr.sweep import load_sweep, run_sweep
 
     overrides = list(args.overrides)

@@ -34,8 +34,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from fedlgr.errors import FedlgrError
+from fedlgr.signals import Terminated
 from fedlgr.sweep.spec import SweepSpec
-from fedlgr.sweep.storage import fail_and_retry, open_study
+from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
 PARENT_ATTR = "mlflow_parent_run_id"
@@ -127,6 +128,7 @@ class Worker:
         self.retry.client, self.retry.experiment_id = self.client, self.experiment_id
         self.parent_run_id = self._parent()
         self.last_trial: int | None = None
+        self.trial_id: int | None = None  # the storage id of the trial this worker runs
 
     # ------------------------------------------------------------------ MLflow parent run
 
@@ -225,11 +227,10 @@ class Worker:
         import optuna
 
         spec = self.spec
-        self.last_trial = trial.number
+        self.last_trial, self.trial_id = trial.number, trial._trial_id
         trial.set_user_attr("worker", self.worker)
         if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
             trial.set_user_attr("interrupted", False)
-            trial.set_user_attr("requeued", False)
         params = {p.name: p.suggest(trial) for p in spec.params}
         twin = duplicate_of(self.study, trial.number, params)
         if twin is not None:
@@ -293,7 +294,11 @@ class Worker:
         optuna.logging.set_verbosity(optuna.logging.ERROR)  # we print one line per trial
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return self._run()
+            try:
+                return self._run()
+            except KeyboardInterrupt:  # Ctrl-C, or SIGTERM under fedlgr.signals
+                self._requeue_interrupted()
+                raise
 
     def _run(self) -> bool:
         import optuna
@@ -302,6 +307,7 @@ class Worker:
         while True:
             optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
             self._fail_unborn_trials()
+            self._retry_interrupted_trials()
             if self._someone_is_drawing():
                 time.sleep(0.5)  # let it take its point first (GridSampler may hand it out twice)
                 continue
@@ -313,11 +319,8 @@ class Worker:
                 time.sleep(min(5.0, spec.heartbeat_s / 2))
                 continue
             start = time.perf_counter()
-            try:
-                self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
-            except KeyboardInterrupt:
-                self._requeue_interrupted()
-                raise
+            self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
+            self.trial_id = None
             self._report_last(time.perf_counter() - start)
 
     def _someone_is_drawing(self) -> bool:
@@ -345,14 +348,30 @@ class Worker:
                 fail_and_retry(self.study, self.retry, t._trial_id)
 
     def _requeue_interrupted(self) -> None:
-        """Ctrl-C: Optuna records the running trial FAILED; queue it again so the next
-        launch redoes it (as for a worker that died)."""
-        for t in self.study.get_trials(deepcopy=False):
-            interrupted = t.user_attrs.get("interrupted") and t.state.name == "FAIL"
-            if interrupted and not t.user_attrs.get("requeued"):
-                self.study._storage.set_trial_user_attr(t._trial_id, "requeued", True)
-                self.retry.retry(self.study, t)
-        self.client.set_terminated(self.parent_run_id, "KILLED")
+        """Ctrl-C or SIGTERM: queue this worker's trial again so the next launch redoes it
+        (as for a worker that died) and end the parent run KILLED. Optuna has recorded the
+        trial FAILED - or left it RUNNING, if the interrupt hit its own bookkeeping - and a
+        finished trial takes no new attributes, so what says it was re-queued is the copy's
+        ``retry_history``."""
+        try:
+            if self.trial_id is not None and not fail_and_retry(
+                self.study, self.retry, self.trial_id
+            ):
+                retry_failed(self.study, self.retry, self.trial_id)
+        finally:
+            self.client.set_terminated(self.parent_run_id, "KILLED")
+
+    def _retry_interrupted_trials(self) -> None:
+        """Queue any interrupted trial whose worker could not queue it (a second Ctrl-C
+        during the first one's clean-up): its point would otherwise count as done."""
+        from optuna.trial import TrialState
+
+        trials = self.study.get_trials(deepcopy=False)
+        retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+        for t in trials:
+            interrupted = t.state == TrialState.FAIL and t.user_attrs.get("interrupted")
+            if interrupted and t.number not in retried:
+                retry_failed(self.study, self.retry, t._trial_id)
 
     def _report_last(self, seconds: float) -> None:
         if self.last_trial is None:
@@ -446,6 +465,12 @@ def run_sweep(
         helpers.append(subprocess.Popen(command))
     try:
         done = worker.run()
+    except Terminated:
+        # SIGTERM may have reached this process alone (docker stop, timeout): pass it on
+        # (a worker that had it already ignores the second one).
+        for process in helpers:
+            process.terminate()
+        raise
     finally:
         for process in helpers:
             try:
