@@ -8,6 +8,7 @@ import os
 import signal
 import sqlite3
 import subprocess
+import sys
 import time
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -18,6 +19,7 @@ from optuna.trial import TrialState
 from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.storage import open_study
 
+from .conftest import FAST
 from .test_sweep import REPO, _sweep_command, child_runs, point, trials_by_state, write_sweep
 
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -113,3 +115,40 @@ def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     _, (parent,), children = child_runs(store, "sweep-stopped")
     assert parent.info.status == "FINISHED"
     assert sorted(c.info.status for c in children) == ["FINISHED"] * 4 + ["KILLED"]
+
+
+def _fedlgr(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "fedlgr", *args]
+    return subprocess.run(command, cwd=cwd, env=ENV, capture_output=True, text=True)
+
+
+def _one_error_line(done: subprocess.CompletedProcess) -> str:
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    (line,) = done.stderr.strip().splitlines()
+    assert line.startswith("fedlgr: error: ")
+    return line
+
+
+BASE = f"base: {FAST}\n"
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (BASE + "space: {train.lr_top: [0.1, 1]\n", "line 3, column 1: not valid YAML: expected"),
+        (BASE + "space:\n  train.lr_top: [0.1]\n\tseed: 1\n", "line 4, column 1: not valid YAML"),
+        (BASE + "space: {seed: [1]}\nspace: {seed: [2]}\n", "line 3, column 1: not valid YAML"),
+        ("- train.lr_top\n- seed\n", "a sweep file is a mapping of settings"),
+        ("just words\n", "a sweep file is a mapping of settings"),
+        (BASE + "space: {seed: [1]}\nworkers: 2\n", "workers: unknown setting"),
+        (BASE + "space: {seed: [1]}\nobjective: {metrc: x}\n", "objective.metrc: unknown"),
+        (BASE + "space: {seed: [1]}\nheartbeat_s: often\n", "heartbeat_s: expected a whole"),
+    ],
+    ids=["yaml", "tab", "twice", "list", "scalar", "key", "objective-key", "integer"],
+)
+def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(body)
+    line = _one_error_line(_fedlgr("sweep", str(path), cwd=tmp_path))
+    assert line.startswith(f"fedlgr: error: {path}") and message in line
+    assert not (tmp_path / "optuna.db").exists()  # refused before opening any study

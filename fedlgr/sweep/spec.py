@@ -166,16 +166,8 @@ def find_sweep(name: str | Path) -> Path:
 
 def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SweepSpec:
     """Read and check a sweep file; ``overrides`` (``key=value``) apply to every trial."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     path = find_sweep(path)
-    try:
-        raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    except (OmegaConfBaseException, OSError, ValueError) as err:
-        raise ConfigError(f"{path}: not a readable YAML sweep file: {err}") from err
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: a sweep file is a mapping (base, objective, space, ...)")
+    raw = read_sweep_file(path)
 
     def fail(key: str, message: str) -> ConfigError:
         return ConfigError(f"{path}: {key}: {message}")
@@ -215,6 +207,9 @@ def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) ->
     objective = raw.get("objective") or {}
     if not isinstance(objective, dict) or not isinstance(objective.get("metric", ""), str):
         raise fail("objective", "expected {metric: NAME, direction: minimize|maximize}")
+    extra = sorted(set(objective) - {"metric", "direction"})
+    if extra:
+        raise fail(f"objective.{extra[0]}", "unknown setting; known: metric, direction")
     direction = objective.get("direction", "minimize")
     if direction not in DIRECTIONS:
         raise fail("objective.direction", f"{direction!r}; choose minimize or maximize")
@@ -237,15 +232,65 @@ def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) ->
         sampler=sampler,
         trials=trials,
         pruner=pruner,
-        prune_warmup_rounds=int(raw.get("prune_warmup_rounds", 2)),
-        seed=int(raw.get("seed", 0)),
+        prune_warmup_rounds=_integer(raw, "prune_warmup_rounds", 2, 0, fail),
+        seed=_integer(raw, "seed", 0, None, fail),
         overrides=(*fixed, *overrides),
         experiment=str(raw.get("experiment") or f"sweep-{name}"),
         description=str(raw.get("description", "")),
-        heartbeat_s=int(raw.get("heartbeat_s", 30)),
+        heartbeat_s=_integer(raw, "heartbeat_s", 30, 1, fail),
     )
     check_trial_configs(spec)
     return spec
+
+
+def read_sweep_file(path: Path) -> dict[str, Any]:
+    """The settings of a sweep file as a dict, ``${...}`` resolved; a file that is not YAML
+    (with the line where YAML says), repeats a key or is not a mapping is one ConfigError
+    naming the file."""
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        top = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if top is not None and not isinstance(top, dict):
+            kind = "list" if isinstance(top, list) else f"{type(top).__name__} {top!r:.40}"
+            raise ConfigError(
+                f"{path}: a sweep file is a mapping of settings (base, objective, space, ...), "
+                f"not a {kind}"
+            )
+        # OmegaConf's loader also refuses a key given twice, which safe_load lets pass.
+        raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True) if top else {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}{_yaml_problem(err)}") from err
+    except OmegaConfBaseException as err:  # e.g. ${...} that names nothing
+        key = f"{err.full_key}: " if getattr(err, "full_key", None) else ""
+        raise ConfigError(f"{path}: {key}{str(err).splitlines()[0]}") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path}: cannot read the sweep file: {err}") from err
+    return raw
+
+
+def _yaml_problem(err) -> str:
+    """``, line L, column C: not valid YAML: PROBLEM (CONTEXT from line ...)``."""
+    mark = getattr(err, "problem_mark", None)
+    where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    context, start = getattr(err, "context", None), getattr(err, "context_mark", None)
+    if context and start is not None:
+        problem += f" ({context} from line {start.line + 1}, column {start.column + 1})"
+    elif context:
+        problem += f" ({context})"
+    return f"{where}: not valid YAML: {problem}"
+
+
+def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail) -> int:
+    value = raw.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise fail(key, f"expected a whole number, not {value!r}")
+    if minimum is not None and value < minimum:
+        raise fail(key, f"{value} is below {minimum}")
+    return value
 
 
 def _param(name: str, value: Any, fail) -> Param:
