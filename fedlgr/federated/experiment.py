@@ -331,7 +331,7 @@ def _main(
         from fedlgr.tracking.plots import curves_png
 
         tracker.save_results(result.rows(), curves_png(result.rows()))
-        tracker.log_summary(result.cost_means())
+        tracker.log_summary(result.cost_means(), len(result.rounds))
         tracker.finish()
         remove(folder)  # a finished run needs no checkpoint
     if not rank0:
@@ -365,7 +365,7 @@ def _record_failure(tracker, result: ExperimentResult, err: BaseException, say) 
     steps = [
         ("results.csv", lambda: tracker.save_results(result.rows(), None)),
         ("curves.png", lambda: tracker.save_results([], curves_png(result.rows()))),
-        ("cost summary", lambda: tracker.log_summary(result.cost_means())),
+        ("cost summary", lambda: tracker.log_summary(result.cost_means(), len(result.rounds))),
     ]
     if result.rounds:
         for what, action in steps:

@@ -5,8 +5,9 @@ artifacts under ``mlruns/`` (the plain file store is refused by MLflow 3);
 ``$MLFLOW_TRACKING_URI`` or ``tracking.uri`` (``--tracking-uri``) point elsewhere, e.g. at
 an ``mlflow server``. Params are the flattened resolved config; metrics are logged per
 round with ``step=round``; artifacts are the resolved config, the per-round/per-client
-results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` hold the costs
-per client per round averaged over clients and rounds (what Tables III/IV report). A run
+results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` (at the step of
+the last round done) hold the costs per client per round averaged over clients and rounds
+(what Tables III/IV report). A run
 that fails is ended FAILED (KILLED on Ctrl-C or when a sweep prunes it) after saving what
 it had.
 
@@ -121,7 +122,6 @@ class Tracker:
             self.experiment_id = experiment_id(self.client, config.tracking.experiment)
         self.done: set[int] = set()  # rounds already wholly logged (a resumed run)
         self.partial: int | None = None  # the round a kill may have cut mid-logging
-        self.summary_logged: set[str] = set()
         if run_id is not None:
             self.run_id = run_id
             self._reopen()
@@ -160,8 +160,6 @@ class Tracker:
         history = self.client.get_metric_history(self.run_id, SENTINEL)
         self.done = {m.step for m in history}
         self.partial = max(self.done, default=0) + 1
-        run = self.client.get_run(self.run_id)
-        self.summary_logged = set(run.data.metrics)
 
     # ------------------------------------------------------------------ liveness
 
@@ -214,13 +212,16 @@ class Tracker:
     def _logged_at(self, key: str, step: int) -> bool:
         return any(m.step == step for m in self.client.get_metric_history(self.run_id, key))
 
-    def log_summary(self, metrics: dict[str, float]) -> None:
-        """Run-level values (no round): e.g. ``mean/cost/cpu_s`` over clients and rounds."""
+    def log_summary(self, metrics: dict[str, float], rounds: int) -> None:
+        """Run-level values over the ``rounds`` rounds done (e.g. ``mean/cost/cpu_s``), at
+        ``step=rounds``: a run that failed and was resumed logs them again at its last
+        round, so the latest value is the whole run's and no step is logged twice."""
         from mlflow.entities import Metric
 
+        if self.done or self.partial:  # a resumed run: what did its first life log?
+            metrics = {k: v for k, v in metrics.items() if not self._logged_at(k, rounds)}
         now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
-        items = [m for m in items if m.key not in self.summary_logged]
+        items = [Metric(k, float(v), now, rounds) for k, v in metrics.items()]
         if items:
             self.client.log_batch(self.run_id, metrics=items)
 

@@ -1,0 +1,349 @@
+"""Checkpoints and ``--resume``: a run killed outright continues bit for bit in the same
+MLflow run; checkpoints are whole or absent; a resume is refused when it cannot be right."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import pytest
+import torch
+
+from fedlgr.errors import FedlgrError
+from fedlgr.federated.experiment import run_experiment
+from fedlgr.tracking import checkpoint as ckpt
+from tests.conftest import FAST, fast_config, results_csv
+
+REPO = Path(__file__).resolve().parents[1]
+TIMING = ("cpu_s", "wall_s", "seconds", "gpu_")  # measured, never equal between two runs
+FEDLGR = ["method=FedLGR", "continual.rounds_per_task=2", "continual.lgr_epochs=5"]
+
+
+def _args(synth_dir, cache_dir, store, *extra) -> list[str]:
+    return [
+        str(FAST),
+        f"data.path={synth_dir}",
+        f"data.cache_dir={cache_dir}",
+        "runtime.threads=1",
+        "runtime.accelerator=cpu",
+        *extra,
+        f"--tracking-uri={store}",
+    ]
+
+
+def _start(args, cwd) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.Popen(
+        [sys.executable, "-m", "fedlgr", "run", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def _finish(args, cwd) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(
+        [sys.executable, "-m", "fedlgr", "run", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def _kill_when(process: subprocess.Popen, ready, what: str, limit: float = 300) -> None:
+    deadline = time.monotonic() + limit
+    while not ready():
+        assert process.poll() is None, f"the run ended before {what}: {process.stderr.read()}"
+        assert time.monotonic() < deadline, f"{what} never happened"
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGKILL)  # a real kill: nothing of the run's cleans up
+    process.wait()
+
+
+def _only_run(store: str, experiment: str = "fedlgr-debug", name: str | None = None):
+    client = mlflow.MlflowClient(store)
+    eid = client.get_experiment_by_name(experiment).experiment_id
+    runs = [r for r in client.search_runs([eid]) if name is None or r.info.run_name == name]
+    assert len(runs) == 1, [r.info.run_name for r in runs]
+    return client, runs[0]
+
+
+def _history(client, run_id: str) -> dict[str, list[tuple[int, float]]]:
+    """Every metric's (step, value) pairs, each step logged once. Run-level ``mean/*``
+    figures count at their last step: a run interrupted cleanly logged them as they
+    stood then, and again at its end."""
+    out = {}
+    for key in client.get_run(run_id).data.metrics:
+        history = client.get_metric_history(run_id, key)
+        steps = [m.step for m in history]
+        assert len(steps) == len(set(steps)), f"{key} logged twice at a step: {steps}"
+        if not any(t in key for t in TIMING):
+            out[key] = sorted((m.step, m.value) for m in history)
+            if key.startswith("mean/"):
+                out[key] = out[key][-1:]
+    return out
+
+
+def _untimed(rows):
+    return [{k: v for k, v in r.items() if not any(t in k for t in TIMING)} for r in rows]
+
+
+def _same_as_reference(client, resumed: str, reference_store: str, reference: str) -> None:
+    ref_client = mlflow.MlflowClient(reference_store)
+    expected, found = _history(ref_client, reference), _history(client, resumed)
+    assert len(found) > 50
+    assert found == expected  # bitwise: same floats, same steps
+    assert _untimed(results_csv(client, resumed)) == _untimed(results_csv(ref_client, reference))
+
+
+def _logged(store: str, step: int):
+    """True once some run of the store has wholly logged round ``step``."""
+
+    def ready() -> bool:
+        try:
+            client = mlflow.MlflowClient(store)
+            eid = client.get_experiment_by_name("fedlgr-debug").experiment_id
+            runs = client.search_runs([eid])
+        except Exception:  # the store or experiment is not there yet
+            return False
+        return any(
+            step in {m.step for m in client.get_metric_history(r.info.run_id, "round/seconds")}
+            for r in runs
+        )
+
+    return ready
+
+
+# --------------------------------------------------------------------------- killed runs
+
+
+@pytest.mark.slow
+def test_a_killed_fedlgr_run_resumes_bit_for_bit_in_the_same_mlflow_run(
+    synth_dir, cache_dir, tmp_path
+):
+    reference = f"sqlite:///{tmp_path}/reference.db"
+    result = run_experiment(
+        fast_config(synth_dir, cache_dir, reference, *FEDLGR, "runtime.threads=1")
+    )
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, *FEDLGR)
+    process = _start(args, tmp_path)
+    folder = tmp_path / "checkpoints"
+    written = lambda: any((p / "round-0002.ckpt").exists() for p in folder.glob("*"))  # noqa: E731
+    _kill_when(process, written, "the checkpoint of round 2")
+    client, run = _only_run(store)
+    assert run.info.status == "RUNNING"  # killed: nobody ended it
+    assert (folder / run.info.run_id / "round-0002.ckpt").exists()
+
+    done = _finish([*args, "--resume"], tmp_path)
+    assert f"resuming run {run.info.run_id} after round 2 of 4" in done.stdout
+    client, resumed = _only_run(store)  # one run, the same one
+    assert resumed.info.run_id == run.info.run_id and resumed.info.status == "FINISHED"
+    _same_as_reference(client, run.info.run_id, reference, result.run_id)
+    assert not (folder / run.info.run_id).exists()  # a finished run keeps no checkpoint
+
+
+@pytest.mark.slow
+def test_a_run_killed_after_logging_a_round_it_had_not_checkpointed_logs_it_once(
+    synth_dir, cache_dir, tmp_path
+):
+    """FedOpt (the server's Adam moments are state) with a checkpoint every 2 rounds,
+    killed once round 3 is logged: the resumed run redoes round 3 from the round-2
+    checkpoint and does not log it again."""
+    extra = ["method=FedOpt", "federated.rounds=4", "tracking.checkpoint=2"]
+    reference = f"sqlite:///{tmp_path}/reference.db"
+    result = run_experiment(
+        fast_config(synth_dir, cache_dir, reference, *extra, "runtime.threads=1")
+    )
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, *extra)
+    process = _start(args, tmp_path)
+    _kill_when(process, _logged(store, 3), "round 3 logged")
+    client, run = _only_run(store)
+    assert [p.name for p in ckpt.checkpoints(tmp_path / "checkpoints" / run.info.run_id)] == [
+        "round-0002.ckpt"
+    ]
+    done = _finish([*args, "--resume", run.info.run_id], tmp_path)
+    assert "after round 2 of 4" in done.stdout
+    _same_as_reference(client, run.info.run_id, reference, result.run_id)
+
+
+class Interrupt(KeyboardInterrupt):
+    """Ctrl-C after a given round (the run ends KILLED, its checkpoints stay)."""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["method=FedRoot-NR", "continual.rounds_per_task=2", "continual.nr_memory=6"],
+        ["method=FedRootDistill", "federated.rounds=3"],
+    ],
+    ids=["nr-memory", "distill-teacher"],
+)
+def test_an_interrupted_run_resumes_with_its_plugin_state(synth_dir, cache_dir, tmp_path, extra):
+    reference = f"sqlite:///{tmp_path}/reference.db"
+    threads = "runtime.threads=1"
+    expected = run_experiment(fast_config(synth_dir, cache_dir, reference, *extra, threads))
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        *extra,
+        "runtime.threads=1",
+        f"tracking.checkpoint_dir={tmp_path / 'ckpt'}",
+    )
+
+    def stop(round_, metrics):
+        if round_ == 2:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        run_experiment(config, on_round=stop)
+    client, run = _only_run(store)
+    assert run.info.status == "KILLED"
+    assert ckpt.checkpoints(tmp_path / "ckpt" / run.info.run_id)[-1].name == "round-0002.ckpt"
+    resumed = run_experiment(config, resume=run.info.run_id)
+    assert resumed.run_id == run.info.run_id and len(resumed.rounds) == len(expected.rounds)
+    _same_as_reference(client, run.info.run_id, reference, expected.run_id)
+    for a, b in zip(resumed.rounds, expected.rounds, strict=True):
+        mask = [not any(t in f.name for t in TIMING) for f in a.fields]
+        assert (a.table[:, mask] == b.table[:, mask]).all()
+
+
+@pytest.mark.slow
+def test_a_killed_two_process_run_resumes_bit_for_bit(synth_dir, cache_dir, tmp_path):
+    """Fabric DDP on CPU (gloo): every process's clients and RNGs come back."""
+    extra = [*FEDLGR, "runtime.devices=2"]
+    reference = f"sqlite:///{tmp_path}/reference.db"
+    _finish([*_args(synth_dir, cache_dir, reference, *extra)], tmp_path)
+    _, expected = _only_run(reference)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, *extra)
+    process = _start(args, tmp_path)
+    folder = tmp_path / "checkpoints"
+    written = lambda: any((p / "round-0002.ckpt").exists() for p in folder.glob("*"))  # noqa: E731
+    _kill_when(process, written, "the checkpoint of round 2")
+    client, run = _only_run(store)
+    state = ckpt.load(folder / run.info.run_id / "round-0002.ckpt")
+    assert sorted(state["clients"]) == [0, 1] and len(state["rng"]) == 2  # both processes'
+    done = _finish([*args, "--resume"], tmp_path)
+    assert "2 processes" in done.stdout and "after round 2 of 4" in done.stdout
+    _same_as_reference(client, run.info.run_id, reference, expected.info.run_id)
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+@pytest.fixture
+def interrupted(synth_dir, cache_dir, tmp_path):
+    """A FedAvg run of 4 rounds stopped (Ctrl-C) after round 3: checkpoints of rounds 2
+    and 3 (keep 2)."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(synth_dir, cache_dir, store, "federated.rounds=4", "runtime.threads=1")
+
+    def stop(round_, metrics):
+        if round_ == 3:
+            raise Interrupt()
+
+    with pytest.raises(Interrupt):
+        run_experiment(config, on_round=stop)
+    _client, run = _only_run(store)
+    folder = tmp_path / "checkpoints" / run.info.run_id
+    assert [p.name for p in ckpt.checkpoints(folder)] == ["round-0002.ckpt", "round-0003.ckpt"]
+    return config, run.info.run_id, folder
+
+
+def test_a_truncated_checkpoint_is_named_with_the_way_out(interrupted):
+    config, run_id, folder = interrupted
+    latest = folder / "round-0003.ckpt"
+    latest.write_bytes(latest.read_bytes()[:5000])
+    with pytest.raises(FedlgrError) as caught:
+        run_experiment(config, resume=run_id)
+    message = str(caught.value)
+    assert str(latest) in message and "not a readable fedlgr checkpoint" in message
+    assert "delete it to resume from the previous checkpoint" in message
+    assert "weights_only=False" not in message
+    latest.unlink()  # the way out it names
+    result = run_experiment(config, resume=run_id)
+    assert [r.round for r in result.rounds] == [1, 2, 3, 4]
+
+
+def test_a_write_cut_short_leaves_the_previous_checkpoint(interrupted):
+    """A kill during a write leaves only the temporary file: never a checkpoint."""
+    config, run_id, folder = interrupted
+    (folder / "round-0003.ckpt").unlink()
+    (folder / ".round-0003.ckpt.tmp").write_bytes(b"half a checkpoint")
+    assert [p.name for p in ckpt.checkpoints(folder)] == ["round-0002.ckpt"]
+    result = run_experiment(config, resume=run_id)
+    assert [r.round for r in result.rounds] == [1, 2, 3, 4]
+    assert mlflow.MlflowClient(config.tracking.uri).get_run(run_id).info.status == "FINISHED"
+
+
+def test_a_resume_with_other_settings_is_refused_by_name(interrupted, synth_dir, cache_dir):
+    config, run_id, _folder = interrupted
+    store = config.tracking.uri
+    changed = fast_config(
+        synth_dir, cache_dir, store, "federated.rounds=4", "runtime.threads=1", "train.lr_top=0.5"
+    )
+    with pytest.raises(FedlgrError, match=r"train\.lr_top \(checkpoint 0\.001, now 0\.5\)"):
+        run_experiment(changed, resume=run_id)
+    with pytest.raises(FedlgrError, match="no unfinished run of this config"):
+        run_experiment(changed, resume=True)  # another config: not this run
+    safe = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        "federated.rounds=4",
+        "runtime.threads=1",
+        "runtime.progress=true",
+        "tracking.keep_checkpoints=1",
+    )
+    result = run_experiment(safe, resume=True)  # the latest unfinished run of this config
+    assert result.run_id == run_id and len(result.rounds) == 4
+    with pytest.raises(FedlgrError, match=f"run {run_id} has finished"):
+        run_experiment(config, resume=run_id)
+
+
+def test_a_live_run_is_not_resumed_and_an_unknown_one_is_named(interrupted):
+    config, run_id, _folder = interrupted
+    client = mlflow.MlflowClient(config.tracking.uri)
+    client.update_run(run_id, status="RUNNING")
+    client.set_tag(run_id, "fedlgr.pid", str(os.getpid()))  # this very process: alive
+    client.set_tag(run_id, "fedlgr.heartbeat", f"{time.time():.0f}")
+    with pytest.raises(FedlgrError, match=f"run {run_id} is still running"):
+        run_experiment(config, resume=run_id)
+    with pytest.raises(FedlgrError, match="--resume 0123abc: no such run"):
+        run_experiment(config, resume="0123abc")
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    client.set_tag(run_id, "fedlgr.pid", str(gone.pid))  # dead: marked KILLED, then resumed
+    result = run_experiment(config, resume=run_id)
+    assert len(result.rounds) == 4
+    run = client.get_run(run_id)
+    assert run.info.status == "FINISHED"
+    assert run.data.tags["fedlgr.ended"].startswith(f"marked KILLED: its process {gone.pid}")
+
+
+def test_checkpoint_files_hold_only_tensors_and_plain_values(interrupted):
+    _config, run_id, folder = interrupted
+    state = torch.load(folder / "round-0002.ckpt", weights_only=True)  # no pickled code
+    assert state["format"] == ckpt.FORMAT and state["run_id"] == run_id and state["round"] == 2
+    assert state["config"]["federated.rounds"] == "4"
+    assert [r["round"] for r in state["rows"]] == [1, 2]
+    assert set(state["clients"]) == {0, 1}
+    assert set(state["clients"][0]) >= {"model", "optimizer", "plugins", "batches_rng"}
