@@ -152,3 +152,19 @@ def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, mess
     line = _one_error_line(_fedlgr("sweep", str(path), cwd=tmp_path))
     assert line.startswith(f"fedlgr: error: {path}") and message in line
     assert not (tmp_path / "optuna.db").exists()  # refused before opening any study
+
+
+@pytest.mark.parametrize("missing", ["folder", "file"])
+def test_a_sweep_whose_data_path_is_not_a_folder_refuses_to_start(
+    tmp_path, synth_dir, cache_dir, missing
+):
+    path = write_sweep(tmp_path, synth_dir, cache_dir, name="nodata")
+    data = tmp_path / "no-such-data"
+    if missing == "file":
+        data = synth_dir / "synth.json"
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    command = ["sweep", str(path), f"data.path={data}", "--storage", storage, "--tracking-uri"]
+    line = _one_error_line(_fedlgr(*command, store, cwd=tmp_path))
+    assert f"data.path={data}: " in line and str(path) in line
+    assert ("no such folder" if missing == "folder" else "not the dataset folder") in line
+    assert not (tmp_path / "optuna.db").exists() and not (tmp_path / "mlflow.db").exists()

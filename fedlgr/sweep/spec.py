@@ -331,14 +331,7 @@ def check_trial_configs(spec: SweepSpec) -> None:
     to the user (``???`` in the MANNERS-DB presets) is filled with a placeholder here."""
     from fedlgr.config import load_config
 
-    if spec.sampler == "grid":
-        points = spec.grid_points()
-    else:
-        points = [
-            {p.name: (p.values[0] if p.values else p.low) for p in spec.params},
-            {p.name: (p.values[-1] if p.values else p.high) for p in spec.params},
-        ]
-    for point in points:
+    for point in _probe_points(spec):
         base, overrides = spec.trial_config_args(point)
         try:
             load_config(base, overrides)
@@ -346,3 +339,37 @@ def check_trial_configs(spec: SweepSpec) -> None:
             if "data.path: no value" not in str(err):
                 raise ConfigError(f"{spec.path}: trial {point}: {err}") from err
             load_config(base, [*overrides, "data.path=/path/to/manners-db"])
+
+
+def check_data(spec: SweepSpec) -> None:
+    """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start
+    rather than fail each of its trials on it. (:func:`load_sweep` does not ask this, so
+    that a sweep file can be checked without its data.)"""
+    from fedlgr.config import load_config
+
+    seen: set[Path] = set()
+    for point in _probe_points(spec):
+        base, overrides = spec.trial_config_args(point)
+        try:
+            path = Path(load_config(base, overrides).data.path)
+        except ConfigError as err:  # data.path left unset (???) by a MANNERS-DB preset
+            raise ConfigError(f"{spec.path}: {err}") from err
+        if path in seen:
+            continue
+        seen.add(path)
+        if not path.is_dir():
+            what = "a file, not the dataset folder" if path.exists() else "no such folder"
+            raise ConfigError(
+                f"{spec.path}: data.path={path}: {what}; set data.path=DIR in the sweep's "
+                "overrides or on the command line"
+            )
+
+
+def _probe_points(spec: SweepSpec) -> list[dict[str, Any]]:
+    """Every grid point, or for TPE every range's ends and the first and last choices."""
+    if spec.sampler == "grid":
+        return spec.grid_points()
+    return [
+        {p.name: (p.values[0] if p.values else p.low) for p in spec.params},
+        {p.name: (p.values[-1] if p.values else p.high) for p in spec.params},
+    ]

@@ -35,7 +35,7 @@ from typing import Any
 
 from fedlgr.errors import FedlgrError
 from fedlgr.signals import Terminated
-from fedlgr.sweep.spec import SweepSpec
+from fedlgr.sweep.spec import SweepSpec, check_data
 from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
@@ -426,7 +426,9 @@ def run_sweep(
     echo: Callable[..., None] = print,
 ) -> SweepResult:
     """Run (or resume) the sweep with ``workers`` processes: this one and ``workers - 1``
-    ``fedlgr sweep`` subprocesses on the same storage."""
+    ``fedlgr sweep`` subprocesses on the same storage. Refuses to start (ConfigError)
+    when a trial's ``data.path`` is not a folder."""
+    check_data(spec)
     worker = Worker(
         spec,
         storage,
