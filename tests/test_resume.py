@@ -347,3 +347,39 @@ def test_checkpoint_files_hold_only_tensors_and_plain_values(interrupted):
     assert [r["round"] for r in state["rows"]] == [1, 2]
     assert set(state["clients"]) == {0, 1}
     assert set(state["clients"][0]) >= {"model", "optimizer", "plugins", "batches_rng"}
+
+
+def test_a_report_marks_a_dead_run_killed(tmp_path):
+    from fedlgr.report.runs import ReportError, select_runs
+
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    client = mlflow.MlflowClient(store)
+    eid = client.create_experiment("e")
+    tags = {
+        "method": "FedAvg",
+        "benchmark": "FL",
+        "clients": "2",
+        "fedlgr.host": os.uname().nodename,
+    }
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = client.create_run(eid, tags={**tags, "fedlgr.pid": str(gone.pid)}).info.run_id
+    live = client.create_run(eid, tags={**tags, "fedlgr.pid": str(os.getpid())}).info.run_id
+    for run_id in (dead, live):
+        client.set_tag(run_id, "fedlgr.heartbeat", f"{time.time():.0f}")
+    with pytest.raises(ReportError, match=r"other runs: 1 RUNNING, 1 KILLED|1 KILLED, 1 RUNNING"):
+        select_runs(client, store, experiment="e")
+    assert client.get_run(dead).info.status == "KILLED"
+    assert client.get_run(live).info.status == "RUNNING"
+
+
+def test_the_effective_thread_count_is_a_param_and_part_of_the_config(
+    synth_dir, cache_dir, tmp_path
+):
+    """Results depend on it (floating-point order), so a run records it, not None."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(synth_dir, cache_dir, store, "runtime.threads=null")
+    result = run_experiment(config)
+    params = mlflow.MlflowClient(store).get_run(result.run_id).data.params
+    assert params["runtime.threads"] == str(torch.get_num_threads()) != "None"
+    assert result.config.runtime.threads == torch.get_num_threads()

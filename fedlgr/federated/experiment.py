@@ -9,6 +9,7 @@ spawns them from Python.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import time
@@ -255,7 +256,13 @@ def _main(
     rank0 = fabric.global_rank == 0
     say = hooks.echo if rank0 else (lambda *a, **k: None)
     if fabric.device.type == "cpu":
-        torch.set_num_threads(torch_threads(config, fabric.world_size // config.runtime.num_nodes))
+        # Results depend on the thread count (the order of floating-point sums): the
+        # effective count goes into the config, its params and its checkpoints.
+        threads = torch_threads(config, fabric.world_size // config.runtime.num_nodes)
+        torch.set_num_threads(threads)
+        config = dataclasses.replace(
+            config, runtime=dataclasses.replace(config.runtime, threads=threads)
+        )
     seed_everything(config.seed, verbose=False)
     start = time.perf_counter()
     point = _resume_point(fabric, config, resume)

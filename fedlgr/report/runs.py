@@ -102,6 +102,9 @@ def select_runs(
         ids = [found.experiment_id]
     else:
         ids = [e.experiment_id for e in _pages(client.search_experiments)]
+    from fedlgr.tracking.mlflow_run import end_dead_runs
+
+    end_dead_runs(client, ids)  # runs killed outright: KILLED, not "still running"
     where = f" (experiment `{experiment}`)" if sweep and experiment else ""
     source = f"sweep `{sweep}`{where}" if sweep else f"experiment `{experiment}`"
     base = f"tags.sweep = {_quote(sweep)}" if sweep else ""
