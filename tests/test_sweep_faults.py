@@ -168,3 +168,33 @@ def test_a_sweep_whose_data_path_is_not_a_folder_refuses_to_start(
     assert f"data.path={data}: " in line and str(path) in line
     assert ("no such folder" if missing == "folder" else "not the dataset folder") in line
     assert not (tmp_path / "optuna.db").exists() and not (tmp_path / "mlflow.db").exists()
+
+
+def test_two_sweeps_started_at_once_on_a_fresh_storage_share_it(tmp_path, synth_dir, cache_dir):
+    """The first use of fresh sqlite files creates Optuna's and MLflow's tables, the study
+    and the parent run: two sweeps doing it at the same moment both run, on one study."""
+    path = tmp_path / "twice.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1]\n"
+        "space:\n  train.lr_top: [0.001, 0.01]\n"
+    )
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    command = [sys.executable, "-m", "fedlgr", "sweep", str(path), "--storage", storage]
+    command += ["--tracking-uri", store, "--heartbeat", "5"]
+    logs = [(tmp_path / f"sweep{k}.log").open("w") for k in range(2)]
+    processes = [
+        subprocess.Popen(command, env=ENV, stdout=log, stderr=subprocess.STDOUT) for log in logs
+    ]
+    for k, process in enumerate(processes):
+        code = process.wait(timeout=240)
+        assert code == 0, (tmp_path / f"sweep{k}.log").read_text()[-3000:]
+
+    states = trials_by_state(storage, "twice")
+    complete = states["COMPLETE"]
+    assert sorted(t.params["train.lr_top"] for t in complete) == [0.001, 0.01]
+    assert set(states) <= {"COMPLETE", "PRUNED"}  # a PRUNED trial is a skipped duplicate
+    assert all("duplicate_of" in t.user_attrs for t in states.get("PRUNED", []))
+    _, parents, children = child_runs(store, "sweep-twice")
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    assert sorted(c.info.status for c in children) == ["FINISHED", "FINISHED"]

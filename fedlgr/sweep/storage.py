@@ -76,7 +76,20 @@ def open_study(
     spec: SweepSpec, storage: str, study_name: str | None = None, worker: int = 0
 ) -> tuple[Any, RetryStaleTrial]:
     """Create or load the study (``load_if_exists``) with heartbeats and retry of dead
-    workers' trials; returns the study and its :class:`RetryStaleTrial`."""
+    workers' trials; returns the study and its :class:`RetryStaleTrial`.
+
+    The first use of a fresh sqlite file creates Optuna's tables, its schema version and
+    the study; two processes doing that at once make one fail (``table ... already
+    exists``, a UNIQUE constraint on the version or the study name), so it happens under
+    the file lock MLflow's sqlite stores are opened under (``<file>.lock``). A server
+    database (PostgreSQL, MySQL) is not locked."""
+    from fedlgr.tracking.mlflow_run import store_lock
+
+    with store_lock(storage):
+        return _open_study(spec, storage, study_name, worker)
+
+
+def _open_study(spec: SweepSpec, storage: str, study_name: str | None, worker: int):
     import optuna
     from optuna.storages import RDBStorage
 

@@ -121,12 +121,15 @@ class Worker:
         worker: int = 0,
         echo: Callable[..., None] = print,
     ):
+        from fedlgr.tracking.mlflow_run import store_lock
+
         self.spec, self.storage, self.worker, self.echo = spec, storage, worker, echo
         self.study, self.retry = open_study(spec, storage, study_name, worker)
         self.tracking_uri = tracking_uri
         self.client, self.experiment_id = self._mlflow()
         self.retry.client, self.retry.experiment_id = self.client, self.experiment_id
-        self.parent_run_id = self._parent()
+        with store_lock(storage):  # two workers starting at once make one parent run
+            self.parent_run_id = self._parent()
         self.last_trial: int | None = None
         self.trial_id: int | None = None  # the storage id of the trial this worker runs
 
@@ -142,7 +145,7 @@ class Worker:
         import mlflow
 
         from fedlgr.config import load_config
-        from fedlgr.tracking.mlflow_run import experiment_id, resolve_uri, tracking_uri
+        from fedlgr.tracking.mlflow_run import experiment_id, resolve_uri, store_lock, tracking_uri
 
         base, overrides = self.spec.trial_config_args({})
         try:
@@ -151,7 +154,8 @@ class Worker:
         except FedlgrError:  # e.g. data.path left to the grid's config choice
             uri = resolve_uri(self.tracking_uri)
         self.tracking_uri = uri
-        client = mlflow.MlflowClient(uri)
+        with store_lock(uri):  # the client creates (migrates) a fresh sqlite store
+            client = mlflow.MlflowClient(uri)
         return client, experiment_id(client, self.spec.experiment)
 
     def _parent(self) -> str:
