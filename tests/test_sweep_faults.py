@@ -3,7 +3,6 @@ kill, Ctrl-C and SIGTERM, bad sweep files and data, two sweeps started at once."
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import sqlite3
@@ -20,11 +19,20 @@ from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.storage import open_study
 
 from .conftest import FAST
-from .test_sweep import REPO, _sweep_command, child_runs, point, trials_by_state, write_sweep
+from .test_sweep import (
+    REPO,
+    _sweep_command,
+    child_runs,
+    point,
+    read_only_rows,
+    trials_by_state,
+    write_sweep,
+)
 
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 
 
+@pytest.mark.slow
 def test_a_trial_killed_before_drawing_its_point_is_retried_on_that_point(
     tmp_path, synth_dir, cache_dir
 ):
@@ -56,21 +64,16 @@ def test_a_trial_killed_before_drawing_its_point_is_retried_on_that_point(
 
 
 def _reporting_trial(db: Path) -> int | None:
-    """The number of a RUNNING trial that has reported a round, read from the sqlite file
-    read-only (opening it with Optuna could race the sweep creating its tables)."""
-    if not db.is_file():
-        return None
-    try:
-        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as con:
-            row = con.execute(
-                "SELECT t.number FROM trials t JOIN trial_intermediate_values v"
-                " ON v.trial_id = t.trial_id WHERE t.state = 'RUNNING' LIMIT 1"
-            ).fetchone()
-    except sqlite3.OperationalError:  # no tables yet
-        return None
-    return row[0] if row else None
+    """The number of a RUNNING trial that has reported a round."""
+    rows = read_only_rows(
+        db,
+        "SELECT t.number FROM trials t JOIN trial_intermediate_values v"
+        " ON v.trial_id = t.trial_id WHERE t.state = 'RUNNING' LIMIT 1",
+    )
+    return rows[0][0] if rows else None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     tmp_path, synth_dir, cache_dir, signum
@@ -170,6 +173,7 @@ def test_a_sweep_whose_data_path_is_not_a_folder_refuses_to_start(
     assert not (tmp_path / "optuna.db").exists() and not (tmp_path / "mlflow.db").exists()
 
 
+@pytest.mark.slow
 def test_two_sweeps_started_at_once_on_a_fresh_storage_share_it(tmp_path, synth_dir, cache_dir):
     """The first use of fresh sqlite files creates Optuna's and MLflow's tables, the study
     and the parent run: two sweeps doing it at the same moment both run, on one study."""

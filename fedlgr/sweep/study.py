@@ -8,10 +8,13 @@ elsewhere on the same storage - runs trials one at a time until the study is don
 * a grid is done when every point has finished (complete, pruned or failed); a TPE study
   when ``trials`` trials have;
 * a trial that raises is recorded FAILED with its error (user attr ``error``) and the sweep
-  goes on; Ctrl-C re-queues the running trial, so the next launch redoes it;
+  goes on; Ctrl-C or SIGTERM (:mod:`fedlgr.signals`) re-queues the running trial, so the
+  next launch redoes it, and ends the parent run KILLED;
 * a worker that dies (killed, machine lost) stops sending heartbeats; after two missed
-  heartbeats another worker (or the next launch) marks its trial FAILED and Optuna's
-  ``RetryFailedTrialCallback`` re-queues it;
+  heartbeats another worker (or the next launch) marks its trial FAILED and re-queues it
+  (:mod:`fedlgr.sweep.storage`) - also a trial killed before it drew its parameters,
+  which never sent one;
+* the data must be there: a sweep whose ``data.path`` is not a folder does not start;
 * with parallel workers Optuna's GridSampler can hand a point out twice (LIBRARY-NOTES);
   a trial whose point an earlier trial already covers is skipped (PRUNED, user attr
   ``duplicate_of``) before it trains.
