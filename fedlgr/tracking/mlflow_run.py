@@ -87,9 +87,9 @@ def open_client(uri: str):
     :func:`store_lock`)."""
     import mlflow
 
-    client = mlflow.MlflowClient(uri)
-    with store_lock(uri):
-        client.search_experiments(max_results=1)  # creates / migrates the store now
+    with store_lock(uri):  # the client's construction creates and migrates the store
+        client = mlflow.MlflowClient(uri)
+        client.search_experiments(max_results=1)
     return client
 
 
