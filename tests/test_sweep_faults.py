@@ -202,3 +202,60 @@ def test_two_sweeps_started_at_once_on_a_fresh_storage_share_it(tmp_path, synth_
     _, parents, children = child_runs(store, "sweep-twice")
     assert len(parents) == 1 and parents[0].info.status == "FINISHED"
     assert sorted(c.info.status for c in children) == ["FINISHED", "FINISHED"]
+
+
+@pytest.mark.slow
+def test_a_trial_killed_in_its_third_round_is_retried_from_its_checkpoint(
+    tmp_path, synth_dir, cache_dir
+):
+    """The retried trial continues its MLflow run from the round-2 checkpoint: rounds 1-2
+    are logged once, and Optuna sees every round's report."""
+    import mlflow
+
+    path = tmp_path / "one.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, federated.rounds=4]\n"
+        "objective: {metric: test/rmse, direction: minimize}\n"
+        "heartbeat_s: 1\n"  # the relaunch finds the dead worker's trial within 2 s
+        "space:\n"
+        "  method: [FedRootOpt]\n"
+    )
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    log = (tmp_path / "first.log").open("w")
+    process = subprocess.Popen(
+        _sweep_command(path, storage, store),
+        env=ENV,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob("checkpoints/*/round-0002.ckpt")):
+        assert process.poll() is None and time.monotonic() < deadline, (
+            tmp_path / "first.log"
+        ).read_text()[-3000:]
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGKILL)  # in round 3: no clean-up of any kind
+    process.wait()
+    (folder,) = tmp_path.glob("checkpoints/*")
+    killed_run = folder.name
+
+    lines = []
+    assert run_sweep(load_sweep(path), storage=storage, tracking_uri=store, echo=lines.append).done
+    states = trials_by_state(storage, "one")
+    (retry,) = states["COMPLETE"]
+    assert retry.system_attrs["retry_history"] == [0]
+    assert retry.user_attrs["mlflow_run_id"] == killed_run
+    assert sorted(retry.intermediate_values) == [1, 2, 3, 4]
+    assert f"=== trial {retry.number} continues run {killed_run} of trial 0" in lines
+    client = mlflow.MlflowClient(store)
+    _, _, (child,) = child_runs(store, "sweep-one")  # one run for the point, the same one
+    assert child.info.run_id == killed_run and child.info.status == "FINISHED"
+    assert child.data.tags["trial"] == str(retry.number)
+    steps = [m.step for m in client.get_metric_history(killed_run, "round/seconds")]
+    assert sorted(steps) == [1, 2, 3, 4]  # each round logged once
+    history = client.get_metric_history(killed_run, "test/rmse")
+    assert sorted(m.step for m in history) == [1, 2, 3, 4]
+    assert retry.value == pytest.approx(history[-1].value if history[-1].step == 4 else None)

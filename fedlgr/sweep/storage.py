@@ -26,7 +26,9 @@ class RetryStaleTrial:
     def __init__(self) -> None:
         from optuna.storages import RetryHeartbeatStaleTrialCallback
 
-        self.retry = RetryHeartbeatStaleTrialCallback(max_retry=3)
+        # The copy keeps the rounds the trial reported: a retry that resumes its run from
+        # a checkpoint reports the later rounds only, and the pruner sees them all.
+        self.retry = RetryHeartbeatStaleTrialCallback(max_retry=3, inherit_intermediate_values=True)
         self.client = None  # set by the Worker once MLflow is open
         self.experiment_id: str | None = None
 

@@ -34,6 +34,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from fedlgr.errors import FedlgrError
@@ -276,6 +277,8 @@ class Worker:
                 tags=tags,
                 echo=self.echo,
                 on_round=on_round,
+                on_start=lambda run_id: trial.set_user_attr("mlflow_run_id", run_id),
+                resume=self._resumable(trial, config),
             )
         except PrunedRun as err:
             raise optuna.TrialPruned(str(err)) from None
@@ -293,6 +296,34 @@ class Worker:
                 f"objective.metric={spec.metric}: this run did not log it; it logged {known}"
             )
         return final[spec.metric]
+
+    def _resumable(self, trial, config) -> str | None:
+        """A retried trial's MLflow run, when it left a checkpoint to continue from: the
+        copy carries the failed trial's user attributes (``mlflow_run_id``, set when its
+        run started) and reported rounds, so the retry resumes that run instead of
+        training from round 1."""
+        from fedlgr.tracking.checkpoint import checkpoint_root, checkpoints, fingerprint
+        from fedlgr.tracking.mlflow_run import tracking_uri
+
+        run_id = trial.user_attrs.get("mlflow_run_id")
+        failed = self.study._storage.get_trial(trial._trial_id).system_attrs.get("failed_trial")
+        if failed is None or not run_id:
+            return None
+        try:
+            run = self.client.get_run(run_id)
+        except Exception:  # the run is gone from the store: start over
+            return None
+        folder = run.data.tags.get("fedlgr.checkpoints") or str(
+            checkpoint_root(config, tracking_uri(config)) / run_id
+        )
+        if run.info.status == "FINISHED" or not checkpoints(Path(folder)):
+            return None
+        if run.data.tags.get("fedlgr.config_hash") != fingerprint(config):
+            changed = f"settings changed since run {run_id}"
+            self.echo(f"=== trial {trial.number}: {changed}; it starts from round 1")
+            return None
+        self.echo(f"=== trial {trial.number} continues run {run_id} of trial {failed}")
+        return run_id
 
     def run(self) -> bool:
         """Run trials until the study is done; True when it is."""

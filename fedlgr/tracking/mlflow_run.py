@@ -125,6 +125,8 @@ class Tracker:
         if run_id is not None:
             self.run_id = run_id
             self._reopen()
+            for key, value in (tags or {}).items():  # e.g. a sweep's new trial number
+                self.client.set_tag(self.run_id, key, value)
         else:
             run_tags = {
                 "method": config.method_name,
