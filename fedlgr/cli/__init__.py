@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -257,7 +258,12 @@ def main(argv: list[str] | None = None) -> int:
     except FedlgrError as err:
         print(f"fedlgr: error: {err}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
+        from fedlgr.signals import Terminated
+
+        if isinstance(err, Terminated):  # the shell's convention: 128 + the signal
+            print("fedlgr: terminated (SIGTERM)", file=sys.stderr)
+            return 128 + signal.SIGTERM
         print("fedlgr: interrupted", file=sys.stderr)
         return 130
     finally:

@@ -286,10 +286,7 @@ def _main(
         run_id = point[0] if point is not None else None
         tracker = Tracker(config, tags, parent_run_id, run_id=run_id)
         folder = checkpoint_root(config, tracking_uri(config)) / tracker.run_id
-        tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
         result.run_id = tracker.run_id
-        if hooks.on_start is not None:
-            hooks.on_start(tracker.run_id)
     plan = (
         f"{len(tasks)} tasks ({', '.join(tasks)}) x {config.continual.rounds_per_task} rounds"
         if tasks
@@ -304,7 +301,11 @@ def _main(
         say(f"resuming run {point[0]} after round {len(result.rounds)} of {len(steps)}")
     every = config.tracking.checkpoint if config.tracking.enabled else 0
     total = len(steps)
-    try:
+    try:  # from here on the MLflow run exists: whatever happens, it is ended
+        if tracker is not None:
+            tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
+            if hooks.on_start is not None:
+                hooks.on_start(tracker.run_id)
         for step in steps[len(result.rounds) :]:
             round_, k = step.round, step.task
             show = rank0 and config.runtime.progress
