@@ -236,6 +236,9 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if extra:
         getattr(args, listed).extend(extra)
+    if isinstance(getattr(args, "resume", None), str) and "=" in args.resume:
+        args.items.append(args.resume)  # `--resume key=value`: a bare --resume, then an override
+        args.resume = True
     return args
 
 

@@ -330,17 +330,18 @@ def _main(
             say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s)")
             if hooks.on_round is not None and rank0:
                 hooks.on_round(round_, metrics)
+        result.seconds = elapsed + time.perf_counter() - start
+        if tracker is not None:
+            from fedlgr.tracking.plots import curves_png
+
+            tracker.save_results(result.rows(), curves_png(result.rows()))
+            tracker.log_summary(result.cost_means(), len(result.rounds))
+            tracker.finish()
     except BaseException as err:
         if tracker is not None:
             _record_failure(tracker, result, err, say)
         raise
-    result.seconds = elapsed + time.perf_counter() - start
     if tracker is not None:
-        from fedlgr.tracking.plots import curves_png
-
-        tracker.save_results(result.rows(), curves_png(result.rows()))
-        tracker.log_summary(result.cost_means(), len(result.rounds))
-        tracker.finish()
         remove(folder)  # a finished run needs no checkpoint
     if not rank0:
         return None

@@ -247,10 +247,14 @@ class Tracker:
     def finish(self) -> None:
         self._stop_heartbeat()
         self.client.set_terminated(self.run_id, "FINISHED")
+        self.finished = True
 
     def fail(self, interrupted: bool = False) -> None:
+        """End the run FAILED (KILLED if ``interrupted``) - unless it had finished: an
+        interrupt that lands just after the end changes nothing."""
         self._stop_heartbeat()
-        self.client.set_terminated(self.run_id, "KILLED" if interrupted else "FAILED")
+        if not getattr(self, "finished", False):
+            self.client.set_terminated(self.run_id, "KILLED" if interrupted else "FAILED")
 
 
 # --------------------------------------------------------------------------- dead runs

@@ -13,6 +13,9 @@ def curves_png(rows: Sequence[dict[str, object]]) -> bytes:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    def value(row, metric: str) -> float:  # a diverged round's score is None: a gap
+        return float("nan") if row[metric] is None else float(row[metric])
+
     rounds = sorted({int(r["round"]) for r in rows})
     clients = sorted({int(r["client"]) for r in rows})
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), constrained_layout=True)
@@ -22,12 +25,12 @@ def curves_png(rows: Sequence[dict[str, object]]) -> bytes:
     ):
         for c in clients:
             values = [
-                next(float(r[metric]) for r in rows if r["round"] == k and r["client"] == c)
+                next(value(r, metric) for r in rows if r["round"] == k and r["client"] == c)
                 for k in rounds
             ]
             ax.plot(rounds, values, color="0.7", linewidth=0.8)
         means = [
-            sum(float(r[metric]) for r in rows if r["round"] == k) / len(clients) for k in rounds
+            sum(value(r, metric) for r in rows if r["round"] == k) / len(clients) for k in rounds
         ]
         ax.plot(rounds, means, color="C0", linewidth=2, marker="o", label="mean over clients")
         ax.set_xlabel("round")
