@@ -22,6 +22,7 @@ from tests.conftest import FAST, fast_config, results_csv
 REPO = Path(__file__).resolve().parents[1]
 TIMING = ("cpu_s", "wall_s", "seconds", "gpu_")  # measured, never equal between two runs
 FEDLGR = ["method=FedLGR", "continual.rounds_per_task=2", "continual.lgr_epochs=5"]
+NR = ["method=FedRoot-NR", "continual.rounds_per_task=2", "continual.nr_memory=6"]
 
 
 def _args(synth_dir, cache_dir, store, *extra) -> list[str]:
@@ -131,15 +132,16 @@ def _logged(store: str, step: int):
 
 
 @pytest.mark.slow
-def test_a_killed_fedlgr_run_resumes_bit_for_bit_in_the_same_mlflow_run(
-    synth_dir, cache_dir, tmp_path
+@pytest.mark.parametrize("extra", [FEDLGR, NR], ids=["fedlgr", "fedroot-nr"])
+def test_a_killed_fcl_run_resumes_bit_for_bit_in_the_same_mlflow_run(
+    synth_dir, cache_dir, tmp_path, extra
 ):
+    """FedLGR (generator, labeller, frozen root statistics) and FedRoot-NR (the memory and
+    its sampler), SIGKILLed after round 2 of 4."""
     reference = f"sqlite:///{tmp_path}/reference.db"
-    result = run_experiment(
-        fast_config(synth_dir, cache_dir, reference, *FEDLGR, "runtime.threads=1")
-    )
+    result = run_experiment(fast_config(synth_dir, cache_dir, reference, *extra))
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, *FEDLGR)
+    args = _args(synth_dir, cache_dir, store, *extra)
     process = _start(args, tmp_path)
     folder = tmp_path / "checkpoints"
     written = lambda: any((p / "round-0002.ckpt").exists() for p in folder.glob("*"))  # noqa: E731
@@ -188,10 +190,7 @@ class Interrupt(KeyboardInterrupt):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "extra",
-    [
-        ["method=FedRoot-NR", "continual.rounds_per_task=2", "continual.nr_memory=6"],
-        ["method=FedRootDistill", "federated.rounds=3"],
-    ],
+    [NR, ["method=FedRootDistill", "federated.rounds=3"]],
     ids=["nr-memory", "distill-teacher"],
 )
 def test_an_interrupted_run_resumes_with_its_plugin_state(synth_dir, cache_dir, tmp_path, extra):
@@ -383,3 +382,34 @@ def test_the_effective_thread_count_is_a_param_and_part_of_the_config(
     params = mlflow.MlflowClient(store).get_run(result.run_id).data.params
     assert params["runtime.threads"] == str(torch.get_num_threads()) != "None"
     assert result.config.runtime.threads == torch.get_num_threads()
+
+
+WRITER = """
+import sys, torch
+from pathlib import Path
+from lightning.fabric import Fabric
+from fedlgr.tracking import checkpoint as ckpt
+fabric = Fabric(accelerator="cpu", devices=1)
+state = {"format": ckpt.FORMAT, "run_id": "r", "big": torch.randn(12_000_000)}
+for round_ in range(1, 1000):
+    ckpt.save(fabric, Path(sys.argv[1]), round_, {**state, "round": round_}, keep=2)
+"""
+
+
+@pytest.mark.slow
+def test_a_kill_during_a_write_leaves_whole_checkpoints_only(tmp_path):
+    """A real process writing 48 MB checkpoints in a loop, killed in the middle of one:
+    every file that looks like a checkpoint loads, and the newest is resumable."""
+    folder = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    writer = subprocess.Popen([sys.executable, "-c", WRITER, str(folder)], env=env)
+    deadline = time.monotonic() + 120
+    while len(ckpt.checkpoints(folder)) < 2 or not list(folder.glob(".*.tmp")):
+        assert writer.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)
+    writer.kill()  # a temporary file exists: the kill lands in (or right after) a write
+    writer.wait()
+    found = ckpt.checkpoints(folder)
+    assert 1 <= len(found) <= 2
+    rounds = [ckpt.load(p)["round"] for p in found]  # every one whole
+    assert rounds == sorted(rounds) and found[-1].name == f"round-{rounds[-1]:04d}.ckpt"
