@@ -20,6 +20,39 @@ class Terminated(KeyboardInterrupt):
     """Raised in the main thread by SIGTERM inside :func:`terminate_as_interrupt`."""
 
 
+# Inside ``deferred()`` an interrupt waits for the block's end: a store write cut in half
+# (a KeyboardInterrupt raised inside an MLflow sqlite call) can leave this process's own
+# connection holding the database lock, and the clean-up's writes then wait on it in vain.
+_depth = 0
+_pending: KeyboardInterrupt | None = None
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Ctrl-C / SIGTERM arriving inside the block (under :func:`terminate_as_interrupt`)
+    is raised when the block ends; a second Ctrl-C meanwhile is raised at once."""
+    global _depth, _pending
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signals reach the main thread only
+        return
+    _depth += 1
+    try:
+        yield
+    finally:
+        _depth -= 1
+        if _depth == 0 and _pending is not None:
+            interrupt, _pending = _pending, None
+            raise interrupt
+
+
+def _raise_or_defer(interrupt: KeyboardInterrupt) -> None:
+    global _pending
+    if _depth > 0 and _pending is None:
+        _pending = interrupt
+        return
+    raise interrupt
+
+
 @contextlib.contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`Terminated` in the main thread.
@@ -27,21 +60,27 @@ def terminate_as_interrupt() -> Iterator[None]:
     Only the first SIGTERM raises; later ones are ignored while the interrupt unwinds, so
     a second signal (Slurm signals every process of a job, and a sweep forwards SIGTERM to
     its worker processes) cannot cut the clean-up short - SIGKILL still ends the process.
-    The previous handler is restored on leaving. Outside the main thread (Python runs
-    signal handlers only there) the block runs unchanged.
+    Ctrl-C raises ``KeyboardInterrupt`` as usual. Both wait for the end of a
+    :func:`deferred` block. The previous handlers are restored on leaving. Outside the
+    main thread (Python runs signal handlers only there) the block runs unchanged.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     received: list[int] = []
 
-    def handler(signum: int, frame) -> None:
+    def on_term(signum: int, frame) -> None:
         if not received:
             received.append(signum)
-            raise Terminated(signal.Signals(signum).name)
+            _raise_or_defer(Terminated(signal.Signals(signum).name))
 
-    previous = signal.signal(signal.SIGTERM, handler)
+    def on_int(signum: int, frame) -> None:
+        _raise_or_defer(KeyboardInterrupt())
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    previous_int = signal.signal(signal.SIGINT, on_int)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)

@@ -98,6 +98,20 @@ def dataset_name(config: ExperimentConfig) -> str:
     return "synthetic" if (path / "synth.json").is_file() else path.name
 
 
+def _uncut(method):
+    """A store write that Ctrl-C / SIGTERM does not cut in half (see fedlgr.signals)."""
+    import functools
+
+    from fedlgr.signals import deferred
+
+    @functools.wraps(method)
+    def write(*args, **kwargs):
+        with deferred():
+            return method(*args, **kwargs)
+
+    return write
+
+
 SENTINEL = "round/seconds"  # logged last in each round: the round is wholly logged
 
 
@@ -175,6 +189,7 @@ class Tracker:
         self._beat = threading.Thread(target=self._beating, name="fedlgr-heartbeat", daemon=True)
         self._beat.start()
 
+    @_uncut
     def heartbeat(self) -> None:
         self.client.set_tag(self.run_id, "fedlgr.heartbeat", f"{time.time():.0f}")
 
@@ -195,6 +210,7 @@ class Tracker:
 
     # ------------------------------------------------------------------ logging
 
+    @_uncut
     def log_round(self, round_: int, metrics: dict[str, float]) -> None:
         """Log a round's metrics at ``step=round``, the sentinel last; a round a resumed run
         had already logged is skipped (its values are the same: the run is deterministic)."""
@@ -214,6 +230,7 @@ class Tracker:
     def _logged_at(self, key: str, step: int) -> bool:
         return any(m.step == step for m in self.client.get_metric_history(self.run_id, key))
 
+    @_uncut
     def log_summary(self, metrics: dict[str, float], rounds: int) -> None:
         """Run-level values over the ``rounds`` rounds done (e.g. ``mean/cost/cpu_s``), at
         ``step=rounds``: a run that failed and was resumed logs them again at its last
@@ -227,6 +244,7 @@ class Tracker:
         if items:
             self.client.log_batch(self.run_id, metrics=items)
 
+    @_uncut
     def save_results(self, rows: Sequence[dict[str, object]], curves_png: bytes | None) -> None:
         if rows:
             buffer = io.StringIO()
@@ -244,11 +262,13 @@ class Tracker:
             path.write_bytes(data)
             self.client.log_artifact(self.run_id, str(path))
 
+    @_uncut
     def finish(self) -> None:
         self._stop_heartbeat()
         self.client.set_terminated(self.run_id, "FINISHED")
         self.finished = True
 
+    @_uncut
     def fail(self, interrupted: bool = False) -> None:
         """End the run FAILED (KILLED if ``interrupted``) - unless it had finished: an
         interrupt that lands just after the end changes nothing."""
