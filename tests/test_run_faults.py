@@ -1,0 +1,624 @@
+"""``fedlgr run`` under faults, on real processes, real signals and real sqlite MLflow
+stores: SIGTERM and SIGKILL mid-run, dead RUNNING runs, a diverging loss, a failure path
+whose own steps fail, temp folders, overrides after options, telemetry, and two processes
+opening a fresh store at once: the defects fixed by 8f986c9, and those its tests found
+(fixed by 5ab6af4, a503caf, a629ad3, 2e6d7a4)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import re
+import shutil
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from urllib.parse import urlparse
+
+import mlflow
+import pytest
+
+from fedlgr.cli import main, parse
+from fedlgr.errors import FedlgrError
+from fedlgr.federated.experiment import run_experiment
+from fedlgr.tracking.mlflow_run import SENTINEL, dead_reason, end_dead_runs
+from tests.conftest import FAST, fast_config, results_csv
+
+REPO = Path(__file__).resolve().parents[1]
+TELEMETRY = "MLFLOW_DISABLE_TELEMETRY"
+EXPERIMENT = "fedlgr-debug"  # conf/debug/fast.yaml's
+
+
+@pytest.fixture(autouse=True)
+def _telemetry_setting_restored():
+    """``fedlgr.cli.main`` sets MLFLOW_DISABLE_TELEMETRY in this process: undo it."""
+    before = os.environ.get(TELEMETRY)
+    yield
+    if before is None:
+        os.environ.pop(TELEMETRY, None)
+    else:
+        os.environ[TELEMETRY] = before
+
+
+def _args(synth_dir, cache_dir, store, *extra) -> list[str]:
+    return [
+        str(FAST),
+        f"data.path={synth_dir}",
+        f"data.cache_dir={cache_dir}",
+        "runtime.threads=1",
+        "runtime.accelerator=cpu",
+        *extra,
+        f"--tracking-uri={store}",
+    ]
+
+
+AS_MAIN = """
+import runpy, sys
+sys.argv = ["fedlgr", *sys.argv[1:]]
+runpy.run_module("fedlgr", run_name="__main__", alter_sys=True)
+"""
+
+
+def _env(**changes) -> dict[str, str]:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop(TELEMETRY, None)  # what a user's shell has: the CLI's default applies
+    env.pop("PYTEST_CURRENT_TEST", None)  # MLflow checks more under pytest: not a user's run
+    env.update(changes)
+    return env
+
+
+class Child:
+    """``python -m fedlgr run ARGS`` in its own session; stdout read line by line as it
+    comes (the run prints each round once it is logged and checkpointed), stderr kept in
+    a file. As a context manager, a child still alive at the end is killed. ``prelude``:
+    Python run first in the child (``-c``), before ``fedlgr`` runs as ``-m`` would."""
+
+    def __init__(self, args: list[str], cwd: Path, name: str = "child", prelude: str = ""):
+        self.stderr_path = cwd / f"{name}.stderr"
+        self._stderr = self.stderr_path.open("w")
+        start = ["-c", prelude + AS_MAIN] if prelude else ["-m", "fedlgr"]
+        self.process = subprocess.Popen(
+            [sys.executable, *start, "run", *args],
+            cwd=cwd,
+            env=_env(),
+            stdout=subprocess.PIPE,
+            stderr=self._stderr,
+            text=True,
+            start_new_session=True,
+        )
+        self.pid = self.process.pid
+        self.out: list[str] = []
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self._lines.put(line)
+        self._lines.put(None)
+
+    def wait_for(self, pattern: str, limit: float = 240) -> str:
+        """The first stdout line matching ``pattern`` (without reaping the process)."""
+        deadline = time.monotonic() + limit
+        while True:
+            left = deadline - time.monotonic()
+            assert left > 0, f"no line {pattern!r} in {limit} s: {self.out}"
+            try:
+                line = self._lines.get(timeout=left)
+            except queue.Empty:
+                continue
+            assert line is not None, f"the run ended before {pattern!r}: {self.stderr()[-3000:]}"
+            self.out.append(line)
+            if re.match(pattern, line):
+                return line
+
+    def stderr(self) -> str:
+        self._stderr.flush()
+        return self.stderr_path.read_text()
+
+    def __enter__(self) -> Child:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.process.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.pid, signal.SIGKILL)
+            self.process.wait()
+        self._stderr.close()
+
+
+def _runs(store: str, experiment: str = EXPERIMENT) -> tuple[mlflow.MlflowClient, list]:
+    client = mlflow.MlflowClient(store)
+    found = client.get_experiment_by_name(experiment)
+    return client, (client.search_runs([found.experiment_id]) if found else [])
+
+
+def _only_run(store: str, experiment: str = EXPERIMENT):
+    client, runs = _runs(store, experiment)
+    assert len(runs) == 1, [(r.info.run_id, r.info.status) for r in runs]
+    return client, runs[0]
+
+
+def _steps(client, run_id: str, key: str = SENTINEL) -> list[int]:
+    return sorted(m.step for m in client.get_metric_history(run_id, key))
+
+
+def _csv_rounds(rows: list[dict[str, str]]) -> dict[int, list[str]]:
+    out: dict[int, list[str]] = {}
+    for row in rows:
+        out.setdefault(int(row["round"]), []).append(row["client"])
+    return out
+
+
+# --------------------------------------------------------------------------- 1. SIGTERM
+
+
+@pytest.mark.slow
+def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    """SIGTERM (timeout, Slurm, docker stop) is handled like Ctrl-C: exit 143 (128 + 15)
+    at once, the MLflow run KILLED (not left RUNNING) with results.csv of the rounds done;
+    ``fedlgr run --resume`` then finishes that same run, every round logged once."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    rounds = 12
+    args = _args(synth_dir, cache_dir, store, f"federated.rounds={rounds}")
+    with Child(args, tmp_path, "terminated") as child:
+        # Printed once round 1 is logged (step 1 of round/seconds) and checkpointed; the
+        # signal goes at once, as later rounds take a fraction of a second each.
+        child.wait_for(rf"round 1/{rounds}:")
+        os.kill(child.pid, signal.SIGTERM)
+        sent = time.monotonic()
+        code = child.process.wait(timeout=60)
+        took = time.monotonic() - sent
+        stderr = child.stderr()
+    assert code == 128 + signal.SIGTERM, stderr[-3000:]
+    assert took < 10, f"{took:.1f} s from SIGTERM to exit"
+    assert "fedlgr: terminated (SIGTERM)" in stderr, stderr[-3000:]
+    assert "Traceback" not in stderr, stderr[-3000:]
+
+    client, run = _only_run(store)
+    run_id = run.info.run_id
+    assert run.data.tags["fedlgr.pid"] == str(child.pid)
+    assert run.info.status == "KILLED"
+    logged = _steps(client, run_id)
+    assert logged == list(range(1, len(logged) + 1)) and 1 <= len(logged) < rounds
+    kept = _csv_rounds(results_csv(client, run_id))
+    assert sorted(kept) == list(range(1, len(kept) + 1))
+    assert len(kept) in (len(logged), len(logged) + 1)  # the signal may fall between the two
+    assert all(clients == ["0", "1"] for clients in kept.values())
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", *args, "--resume"]) == 0
+    said = capsys.readouterr().out
+    assert re.search(rf"resuming run {run_id} after round \d+ of {rounds}", said), said
+    client, run = _only_run(store)
+    assert run.info.run_id == run_id and run.info.status == "FINISHED"
+    assert _steps(client, run_id) == list(range(1, rounds + 1))  # each round once
+    done = _csv_rounds(results_csv(client, run_id))
+    assert sorted(done) == list(range(1, rounds + 1))
+    assert all(clients == ["0", "1"] for clients in done.values())
+    assert not Path(run.data.tags["fedlgr.checkpoints"]).exists()  # a finished run has none
+
+
+SLOW_CURVES = """
+import time
+import fedlgr.tracking.plots as plots
+
+draw = plots.curves_png
+drawn = []
+
+def slow_curves(rows):  # the first drawing (at the run's end) takes 10 s
+    if not drawn:
+        drawn.append(1)
+        print("drawing curves.png", flush=True)
+        time.sleep(10)
+    return draw(rows)
+
+plots.curves_png = slow_curves
+"""
+
+
+@pytest.mark.slow
+def test_sigterm_while_a_run_is_being_ended_ends_it_killed(synth_dir, cache_dir, tmp_path):
+    """The signal comes after the last round, while the run is being ended (results.csv,
+    curves.png, the cost summary, the status): the run must not be left RUNNING. To hit
+    that moment every time, the child's curves.png drawing is held up for 10 s."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, "federated.rounds=2")
+    with Child(args, tmp_path, "late", prelude=SLOW_CURVES) as child:
+        child.wait_for(r"round 2/2:")
+        child.wait_for(r"drawing curves\.png")
+        os.kill(child.pid, signal.SIGTERM)
+        code = child.process.wait(timeout=60)
+        stderr = child.stderr()
+    assert code == 128 + signal.SIGTERM, stderr[-3000:]
+    assert "fedlgr: terminated (SIGTERM)" in stderr and "Traceback" not in stderr, stderr
+    client, run = _only_run(store)
+    assert run.info.status == "KILLED"
+    assert _steps(client, run.info.run_id) == [1, 2]
+    assert _csv_rounds(results_csv(client, run.info.run_id)) == {1: ["0", "1"], 2: ["0", "1"]}
+
+
+@pytest.mark.slow
+def test_sigterm_while_the_store_is_busy_ends_the_run_killed(synth_dir, cache_dir, tmp_path):
+    """Another process (a sweep's worker, say) holds the sqlite store's lock while the run
+    wants to log round 2; the signal comes while it waits. Once the store is free again
+    the run must end KILLED within seconds."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, "federated.rounds=12")
+    with Child(args, tmp_path, "busy") as child:
+        child.wait_for(r"round 1/12:")
+        db = sqlite3.connect(tmp_path / "mlflow.db", timeout=30, isolation_level=None)
+        try:
+            db.execute("BEGIN EXCLUSIVE")
+            time.sleep(3)  # round 2 trains (< 1 s) and waits to log (busy_timeout: 20 s)
+            os.kill(child.pid, signal.SIGTERM)
+            time.sleep(0.3)
+        finally:
+            db.execute("ROLLBACK")
+            db.close()
+        try:
+            code = child.process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            code = None
+        stderr = child.stderr()
+    _, run = _only_run(store)
+    ended = "did not exit within 15 s" if code is None else f"exit {code}"
+    assert (code, run.info.status) == (128 + signal.SIGTERM, "KILLED"), f"{ended}: {stderr}"
+
+
+# --------------------------------------------------------------------------- 2. dead runs
+
+
+def _gone_pid() -> int:
+    """The pid of a process that has ended and been reaped."""
+    process = subprocess.Popen(["true"])
+    process.wait()
+    return process.pid
+
+
+def test_dead_running_runs_are_named_and_marked_killed_and_live_ones_left(tmp_path):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    client = mlflow.MlflowClient(store)
+    experiment = client.create_experiment("dead-runs")
+    here, now = socket.gethostname(), time.time()
+
+    def running(name: str, host: str, pid: int, beat: float | None):
+        tags = {"fedlgr.host": host, "fedlgr.pid": str(pid), "fedlgr.heartbeat_s": "30.0"}
+        if beat is not None:
+            tags["fedlgr.heartbeat"] = f"{beat:.0f}"
+        return client.create_run(experiment, run_name=name, tags=tags).info.run_id
+
+    gone = _gone_pid()
+    ids = {
+        "gone": running("gone", here, gone, now),  # fresh heartbeat, but no process
+        "live": running("live", here, os.getpid(), now),
+        "stale-remote": running("stale-remote", "elsewhere.invalid", 1, now - 1000),
+        "fresh-remote": running("fresh-remote", "elsewhere.invalid", 1, now),
+        "no-heartbeat": running("no-heartbeat", here, gone, None),  # sweep parent, old fedlgr
+        "finished": running("finished", here, gone, now - 1000),
+    }
+    client.set_terminated(ids["finished"], "FINISHED")
+
+    reasons = {name: dead_reason(client.get_run(i)) for name, i in ids.items()}
+    assert reasons["gone"] is not None
+    assert str(gone) in reasons["gone"] and "gone" in reasons["gone"]
+    assert reasons["stale-remote"] is not None and "heartbeat" in reasons["stale-remote"]
+    for name in ("live", "fresh-remote", "no-heartbeat", "finished"):
+        assert reasons[name] is None, (name, reasons[name])
+
+    ended = end_dead_runs(client, [experiment])
+    assert sorted(ended) == sorted([ids["gone"], ids["stale-remote"]])
+    for name, run_id in ids.items():
+        run = client.get_run(run_id)
+        if name in ("gone", "stale-remote"):
+            assert run.info.status == "KILLED"
+            # the reason as dead_reason gives it (a heartbeat's age may have grown by a second)
+            reason = re.sub(r"\d+ s \(", "N s (", reasons[name])
+            assert re.sub(r"\d+ s \(", "N s (", run.data.tags["fedlgr.ended"]) == (
+                f"marked KILLED: {reason}"
+            )
+        else:
+            assert run.info.status == ("FINISHED" if name == "finished" else "RUNNING"), name
+            assert "fedlgr.ended" not in run.data.tags, name
+    assert end_dead_runs(client, [experiment]) == []  # nothing left to mark
+
+
+@pytest.mark.slow
+def test_a_sigkilled_run_stays_running_until_it_is_found_dead(synth_dir, cache_dir, tmp_path):
+    """SIGKILL runs no clean-up: the run stays RUNNING. Its tags name the process, so
+    ``dead_reason`` sees it gone (already while it is an unreaped zombie) and
+    ``end_dead_runs`` marks it KILLED."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, "federated.rounds=500")  # killed long before
+    with Child(args, tmp_path, "sigkilled") as child:
+        child.wait_for(r"round 1/500:")
+        client, run = _only_run(store)
+        tags = run.data.tags
+        assert tags["fedlgr.pid"] == str(child.pid)
+        assert tags["fedlgr.host"] == socket.gethostname()
+        assert abs(time.time() - float(tags["fedlgr.heartbeat"])) < 120
+        assert run.info.status == "RUNNING" and dead_reason(run) is None  # alive
+        os.kill(child.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while (reason := dead_reason(client.get_run(run.info.run_id))) is None:
+            assert time.monotonic() < deadline, "the killed process still looks alive"
+            time.sleep(0.05)
+        assert child.process.wait(timeout=30) == -signal.SIGKILL
+    assert f"process {child.pid} " in reason
+    run = client.get_run(run.info.run_id)
+    assert run.info.status == "RUNNING"  # nothing of the run's own cleaned up
+    assert end_dead_runs(client, [run.info.experiment_id]) == [run.info.run_id]
+    run = client.get_run(run.info.run_id)
+    assert run.info.status == "KILLED"
+    assert run.data.tags["fedlgr.ended"].startswith("marked KILLED: ")
+    assert str(child.pid) in run.data.tags["fedlgr.ended"]
+
+
+# --------------------------------------------------------------------------- 3. NaN loss
+
+
+@pytest.mark.parametrize(
+    "rates",
+    [["train.lr_top=nan"], ["train.lr_root=1e30", "train.lr_top=1e30"]],
+    ids=["nan-rate", "huge-rates"],
+)
+def test_a_non_finite_training_loss_is_one_error_line_and_a_failed_run(
+    rates, synth_dir, cache_dir, tmp_path, monkeypatch, capfd
+):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.chdir(tmp_path)
+    code = main(["run", *_args(synth_dir, cache_dir, store, "federated.rounds=2", *rates)])
+    err = capfd.readouterr().err
+    assert code == 1, err
+    assert "Traceback" not in err
+    errors = [line for line in err.splitlines() if line.startswith("fedlgr: error:")]
+    assert len(errors) == 1, err
+    assert re.fullmatch(
+        r"fedlgr: error: round 1, client \d+: the training loss is (nan|inf|-inf) "
+        r"\(not a finite number\); lower the learning rates .*",
+        errors[0],
+    ), errors[0]
+    _, run = _only_run(store)
+    assert run.info.status == "FAILED"
+
+
+# --------------------------------------------------------------------------- 4. failure path
+
+DIVERGES_IN_ROUND_2 = [  # round 1 trains one finite step, then predicts NaN; round 2's loss
+    "train.max_batches=1",
+    "train.lr_root=1e30",
+    "train.lr_top=1e30",
+]
+
+
+def test_a_run_failing_after_rounds_with_nan_scores_fails_with_its_own_error(
+    synth_dir, cache_dir, tmp_path, monkeypatch
+):
+    """Round 1 is logged with NaN test scores, round 2 diverges: the run ends FAILED with
+    results.csv holding round 1, and the error raised is the divergence (not one from the
+    plot or the summary, which NaN scores may break on the way)."""
+    monkeypatch.chdir(tmp_path)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(
+        synth_dir, cache_dir, store, "federated.rounds=3", "runtime.threads=1", *DIVERGES_IN_ROUND_2
+    )
+    said: list[str] = []
+    with pytest.raises(FedlgrError, match=r"^round 2, client \d+: the training loss is "):
+        run_experiment(config, echo=said.append)
+    assert any(line.startswith("round 1/3: loss -  RMSE -") for line in said), said
+    client, run = _only_run(store)
+    assert run.info.status == "FAILED"
+    rows = results_csv(client, run.info.run_id)
+    assert _csv_rounds(rows) == {1: ["0", "1"]}
+    assert all(row["test_rmse"] == "" for row in rows)  # NaN: not a number, kept as empty
+    assert _steps(client, run.info.run_id) == [1]
+    assert "curves.png" in {a.path for a in client.list_artifacts(run.info.run_id)}  # gaps
+
+
+def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error(
+    synth_dir, cache_dir, tmp_path, monkeypatch
+):
+    """``_record_failure`` goes on when a step fails: with the run's artifact folder made
+    a file, results.csv and curves.png cannot be written, yet the cost summary is logged,
+    the run ends FAILED and the hook's own exception is what propagates."""
+    monkeypatch.chdir(tmp_path)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(synth_dir, cache_dir, store, "federated.rounds=3", "runtime.threads=1")
+    started: list[str] = []
+
+    class Stop(Exception):
+        pass
+
+    def break_artifacts_and_stop(round_, metrics):
+        artifacts = Path(
+            urlparse(mlflow.MlflowClient(store).get_run(started[0]).info.artifact_uri).path
+        )
+        shutil.rmtree(artifacts)
+        artifacts.write_text("a file where the artifact folder was\n")
+        raise Stop(f"stopped after round {round_}")
+
+    said: list[str] = []
+    with pytest.raises(Stop, match="stopped after round 1"):
+        run_experiment(
+            config, echo=said.append, on_start=started.append, on_round=break_artifacts_and_stop
+        )
+    assert any(s.startswith("(while failing: could not record results.csv: ") for s in said), said
+    client, run = _only_run(store)
+    assert run.info.run_id == started[0]
+    assert run.info.status == "FAILED"
+    assert "mean/cost/cpu_s" in run.data.metrics  # the step after the failed ones ran
+    assert _steps(client, run.info.run_id) == [1]
+
+
+def test_a_run_whose_last_round_has_nan_scores_is_not_left_running(
+    synth_dir, cache_dir, tmp_path, monkeypatch
+):
+    """One round, one finite training step, NaN predictions afterwards: the run completes
+    its rounds and must end (FINISHED, its results kept), not crash at the plot."""
+    monkeypatch.chdir(tmp_path)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(
+        synth_dir, cache_dir, store, "federated.rounds=1", "runtime.threads=1", *DIVERGES_IN_ROUND_2
+    )
+    try:
+        run_experiment(config, echo=lambda *a, **k: None)
+    finally:
+        client, run = _only_run(store)
+        assert run.info.status != "RUNNING"
+    assert run.info.status == "FINISHED"
+    assert _csv_rounds(results_csv(client, run.info.run_id)) == {1: ["0", "1"]}
+    assert "curves.png" in {a.path for a in client.list_artifacts(run.info.run_id)}
+
+
+# --------------------------------------------------------------------------- 5. temp folders
+
+
+def test_runs_leave_nothing_in_the_temp_folder(synth_dir, cache_dir, tmp_path, monkeypatch):
+    """A finished run and a failed one (each writes config.yaml, results.csv, curves.png
+    through temporary files) leave no entry in ``tempfile.gettempdir()``."""
+    monkeypatch.chdir(tmp_path)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(synth_dir, cache_dir, store, "federated.rounds=2", "runtime.threads=1")
+    quiet = lambda *a, **k: None  # noqa: E731
+    run_experiment(config, echo=quiet)  # warm-up: imports that create caches happen now
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temp))
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    seen: list[str] = []
+
+    def fail(round_, metrics):
+        seen.append(tempfile.gettempdir())
+        raise RuntimeError("stop")
+
+    run_experiment(config, echo=quiet, on_round=lambda r, m: seen.append(tempfile.gettempdir()))
+    with pytest.raises(RuntimeError, match="stop"):
+        run_experiment(config, echo=quiet, on_round=fail)
+    assert seen == [str(temp)] * 3  # the runs used this folder
+    assert sorted(os.listdir(temp)) == []
+    client, runs = _runs(store)
+    assert sorted(r.info.status for r in runs) == ["FAILED", "FINISHED", "FINISHED"]
+    for run in runs:  # what went through the temp folder arrived
+        names = {a.path for a in client.list_artifacts(run.info.run_id)}
+        assert {"config.yaml", "results.csv", "curves.png"} <= names, names
+
+
+# --------------------------------------------------------------------------- 6. overrides
+
+
+def test_overrides_may_follow_options_and_stray_arguments_are_refused(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = [
+        "run",
+        str(FAST),
+        f"data.cache_dir={cache_dir}",
+        "--tracking-uri",
+        store,
+        "federated.rounds=2",
+        f"data.path={synth_dir}",
+        "runtime.threads=1",
+    ]
+    assert main(args) == 0, capsys.readouterr().err
+    client, run = _only_run(store)
+    params = run.data.params
+    assert params["federated.rounds"] == "2" and params["data.path"] == str(synth_dir)
+    assert params["tracking.uri"] == store
+    assert _steps(client, run.info.run_id) == [1, 2]
+    capsys.readouterr()
+
+    for stray in ("--bogus", "stray"):
+        with pytest.raises(SystemExit) as exit_:
+            main([*args, stray])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert re.search(rf"^fedlgr: error: unrecognized arguments: .*{stray}$", err, re.M), err
+    assert len(_runs(store)[1]) == 1  # nothing ran
+
+
+def test_an_override_after_a_bare_resume_is_an_override():
+    args = parse(["run", str(FAST), "--resume", "federated.rounds=2"])
+    assert args.resume is True
+    assert args.items == [str(FAST), "federated.rounds=2"]
+
+
+# --------------------------------------------------------------------------- 7. telemetry
+
+
+def test_the_cli_turns_mlflow_telemetry_off_unless_the_user_chose(tmp_path, monkeypatch, capsys):
+    missing = str(tmp_path / "missing.yaml")  # a verb that ends at once, with an error
+    monkeypatch.delenv(TELEMETRY, raising=False)
+    assert main(["run", missing]) == 1
+    assert os.environ[TELEMETRY] == "true"
+    monkeypatch.setenv(TELEMETRY, "false")
+    assert main(["run", missing]) == 1
+    assert os.environ[TELEMETRY] == "false"  # the user's explicit choice is kept
+    assert capsys.readouterr().err.count("config file not found") == 2
+
+
+SHOW_TELEMETRY = """
+import atexit, os, runpy, sys
+
+def show():
+    client = sys.modules["mlflow.telemetry.client"].get_telemetry_client()
+    print("TELEMETRY", os.environ.get("MLFLOW_DISABLE_TELEMETRY", "<unset>"), client)
+
+atexit.register(show)
+sys.argv = ["fedlgr", *sys.argv[1:]]
+runpy.run_module("fedlgr", run_name="__main__", alter_sys=True)
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("given", "seen"), [(None, "true"), ("false", "false")])
+def test_a_fedlgr_process_runs_mlflow_without_telemetry_by_default(tmp_path, given, seen):
+    """``python -m fedlgr report`` (it imports MLflow, then stops: no store) with the
+    environment variable unset, and with a user's explicit ``false``."""
+    env = _env(**({TELEMETRY: given} if given else {}))
+    store = f"sqlite:///{tmp_path}/none.db"
+    command = ["report", "--tracking-uri", store, "--no-log", "--out", str(tmp_path / "out")]
+    done = subprocess.run(
+        [sys.executable, "-c", SHOW_TELEMETRY, *command],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 1 and "fedlgr: error: no MLflow store" in done.stderr, done.stderr
+    shown = [line for line in done.stdout.splitlines() if line.startswith("TELEMETRY ")]
+    assert shown and shown[-1].split()[1] == seen, done.stdout
+    if given is None:
+        assert shown[-1] == "TELEMETRY true None"  # MLflow started no telemetry client
+
+
+# --------------------------------------------------------------------------- 8. fresh store race
+
+
+@pytest.mark.slow
+def test_two_runs_opening_a_fresh_store_at_once_both_finish(synth_dir, cache_dir, tmp_path):
+    for attempt in range(2):  # the race failed 2 times in 2 before the lock (5ab6af4)
+        folder = tmp_path / f"race{attempt}"
+        folder.mkdir()
+        store = f"sqlite:///{folder}/fresh.db"
+        args = _args(synth_dir, cache_dir, store)
+        children = [Child(args, folder, f"run{i}") for i in range(2)]
+        try:
+            codes = [c.process.wait(timeout=500) for c in children]
+            failures = [c.stderr()[-2000:] for c, code in zip(children, codes, strict=True) if code]
+        finally:
+            for child in children:
+                child.__exit__()
+        assert not failures, f"attempt {attempt + 1}: {failures}"
+        _, runs = _runs(store)
+        assert sorted(r.info.status for r in runs) == ["FINISHED", "FINISHED"], attempt
