@@ -30,6 +30,7 @@ from fedlgr.errors import FedlgrError
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.tracking.mlflow_run import SENTINEL, dead_reason, end_dead_runs
 from tests.conftest import FAST, fast_config, results_csv
+from tests.test_resume import _args
 
 REPO = Path(__file__).resolve().parents[1]
 TELEMETRY = "MLFLOW_DISABLE_TELEMETRY"
@@ -45,18 +46,6 @@ def _telemetry_setting_restored():
         os.environ.pop(TELEMETRY, None)
     else:
         os.environ[TELEMETRY] = before
-
-
-def _args(synth_dir, cache_dir, store, *extra) -> list[str]:
-    return [
-        str(FAST),
-        f"data.path={synth_dir}",
-        f"data.cache_dir={cache_dir}",
-        "runtime.threads=1",
-        "runtime.accelerator=cpu",
-        *extra,
-        f"--tracking-uri={store}",
-    ]
 
 
 AS_MAIN = """

@@ -232,8 +232,9 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     listed = next((name for name in ("items", "overrides") if hasattr(args, name)), None)
-    if extra and (listed is None or any("=" not in e or e.startswith("-") for e in extra)):
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    stray = [e for e in extra if listed is None or "=" not in e or e.startswith("-")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         getattr(args, listed).extend(extra)
     if isinstance(getattr(args, "resume", None), str) and "=" in args.resume:

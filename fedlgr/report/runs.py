@@ -71,13 +71,13 @@ class Selection:
 def open_store(uri: str):
     """An MlflowClient for ``uri``; a sqlite file that does not exist is an error (MLflow
     would quietly create an empty store)."""
-    import mlflow
+    from fedlgr.tracking.mlflow_run import open_client
 
     if uri.startswith("sqlite:///"):
         path = Path(uri.removeprefix("sqlite:///"))
         if not path.is_file():
             raise ReportError(f"no MLflow store at {uri}: {path} does not exist")
-    return mlflow.MlflowClient(uri)
+    return open_client(uri)
 
 
 def select_runs(
