@@ -571,10 +571,11 @@ runpy.run_module("fedlgr", run_name="__main__", alter_sys=True)
 @pytest.mark.slow
 @pytest.mark.parametrize(("given", "seen"), [(None, "true"), ("false", "false")])
 def test_a_fedlgr_process_runs_mlflow_without_telemetry_by_default(tmp_path, given, seen):
-    """``python -m fedlgr report`` (it imports MLflow, then stops: no store) with the
-    environment variable unset, and with a user's explicit ``false``."""
+    """``python -m fedlgr report`` (it opens the store, then stops: no experiment) with
+    the environment variable unset, and with a user's explicit ``false``."""
     env = _env(**({TELEMETRY: given} if given else {}))
-    store = f"sqlite:///{tmp_path}/none.db"
+    store = f"sqlite:///{tmp_path}/empty.db"
+    mlflow.MlflowClient(store).search_experiments()  # a store without fedlgr's experiment
     command = ["report", "--tracking-uri", store, "--no-log", "--out", str(tmp_path / "out")]
     done = subprocess.run(
         [sys.executable, "-c", SHOW_TELEMETRY, *command],
@@ -584,7 +585,9 @@ def test_a_fedlgr_process_runs_mlflow_without_telemetry_by_default(tmp_path, giv
         text=True,
         timeout=300,
     )
-    assert done.returncode == 1 and "fedlgr: error: no MLflow store" in done.stderr, done.stderr
+    assert done.returncode == 1 and "fedlgr: error: no MLflow experiment" in done.stderr, (
+        done.stderr
+    )
     shown = [line for line in done.stdout.splitlines() if line.startswith("TELEMETRY ")]
     assert shown and shown[-1].split()[1] == seen, done.stdout
     if given is None:
