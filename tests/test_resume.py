@@ -74,6 +74,21 @@ def _kill_when(process: subprocess.Popen, ready, what: str, limit: float = 300) 
     process.wait()
 
 
+def _killed_after_checkpoint(args, cwd: Path, round_: int = 2) -> Path:
+    """Start ``fedlgr run ARGS`` and SIGKILL it once its round-``round_`` checkpoint is
+    written; the run's checkpoint folder."""
+    name = f"round-{round_:04d}.ckpt"
+    root = cwd / "checkpoints"
+    process = _start(args, cwd)
+    _kill_when(
+        process,
+        lambda: any((p / name).exists() for p in root.glob("*")),
+        f"the checkpoint of round {round_}",
+    )
+    (folder,) = (p for p in root.glob("*") if (p / name).exists())
+    return folder
+
+
 def _only_run(store: str, experiment: str = "fedlgr-debug", name: str | None = None):
     client = mlflow.MlflowClient(store)
     eid = client.get_experiment_by_name(experiment).experiment_id
@@ -142,20 +157,17 @@ def test_a_killed_fcl_run_resumes_bit_for_bit_in_the_same_mlflow_run(
     result = run_experiment(fast_config(synth_dir, cache_dir, reference, *extra))
     store = f"sqlite:///{tmp_path}/mlflow.db"
     args = _args(synth_dir, cache_dir, store, *extra)
-    process = _start(args, tmp_path)
-    folder = tmp_path / "checkpoints"
-    written = lambda: any((p / "round-0002.ckpt").exists() for p in folder.glob("*"))  # noqa: E731
-    _kill_when(process, written, "the checkpoint of round 2")
+    folder = _killed_after_checkpoint(args, tmp_path)
     client, run = _only_run(store)
     assert run.info.status == "RUNNING"  # killed: nobody ended it
-    assert (folder / run.info.run_id / "round-0002.ckpt").exists()
+    assert folder.name == run.info.run_id
 
     done = _finish([*args, "--resume"], tmp_path)
     assert f"resuming run {run.info.run_id} after round 2 of 4" in done.stdout
     client, resumed = _only_run(store)  # one run, the same one
     assert resumed.info.run_id == run.info.run_id and resumed.info.status == "FINISHED"
     _same_as_reference(client, run.info.run_id, reference, result.run_id)
-    assert not (folder / run.info.run_id).exists()  # a finished run keeps no checkpoint
+    assert not folder.exists()  # a finished run keeps no checkpoint
 
 
 @pytest.mark.slow
@@ -233,12 +245,10 @@ def test_a_killed_two_process_run_resumes_bit_for_bit(synth_dir, cache_dir, tmp_
     _, expected = _only_run(reference)
     store = f"sqlite:///{tmp_path}/mlflow.db"
     args = _args(synth_dir, cache_dir, store, *extra)
-    process = _start(args, tmp_path)
-    folder = tmp_path / "checkpoints"
-    written = lambda: any((p / "round-0002.ckpt").exists() for p in folder.glob("*"))  # noqa: E731
-    _kill_when(process, written, "the checkpoint of round 2")
+    folder = _killed_after_checkpoint(args, tmp_path)
     client, run = _only_run(store)
-    state = ckpt.load(folder / run.info.run_id / "round-0002.ckpt")
+    assert folder.name == run.info.run_id
+    state = ckpt.load(folder / "round-0002.ckpt")
     assert sorted(state["clients"]) == [0, 1] and len(state["rng"]) == 2  # both processes'
     done = _finish([*args, "--resume"], tmp_path)
     assert "2 processes" in done.stdout and "after round 2 of 4" in done.stdout

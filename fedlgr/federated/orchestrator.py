@@ -396,9 +396,9 @@ class Orchestrator:
         every client of every process)."""
         server = state["server"]
         self.global_weights = {k: v.to(self.device) for k, v in server["global"].items()}
-        self.strategy.load_state_dict(_to(server["strategy"], self.device))
+        self.strategy.load_state_dict(to_device(server["strategy"], self.device))
         for client in self.clients:
-            client.load_state_dict(_to(state["clients"][client.index], self.device))
+            client.load_state_dict(to_device(state["clients"][client.index], self.device))
 
     def run_round(
         self,
@@ -416,15 +416,15 @@ class Orchestrator:
         return self.gather(round_, task, trained, ended, scores, time.perf_counter() - start)
 
 
-def _to(value, device: torch.device):
+def to_device(value, device: torch.device):
     """``value`` with every tensor moved to ``device`` (dicts, lists, tuples walked)."""
     if isinstance(value, torch.Tensor):
         # Generator states are CPU byte tensors whatever the device; keep them there.
         return value if value.dtype == torch.uint8 else value.to(device)
     if isinstance(value, dict):
-        return {k: _to(v, device) for k, v in value.items()}
+        return {k: to_device(v, device) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return type(value)(_to(v, device) for v in value)
+        return type(value)(to_device(v, device) for v in value)
     return value
 
 

@@ -20,18 +20,10 @@ import torch
 from fedlgr import __version__
 from fedlgr.config import ExperimentConfig, flatten
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.orchestrator import Orchestrator, RoundLog
+from fedlgr.federated.orchestrator import Orchestrator, RoundLog, to_device
 from fedlgr.tracking import checkpoint as ckpt
 
-
-def _cpu(value: Any) -> Any:
-    if isinstance(value, torch.Tensor):
-        return value.detach().cpu()
-    if isinstance(value, dict):
-        return {k: _cpu(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return type(value)(_cpu(v) for v in value)
-    return value
+CPU = torch.device("cpu")
 
 
 def _gather(fabric, part: dict) -> list[dict] | None:
@@ -59,7 +51,7 @@ def save_checkpoint(
     """Checkpoint the run after its last round in ``rounds`` (every process calls this;
     rank 0 writes)."""
     state = orchestrator.state_dict()
-    part = {"clients": _cpu(state["clients"]), "rng": ckpt.rng_states()}
+    part = {"clients": to_device(state["clients"], CPU), "rng": ckpt.rng_states()}
     parts = _gather(fabric, part)
     whole: dict[str, Any] = {}
     if parts is not None:
@@ -69,7 +61,7 @@ def save_checkpoint(
             "run_id": run_id,
             "round": rounds[-1].round,
             "config": flatten(orchestrator.config),
-            "server": _cpu(state["server"]),
+            "server": to_device(state["server"], CPU),
             "clients": {i: c for p in parts for i, c in p["clients"].items()},
             "rng": [p["rng"] for p in parts],  # per process
             "rows": [
@@ -122,9 +114,7 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
             )
         client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
         client.set_terminated(run_id, "KILLED")
-    folder = Path(
-        run.data.tags.get("fedlgr.checkpoints") or ckpt.checkpoint_root(config, uri) / run_id
-    )
+    folder = checkpoint_folder(run, config)
     found = ckpt.checkpoints(folder)
     if not found:
         raise FedlgrError(
@@ -132,6 +122,18 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
             "checkpoint, or tracking.checkpoint=0); start it over without --resume"
         )
     return run_id, found[-1]
+
+
+def checkpoint_folder(run, config: ExperimentConfig) -> Path:
+    """Where ``run`` keeps its checkpoints: its tag, else the default place for it."""
+    from fedlgr.tracking.mlflow_run import tracking_uri
+
+    tagged = run.data.tags.get("fedlgr.checkpoints")
+    return (
+        Path(tagged)
+        if tagged
+        else ckpt.checkpoint_root(config, tracking_uri(config)) / run.info.run_id
+    )
 
 
 def _latest_unfinished(config: ExperimentConfig, client, experiment: str):

@@ -34,7 +34,6 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from fedlgr.errors import FedlgrError
@@ -302,8 +301,8 @@ class Worker:
         copy carries the failed trial's user attributes (``mlflow_run_id``, set when its
         run started) and reported rounds, so the retry resumes that run instead of
         training from round 1."""
-        from fedlgr.tracking.checkpoint import checkpoint_root, checkpoints, fingerprint
-        from fedlgr.tracking.mlflow_run import tracking_uri
+        from fedlgr.federated.resume import checkpoint_folder
+        from fedlgr.tracking.checkpoint import checkpoints, fingerprint
 
         run_id = trial.user_attrs.get("mlflow_run_id")
         failed = self.study._storage.get_trial(trial._trial_id).system_attrs.get("failed_trial")
@@ -313,10 +312,7 @@ class Worker:
             run = self.client.get_run(run_id)
         except Exception:  # the run is gone from the store: start over
             return None
-        folder = run.data.tags.get("fedlgr.checkpoints") or str(
-            checkpoint_root(config, tracking_uri(config)) / run_id
-        )
-        if run.info.status == "FINISHED" or not checkpoints(Path(folder)):
+        if run.info.status == "FINISHED" or not checkpoints(checkpoint_folder(run, config)):
             return None
         if run.data.tags.get("fedlgr.config_hash") != fingerprint(config):
             changed = f"settings changed since run {run_id}"
