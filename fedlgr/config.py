@@ -169,6 +169,22 @@ class RuntimeConfig:
 
 
 @dataclass(frozen=True)
+class DeployConfig:
+    """Real robots behind a Flower SuperLink (``fedlgr deploy``; README "Deployment")."""
+
+    min_clients: int | None = None  # replies a round needs to go on (default: data.clients)
+    join_timeout_s: float = 300.0  # how long round 1 waits for data.clients robots to join
+    round_timeout_s: float = 600.0  # how long the server waits for replies in one exchange
+
+    def __post_init__(self) -> None:
+        if self.min_clients is not None:
+            _positive("deploy.min_clients", self.min_clients)
+        for name in ("join_timeout_s", "round_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"deploy.{name}={getattr(self, name)}: must be > 0")
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """MLflow: local sqlite store by default, or a server (``tracking.uri``)."""
 
@@ -282,6 +298,7 @@ class ExperimentConfig:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     continual: ContinualConfig = field(default_factory=ContinualConfig)
+    deploy: DeployConfig = field(default_factory=DeployConfig)
 
     def __post_init__(self) -> None:
         if self.continual.method == "lgr" and self.federated.scope != "root":
@@ -304,6 +321,11 @@ class ExperimentConfig:
             raise ConfigError(
                 f"runtime.devices x runtime.num_nodes = {self.runtime.world_size} processes for "
                 f"data.clients={self.data.clients}: every process needs at least one client"
+            )
+        if (self.deploy.min_clients or 0) > self.data.clients:
+            raise ConfigError(
+                f"deploy.min_clients={self.deploy.min_clients} exceeds "
+                f"data.clients={self.data.clients}"
             )
         if self.data.modality == "image" and root == "mlp":
             raise ConfigError("model.root=mlp reads the descriptors: set data.modality=features")

@@ -8,7 +8,7 @@ import pytest
 
 from fedlgr.config import FCL_METHODS
 from fedlgr.federated.experiment import run_experiment
-from fedlgr.federated.scope import nbytes
+from fedlgr.federated.messages import nbytes
 from fedlgr.models.scholar import build_scholar
 from tests.conftest import fast_config, read_run, results_csv
 

@@ -20,8 +20,8 @@ from fedlgr.continual.lgr import latents_of
 from fedlgr.data.augment import SceneBatches
 from fedlgr.errors import ConfigError
 from fedlgr.federated.client import Client, train_locally
+from fedlgr.federated.messages import nbytes
 from fedlgr.federated.plugins import ClientPlugin, LocalContext
-from fedlgr.federated.scope import nbytes
 from fedlgr.models.generator import LatentVAE
 from fedlgr.models.scholar import MLPRoot, Scholar, Top, build_scholar
 from tests.conftest import fast_config, read_run, results_csv

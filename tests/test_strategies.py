@@ -10,8 +10,9 @@ from torch import nn
 
 from fedlgr.config import FederatedConfig, method_name
 from fedlgr.federated.aggregate import weighted_mean
+from fedlgr.federated.messages import nbytes
 from fedlgr.federated.plugins import LocalContext
-from fedlgr.federated.scope import batchnorm_keys, nbytes, shared_keys
+from fedlgr.federated.scope import batchnorm_keys, shared_keys
 from fedlgr.federated.strategies import STRATEGIES, FedAvg, FedBN, FedOpt, FedProx
 from fedlgr.federated.strategies.fedprox import ProximalTerm
 

@@ -14,9 +14,10 @@ import torch
 from fedlgr.config import METHODS, load_config
 from fedlgr.data.dataset import load_scenes
 from fedlgr.data.splits import make_split
+from fedlgr.federated.client_side import ClientSide
 from fedlgr.federated.experiment import make_fabric, run_experiment
+from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainIns, nbytes
 from fedlgr.federated.orchestrator import Orchestrator
-from fedlgr.federated.scope import nbytes
 from tests.conftest import FAST, fast_config, read_run, results_csv
 
 ACTIONS = ("vacuum", "conversation")
@@ -99,19 +100,20 @@ def test_root_scope_keeps_each_top_and_uploads_the_root(synth_dir, cache_dir):
     )
     scenes = load_scenes(config.data)
     orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
-    trained = orch.train_round(1)
+    trained = orch.client_side.train(TrainIns(RoundPlan(1)))
     tops = [{k: v.clone() for k, v in c.model.top.state_dict().items()} for c in orch.clients]
     roots = [{k: v.clone() for k, v in c.model.root.state_dict().items()} for c in orch.clients]
     assert not torch.equal(tops[0]["net.1.weight"], tops[1]["net.1.weight"])  # they trained apart
-    orch.aggregate()
+    orch.aggregate(trained)
+    orch.client_side.evaluate(EvaluateIns(RoundPlan(1), orch.server.global_weights))
     for client, top in zip(orch.clients, tops, strict=True):
         for key, value in client.model.top.state_dict().items():
             assert torch.equal(value, top[key]), key  # bit-identical: the top never left
     root_float = {
         k: v for k, v in orch.clients[0].model.root.state_dict().items() if v.is_floating_point()
     }
-    for client in orch.clients:
-        assert trained[client.index][2] == nbytes(root_float)  # uploaded: the root's size
+    for client, upload in zip(orch.clients, trained, strict=True):
+        assert nbytes(upload.weights) == nbytes(root_float)  # uploaded: the root's size
         w = client.n_samples / sum(c.n_samples for c in orch.clients)
         mean = roots[0]["features.0.0.weight"] * w + roots[1]["features.0.0.weight"] * (1 - w)
         assert torch.allclose(
@@ -122,16 +124,16 @@ def test_root_scope_keeps_each_top_and_uploads_the_root(synth_dir, cache_dir):
 def test_a_failing_run_is_marked_failed_and_keeps_what_was_logged(
     synth_dir, cache_dir, store, monkeypatch
 ):
-    real = Orchestrator.evaluate_clients
+    real = ClientSide.evaluate
     calls = []
 
-    def fail_in_round_two(self, task):
+    def fail_in_round_two(self, ins):
         calls.append(1)
         if len(calls) == 2:
             raise RuntimeError("disk on fire")
-        return real(self, task)
+        return real(self, ins)
 
-    monkeypatch.setattr(Orchestrator, "evaluate_clients", fail_in_round_two)
+    monkeypatch.setattr(ClientSide, "evaluate", fail_in_round_two)
     config = fast_config(
         synth_dir, cache_dir, store, "federated.rounds=3", "tracking.run_name=doomed"
     )

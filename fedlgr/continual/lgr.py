@@ -213,9 +213,14 @@ class LatentReplay(ClientPlugin):
         n_held = int(len(current) * self.holdout) if len(current) >= 10 else 0
         held, train = current[order[:n_held]], current[order[n_held:]]
         if self.generator is None:
-            self.generator = LatentVAE(
-                current.shape[1], self.hidden, self.latent, self.lr, self.beta
-            ).to(current.device)
+            # Initialised from this client's own generator, not the process's global RNG:
+            # the numbers must not depend on which other clients share the process.
+            seed = int(torch.randint(2**62, (1,), generator=self.generator_rng))
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                self.generator = LatentVAE(
+                    current.shape[1], self.hidden, self.latent, self.lr, self.beta
+                ).to(current.device)
         else:  # R U R': as many pseudo-latents per past task as the task has scenes
             past = self.generator.sample(len(current) * self.tasks_learnt, self.generator_rng)
             cut = len(held) * self.tasks_learnt

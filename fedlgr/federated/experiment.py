@@ -18,7 +18,8 @@ from pathlib import Path
 
 from fedlgr.config import ExperimentConfig
 from fedlgr.console import Progress, table
-from fedlgr.federated.orchestrator import Orchestrator, RoundLog, torch_threads
+from fedlgr.federated.orchestrator import Orchestrator, torch_threads
+from fedlgr.federated.rounds import RoundLog
 
 
 @dataclass
@@ -245,16 +246,10 @@ def _main(
     import torch
     from lightning.fabric import seed_everything
 
-    from fedlgr.continual.forgetting import ForgettingTracker
-    from fedlgr.continual.schedule import schedule
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
     from fedlgr.federated.resume import restore, save_checkpoint
-    from fedlgr.tracking.checkpoint import checkpoint_root, remove
-    from fedlgr.tracking.mlflow_run import Tracker, tracking_uri
 
-    rank0 = fabric.global_rank == 0
-    say = hooks.echo if rank0 else (lambda *a, **k: None)
     if fabric.device.type == "cpu":
         # Results depend on the thread count (the order of floating-point sums): the
         # effective count goes into the config, its params and its checkpoints.
@@ -269,21 +264,70 @@ def _main(
     scenes = load_scenes(config.data)
     split = make_split(scenes.table, config.data)
     orchestrator = Orchestrator(fabric, config, scenes, split)
+    resumed = None
+    if point is not None:
+        resumed = Resumed(point[0], restore(fabric, orchestrator, point[1]), point[1]["elapsed"])
+    processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
+    return drive(
+        orchestrator,
+        config,
+        hooks,
+        rank0=fabric.global_rank == 0,
+        tags=tags,
+        parent_run_id=parent_run_id,
+        what=f"{len(split.train)} training / {len(split.test)} test scenes{processes}",
+        resumed=resumed,
+        save=lambda folder, *rest: save_checkpoint(fabric, folder, orchestrator, *rest),
+        start=start,
+    )
+
+
+@dataclass
+class Resumed:
+    run_id: str
+    rounds: list[RoundLog]
+    elapsed: float
+
+
+def drive(
+    rounds,
+    config: ExperimentConfig,
+    hooks: Hooks,
+    *,
+    rank0: bool = True,
+    tags: dict[str, str] | None = None,
+    parent_run_id: str | None = None,
+    what: str = "",
+    resumed: Resumed | None = None,
+    save=None,
+    start: float | None = None,
+) -> ExperimentResult | None:
+    """The schedule's round loop around ``rounds.run_round`` (an :class:`Orchestrator` or
+    the Flower server's rounds): MLflow logging (rank 0), forgetting, checkpoints through
+    ``save(folder, rounds, run_id, seconds, keep)``, the failure record and the summary.
+    The same for every runtime: what a run logs does not depend on where clients live."""
+    from fedlgr.continual.forgetting import ForgettingTracker
+    from fedlgr.continual.schedule import schedule
+    from fedlgr.tracking.checkpoint import checkpoint_root, remove
+    from fedlgr.tracking.mlflow_run import Tracker, tracking_uri
+
+    start = time.perf_counter() if start is None else start
+    say = hooks.echo if rank0 else (lambda *a, **k: None)
     tasks = list(config.continual.tasks)
     steps = schedule(config)
     forgetting = ForgettingTracker(tasks)
     result = ExperimentResult(config)
     elapsed = 0.0
-    if point is not None:
-        result.rounds = restore(fabric, orchestrator, point[1])
+    if resumed is not None:
+        result.rounds = resumed.rounds
         for log, step in zip(result.rounds, steps, strict=False):
             if step.last_of_task:  # the "after task" figures, as they were computed then
                 forgetting.end_of_task(log, step.task)
         result.after_tasks = forgetting.after
-        elapsed = point[1]["elapsed"]
+        elapsed = resumed.elapsed
     tracker, folder = None, None
     if rank0 and config.tracking.enabled:
-        run_id = point[0] if point is not None else None
+        run_id = resumed.run_id if resumed is not None else None
         tracker = Tracker(config, tags, parent_run_id, run_id=run_id)
         folder = checkpoint_root(config, tracking_uri(config)) / tracker.run_id
         result.run_id = tracker.run_id
@@ -294,25 +338,26 @@ def _main(
     )
     say(
         f"{config.run_name}: {plan} x {config.train.epochs} local epochs, "
-        f"{config.data.clients} clients, {len(split.train)} training / {len(split.test)} test "
-        "scenes" + (f", {fabric.world_size} processes" if fabric.world_size > 1 else "")
+        f"{config.data.clients} clients" + (f", {what}" if what else "")
     )
-    if point is not None:
-        say(f"resuming run {point[0]} after round {len(result.rounds)} of {len(steps)}")
-    every = config.tracking.checkpoint if config.tracking.enabled else 0
+    if resumed is not None:
+        say(f"resuming run {resumed.run_id} after round {len(result.rounds)} of {len(steps)}")
+    every = config.tracking.checkpoint if config.tracking.enabled and save is not None else 0
     total = len(steps)
+    local_clients = len(getattr(rounds, "clients", ()))
     try:  # from here on the MLflow run exists: whatever happens, it is ended
         if tracker is not None:
-            tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
+            if every:
+                tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
             if hooks.on_start is not None:
                 hooks.on_start(tracker.run_id)
         for step in steps[len(result.rounds) :]:
             round_, k = step.round, step.task
-            show = rank0 and config.runtime.progress
+            show = rank0 and config.runtime.progress and local_clients > 0
             label = f"round {round_}/{total}" + (f" (task {tasks[k]})" if tasks else "")
             with Progress(f"{label}, client epochs", "epoch", show) as bar:
-                epochs = len(orchestrator.clients) * config.train.epochs
-                log = orchestrator.run_round(
+                epochs = local_clients * config.train.epochs
+                log = rounds.run_round(
                     round_, k, step.first_of_task, step.last_of_task, _epoch_counter(bar, epochs)
                 )
             result.rounds.append(log)
@@ -325,9 +370,9 @@ def _main(
             if every and (round_ % every == 0 or round_ == total):
                 spent = elapsed + time.perf_counter() - start
                 keep = config.tracking.keep_checkpoints
-                run_id = result.run_id
-                save_checkpoint(fabric, folder, orchestrator, result.rounds, run_id, spent, keep)
-            say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s)")
+                save(folder, result.rounds, result.run_id, spent, keep)
+            missing = f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
+            say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s){missing}")
             if hooks.on_round is not None and rank0:
                 hooks.on_round(round_, metrics)
         result.seconds = elapsed + time.perf_counter() - start
@@ -341,7 +386,7 @@ def _main(
         if tracker is not None:
             _record_failure(tracker, result, err, say)
         raise
-    if tracker is not None:
+    if tracker is not None and every:
         remove(folder)  # a finished run needs no checkpoint
     if not rank0:
         return None

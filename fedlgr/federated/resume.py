@@ -20,8 +20,10 @@ import torch
 from fedlgr import __version__
 from fedlgr.config import ExperimentConfig, flatten
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.orchestrator import Orchestrator, RoundLog, to_device
+from fedlgr.federated.orchestrator import Orchestrator
+from fedlgr.federated.rounds import RoundLog
 from fedlgr.tracking import checkpoint as ckpt
+from fedlgr.tracking.checkpoint import to_device
 
 CPU = torch.device("cpu")
 

@@ -44,6 +44,11 @@ def parameter_keys(model: nn.Module) -> set[str]:
     return {name for name, _ in model.named_parameters()}
 
 
-def nbytes(weights: dict[str, torch.Tensor]) -> int:
-    """Bytes of the tensors as they travel (their element size times their count)."""
-    return sum(t.numel() * t.element_size() for t in weights.values())
+def initial_scholar(config) -> nn.Module:
+    """The run's initial model: the same in every process, on every robot and on the
+    server (seeded by ``config.seed``; the global RNG is left as it was)."""
+    from fedlgr.models.scholar import build_scholar
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        return build_scholar(config)

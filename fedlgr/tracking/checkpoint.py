@@ -178,3 +178,15 @@ def set_rng_states(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
     if state["cuda"] and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def to_device(value, device: torch.device):
+    """``value`` with every tensor moved to ``device`` (dicts, lists, tuples walked)."""
+    if isinstance(value, torch.Tensor):
+        # Generator states are CPU byte tensors whatever the device; keep them there.
+        return value if value.dtype == torch.uint8 else value.to(device)
+    if isinstance(value, dict):
+        return {k: to_device(v, device) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(to_device(v, device) for v in value)
+    return value

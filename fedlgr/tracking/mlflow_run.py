@@ -153,6 +153,7 @@ class Tracker:
                 "benchmark": "FCL" if config.continual_learning else "FL",
                 "continual": config.continual.method if config.continual_learning else "none",
                 "fedlgr.config_hash": fingerprint(config),
+                "runtime": "fabric",  # where the clients ran (fedlgr deploy: flower)
                 **(tags or {}),
             }
             if parent_run_id:

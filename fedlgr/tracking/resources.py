@@ -29,6 +29,15 @@ class Usage:
     gpu_util: float | None = None  # mean %, while training
     gpu_mem_mb: float | None = None  # peak allocated
 
+    def __add__(self, other: Usage) -> Usage:
+        """The cost of two consecutive pieces of work."""
+        gpu = None
+        if self.gpu_util is not None and other.gpu_util is not None:
+            seconds = max(self.wall_s + other.wall_s, 1e-9)
+            gpu = (self.gpu_util * self.wall_s + other.gpu_util * other.wall_s) / seconds
+        mem = max((m for m in (self.gpu_mem_mb, other.gpu_mem_mb) if m is not None), default=None)
+        return Usage(self.cpu_s + other.cpu_s, self.wall_s + other.wall_s, gpu, mem)
+
 
 def _cpu_seconds(process: psutil.Process) -> float:
     times = process.cpu_times()

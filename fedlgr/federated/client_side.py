@@ -1,0 +1,244 @@
+"""The client side of a federation: everything that runs on a robot.
+
+:class:`ClientSide` holds some clients - all of them in one process, a process's share
+under Fabric, one robot's on Flower - each with its data shard, model, optimiser and
+plugins (the strategy's client part, the CL method: importance, memories, FedLGR's
+generator and labeller). It answers the server's :mod:`messages`: ``train`` (take the
+global tensors if sent, train locally, upload the shared tensors) and ``evaluate`` (take
+the new global tensors, end the task at its last round, score on the test scenes). The
+top and every plugin's state stay here; what leaves is checked against the shared keys.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import numpy as np
+import torch
+
+from fedlgr.config import ExperimentConfig
+from fedlgr.continual import continual_plugins
+from fedlgr.continual.schedule import ALL
+from fedlgr.data.augment import Augment, SceneBatches, normalize
+from fedlgr.data.dataset import Scenes
+from fedlgr.data.splits import FederatedSplit
+from fedlgr.federated.client import Client, train_locally
+from fedlgr.federated.evaluation import predict
+from fedlgr.federated.messages import (
+    EvaluateIns,
+    EvaluateRes,
+    TrainIns,
+    TrainRes,
+    Weights,
+    check_shared,
+)
+from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.scope import initial_scholar, shared_keys
+from fedlgr.federated.strategies import STRATEGIES
+from fedlgr.tracking.metrics import regression_scores
+from fedlgr.tracking.resources import Usage, measure
+
+
+def client_seed(seed: int, client: int) -> int:
+    return int(np.random.SeedSequence([seed, client]).generate_state(1)[0])
+
+
+class ClientSide:
+    def __init__(
+        self,
+        config: ExperimentConfig,
+        scenes: Scenes,
+        split: FederatedSplit,
+        indices: list[int],
+        device: torch.device,
+        autocast=contextlib.nullcontext,
+    ):
+        cfg = config
+        self.config, self.scenes, self.split = config, scenes, split
+        self.device, self.autocast = device, autocast
+        self.tasks = list(cfg.continual.tasks) or [ALL]
+        strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)  # its client part
+        initial = initial_scholar(cfg).to(device)
+        self.keys = shared_keys(initial, cfg.federated.scope, strategy)
+        float_keys = {k for k, v in initial.state_dict().items() if torch.is_floating_point(v)}
+        # With nothing kept locally every client holds the same model after aggregation:
+        # one evaluation gives every client's (identical) figures.
+        self.identical_models = float_keys == set(self.keys)
+        self.channels_last = cfg.model.channels_last and scenes.images is not None
+        augment = Augment() if cfg.data.augment and scenes.images is not None else None
+        copies = cfg.data.augment_copies if augment is not None else 1
+        self.clients: list[Client] = []
+        for shard in split.clients:
+            if shard.client not in indices:
+                continue
+            model = copy.deepcopy(initial)
+            seed = client_seed(cfg.seed, shard.client)
+            data = {
+                task: SceneBatches(
+                    scenes.inputs,
+                    scenes.targets,
+                    shard.train if task == ALL else shard.tasks[task],
+                    cfg.train.batch_size,
+                    copies=copies,
+                    augment=augment,
+                    seed=seed + t,
+                    device=device,
+                )
+                for t, task in enumerate(self.tasks)
+            }
+            plugins = [
+                *strategy.client_plugins(shard.client),
+                *continual_plugins(cfg.continual, shard.client, cfg.seed),
+            ]
+            self.clients.append(
+                Client(shard.client, model, model.configure_optimizers(), data, plugins)
+            )
+        self._prepare_test_set()
+        self._warm_up(initial)
+
+    def _prepare_test_set(self) -> None:
+        test = self.split.test
+        inputs = self.scenes.inputs[torch.as_tensor(test)]
+        if self.scenes.images is not None:
+            inputs = normalize(inputs)
+            if self.channels_last:
+                inputs = inputs.contiguous(memory_format=torch.channels_last)
+        self.test_inputs = inputs.to(self.device)
+        self.test_targets = self.scenes.targets[torch.as_tensor(test)]
+        # Rows of the test set per task, and of every task seen up to each point.
+        where = {t: np.searchsorted(test, self.split.test_tasks[t]) for t in self.tasks if t != ALL}
+        self.test_rows = {t: torch.as_tensor(r) for t, r in where.items()}
+        self.seen_rows = [
+            torch.as_tensor(np.sort(np.concatenate([where[t] for t in self.tasks[: k + 1]])))
+            if self.tasks != [ALL]
+            else torch.arange(len(test))
+            for k in range(len(self.tasks))
+        ]
+
+    def _warm_up(self, model: torch.nn.Module) -> None:
+        """One untimed training step on a throwaway copy, so that kernel selection and
+        allocator set-up are not billed to the first client's first round."""
+        if not self.clients:
+            return
+        model = copy.deepcopy(model).train()
+        x, y = next(iter(self.clients[0].batches.peek()))
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        with self.autocast():
+            loss = torch.nn.functional.mse_loss(model(x).float(), y)
+        loss.backward()
+
+    def context(self, client: Client, round_: int, task: int) -> LocalContext:
+        global_weights = {k: v for k, v in client.model.state_dict().items() if k in self.keys}
+        return LocalContext(
+            client.index,
+            round_,
+            client.model,
+            global_weights,
+            self.device,
+            self.autocast,
+            task,
+            self.config.train.epochs,
+            self.config.train.max_batches,
+            self.tasks[task],
+            client.batches,
+            client.optimizer,
+            seen=[client.data[t] for t in self.tasks[: task + 1]],
+        )
+
+    # ------------------------------------------------------------------ the messages
+
+    def train(self, ins: TrainIns, progress=None) -> list[TrainRes]:
+        """Every client's local training of the round, and what it uploads."""
+        cfg, plan = self.config, ins.plan
+        out = []
+        for client in self.clients:
+            if ins.weights is not None:
+                client.download(ins.weights)
+            client.task = self.tasks[plan.task]
+            if cfg.train.reset_optimizer:
+                client.optimizer = client.model.configure_optimizers()
+            ctx = self.context(client, plan.round, plan.task)
+            on_epoch = None if progress is None else (lambda e, c=client.index: progress(c, e))
+            with measure(self.device) as usage:
+                if plan.first_of_task:
+                    for plugin in client.plugins:
+                        plugin.on_task_start(ctx)
+                stats = train_locally(
+                    client,
+                    ctx,
+                    cfg.train.epochs,
+                    cfg.train.max_batches,
+                    self.channels_last,
+                    self.autocast,
+                    on_epoch,
+                )
+            upload = self.upload(client)
+            out.append(
+                TrainRes(client.index, upload, client.n_samples, stats.samples, stats.loss, usage)
+            )
+        return out
+
+    def upload(self, client: Client) -> Weights:
+        weights = client.upload(self.keys)
+        check_shared(weights, self.keys, f"client {client.index}'s upload")
+        return weights
+
+    def evaluate(self, ins: EvaluateIns) -> list[EvaluateRes]:
+        """Every client takes the new global tensors, ends the task at its last round
+        (measured as its work), and scores its model."""
+        plan = ins.plan
+        check_shared(ins.weights, self.keys, "the server's download")
+        out: list[EvaluateRes] = []
+        for client in self.clients:
+            client.download(ins.weights)
+            usage, figures = None, {}
+            if plan.last_of_task:
+                usage, figures = self.end_task(client, plan.round, plan.task)
+            if self.identical_models and out:
+                scores = out[0].scores
+            else:
+                scores = self.scores(client, plan.task)
+            out.append(EvaluateRes(client.index, scores, figures, usage))
+        return out
+
+    def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, dict[str, float]]:
+        """The plugins' ``on_task_end``, and what they measured then (``<plugin>_<name>``)."""
+        ctx = self.context(client, round_, task)
+        with measure(self.device) as usage:
+            for plugin in client.plugins:
+                plugin.on_task_end(ctx)
+        figures = {  # outside the measurement: diagnostics are not the client's work
+            f"{p.name}_{k}": v for p in client.plugins for k, v in p.task_metrics(ctx).items()
+        }
+        return usage, figures
+
+    def scores(self, client: Client, task: int) -> list[float]:
+        """The score fields: all tasks seen so far, then each task on its own."""
+        cfg = self.config.train
+        pred = predict(client.model, self.test_inputs, cfg.eval_batch_size, self.autocast)
+        seen = self.seen_rows[task]
+        s = regression_scores(pred[seen], self.test_targets[seen], cfg.compat_batch_metrics)
+        values = [
+            s.loss,
+            s.mean_rmse,
+            s.mean_pcc,
+            *s.mse.tolist(),
+            *s.rmse.tolist(),
+            *s.pcc.tolist(),
+        ]
+        for rows in self.test_rows.values():
+            t = regression_scores(pred[rows], self.test_targets[rows], cfg.compat_batch_metrics)
+            values += [t.loss, t.mean_rmse, t.mean_pcc]
+        return values
+
+    # ------------------------------------------------------------------ private state
+
+    def state_dict(self) -> dict[int, dict]:
+        """Every client's private state (model, optimiser, plugins, generators)."""
+        return {c.index: c.state_dict() for c in self.clients}
+
+    def load_state_dict(self, states: dict[int, dict]) -> None:
+        for client in self.clients:
+            client.load_state_dict(states[client.index])
