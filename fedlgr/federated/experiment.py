@@ -345,6 +345,7 @@ def drive(
     every = config.tracking.checkpoint if config.tracking.enabled and save is not None else 0
     total = len(steps)
     local_clients = len(getattr(rounds, "clients", ()))
+    missed: list[str] = []
     try:  # from here on the MLflow run exists: whatever happens, it is ended
         if tracker is not None:
             if every:
@@ -367,6 +368,9 @@ def drive(
                 result.after_tasks = forgetting.after
             if tracker is not None:
                 tracker.log_round(round_, metrics)
+                if log.missing:  # robots that dropped out (fedlgr deploy)
+                    missed.append(f"round {round_}: client {', '.join(map(str, log.missing))}")
+                    tracker.client.set_tag(tracker.run_id, "fedlgr.missing", "; ".join(missed))
             if every and (round_ % every == 0 or round_ == total):
                 spent = elapsed + time.perf_counter() - start
                 keep = config.tracking.keep_checkpoints

@@ -82,6 +82,16 @@ def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) ->
     return path
 
 
+def write(path: Path, state: dict[str, Any]) -> Path:
+    """Write ``state`` to ``path`` atomically, without Fabric (one process: a robot's
+    private state between Flower messages); ``load`` reads it back."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    torch.save(encode({"format": FORMAT, **state}), temporary)
+    os.replace(temporary, path)
+    return path
+
+
 def load(path: Path) -> dict[str, Any]:
     """A checkpoint's state; a clear error for a file that is not a whole checkpoint."""
     start_over = (
