@@ -1,0 +1,428 @@
+"""``fedlgr deploy certs | node-key | app | connect | superlink | supernode | run``: fedlgr on
+Flower's Deployment Runtime (README "Deployment on robots (Flower)").
+
+``certs`` and ``node-key`` write the credentials, ``connect`` tells the ``flwr`` command
+where the SuperLink is, ``superlink`` and ``supernode`` replace themselves with Flower's
+processes (TLS and SuperNode authentication on unless ``--insecure``), and ``run`` submits
+fedlgr's app with ``flwr run`` and exits 0 only if the run completed. Each prints the Flower
+command it runs; ``--print-command`` prints it and stops there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+import sys
+from pathlib import Path
+
+from fedlgr.errors import FedlgrError
+
+SUPERLINK_PORT = 9092  # ours, for the Fleet, Control and ServerAppIo APIs (Flower's: 8000)
+SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machine
+
+INSECURE_WARNING = """\
+fedlgr: ############################ WARNING: --insecure ############################
+fedlgr: No TLS: model updates, configs and metrics travel in clear text.
+fedlgr: No SuperNode authentication: any machine that reaches the SuperLink's port can
+fedlgr: join as a robot, receive the model and send poisoned updates.
+fedlgr: Use this on a trusted test machine only (fedlgr deploy certs / node-key otherwise).
+fedlgr: ############################################################################"""
+
+
+def add_parser(verbs) -> None:
+    """The ``deploy`` verb and its sub-verbs (called by :func:`fedlgr.cli.build_parser`)."""
+    deploy = verbs.add_parser(
+        "deploy",
+        help="run on real robots with Flower: credentials, SuperLink, SuperNodes, runs",
+        description="fedlgr on Flower's Deployment Runtime: a SuperLink on a server, a "
+        "SuperNode on each robot, runs submitted with flwr run (README 'Deployment on robots').",
+    )
+    subs = deploy.add_subparsers(dest="deploy_verb", metavar="VERB", required=True)
+
+    def sub(name: str, summary: str, func: str, description: str | None = None):
+        parser = subs.add_parser(name, help=summary, description=description or summary)
+        parser.set_defaults(run=f"fedlgr.cli.deploy:{func}")
+        return parser
+
+    def insecure(parser) -> None:
+        parser.add_argument(
+            "--insecure", action="store_true", help="no TLS, no authentication: test machines only"
+        )
+
+    def print_command(parser) -> None:
+        parser.add_argument(
+            "--print-command", action="store_true", help="print Flower's command line and stop"
+        )
+
+    certs = sub(
+        "certs",
+        "write a CA and the SuperLink's TLS certificate",
+        "certs",
+        "Write ca.pem, ca.key, server.pem and server.key to DIR. ca.pem goes to every robot "
+        "and to whoever runs flwr; server.pem and server.key stay on the SuperLink's machine; "
+        "keep ca.key offline.",
+    )
+    certs.add_argument("dir", type=Path, metavar="DIR")
+    certs.add_argument(
+        "--host",
+        action="append",
+        metavar="NAME_OR_IP",
+        help="a DNS name or address robots use to reach the SuperLink (repeat for several; "
+        "default: localhost, 127.0.0.1, ::1)",
+    )
+    certs.add_argument("--days", type=int, default=365, help="validity (default %(default)s)")
+    certs.add_argument("--force", action="store_true", help="replace certificates in DIR")
+
+    key = sub(
+        "node-key",
+        "write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)",
+        "node_key",
+        "Write DIR/NAME (private: to that robot only) and DIR/NAME.pub (registered with "
+        "flwr supernode register).",
+    )
+    key.add_argument("dir", type=Path, metavar="DIR")
+    key.add_argument("name", metavar="NAME", help="the robot's name, e.g. robot0")
+    key.add_argument("--force", action="store_true", help="replace an existing key")
+
+    sub("app", "print the folder of fedlgr's Flower app (for flwr run)", "app")
+
+    connect = sub(
+        "connect",
+        "point the flwr command at a SuperLink ([superlink.NAME] in $FLWR_HOME/config.toml)",
+        "connect",
+    )
+    connect.add_argument("name", metavar="NAME", help="the connection's name, e.g. robots")
+    connect.add_argument("--superlink", required=True, metavar="HOST:PORT")
+    connect.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
+    connect.add_argument("--default", action="store_true", help="make it flwr's default")
+    insecure(connect)
+
+    link = sub(
+        "superlink",
+        "start the SuperLink (the server; runs the ServerApp)",
+        "superlink",
+        "Replace this process with flower-superlink: TLS from --certs, SuperNode "
+        "authentication, no installation of dependencies at run time.",
+    )
+    link.add_argument("--certs", type=Path, metavar="DIR", help="from fedlgr deploy certs")
+    link.add_argument(
+        "--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)"
+    )
+    link.add_argument("--port", type=int, default=SUPERLINK_PORT, help="default %(default)s")
+    link.add_argument(
+        "--database",
+        type=Path,
+        metavar="FILE",
+        help="keep registered keys and runs in this SQLite file (default: in memory)",
+    )
+    insecure(link)
+    print_command(link)
+
+    node = sub(
+        "supernode",
+        "start a robot's SuperNode (runs the ClientApp on its data)",
+        "supernode",
+        "Replace this process with flower-supernode, connected to the SuperLink over TLS with "
+        "the robot's registered key; the ClientApp reads the robot's data folder.",
+    )
+    node.add_argument("--superlink", required=True, metavar="HOST:PORT")
+    node.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
+    node.add_argument("--key", type=Path, metavar="KEY", help="the robot's private node key")
+    node.add_argument("--data", type=Path, required=True, metavar="DIR", help="MANNERS-DB layout")
+    node.add_argument("--client", type=int, required=True, metavar="K", help="its client index")
+    node.add_argument("--state-dir", type=Path, metavar="DIR", help="private state between runs")
+    node.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
+    node.add_argument("--threads", type=int, metavar="N", help="torch threads")
+    node.add_argument(
+        "--port", type=int, default=SUPERNODE_PORT, help="its local API (default %(default)s)"
+    )
+    insecure(node)
+    print_command(node)
+
+    run = sub(
+        "run",
+        "submit a run with flwr run, stream its log and exit 0 only if it completed",
+        "run",
+        "Run fedlgr's app on the SuperLink: CONFIG (made absolute) must exist at that path on "
+        "the SuperLink's machine; key=value overrides as in fedlgr run.",
+    )
+    run.add_argument("config", metavar="CONFIG")
+    run.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    run.add_argument(
+        "--federation",
+        metavar="NAME",
+        help="the SuperLink connection (fedlgr deploy connect NAME; default: flwr's default)",
+    )
+    print_command(run)
+
+
+def certs(args: argparse.Namespace) -> int:
+    from fedlgr.deploy.credentials import DEFAULT_HOSTS, make_certificates
+
+    hosts = tuple(args.host or DEFAULT_HOSTS)
+    taken = [n for n in ("ca.pem", "ca.key", "server.pem", "server.key") if (args.dir / n).exists()]
+    if taken and not args.force:
+        raise FedlgrError(
+            f"{args.dir / taken[0]} exists: new certificates lock out every robot holding the "
+            "old ca.pem (--force replaces them)"
+        )
+    paths = make_certificates(args.dir, hosts, days=args.days)
+    print(f"wrote {', '.join(map(str, paths.values()))}")
+    print(f"server certificate for {', '.join(hosts)}, valid {args.days} days")
+    print(f"  {paths['ca.pem']}: to every robot and to whoever runs flwr (--ca)")
+    print(f"  {paths['server.pem']}, {paths['server.key']}: stay on the SuperLink's machine")
+    print(f"  {paths['ca.key']}: keep offline (it signs certificates)")
+    return 0
+
+
+def node_key(args: argparse.Namespace) -> int:
+    from fedlgr.deploy.credentials import make_node_key
+
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
+        raise FedlgrError(f"node-key NAME {args.name!r}: letters, digits, '.', '_', '-' only")
+    if (args.dir / args.name).exists() and not args.force:
+        raise FedlgrError(
+            f"{args.dir / args.name} exists: a new key locks that robot out until it is "
+            "registered (--force replaces it)"
+        )
+    private, public = make_node_key(args.dir, args.name)
+    print(f"wrote {private} (private: to that robot only) and {public}")
+    print(f"register it with the SuperLink: flwr supernode register {shlex.quote(str(public))}")
+    return 0
+
+
+def app(args: argparse.Namespace) -> int:
+    from fedlgr.deploy.flower import APP_DIR
+
+    print(APP_DIR)
+    return 0
+
+
+def connect(args: argparse.Namespace) -> int:
+    import tomllib
+
+    import tomli_w
+
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", args.name):
+        raise FedlgrError(f"connection NAME {args.name!r}: letters, digits, '_', '-' only")
+    _address(args.superlink)
+    entry = {"address": args.superlink}
+    if args.insecure:
+        _no_ca(args)
+        _warn_insecure()
+        entry["insecure"] = True
+    else:
+        entry["root-certificates"] = str(_existing(args.ca, "--ca", "fedlgr deploy certs"))
+    home = Path(os.environ.get("FLWR_HOME") or Path.home() / ".flwr")
+    path = home / "config.toml"
+    try:
+        config = tomllib.loads(path.read_text()) if path.is_file() else {}
+    except tomllib.TOMLDecodeError as err:
+        raise FedlgrError(f"{path}: not valid TOML ({err})") from None
+    links = config.setdefault("superlink", {})
+    links[args.name] = entry
+    if args.default or "default" not in links:
+        links["default"] = args.name
+    home.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".toml.partial")
+    partial.write_text(tomli_w.dumps(config))
+    partial.replace(path)
+    print(f"wrote [superlink.{args.name}] (address {args.superlink}) to {path}")
+    if links["default"] != args.name:
+        print(
+            f"the default stays {links['default']!r}: use --federation {args.name} "
+            "(or connect again with --default)"
+        )
+    return 0
+
+
+def superlink(args: argparse.Namespace) -> int:
+    exe = _flower("flower-superlink")
+    cmd = [str(exe)]
+    if args.insecure:
+        cmd.append("--insecure")
+    else:
+        if args.certs is None:
+            raise FedlgrError("--certs DIR is required (fedlgr deploy certs DIR), or --insecure")
+        for flag, name in (
+            ("--ssl-ca-certfile", "ca.pem"),
+            ("--ssl-certfile", "server.pem"),
+            ("--ssl-keyfile", "server.key"),
+        ):
+            cmd += [flag, str(_existing(args.certs / name, "--certs", "fedlgr deploy certs DIR"))]
+        cmd.append("--enable-supernode-auth")
+    cmd += ["--disable-runtime-dependency-installation", "--host", args.host]
+    cmd += ["--port", str(args.port)]
+    if args.database is not None:
+        cmd += ["--database", str(_absolute(args.database))]
+    return _exec(cmd, args)
+
+
+def supernode(args: argparse.Namespace) -> int:
+    exe = _flower("flower-supernode")
+    _address(args.superlink)
+    if args.client < 0:
+        raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
+    if args.threads is not None and args.threads < 1:
+        raise FedlgrError(f"--threads {args.threads}: must be 1 or more")
+    data = _absolute(args.data)
+    if not data.is_dir():
+        raise FedlgrError(f"--data {data}: no such folder (the robot's dataset, MANNERS-DB layout)")
+    cmd = [str(exe), "--superlink", args.superlink]
+    if args.insecure:
+        _no_ca(args)
+        cmd.append("--insecure")
+    else:
+        cmd += ["--root-certificates", str(_existing(args.ca, "--ca", "fedlgr deploy certs"))]
+    if args.key is not None or not args.insecure:
+        key = _existing(args.key, "--key", "fedlgr deploy node-key DIR NAME")
+        cmd += ["--auth-supernode-private-key", str(key)]
+    settings = [f"data-path={_toml_string(str(data))}", f"client={args.client}"]
+    for name, folder in (("state-dir", args.state_dir), ("cache-dir", args.cache_dir)):
+        if folder is not None:
+            settings.append(f"{name}={_toml_string(str(_absolute(folder)))}")
+    if args.threads is not None:
+        settings.append(f"threads={args.threads}")
+    cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(args.port)]
+    return _exec(cmd, args)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import subprocess
+    import time
+
+    from fedlgr.deploy.flower import APP_DIR
+
+    flwr = _flower("flwr")
+    config = _absolute(args.config)
+    run_config = (
+        f"config={_toml_string(str(config))} overrides={_toml_string(shlex.join(args.overrides))}"
+    )
+    link = [args.federation] if args.federation else []
+    cmd = [str(flwr), "run", str(APP_DIR), *link, "--stream", "--run-config", run_config]
+    print(shlex.join(cmd), flush=True)
+    if args.print_command:
+        return 0
+    if not config.is_file():
+        print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
+    env = {**_env(flwr), "PYTHONUNBUFFERED": "1"}
+    run_id = None
+    with subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    ) as proc:
+        try:
+            for line in proc.stdout:
+                print(line, end="", flush=True)
+                found = re.search(r"Successfully started run (\d+)", line)
+                run_id = run_id or (found and found.group(1))
+        except KeyboardInterrupt:
+            if run_id:
+                stop = shlex.join(["flwr", "stop", run_id, *link])
+                print(f"fedlgr: run {run_id} goes on on the SuperLink; {stop} stops it")
+            raise
+    if proc.returncode != 0 or run_id is None:
+        raise FedlgrError(f"flwr run failed (exit {proc.returncode}); its output is above")
+    deadline = time.monotonic() + 60  # the log ends as the run does; its status may lag
+    while True:
+        ls = subprocess.run(
+            [str(flwr), "ls", *link, "--run-id", run_id, "--format", "json"],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+        try:
+            listed = json.loads(ls.stdout[ls.stdout.index("{") :])
+            [row] = listed["runs"]
+        except (ValueError, KeyError) as err:
+            detail = " ".join((ls.stdout + ls.stderr).split())[-300:]
+            raise FedlgrError(f"flwr ls --run-id {run_id}: no status ({err}): {detail}") from None
+        if row["status"].startswith("finished") or time.monotonic() > deadline:
+            break
+        time.sleep(1)
+    if row["status"] != "finished:completed":
+        details = " ".join(str(row.get("status-details") or "no details").split())
+        raise FedlgrError(f"Flower run {run_id} ended {row['status']}: {details}")
+    print(f"fedlgr: Flower run {run_id} finished:completed")
+    return 0
+
+
+def _flower(name: str) -> Path:
+    """Flower's command ``name``: the one next to this Python (the venv), else on PATH."""
+    import shutil
+
+    beside = Path(sys.executable).parent / name
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return beside
+    found = shutil.which(name)
+    if found is None:
+        raise FedlgrError(
+            f"{name} not found next to {sys.executable} nor on PATH: Flower is not installed "
+            "in this environment (uv sync installs flwr)"
+        )
+    return Path(found)
+
+
+def _env(exe: Path) -> dict[str, str]:
+    """Flower's processes start flower-superexec (and the apps) from PATH: ``exe``'s folder
+    first. Its telemetry and update check are off unless set otherwise."""
+    env = {**os.environ, "PATH": f"{exe.parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env.setdefault("FLWR_TELEMETRY_ENABLED", "0")
+    env.setdefault("FLWR_DISABLE_UPDATE_CHECK", "1")  # flwr is pinned (pyproject.toml)
+    return env
+
+
+def _exec(cmd: list[str], args: argparse.Namespace) -> int:
+    if getattr(args, "insecure", False):
+        _warn_insecure()
+    print(shlex.join(cmd), flush=True)
+    if args.print_command:
+        return 0
+    sys.stderr.flush()
+    os.execve(cmd[0], cmd, _env(Path(cmd[0])))
+    return 1  # not reached
+
+
+def _warn_insecure() -> None:
+    print(INSECURE_WARNING, file=sys.stderr, flush=True)
+
+
+def _absolute(path: Path | str) -> Path:
+    return Path(os.path.abspath(os.path.expanduser(path)))
+
+
+def _existing(path: Path | None, option: str, maker: str) -> Path:
+    if path is None:
+        raise FedlgrError(f"{option} is required (made by {maker}), or --insecure")
+    path = _absolute(path)
+    if not path.is_file():
+        raise FedlgrError(f"{option}: {path} does not exist (made by {maker})")
+    return path
+
+
+def _no_ca(args: argparse.Namespace) -> None:
+    if args.ca is not None:
+        raise FedlgrError("--insecure turns TLS off: drop --ca (or drop --insecure)")
+
+
+def _address(address: str) -> None:
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise FedlgrError(f"--superlink {address!r}: expected HOST:PORT, e.g. 10.0.0.5:9092")
+
+
+def _toml_string(value: str) -> str:
+    """``value`` as a TOML string for Flower's ``key=value`` settings (``--node-config``,
+    ``--run-config``). Flower finds each value with the pattern ``"[^"]*"`` before reading it
+    as TOML, so a ``"`` inside is written as the escape ``\\u0022``, never ``\\"``."""
+    out = []
+    for char in value:
+        if char == "\\":
+            out.append("\\\\")
+        elif char == '"' or ord(char) < 0x20 or ord(char) == 0x7F:
+            out.append(f"\\u{ord(char):04x}")
+        else:
+            out.append(char)
+    return '"' + "".join(out) + '"'

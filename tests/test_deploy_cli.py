@@ -1,0 +1,262 @@
+"""``fedlgr deploy``: credentials that verify, the flwr connection file, the Flower command
+lines (TLS and SuperNode authentication unless --insecure), refusals that name the missing
+file, and ``deploy run``'s exit status from the run's final state (a stand-in ``flwr``)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import shlex
+import sys
+import tomllib
+
+import pytest
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from cryptography.x509.verification import PolicyBuilder, Store, VerificationError
+from flwr.common.config import parse_config_args
+
+from fedlgr.cli import deploy as deploy_cli
+from fedlgr.cli import main
+from fedlgr.deploy.credentials import make_node_key
+from fedlgr.deploy.flower import APP_DIR
+
+
+def option(cmd: list[str], flag: str) -> str:
+    return cmd[cmd.index(flag) + 1]
+
+
+def printed(capsys) -> list[str]:
+    """The one command line a --print-command run printed, split as the shell would."""
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1, lines
+    return shlex.split(lines[0])
+
+
+@pytest.fixture
+def certs(tmp_path, capsys):
+    folder = tmp_path / "creds"
+    assert main(["deploy", "certs", str(folder)]) == 0
+    capsys.readouterr()
+    return folder
+
+
+def test_certs_verify_for_the_hosts_given(tmp_path, capsys):
+    folder = tmp_path / "creds"
+    hosts = ["--host", "robots.lab", "--host", "10.0.0.5"]
+    assert main(["deploy", "certs", str(folder), *hosts]) == 0
+    out = capsys.readouterr().out
+    for name in ("ca.pem", "ca.key", "server.pem", "server.key"):
+        assert (folder / name).is_file() and str(folder / name) in out
+    assert "every robot" in out and "offline" in out
+    assert (folder / "ca.key").stat().st_mode & 0o077 == 0
+
+    ca = x509.load_pem_x509_certificate((folder / "ca.pem").read_bytes())
+    server = x509.load_pem_x509_certificate((folder / "server.pem").read_bytes())
+    store, now = Store([ca]), dt.datetime.now(dt.UTC)
+    for name in (x509.DNSName("robots.lab"), x509.IPAddress(ipaddress.ip_address("10.0.0.5"))):
+        verifier = PolicyBuilder().store(store).time(now).build_server_verifier(name)
+        chain = verifier.verify(server, [])
+        assert chain[-1] == ca
+    localhost = (
+        PolicyBuilder().store(store).time(now).build_server_verifier(x509.DNSName("localhost"))
+    )
+    with pytest.raises(VerificationError):
+        localhost.verify(server, [])  # only the hosts given
+
+    assert main(["deploy", "certs", str(folder)]) == 1  # would lock the robots out
+    assert str(folder / "ca.pem") in capsys.readouterr().err
+
+
+def test_certs_default_to_localhost(certs):
+    server = x509.load_pem_x509_certificate((certs / "server.pem").read_bytes())
+    names = server.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert names.get_values_for_type(x509.DNSName) == ["localhost"]
+    assert {str(a) for a in names.get_values_for_type(x509.IPAddress)} == {"127.0.0.1", "::1"}
+
+
+def test_node_key_pair_matches(tmp_path, capsys):
+    assert main(["deploy", "node-key", str(tmp_path), "robot0"]) == 0
+    out = capsys.readouterr().out
+    assert f"flwr supernode register {tmp_path / 'robot0.pub'}" in out
+    key = serialization.load_ssh_private_key((tmp_path / "robot0").read_bytes(), None)
+    public = key.public_key().public_bytes(
+        serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH
+    )
+    assert (tmp_path / "robot0.pub").read_bytes().strip() == public
+    assert main(["deploy", "node-key", str(tmp_path), "robot0"]) == 1  # no silent replacement
+    assert str(tmp_path / "robot0") in capsys.readouterr().err
+
+
+def test_connect_writes_flwr_config_and_keeps_the_rest(tmp_path, certs, monkeypatch, capsys):
+    home = tmp_path / "flwr-home"
+    home.mkdir()
+    monkeypatch.setenv("FLWR_HOME", str(home))
+    (home / "config.toml").write_text(
+        '[superlink]\ndefault = "other"\n\n[superlink.other]\naddress = "10.1.1.1:9093"\n'
+        "insecure = true\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    args = ["deploy", "connect", "robots", "--superlink", "robots.lab:9092"]
+    assert main([*args, "--ca", "creds/ca.pem"]) == 0
+    assert "--federation robots" in capsys.readouterr().out  # the default stays "other"
+    config = tomllib.loads((home / "config.toml").read_text())
+    assert config["superlink"]["robots"] == {
+        "address": "robots.lab:9092",
+        "root-certificates": str(certs / "ca.pem"),  # absolute, as flwr requires
+    }
+    assert config["superlink"]["other"] == {"address": "10.1.1.1:9093", "insecure": True}
+    assert config["superlink"]["default"] == "other"
+
+    assert main([*args, "--ca", "creds/ca.pem", "--default"]) == 0
+    assert tomllib.loads((home / "config.toml").read_text())["superlink"]["default"] == "robots"
+
+    assert main([*args, "--insecure"]) == 0
+    assert "No TLS" in capsys.readouterr().err
+    entry = tomllib.loads((home / "config.toml").read_text())["superlink"]["robots"]
+    assert entry == {"address": "robots.lab:9092", "insecure": True}
+
+    assert main([*args, "--ca", "creds/nope.pem"]) == 1
+    assert str(tmp_path / "creds" / "nope.pem") in capsys.readouterr().err
+
+
+def test_connect_starts_a_config(tmp_path, certs, monkeypatch):
+    monkeypatch.setenv("FLWR_HOME", str(tmp_path / "new-home"))
+    cmd = ["deploy", "connect", "local", "--superlink", "127.0.0.1:9092"]
+    assert main([*cmd, "--ca", str(certs / "ca.pem")]) == 0
+    config = tomllib.loads((tmp_path / "new-home" / "config.toml").read_text())
+    assert config["superlink"]["default"] == "local"
+    assert config["superlink"]["local"]["address"] == "127.0.0.1:9092"
+
+
+def test_superlink_command_has_tls_and_node_auth(certs, capsys):
+    assert main(["deploy", "superlink", "--certs", str(certs), "--print-command"]) == 0
+    cmd = printed(capsys)
+    assert cmd[0] == str(deploy_cli._flower("flower-superlink"))
+    assert option(cmd, "--ssl-ca-certfile") == str(certs / "ca.pem")
+    assert option(cmd, "--ssl-certfile") == str(certs / "server.pem")
+    assert option(cmd, "--ssl-keyfile") == str(certs / "server.key")
+    assert "--enable-supernode-auth" in cmd and "--insecure" not in cmd
+    assert "--disable-runtime-dependency-installation" in cmd
+    assert option(cmd, "--host") == "127.0.0.1" and option(cmd, "--port") == "9092"
+
+
+def test_superlink_insecure_warns_and_drops_auth(capsys):
+    cmd = ["deploy", "superlink", "--insecure", "--host", "0.0.0.0", "--print-command"]
+    assert main(cmd) == 0
+    out = capsys.readouterr()
+    assert "No TLS" in out.err and "No SuperNode authentication" in out.err
+    cmd = shlex.split(out.out.strip())
+    assert "--insecure" in cmd and "--enable-supernode-auth" not in cmd
+    assert not any(c.startswith("--ssl") for c in cmd)
+    assert option(cmd, "--host") == "0.0.0.0"
+
+
+def test_superlink_refuses_a_missing_certificate(certs, capsys):
+    (certs / "server.key").unlink()
+    assert main(["deploy", "superlink", "--certs", str(certs), "--print-command"]) == 1
+    err = capsys.readouterr().err
+    assert str(certs / "server.key") in err and "fedlgr deploy certs" in err
+    assert main(["deploy", "superlink", "--print-command"]) == 1
+    assert "--certs" in capsys.readouterr().err
+
+
+def test_supernode_node_config(tmp_path, certs, capsys):
+    data = tmp_path / "robot data"
+    data.mkdir()
+    key, _ = make_node_key(tmp_path / "keys", "robot1")
+    state = tmp_path / "it's state"
+    args = ["deploy", "supernode", "--superlink", "robots.lab:9092", "--ca", str(certs / "ca.pem")]
+    args += ["--key", str(key), "--data", str(data), "--client", "1", "--state-dir", str(state)]
+    assert main([*args, "--threads", "2", "--port", "9095", "--print-command"]) == 0
+    cmd = printed(capsys)
+    assert cmd[0] == str(deploy_cli._flower("flower-supernode"))
+    assert option(cmd, "--superlink") == "robots.lab:9092"
+    assert option(cmd, "--root-certificates") == str(certs / "ca.pem")
+    assert option(cmd, "--auth-supernode-private-key") == str(key)
+    assert option(cmd, "--port") == "9095" and "--insecure" not in cmd
+    # read back as flower-supernode reads it
+    assert parse_config_args([option(cmd, "--node-config")]) == {
+        "data-path": str(data),
+        "client": 1,
+        "state-dir": str(state),
+        "threads": 2,
+    }
+
+
+def test_supernode_refuses_missing_files(tmp_path, certs, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    key, _ = make_node_key(tmp_path / "keys", "robot1")
+    base = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--client", "0"]
+    cases = {
+        "no data": (
+            ["--ca", str(certs / "ca.pem"), "--key", str(key), "--data", "nodata"],
+            "nodata",
+        ),
+        "no key": (["--ca", str(certs / "ca.pem"), "--key", "nokey", "--data", str(data)], "nokey"),
+        "no ca": (["--ca", "noca.pem", "--key", str(key), "--data", str(data)], "noca.pem"),
+        "key unset": (["--ca", str(certs / "ca.pem"), "--data", str(data)], "--key"),
+    }
+    for case, (extra, named) in cases.items():
+        assert main([*base, *extra, "--print-command"]) == 1, case
+        assert named in capsys.readouterr().err, case
+
+    assert main([*base, "--data", str(data), "--insecure", "--print-command"]) == 0
+    out = capsys.readouterr()
+    assert "No TLS" in out.err
+    cmd = shlex.split(out.out.strip())
+    assert "--insecure" in cmd and "--root-certificates" not in cmd
+
+
+def test_run_command(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    items = ["conf.yaml", "method=FedRootAvg", "--federation", "robots"]
+    odd = ['tracking.run_name=it\'s a "run"', "data.path=C:\\robots\\data"]
+    assert main(["deploy", "run", *items, *odd, "--print-command"]) == 0
+    cmd = printed(capsys)
+    assert cmd[:5] == [str(deploy_cli._flower("flwr")), "run", str(APP_DIR), "robots", "--stream"]
+    run_config = parse_config_args([option(cmd, "--run-config")])  # as flwr reads it
+    assert run_config["config"] == str(tmp_path / "conf.yaml")
+    overrides = ["method=FedRootAvg", *odd]
+    assert shlex.split(run_config["overrides"]) == overrides  # as the ServerApp splits them
+
+
+@pytest.fixture
+def fake_flwr(tmp_path, monkeypatch):
+    """A stand-in ``flwr``: ``run`` prints Flower's start line, ``ls`` the status in
+    $FAKE_STATUS; the arguments of each call go to calls.txt."""
+    script = tmp_path / "flwr"
+    script.write_text(
+        f"#!{sys.executable}\n"
+        "import json, os, sys\n"
+        f"open({str(tmp_path / 'calls.txt')!r}, 'a').write(' '.join(sys.argv[1:]) + '\\n')\n"
+        "if sys.argv[1] == 'run':\n"
+        "    print('Successfully started run 4242')\n"
+        "    print('round 1 ...')\n"
+        "else:\n"
+        "    status, details = os.environ['FAKE_STATUS'].split('|')\n"
+        "    print(json.dumps({'success': True, 'runs': [{'run-id': '4242', "
+        "'status': status, 'status-details': details}]}))\n"
+    )
+    script.chmod(0o755)
+    monkeypatch.setattr(deploy_cli, "_flower", lambda name: script)
+    return tmp_path / "calls.txt"
+
+
+def test_run_exit_status_follows_the_flower_run(tmp_path, fake_flwr, monkeypatch, capsys):
+    config = tmp_path / "conf.yaml"
+    config.write_text("{}\n")
+    monkeypatch.setenv("FAKE_STATUS", "finished:completed|")
+    assert main(["deploy", "run", str(config), "--federation", "robots"]) == 0
+    out = capsys.readouterr().out
+    assert "round 1 ..." in out and "4242 finished:completed" in out
+    assert "ls robots --run-id 4242 --format json" in fake_flwr.read_text()
+
+    monkeypatch.setenv("FAKE_STATUS", "finished:failed|ServerApp failed with exception:\n boom")
+    assert main(["deploy", "run", str(config)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "fedlgr: error: Flower run 4242 ended finished:failed: "
+        "ServerApp failed with exception: boom"
+    ]
