@@ -1,146 +1,31 @@
-"""The ClientApp: what runs on a robot, started by its SuperNode for each message.
+"""The ClientApp: what Flower's SuperNode starts on a robot for each message.
 
-The robot's SuperNode says where its data is and which client it is (``--node-config
-'data-path="/data/manners-db" client=0'``; optional ``state-dir``, ``cache-dir``,
-``threads``). The server sends the run's resolved config with every message; the robot
-loads its folder, takes its shard (``data.clients`` and ``data.seed`` fix the split, as in
-``fedlgr run``) and answers with :class:`fedlgr.federated.client_side.ClientSide`, the
-very code the in-process orchestrator runs.
-
-Its private state - the top, the optimiser, FedLGR's generator and labeller, CL
-importance and memories, the batch generators - stays on the robot: it is kept in memory
-while the app's process lives and written after every message to
-``<state-dir>/run-<Flower run id>/client-<k>.ckpt``, so a robot that drops out (or whose
-process is restarted) rejoins with it. Only the shared tensors leave
-(``ClientSide.upload`` checks them against the scope's keys).
+It is deliberately thin (no torch): it passes the message to the robot's long-lived
+service (:mod:`.service`), which holds the robot's data, model and private state
+(:mod:`.robot`), and sends back its reply. A failure on the robot becomes Flower's error
+reply, which the server reports with the robot's message.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from pathlib import Path
-
 from flwr.app import Context, Message
 from flwr.clientapp import ClientApp
 
-from fedlgr.config import ExperimentConfig, load_config
-from fedlgr.deploy.flower import wire
-from fedlgr.errors import FedlgrError
-
-DEFAULT_STATE_DIR = Path.home() / ".fedlgr" / "node-state"
+from fedlgr.deploy.flower import service
 
 app = ClientApp()
-_robots: dict[tuple[int, int], Robot] = {}  # (Flower run id, client): while the process lives
 
 
-def node_setting(context: Context, key: str, default=None):
-    value = context.node_config.get(key, default)
-    if value is None:
-        raise FedlgrError(
-            f"SuperNode --node-config lacks {key!r}: start it with "
-            "--node-config 'data-path=\"/path/to/data\" client=0'"
-        )
-    return value
-
-
-class Robot:
-    """One robot's client between messages: built once per process, state on disk."""
-
-    def __init__(self, config: ExperimentConfig, client: int, folder: Path):
-        import torch
-        from lightning.fabric import seed_everything
-
-        from fedlgr.data.dataset import load_scenes
-        from fedlgr.data.splits import make_split
-        from fedlgr.federated.client_side import ClientSide
-        from fedlgr.federated.experiment import make_fabric
-        from fedlgr.federated.orchestrator import torch_threads
-
-        if not 0 <= client < config.data.clients:
-            raise FedlgrError(
-                f"--node-config client={client}: the run has data.clients="
-                f"{config.data.clients} (clients 0 to {config.data.clients - 1})"
-            )
-        fabric = make_fabric(config)
-        if fabric.device.type == "cpu":
-            torch.set_num_threads(torch_threads(config, 1))
-        seed_everything(config.seed, verbose=False)
-        scenes = load_scenes(config.data)
-        split = make_split(scenes.table, config.data)
-        self.side = ClientSide(config, scenes, split, [client], fabric.device, fabric.autocast)
-        self.client = self.side.clients[0]
-        self.path = folder / f"client-{client}.ckpt"
-        self.started, self.ended = -1, -1  # the last task begun and ended
-        if self.path.is_file():
-            from fedlgr.tracking import checkpoint as ckpt
-
-            state = ckpt.load(self.path)
-            self.side.load_state_dict(ckpt.to_device({client: state["client"]}, fabric.device))
-            self.started, self.ended = state["started"], state["ended"]
-
-    def save(self) -> None:
-        from fedlgr.tracking import checkpoint as ckpt
-
-        state = ckpt.to_device(self.client.state_dict(), "cpu")
-        ckpt.write(self.path, {"client": state, "started": self.started, "ended": self.ended})
-
-    def train(self, ins):
-        """The round's training; a robot that missed a task's last round ends that task
-        first, and one that missed a task's first round begins it here."""
-        plan = ins.plan
-        for task in range(self.ended + 1, plan.task):
-            if self.started >= task:
-                self.client.task = self.side.tasks[task]
-                self.side.end_task(self.client, plan.round, task)
-                self.ended = task
-        if self.started < plan.task and not plan.first_of_task:
-            ins = dataclasses.replace(ins, plan=dataclasses.replace(plan, first_of_task=True))
-        [res] = self.side.train(ins)
-        self.started = plan.task
-        self.save()
-        return res
-
-    def evaluate(self, ins):
-        [res] = self.side.evaluate(ins)
-        if ins.plan.last_of_task:
-            self.ended = ins.plan.task
-        self.save()
-        return res
-
-
-def robot(context: Context, config_yaml: str) -> Robot:
-    """This node's robot for the message's run (built on the run's first message)."""
-    client = int(node_setting(context, "client"))
-    key = (context.run_id, client)
-    if key not in _robots:
-        folder = Path(str(node_setting(context, "state-dir", str(DEFAULT_STATE_DIR))))
-        folder = folder.expanduser() / f"run-{context.run_id}"
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "config.yaml").write_text(config_yaml)
-        overrides = [
-            f"data.path={node_setting(context, 'data-path')}",
-            "runtime.devices=1",
-            "runtime.num_nodes=1",
-            "tracking.enabled=false",
-        ]
-        if "cache-dir" in context.node_config:
-            overrides.append(f"data.cache_dir={context.node_config['cache-dir']}")
-        if "threads" in context.node_config:
-            overrides.append(f"runtime.threads={int(context.node_config['threads'])}")
-        config = load_config(folder / "config.yaml", overrides)
-        _robots[key] = Robot(config, client, folder)
-    return _robots[key]
+def _reply(kind: str, msg: Message, context: Context) -> Message:
+    content = service.ask(kind, context.run_id, dict(context.node_config), msg.content)
+    return Message(content, reply_to=msg)
 
 
 @app.train()
 def train(msg: Message, context: Context) -> Message:
-    ins, config_yaml = wire.decode_train_ins(msg.content)
-    res = robot(context, config_yaml).train(ins)
-    return Message(wire.encode_train_res(res), reply_to=msg)
+    return _reply("train", msg, context)
 
 
 @app.evaluate()
 def evaluate(msg: Message, context: Context) -> Message:
-    ins, config_yaml = wire.decode_evaluate_ins(msg.content)
-    res = robot(context, config_yaml).evaluate(ins)
-    return Message(wire.encode_evaluate_res(res), reply_to=msg)
+    return _reply("evaluate", msg, context)

@@ -80,6 +80,7 @@ class FlowerRounds:
         ]
         # Grid.send_and_receive polls every 3 s: up to 6 s idle per round for two
         # exchanges. The same push/pull with a 0.2 s poll.
+        started = time.monotonic()
         pending = {i for i in self.grid.push_messages(messages) if i}
         replies = []
         deadline = time.monotonic() + self.config.deploy.round_timeout_s
@@ -89,6 +90,10 @@ class FlowerRounds:
                 replies.append(reply)
             if pending:
                 time.sleep(POLL_S)
+        seconds = time.monotonic() - started
+        self.echo(
+            f"round {round_}, {kind}: {len(replies)} of {len(messages)} replies ({seconds:.1f} s)"
+        )
         out = {}
         for reply in replies:
             node = reply.metadata.src_node_id
