@@ -5,18 +5,13 @@ ports, certificates and keys made here, everything stopped at the end."""
 from __future__ import annotations
 
 import contextlib
-import json
 import os
-import shlex
 import signal
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
-
-from fedlgr.deploy.credentials import make_certificates, make_node_key
-from fedlgr.deploy.flower import APP_DIR
 
 BIN = Path(sys.executable).parent  # flower-superlink starts flower-superexec from PATH
 
@@ -39,38 +34,44 @@ def wait_port(port: int, timeout: float = 60.0) -> None:
 
 
 class Federation:
+    """Started with the commands the README gives (``fedlgr deploy ...``)."""
+
     def __init__(self, folder: Path):
         self.folder = folder
         self.creds = folder / "creds"
-        make_certificates(self.creds)
         self.home = folder / "flwr-home"  # the flwr CLI's config, not the user's ~/.flwr
         self.home.mkdir(parents=True)
         self.logs = folder / "logs"
         self.logs.mkdir()
         self.port = free_port()
-        (self.home / "config.toml").write_text(
-            '[superlink]\ndefault = "local"\n\n[superlink.local]\n'
-            f'address = "127.0.0.1:{self.port}"\n'
-            f'root-certificates = "{self.creds / "ca.pem"}"\n'
-        )
         self.env = {
             **os.environ,
             "FLWR_HOME": str(self.home),
             "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
             "PYTHONUNBUFFERED": "1",
-            "FLWR_TELEMETRY_ENABLED": "0",
+            "FLWR_SUPEREXEC_TASK_POLL_INTERVAL": "0.2",  # Flower's default: 1 s
         }
         self.procs: dict[str, subprocess.Popen] = {}
+        self.fedlgr("certs", str(self.creds))
+        ca = str(self.creds / "ca.pem")
+        self.fedlgr("connect", "local", "--superlink", f"127.0.0.1:{self.port}", "--ca", ca)
+
+    def fedlgr(self, *args: str) -> subprocess.CompletedProcess:
+        out = subprocess.run(
+            [str(BIN / "fedlgr"), "deploy", *args],
+            env=self.env,
+            cwd=self.folder,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert out.returncode == 0, out.stdout + out.stderr
+        return out
 
     def spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         log = (self.logs / f"{name}.log").open("ab")
         proc = subprocess.Popen(
-            cmd,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env=self.env,
-            cwd=self.folder,
-            start_new_session=True,  # its own process group: its apps are stopped with it
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, cwd=self.folder
         )
         self.procs[name] = proc
         return proc
@@ -79,78 +80,41 @@ class Federation:
         return (self.logs / f"{name}.log").read_text(errors="replace")
 
     def start_superlink(self) -> None:
-        self.spawn(
-            "superlink",
-            [
-                "flower-superlink",
-                "--ssl-ca-certfile",
-                str(self.creds / "ca.pem"),
-                "--ssl-certfile",
-                str(self.creds / "server.pem"),
-                "--ssl-keyfile",
-                str(self.creds / "server.key"),
-                "--enable-supernode-auth",
-                "--disable-runtime-dependency-installation",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                str(self.port),
-            ],
-        )
+        link = ["superlink", "--certs", str(self.creds), "--host", "127.0.0.1"]
+        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link, "--port", str(self.port)])
         wait_port(self.port)
 
-    def flwr(self, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-        return subprocess.run(
-            ["flwr", *args],
-            env=self.env,
-            cwd=self.folder,
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-        )
-
     def node_key(self, name: str, register: bool = True) -> Path:
-        private, public = make_node_key(self.creds, name)
+        self.fedlgr("node-key", str(self.creds), name)
         if register:
-            out = self.flwr("supernode", "register", str(public), "--format", "json")
+            out = subprocess.run(
+                ["flwr", "supernode", "register", str(self.creds / f"{name}.pub")],
+                env=self.env,
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
             assert out.returncode == 0, out.stdout + out.stderr
-            assert json.loads(out.stdout[out.stdout.index("{") :])["success"]
-        return private
+        return self.creds / name
+
+    def robot_dir(self, name: str) -> Path:
+        return self.folder / "robots" / name
 
     def start_supernode(
         self, name: str, key: Path, client: int, data: Path, extra: list[str] = ()
     ) -> subprocess.Popen:
-        node_config = (
-            f'data-path="{data}" client={client} '
-            f'state-dir="{self.folder / "robots" / name}" '
-            f'cache-dir="{self.folder / "robots" / name / "cache"}"'
-        )
-        return self.spawn(
-            name,
-            [
-                "flower-supernode",
-                "--superlink",
-                f"127.0.0.1:{self.port}",
-                "--root-certificates",
-                str(self.creds / "ca.pem"),
-                "--auth-supernode-private-key",
-                str(key),
-                "--node-config",
-                node_config,
-                "--host",
-                "127.0.0.1",
-                "--port",
-                str(free_port()),
-                *extra,
-            ],
-        )
+        robot = self.robot_dir(name)
+        node = ["supernode", "--superlink", f"127.0.0.1:{self.port}"]
+        node += ["--ca", str(self.creds / "ca.pem"), "--key", str(key), "--data", str(data)]
+        node += ["--client", str(client), "--state-dir", str(robot)]
+        node += ["--cache-dir", str(robot / "cache"), "--port", str(free_port())]
+        return self.spawn(name, [str(BIN / "fedlgr"), "deploy", *node, *extra])
 
-    def run(self, config: Path, overrides: list[str], timeout: float = 600):
-        """``flwr run`` of fedlgr's app (streaming its logs until the ServerApp ends)."""
-        run_config = f'config="{config}" overrides="{shlex.join(overrides)}"'
-        cmd = ["flwr", "run", str(APP_DIR), "local", "--stream", "--run-config", run_config]
+    def run(self, config: Path, overrides: list[str]) -> subprocess.Popen:
+        """``fedlgr deploy run``: flwr run of fedlgr's app, its log streamed to stdout."""
+        cmd = [str(BIN / "fedlgr"), "deploy", "run", str(config), *overrides]
         return subprocess.Popen(
-            cmd,
+            [*cmd, "--federation", "local"],
             env=self.env,
             cwd=self.folder,
             stdout=subprocess.PIPE,
@@ -174,6 +138,7 @@ class Federation:
                 proc.kill()
                 proc.wait()
         time.sleep(1)  # SuperExecs leave on their own once their parent is gone
+        # What is left (robot services, a killed SuperNode's ClientApp) carries FLWR_HOME.
         for pid in self.leftovers():
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGKILL)

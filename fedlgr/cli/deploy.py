@@ -136,6 +136,19 @@ def add_parser(verbs) -> None:
     node.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
     node.add_argument("--threads", type=int, metavar="N", help="torch threads")
     node.add_argument(
+        "--max-retries", type=int, metavar="N", help="give up after N failed connections"
+    )
+    node.add_argument(
+        "--max-wait-time", type=float, metavar="S", help="give up after S seconds of trying"
+    )
+    node.add_argument(
+        "--idle-s",
+        type=float,
+        metavar="S",
+        help="the robot service (which keeps data and models loaded between messages) "
+        "leaves after S seconds without a message (default 900)",
+    )
+    node.add_argument(
         "--port", type=int, default=SUPERNODE_PORT, help="its local API (default %(default)s)"
     )
     insecure(node)
@@ -285,7 +298,15 @@ def supernode(args: argparse.Namespace) -> int:
             settings.append(f"{name}={_toml_string(str(_absolute(folder)))}")
     if args.threads is not None:
         settings.append(f"threads={args.threads}")
+    if args.idle_s is not None:
+        if not args.idle_s > 0:
+            raise FedlgrError(f"--idle-s {args.idle_s}: must be > 0")
+        settings.append(f"robot-idle-s={args.idle_s}")
     cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(args.port)]
+    if args.max_retries is not None:
+        cmd += ["--max-retries", str(args.max_retries)]
+    if args.max_wait_time is not None:
+        cmd += ["--max-wait-time", str(args.max_wait_time)]
     return _exec(cmd, args)
 
 

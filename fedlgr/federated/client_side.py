@@ -34,7 +34,7 @@ from fedlgr.federated.messages import (
     check_shared,
 )
 from fedlgr.federated.plugins import LocalContext
-from fedlgr.federated.scope import initial_scholar, shared_keys
+from fedlgr.federated.scope import SCOPE_PREFIX, initial_scholar, shared_keys
 from fedlgr.federated.strategies import STRATEGIES
 from fedlgr.tracking.metrics import regression_scores
 from fedlgr.tracking.resources import Usage, measure
@@ -182,14 +182,16 @@ class ClientSide:
 
     def upload(self, client: Client) -> Weights:
         weights = client.upload(self.keys)
-        check_shared(weights, self.keys, f"client {client.index}'s upload")
+        prefix = SCOPE_PREFIX[self.config.federated.scope]
+        check_shared(weights, self.keys, f"client {client.index}'s upload", prefix)
         return weights
 
     def evaluate(self, ins: EvaluateIns) -> list[EvaluateRes]:
         """Every client takes the new global tensors, ends the task at its last round
         (measured as its work), and scores its model."""
         plan = ins.plan
-        check_shared(ins.weights, self.keys, "the server's download")
+        prefix = SCOPE_PREFIX[self.config.federated.scope]
+        check_shared(ins.weights, self.keys, "the server's download", prefix)
         out: list[EvaluateRes] = []
         for client in self.clients:
             client.download(ins.weights)

@@ -70,9 +70,16 @@ def nbytes(weights: Weights) -> int:
     return sum(t.numel() * t.element_size() for t in weights.values())
 
 
-def check_shared(weights: Weights, keys: list[str], who: str) -> None:
-    """Refuse any tensor outside the shared ones: the top, the generator and the CL state
-    never leave a client (FedRoot's premise), whatever the runtime."""
+def check_shared(weights: Weights, keys: list[str], who: str, prefix: str = "") -> None:
+    """Refuse any tensor outside the shared ones, and (independently of how ``keys`` were
+    made) any tensor whose name lacks the scope's ``prefix`` (``root.``: FedRoot's
+    premise): the top, the generator and the CL state never leave a client."""
+    outside = sorted(k for k in weights if not k.startswith(prefix))
+    if outside:
+        raise FedlgrError(
+            f"{who}: {outside[:5]} outside the shared scope ({prefix!r} tensors only); "
+            "nothing private may leave a client"
+        )
     extra = sorted(set(weights) - set(keys))
     missing = sorted(set(keys) - set(weights))
     if extra or missing:

@@ -30,7 +30,7 @@ from fedlgr.federated.messages import (
     nbytes,
 )
 from fedlgr.federated.rounds import RoundLog, make_fields, plugin_fields
-from fedlgr.federated.scope import initial_scholar, parameter_keys, shared_keys
+from fedlgr.federated.scope import SCOPE_PREFIX, initial_scholar, parameter_keys, shared_keys
 from fedlgr.federated.strategies import STRATEGIES, FedOpt
 from fedlgr.tracking.checkpoint import to_device
 
@@ -43,6 +43,7 @@ class ServerSide:
         self.strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)
         initial = initial_scholar(cfg)
         self.keys = shared_keys(initial, cfg.federated.scope, self.strategy)
+        self.prefix = SCOPE_PREFIX[cfg.federated.scope]
         if isinstance(self.strategy, FedOpt):
             self.strategy.trainable = parameter_keys(initial) & set(self.keys)
         state = initial.state_dict()
@@ -76,7 +77,7 @@ class ServerSide:
         """Sample-weighted sums of the uploads (float64), and the sum of the weights."""
         results = list(results)
         for r in results:
-            check_shared(r.weights, self.keys, f"client {r.client}'s upload")
+            check_shared(r.weights, self.keys, f"client {r.client}'s upload", self.prefix)
         return weighted_sum(((r.n_samples, r.weights) for r in results), self.keys)
 
     def update(self, sums: Weights, total: float) -> None:

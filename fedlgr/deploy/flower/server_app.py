@@ -91,16 +91,19 @@ class FlowerRounds:
             if pending:
                 time.sleep(POLL_S)
         seconds = time.monotonic() - started
-        self.echo(
-            f"round {round_}, {kind}: {len(replies)} of {len(messages)} replies ({seconds:.1f} s)"
-        )
+        # An error reply may come from the SuperLink itself (a robot gone offline): the
+        # robot is the one the message was sent to.
+        to_node = {m.metadata.message_id: m.metadata.dst_node_id for m in messages}
         out = {}
         for reply in replies:
-            node = reply.metadata.src_node_id
+            node = to_node.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
             if reply.has_error():
                 self.echo(f"round {round_}, {kind}: node {node} failed: {reply.error.reason}")
             else:
                 out[node] = reply
+        self.echo(
+            f"round {round_}, {kind}: {len(out)} of {len(messages)} replies ({seconds:.1f} s)"
+        )
         return out
 
     def run_round(

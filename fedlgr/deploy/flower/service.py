@@ -180,11 +180,13 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
     finally:
         server.close()
         path.unlink(missing_ok=True)
+        (folder / "robot.pid").unlink(missing_ok=True)
 
 
 def _answer(conn: socket.socket, handle) -> None:
     conn.settimeout(None)
     header, payload = _receive(conn)
+    print(f"run {header['run_id']}: {header['kind']} received", flush=True)
     started = time.perf_counter()
     try:
         reply = encode(

@@ -1,0 +1,107 @@
+"""The client/server boundary: what may cross it, how the server records a round with a
+robot missing, and the Flower wire format (tensor payload = the cost figures)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fedlgr.config import load_config
+from fedlgr.deploy.flower import wire
+from fedlgr.errors import FedlgrError
+from fedlgr.federated.messages import (
+    EvaluateIns,
+    EvaluateRes,
+    RoundPlan,
+    TrainIns,
+    TrainRes,
+    check_shared,
+    nbytes,
+)
+from fedlgr.federated.server_side import ServerSide
+from fedlgr.tracking.resources import Usage
+from tests.conftest import FAST
+
+
+@pytest.fixture
+def config(synth_dir, cache_dir):
+    return load_config(
+        FAST, [f"data.path={synth_dir}", "method=FedRootAvg", "tracking.enabled=false"]
+    )
+
+
+def test_nothing_but_the_shared_tensors_may_cross(config, synth_dir):
+    from fedlgr.data.dataset import load_scenes
+    from fedlgr.data.splits import make_split
+    from fedlgr.federated.client_side import ClientSide
+
+    scenes = load_scenes(config.data)
+    side = ClientSide(
+        config, scenes, make_split(scenes.table, config.data), [1], torch.device("cpu")
+    )
+    assert all(k.startswith("root.") for k in side.keys)  # FedRoot: the root only
+    [res] = side.train(TrainIns(RoundPlan(1, 0, True, True)))
+    first = next(iter(res.weights))
+    with pytest.raises(FedlgrError, match=rf"x: .*missing: \['{first}'\]"):
+        check_shared({k: v for k, v in res.weights.items() if k != first}, side.keys, "x", "root.")
+    assert set(res.weights) == set(side.keys) and res.client == 1
+    side.keys = [*side.keys, "top.net.1.weight"]  # a scope that would let the top out ...
+    with pytest.raises(FedlgrError, match=r"client 1's upload: \['top.net.1.weight'\] outside"):
+        side.upload(side.clients[0])  # ... is refused: the client uploads the root only
+    top = {"top.net.1.weight": torch.zeros(2)}
+    side.keys = side.keys[:-1]
+    with pytest.raises(FedlgrError, match=r"server's download: \['top.net.1.weight'\] outside"):
+        side.evaluate(EvaluateIns(RoundPlan(1), {**res.weights, **top}))
+    server = ServerSide(config)
+    with pytest.raises(FedlgrError, match=r"client 1's upload: \['top.net.1.weight'\] outside"):
+        server.aggregate([TrainRes(1, {**res.weights, **top}, 10, 10, 1.0)])
+
+
+def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):
+    server = ServerSide(config)
+    scores = [0.5] * (len(server.fields) - 8)  # every field but the 8 costs
+    trained = TrainRes(0, {}, 12, 24, 0.25, Usage(1.5, 2.0, None, None))
+    row = server.row(trained, EvaluateRes(0, scores), bytes_up=100, bytes_down=300)
+    log = server.round_log(RoundPlan(2), server.table({0: row}), 3.0, missing=(1,))
+    assert log.column("bytes_up").tolist()[0] == 100 and log.column("cpu_s")[0] == 1.5
+    assert np.isnan(log.table[1]).all()
+    assert log.mean("test_loss") == 0.5  # the mean of the robots that reported
+    metrics = log.metrics()
+    assert metrics["round/missing_clients"] == 1.0
+    assert "client0/test/loss" in metrics and "client1/test/loss" not in metrics
+    assert [r["test_loss"] for r in log.rows()] == [0.5, None]
+
+
+def test_the_wire_carries_tensors_as_their_raw_bytes():
+    weights = {
+        "root.w": torch.randn(3, 4),
+        "root.bn.running_var": torch.rand(5, dtype=torch.float64),
+        "root.half": torch.randn(2, 2).half(),
+    }
+    res = TrainRes(1, weights, 10, 20, 0.5, Usage(1.0, 2.0, 30.0, None))
+    content = wire.encode_train_res(res)
+    assert wire.payload_bytes(content) == nbytes(weights) == 48 + 40 + 8
+    back = wire.decode_train_res(content)
+    assert all(
+        torch.equal(back.weights[k], v) and back.weights[k].dtype == v.dtype
+        for k, v in weights.items()
+    )
+    assert (back.client, back.n_samples, back.samples, back.loss) == (1, 10, 20, 0.5)
+    assert back.usage == Usage(1.0, 2.0, 30.0, None)
+
+    ins, text = wire.decode_train_ins(
+        wire.encode_train_ins(TrainIns(RoundPlan(3, 1, True, False)), "seed: 1")
+    )
+    assert ins == TrainIns(RoundPlan(3, 1, True, False), None) and text == "seed: 1"
+    ins, _ = wire.decode_evaluate_ins(
+        wire.encode_evaluate_ins(EvaluateIns(RoundPlan(3), weights), "x")
+    )
+    assert list(ins.weights) == list(weights)
+
+    evaluated = EvaluateRes(0, [1.0, math.nan], {"lgr_fd_latent": 2.5}, None)
+    back = wire.decode_evaluate_res(wire.encode_evaluate_res(evaluated))
+    assert back.scores[0] == 1.0 and math.isnan(back.scores[1])
+    assert back.figures == {"lgr_fd_latent": 2.5} and back.usage is None
