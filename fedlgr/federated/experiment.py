@@ -13,139 +13,14 @@ import dataclasses
 import functools
 import itertools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from fedlgr.config import ExperimentConfig
-from fedlgr.console import Progress, table
+from fedlgr.console import Progress
 from fedlgr.federated.orchestrator import Orchestrator, torch_threads
+from fedlgr.federated.result import ExperimentResult
 from fedlgr.federated.rounds import RoundLog
-
-
-@dataclass
-class ExperimentResult:
-    config: ExperimentConfig
-    rounds: list[RoundLog] = field(default_factory=list)
-    run_id: str | None = None
-    seconds: float = 0.0
-    after_tasks: list[dict[str, float]] = field(default_factory=list)  # FCL: per finished task
-
-    @property
-    def final(self) -> RoundLog:
-        return self.rounds[-1]
-
-    def rows(self) -> list[dict[str, object]]:
-        return [row for r in self.rounds for row in r.rows()]
-
-    def final_metrics(self) -> dict[str, float]:
-        """Everything the run logged, as it stood at the end: the last round's metrics, the
-        after-task summaries and the run-level costs (what a sweep's objective reads)."""
-        out = dict(self.final.metrics()) if self.rounds else {}
-        for after in self.after_tasks:
-            out.update(after)
-        out.update(self.cost_means())
-        return out
-
-    def cost_means(self) -> dict[str, float]:
-        """Per client per round, averaged over clients and rounds (Tables III/IV):
-        ``mean/cost/cpu_s``, ``mean/cost/wall_s``, ``mean/cost/bytes_up``, ... (GPU ones
-        only where measured)."""
-        import numpy as np
-
-        out = {}
-        for name, key in (
-            ("cpu_s", "cpu_s"),
-            ("wall_s", "wall_s"),
-            ("gpu_util", "gpu_util"),
-            ("gpu_mem_mb", "gpu_mem_mb"),
-            ("bytes_up", "bytes_up"),
-            ("bytes_down", "bytes_down"),
-        ):
-            column = np.concatenate([r.column(name) for r in self.rounds]) if self.rounds else []
-            if len(column) and not np.isnan(column).all():
-                out[f"mean/cost/{key}"] = float(np.nanmean(column))
-        return out
-
-    def summary(self) -> str:
-        """Final per-client scores; costs averaged over all rounds (as Table III reports them);
-        FCL: the scores after each task and the forgetting too."""
-        import numpy as np
-
-        last = self.final
-        scores = ["test_loss", "test_rmse", "test_pcc"]
-        costs = ["cpu_s", "wall_s", "bytes_up"]
-        per_round = {n: np.mean([r.column(n) for r in self.rounds], axis=0) for n in costs}
-        rows = [
-            [
-                f"client {c}",
-                *(float(last.column(n)[c]) for n in scores),
-                *(float(per_round[n][c]) for n in costs),
-            ]
-            for c in range(len(last.table))
-        ]
-        rows.append(
-            ["mean", *(last.mean(n) for n in scores), *(float(per_round[n].mean()) for n in costs)]
-        )
-        for row in rows:
-            row[-1] = _human_bytes(row[-1])
-        headers = ["client", "loss", "RMSE", "PCC", "CPU s/round", "wall s/round", "upload/round"]
-        text = table(headers, rows)
-        if self.after_tasks:
-            text += "\n\n" + self.task_summary()
-        fidelity = self.replay_fidelity()
-        if fidelity:
-            text += "\n\n" + fidelity
-        return text
-
-    def replay_fidelity(self) -> str:
-        """FedLGR: the replay's fidelity at each task end, mean over clients (README)."""
-        names = {"fd_latent": "FD latents", "recon_mse": "recon MSE (held-out)"}
-        names |= {"fd_labels": "FD labeller outputs", "vae_epochs": "VAE epochs kept"}
-        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
-        rows = []
-        for log in self.rounds:
-            values = [log.mean(f"lgr_{n}") for n in present]
-            if any(v is not None for v in values):
-                rows.append(
-                    [
-                        f"end of {log.task} (round {log.round})",
-                        *("-" if v is None else v for v in values),
-                    ]
-                )
-        if not rows:
-            return ""
-        headers = ["", *(names[n] for n in present)]
-        return "replay fidelity (0 = the real latents):\n" + table(headers, rows)
-
-    def task_summary(self) -> str:
-        """After each task: scores on all tasks seen so far, and each past task's forgetting
-        (positive: forgotten; loss/RMSE now - then, PCC then - now)."""
-        tasks = list(self.config.continual.tasks)
-        rows = []
-        for k, after in enumerate(self.after_tasks):
-            seen = "+".join(tasks[: k + 1])
-            row = [
-                f"after {tasks[k]}",
-                seen,
-                *(after[f"after_task{k + 1}/test/{m}"] for m in ("loss", "rmse", "pcc")),
-            ]
-            forgot = [
-                f"{t}: RMSE {after[f'after_task{k + 1}/forgetting/{t}/rmse']:+.3f} "
-                f"PCC {after[f'after_task{k + 1}/forgetting/{t}/pcc']:+.3f}"
-                for t in tasks[:k]
-            ]
-            rows.append([*row, "; ".join(forgot) or "-"])
-        return table(["task", "tested on", "loss", "RMSE", "PCC", "forgetting"], rows)
-
-
-def _human_bytes(n: float | None) -> str:
-    if n is None:
-        return "-"
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return str(n)
 
 
 def _epoch_counter(bar: Progress, total: int):

@@ -5,9 +5,10 @@ ClientApp (:mod:`.client_app`) is therefore thin - it imports no torch - and han
 message to this service over a Unix socket in the robot's state folder
 (``<state-dir>/robot.sock``, mode 0600). The service imports torch, loads the data and
 builds the client once, keeps them in memory between messages and rounds, and writes
-the private state to disk after every message (:mod:`.robot`). On this 2-core machine
-that is the difference between ~27 s and ~4 s per exchange: importing torch,
-torchvision and lightning alone costs ~13 CPU seconds.
+the private state to disk after every message (:mod:`.robot`). On a 2-core machine
+importing torch, torchvision and lightning costs ~13 CPU seconds, which every message
+would pay again; the service answers a fast-config message in 0.1-3 s (its log says),
+and what remains of an exchange is Flower's own process start and polling (~10-15 s).
 
 The first message starts the service (detached, logging to ``<state-dir>/robot.log``);
 it leaves after ``robot-idle-s`` seconds without a message (node-config, default 900).
