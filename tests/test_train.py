@@ -203,3 +203,38 @@ def test_two_processes_give_the_same_numbers_as_one(synth_dir, cache_dir, tmp_pa
     for a, b in zip(*rows, strict=True):
         assert float(a["train_loss"]) == pytest.approx(float(b["train_loss"]), abs=1e-5)
         assert a["bytes_up"] == b["bytes_up"] and a["bytes_down"] == b["bytes_down"]
+
+
+def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir, cache_dir):
+    from fedlgr.federated.evaluation import predict
+
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        "sqlite://",
+        "method=FedRootAvg",
+        "data.clients=3",
+        "train.eval_batch_size=5",
+        "tracking.enabled=false",
+    )
+    scenes = load_scenes(config.data)
+    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    orch.run_round(1)
+    side, received = orch.client_side, orch.server.global_weights
+    assert side.root_keys and all(side.holds_root(c, received) for c in side.clients)
+    passes = [0] * 3
+    for k, client in enumerate(side.clients):
+        client.model.root.register_forward_hook(
+            lambda *_, k=k: passes.__setitem__(k, passes[k] + 1)
+        )
+    shared = side.predictions(received)
+    batches = -(-len(side.test_inputs) // 5)
+    assert passes == [batches, 0, 0]  # one root pass over the test set for three clients
+    for client, pred in zip(side.clients, shared, strict=True):
+        assert torch.equal(pred, predict(client.model, side.test_inputs, 5))  # bit for bit
+    assert not torch.equal(shared[0], shared[1])  # each with its own top
+    with torch.no_grad():  # a client whose root is not the one received is scored alone
+        side.clients[2].model.root.features[0][0].weight.add_(1.0)
+    passes[:] = [0, 0, 0]
+    side.predictions(received)
+    assert passes == [batches, batches, batches]

@@ -24,7 +24,7 @@ from fedlgr.data.augment import Augment, SceneBatches, normalize
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
 from fedlgr.federated.client import Client, train_locally
-from fedlgr.federated.evaluation import predict
+from fedlgr.federated.evaluation import predict, predict_tops
 from fedlgr.federated.messages import (
     EvaluateIns,
     EvaluateRes,
@@ -65,6 +65,10 @@ class ClientSide:
         # With nothing kept locally every client holds the same model after aggregation:
         # one evaluation gives every client's (identical) figures.
         self.identical_models = float_keys == set(self.keys)
+        # The root's floating-point tensors, where every one of them is shared (FedRoot
+        # with any strategy that shares the whole root): see ``predictions``.
+        root_keys = {k for k in float_keys if k.startswith("root.")}
+        self.root_keys = sorted(root_keys) if root_keys <= set(self.keys) else []
         self.channels_last = cfg.model.channels_last and scenes.images is not None
         augment = Augment() if cfg.data.augment and scenes.images is not None else None
         copies = cfg.data.augment_copies if augment is not None else 1
@@ -192,18 +196,44 @@ class ClientSide:
         plan = ins.plan
         prefix = SCOPE_PREFIX[self.config.federated.scope]
         check_shared(ins.weights, self.keys, "the server's download", prefix)
-        out: list[EvaluateRes] = []
+        ended = []
         for client in self.clients:
             client.download(ins.weights)
-            usage, figures = None, {}
-            if plan.last_of_task:
-                usage, figures = self.end_task(client, plan.round, plan.task)
-            if self.identical_models and out:
-                scores = out[0].scores
-            else:
-                scores = self.scores(client, plan.task)
-            out.append(EvaluateRes(client.index, scores, figures, usage))
-        return out
+            ended.append(
+                self.end_task(client, plan.round, plan.task) if plan.last_of_task else (None, {})
+            )
+        predictions = self.predictions(ins.weights)
+        return [
+            EvaluateRes(client.index, self.scores(pred, plan.task), figures, usage)
+            for client, pred, (usage, figures) in zip(self.clients, predictions, ended, strict=True)
+        ]
+
+    def predictions(self, received: Weights) -> list[torch.Tensor]:
+        """Every client's outputs on the test scenes. Clients that hold the same model
+        share one pass (nothing kept locally); clients that hold the same root (FedRoot,
+        the root as received) share the root's pass over the test set and add their own
+        top's: one root pass plus N tops instead of N whole models."""
+        cfg, autocast = self.config.train, self.autocast
+        if self.identical_models:
+            pred = predict(self.clients[0].model, self.test_inputs, cfg.eval_batch_size, autocast)
+            return [pred] * len(self.clients)
+        if (
+            self.root_keys
+            and len(self.clients) > 1
+            and all(self.holds_root(c, received) for c in self.clients)
+        ):
+            tops = [c.model.top for c in self.clients]
+            return predict_tops(
+                self.clients[0].model.root, tops, self.test_inputs, cfg.eval_batch_size, autocast
+            )
+        return [
+            predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast) for c in self.clients
+        ]
+
+    def holds_root(self, client: Client, received: Weights) -> bool:
+        """Is the client's root exactly the one received (no task end changed it)?"""
+        state = client.model.state_dict()
+        return all(torch.equal(state[k], received[k]) for k in self.root_keys)
 
     def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, dict[str, float]]:
         """The plugins' ``on_task_end``, and what they measured then (``<plugin>_<name>``)."""
@@ -216,10 +246,9 @@ class ClientSide:
         }
         return usage, figures
 
-    def scores(self, client: Client, task: int) -> list[float]:
-        """The score fields: all tasks seen so far, then each task on its own."""
+    def scores(self, pred: torch.Tensor, task: int) -> list[float]:
+        """The score fields of outputs ``pred``: all tasks seen so far, then each task."""
         cfg = self.config.train
-        pred = predict(client.model, self.test_inputs, cfg.eval_batch_size, self.autocast)
         seen = self.seen_rows[task]
         s = regression_scores(pred[seen], self.test_targets[seen], cfg.compat_batch_metrics)
         values = [

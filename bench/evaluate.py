@@ -1,0 +1,104 @@
+"""Evaluation benchmark (issue 12, point 3). Run: ``uv run python bench/evaluate.py``.
+
+FedRootAvg with 10 clients on the synthetic data (128 px, random-init MobileNetV2): the
+seconds one round's evaluation takes when every client runs its whole model over the test
+set (what fedlgr did) and when the clients, which hold the same root after the download,
+share one root pass and add their own tops (``ClientSide.predictions``). Both in this
+process, alternating, median of ``--repeats``; the outputs are checked to be identical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+from figures import report  # bench/figures.py, beside this script
+
+TARGETS = {"eval_ratio": (0.25, "max")}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", type=int, default=400)
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--clients", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+
+    import torch
+
+    from fedlgr.config import load_config
+    from fedlgr.data.dataset import load_scenes
+    from fedlgr.data.splits import make_split
+    from fedlgr.data.synth import synthesize
+    from fedlgr.federated.evaluation import predict
+    from fedlgr.federated.experiment import make_fabric
+    from fedlgr.federated.orchestrator import Orchestrator, torch_threads
+
+    with tempfile.TemporaryDirectory() as tmp:
+        synthesize(Path(tmp) / "synth", args.scenes, seed=0, size=args.size)
+        config = load_config(
+            None,
+            [
+                f"data.path={tmp}/synth",
+                f"data.cache_dir={tmp}/cache",
+                f"data.image_size={args.size}",
+                f"data.clients={args.clients}",
+                "method=FedRootAvg",
+                "model.weights=none",
+                "tracking.enabled=false",
+            ],
+        )
+        scenes = load_scenes(config.data)
+    split = make_split(scenes.table, config.data)
+    torch.set_num_threads(torch_threads(config, 1))
+    orchestrator = Orchestrator(make_fabric(config), config, scenes, split)
+    side, received = orchestrator.client_side, orchestrator.server.global_weights
+    batch = config.train.eval_batch_size
+
+    def whole_models():
+        return [predict(c.model, side.test_inputs, batch) for c in side.clients]
+
+    def timed(fn):
+        start = time.perf_counter()
+        out = fn()
+        return time.perf_counter() - start, out
+
+    before, after = [], []
+    for repeat in range(args.repeats):  # alternating order: neither always runs warm
+        if repeat % 2:
+            shared_s, shared = timed(lambda: side.predictions(received))
+            whole_s, whole = timed(whole_models)
+        else:
+            whole_s, whole = timed(whole_models)
+            shared_s, shared = timed(lambda: side.predictions(received))
+        assert all(torch.equal(a, b) for a, b in zip(whole, shared, strict=True))
+        before.append(whole_s)
+        after.append(shared_s)
+    figures = {
+        "eval_s_before": statistics.median(before),
+        "eval_s_after": statistics.median(after),
+        "eval_ratio": statistics.median(a / b for a, b in zip(after, before, strict=True)),
+    }
+    print(
+        f"fedlgr evaluation benchmark - {date.today()} - {platform.machine()}, "
+        f"{os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads"
+    )
+    print(
+        f"FedRootAvg, {args.clients} clients, {len(side.test_inputs)} test scenes at "
+        f"{args.size} px, batch {batch}, random-init MobileNetV2; median of {args.repeats}; "
+        "outputs identical"
+    )
+    failed = report(figures, TARGETS)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
