@@ -142,6 +142,9 @@ class Federation:
         for pid in self.leftovers():
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 15  # a signal is delivered, not waited for
+        while self.leftovers() and time.monotonic() < deadline:
+            time.sleep(0.2)
 
     def leftovers(self) -> list[int]:
         """Live processes started for this federation."""

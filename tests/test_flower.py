@@ -37,7 +37,7 @@ def federation(tmp_path_factory, synth_dir):
         yield fed
     finally:
         fed.stop()
-    assert not fed.leftovers()
+    assert not fed.leftovers()  # every process of the federation is gone
 
 
 def settings(synth_dir, store, name: str) -> list[str]:
