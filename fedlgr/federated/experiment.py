@@ -69,7 +69,8 @@ def run_experiment(
     ``resume``: a run id, or True for the latest unfinished run of this config, to
     continue from its last checkpoint inside the same MLflow run. ``on_start(run_id)``
     (rank 0) is called once the MLflow run exists. ``on_round(round, metrics)`` (rank 0,
-    after each round is logged and checkpointed) may raise to stop the run, e.g. a sweep's
+    after each round is logged and checkpointed; a resumed run first calls it again for
+    the rounds it restored) may raise to stop the run, e.g. a sweep's
     pruner: the run is then ended KILLED if the exception has ``mlflow_status =
     "KILLED"``, FAILED otherwise, keeping what was logged."""
     from lightning.fabric.connector import _is_using_cli
@@ -193,11 +194,14 @@ def drive(
     forgetting = ForgettingTracker(tasks)
     result = ExperimentResult(config)
     elapsed = 0.0
+    replayed: list[tuple[int, dict[str, float]]] = []  # restored rounds' metrics
     if resumed is not None:
         result.rounds = resumed.rounds
         for log, step in zip(result.rounds, steps, strict=False):
+            metrics = {**log.metrics(), **forgetting.forgetting(log)}
             if step.last_of_task:  # the "after task" figures, as they were computed then
-                forgetting.end_of_task(log, step.task)
+                metrics.update(forgetting.end_of_task(log, step.task))
+            replayed.append((log.round, metrics))
         result.after_tasks = forgetting.after
         elapsed = resumed.elapsed
     tracker, folder = None, None
@@ -227,6 +231,12 @@ def drive(
                 tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
             if hooks.on_start is not None:
                 hooks.on_start(tracker.run_id)
+        if hooks.on_round is not None and rank0:
+            # A run killed after a checkpoint but before ``on_round`` saw that round (e.g.
+            # a sweep's report to Optuna) would lose it: the restored rounds are shown again
+            # (a sweep ignores the repeats).
+            for round_, metrics in replayed:
+                hooks.on_round(round_, metrics)
         for step in steps[len(result.rounds) :]:
             round_, k = step.round, step.task
             show = rank0 and config.runtime.progress and local_clients > 0

@@ -256,7 +256,9 @@ class Worker:
 
         def on_round(round_: int, metrics: dict[str, float]) -> None:
             if intermediate in metrics:
-                trial.report(metrics[intermediate], round_)
+                with warnings.catch_warnings():  # a resumed run shows its rounds again
+                    warnings.filterwarnings("ignore", message=".*already reported")
+                    trial.report(metrics[intermediate], round_)
                 if trial.should_prune():
                     trial.set_user_attr("pruned_at_round", round_)
                     raise PrunedRun(f"pruned after round {round_}")
