@@ -32,7 +32,9 @@ class LocalContext:
     client: int
     round: int
     model: nn.Module
-    global_weights: dict[str, torch.Tensor]  # what the client received last
+    # What the client received last: its shared tensors as the round found them (views of
+    # the model's own tensors, which training then moves: clone what must be kept).
+    global_weights: dict[str, torch.Tensor]
     device: torch.device
     autocast: object = contextlib.nullcontext  # a context-manager factory for mixed precision
     task: int = 0  # position of the current task in the schedule
