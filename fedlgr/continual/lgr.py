@@ -44,6 +44,7 @@ from fedlgr.continual.batchnorm import eval_mode
 from fedlgr.continual.fidelity import replay_fidelity
 from fedlgr.federated.plugins import ClientPlugin, LocalContext
 from fedlgr.models.generator import LatentVAE
+from fedlgr.runtime import seeded_global_rng
 
 SCHEDULES = ("two_phase", "joint")
 REPLAYS = ("generator", "stored")
@@ -216,8 +217,7 @@ class LatentReplay(ClientPlugin):
             # Initialised from this client's own generator, not the process's global RNG:
             # the numbers must not depend on which other clients share the process.
             seed = int(torch.randint(2**62, (1,), generator=self.generator_rng))
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(seed)
+            with seeded_global_rng(seed):
                 self.generator = LatentVAE(
                     current.shape[1], self.hidden, self.latent, self.lr, self.beta
                 ).to(current.device)

@@ -48,7 +48,7 @@ def initial_scholar(config) -> nn.Module:
     """The run's initial model: the same in every process, on every robot and on the
     server (seeded by ``config.seed``; the global RNG is left as it was)."""
     from fedlgr.models.scholar import build_scholar
+    from fedlgr.runtime import seeded_global_rng
 
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
+    with seeded_global_rng(config.seed):
         return build_scholar(config)
