@@ -144,6 +144,9 @@ class FederatedConfig:
         return method_name(self.strategy, self.scope)
 
 
+CONCURRENCY = ("auto", "sequential", "threads", "batched")
+
+
 @dataclass(frozen=True)
 class RuntimeConfig:
     """Where the clients run: one process by default, or sharded over processes/nodes."""
@@ -153,15 +156,23 @@ class RuntimeConfig:
     num_nodes: int = 1
     launcher: str = "ddp"  # ddp (re-runs the command per process) | ddp_spawn
     threads: int | None = None  # torch threads per process (default: cores / processes)
+    # How a process's clients train (README "Concurrent clients"): one after another
+    # (sequential), side by side in threads that split the process's torch threads
+    # (threads), or stacked into one model (batched, for a GPU); auto: threads on CPU
+    # where a process has several clients and threads, else sequential.
+    concurrency: str = "auto"
+    workers: int | None = None  # clients at once with threads (default: min(clients, threads))
     progress: bool = True
 
     def __post_init__(self) -> None:
         _choice("runtime.accelerator", self.accelerator, ("auto", "cpu", "gpu", "cuda"))
         _choice("runtime.launcher", self.launcher, ("ddp", "ddp_spawn"))
+        _choice("runtime.concurrency", self.concurrency, CONCURRENCY)
         _positive("runtime.devices", self.devices)
         _positive("runtime.num_nodes", self.num_nodes)
-        if self.threads is not None:
-            _positive("runtime.threads", self.threads)
+        for name in ("threads", "workers"):
+            if getattr(self, name) is not None:
+                _positive(f"runtime.{name}", getattr(self, name))
 
     @property
     def world_size(self) -> int:

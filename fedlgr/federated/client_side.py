@@ -24,6 +24,7 @@ from fedlgr.data.augment import Augment, SceneBatches, normalize
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
 from fedlgr.federated.client import Client, train_locally
+from fedlgr.federated.concurrency import ClientPool, resolve
 from fedlgr.federated.evaluation import predict, predict_tops
 from fedlgr.federated.messages import (
     EvaluateIns,
@@ -37,7 +38,7 @@ from fedlgr.federated.plugins import LocalContext
 from fedlgr.federated.scope import SCOPE_PREFIX, initial_scholar, shared_keys
 from fedlgr.federated.strategies import STRATEGIES
 from fedlgr.tracking.metrics import regression_scores
-from fedlgr.tracking.resources import Usage, measure
+from fedlgr.tracking.resources import Usage, measure, process_cpu_seconds, share_process_cpu
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -54,8 +55,9 @@ class ClientSide:
         device: torch.device,
         autocast=contextlib.nullcontext,
     ):
-        cfg = config
+        cfg = config = resolve(config, device, len(indices))
         self.config, self.scenes, self.split = config, scenes, split
+        self.pool = ClientPool(cfg.runtime.workers, torch.get_num_threads(), device)
         self.device, self.autocast = device, autocast
         self.tasks = list(cfg.continual.tasks) or [ALL]
         strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)  # its client part
@@ -98,6 +100,10 @@ class ClientSide:
             self.clients.append(
                 Client(shard.client, model, model.configure_optimizers(), data, plugins)
             )
+        if cfg.runtime.concurrency == "batched":
+            from fedlgr.federated.batched import refuse_plugins  # torch.func: when asked
+
+            refuse_plugins(self.clients)  # before any run is started, not at round 1
         self._prepare_test_set()
         self._warm_up(initial)
 
@@ -156,32 +162,75 @@ class ClientSide:
     def train(self, ins: TrainIns, progress=None) -> list[TrainRes]:
         """Every client's local training of the round, and what it uploads."""
         cfg, plan = self.config, ins.plan
-        out = []
         for client in self.clients:
             if ins.weights is not None:
                 client.download(ins.weights)
             client.task = self.tasks[plan.task]
             if cfg.train.reset_optimizer:
                 client.optimizer = client.model.configure_optimizers()
-            ctx = self.context(client, plan.round, plan.task)
-            on_epoch = None if progress is None else (lambda e, c=client.index: progress(c, e))
-            with measure(self.device) as usage:
-                if plan.first_of_task:
-                    for plugin in client.plugins:
-                        plugin.on_task_start(ctx)
-                stats = train_locally(
-                    client,
-                    ctx,
-                    cfg.train.epochs,
-                    cfg.train.max_batches,
-                    self.channels_last,
-                    self.autocast,
-                    on_epoch,
-                )
-            upload = self.upload(client)
-            out.append(
-                TrainRes(client.index, upload, client.n_samples, stats.samples, stats.loss, usage)
+        if cfg.runtime.concurrency == "batched":
+            return self._train_batched(plan, progress)
+        return self._side_by_side(lambda c: self._train_one(c, plan, progress))
+
+    def _side_by_side(self, work):
+        """``work(client)`` for every client, in the pool (``runtime.concurrency``); each
+        result's ``usage`` is measured in its own thread there, then given its share of
+        the process's CPU seconds (``share_process_cpu``)."""
+        if self.pool.workers == 1 or len(self.clients) == 1:
+            return [work(c) for c in self.clients]
+        start = process_cpu_seconds()
+        out = self.pool.map(work, self.clients)
+        usages = [r.usage if isinstance(r, TrainRes) else r[0] for r in out]
+        share_process_cpu([u for u in usages if u is not None], process_cpu_seconds() - start)
+        return out
+
+    def _train_one(self, client: Client, plan, progress) -> TrainRes:
+        cfg = self.config
+        ctx = self.context(client, plan.round, plan.task)
+        on_epoch = None if progress is None else (lambda e, c=client.index: progress(c, e))
+        with measure(self.device, per_thread=self.pool.workers > 1) as usage:
+            if plan.first_of_task:
+                for plugin in client.plugins:
+                    plugin.on_task_start(ctx)
+            stats = train_locally(
+                client,
+                ctx,
+                cfg.train.epochs,
+                cfg.train.max_batches,
+                self.channels_last,
+                self.autocast,
+                on_epoch,
             )
+        upload = self.upload(client)
+        return TrainRes(client.index, upload, client.n_samples, stats.samples, stats.loss, usage)
+
+    def _train_batched(self, plan, progress) -> list[TrainRes]:
+        """All clients as one stacked model (``runtime.concurrency=batched``). The one
+        measured cost is shared out in proportion to the samples each client trained."""
+        from fedlgr.federated.batched import train_batched
+
+        cfg = self.config
+        ctxs = [self.context(c, plan.round, plan.task) for c in self.clients]
+        on_epoch = None
+        if progress is not None:  # one call per epoch of all clients: one per client
+            on_epoch = lambda e: [progress(c.index, e) for c in self.clients]  # noqa: E731
+        with measure(self.device) as usage:
+            stats = train_batched(
+                self.clients,
+                ctxs,
+                cfg.train.epochs,
+                cfg.train.max_batches,
+                self.channels_last,
+                self.autocast,
+                on_epoch,
+            )
+        total = max(sum(s.samples for s in stats), 1)
+        out = []
+        for client, s in zip(self.clients, stats, strict=True):
+            share = s.samples / total
+            mine = Usage(usage.cpu_s * share, usage.wall_s, usage.gpu_util, usage.gpu_mem_mb)
+            upload = self.upload(client)
+            out.append(TrainRes(client.index, upload, client.n_samples, s.samples, s.loss, mine))
         return out
 
     def upload(self, client: Client) -> Weights:
@@ -196,12 +245,12 @@ class ClientSide:
         plan = ins.plan
         prefix = SCOPE_PREFIX[self.config.federated.scope]
         check_shared(ins.weights, self.keys, "the server's download", prefix)
-        ended = []
         for client in self.clients:
             client.download(ins.weights)
-            ended.append(
-                self.end_task(client, plan.round, plan.task) if plan.last_of_task else (None, {})
-            )
+        if plan.last_of_task:
+            ended = self._side_by_side(lambda c: self.end_task(c, plan.round, plan.task))
+        else:
+            ended = [(None, {})] * len(self.clients)
         predictions = self.predictions(ins.weights)
         return [
             EvaluateRes(client.index, self.scores(pred, plan.task), figures, usage)
@@ -213,9 +262,10 @@ class ClientSide:
         share one pass (nothing kept locally); clients that hold the same root (FedRoot,
         the root as received) share the root's pass over the test set and add their own
         top's: one root pass plus N tops instead of N whole models."""
-        cfg, autocast = self.config.train, self.autocast
+        cfg, autocast, map_ = self.config.train, self.autocast, self.pool.map
         if self.identical_models:
-            pred = predict(self.clients[0].model, self.test_inputs, cfg.eval_batch_size, autocast)
+            model = self.clients[0].model
+            pred = predict(model, self.test_inputs, cfg.eval_batch_size, autocast, map_)
             return [pred] * len(self.clients)
         if (
             self.root_keys
@@ -223,12 +273,12 @@ class ClientSide:
             and all(self.holds_root(c, received) for c in self.clients)
         ):
             tops = [c.model.top for c in self.clients]
-            return predict_tops(
-                self.clients[0].model.root, tops, self.test_inputs, cfg.eval_batch_size, autocast
-            )
-        return [
-            predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast) for c in self.clients
-        ]
+            root = self.clients[0].model.root
+            return predict_tops(root, tops, self.test_inputs, cfg.eval_batch_size, autocast, map_)
+        return self.pool.map(
+            lambda c: predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast),
+            self.clients,
+        )
 
     def holds_root(self, client: Client, received: Weights) -> bool:
         """Is the client's root exactly the one received (no task end changed it)?"""
@@ -238,7 +288,7 @@ class ClientSide:
     def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, dict[str, float]]:
         """The plugins' ``on_task_end``, and what they measured then (``<plugin>_<name>``)."""
         ctx = self.context(client, round_, task)
-        with measure(self.device) as usage:
+        with measure(self.device, per_thread=self.pool.workers > 1) as usage:
             for plugin in client.plugins:
                 plugin.on_task_end(ctx)
         figures = {  # outside the measurement: diagnostics are not the client's work

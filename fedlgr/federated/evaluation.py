@@ -10,49 +10,66 @@ from torch import nn
 from fedlgr.tracking.metrics import RegressionScores, regression_scores
 
 
-@torch.no_grad()
-def predict(
-    model: nn.Module, inputs: torch.Tensor, batch_size: int, autocast=contextlib.nullcontext
-) -> torch.Tensor:
-    """Model outputs (N, 8) for prepared (normalised, on-device) inputs, in eval mode."""
-    was_training = model.training
-    model.eval()
+def _serial(fn, items):
+    return [fn(item) for item in items]
+
+
+@contextlib.contextmanager
+def _eval_mode(modules: list[nn.Module]):
+    was_training = [m.training for m in modules]
+    for m in modules:
+        m.eval()
     try:
-        with autocast():
-            out = [
-                model(inputs[i : i + batch_size]).float() for i in range(0, len(inputs), batch_size)
-            ]
+        yield
     finally:
-        model.train(was_training)
-    return torch.cat(out)
+        for m, training in zip(modules, was_training, strict=True):
+            m.train(training)
 
 
-@torch.no_grad()
+def predict(
+    model: nn.Module,
+    inputs: torch.Tensor,
+    batch_size: int,
+    autocast=contextlib.nullcontext,
+    map=_serial,
+) -> torch.Tensor:
+    """Model outputs (N, 8) for prepared (normalised, on-device) inputs, in eval mode.
+    ``map``: how the batches are spread (a ``ClientPool``'s, to use every worker)."""
+
+    @torch.no_grad()  # no_grad and autocast hold per thread: entered where the work runs
+    def batch(x: torch.Tensor) -> torch.Tensor:
+        with autocast():
+            return model(x).float()
+
+    with _eval_mode([model]):
+        return torch.cat(map(batch, _split(inputs, batch_size)))
+
+
 def predict_tops(
     root: nn.Module,
     tops: list[nn.Module],
     inputs: torch.Tensor,
     batch_size: int,
     autocast=contextlib.nullcontext,
+    map=_serial,
 ) -> list[torch.Tensor]:
     """``predict`` of models ``top_i(root(x))`` that share ``root``: the root's pass once
     per batch, then every top on it (the same batches, hence the same numbers as
     ``predict`` of each whole model)."""
-    modules = [root, *tops]
-    was_training = [m.training for m in modules]
-    for m in modules:
-        m.eval()
-    outputs: list[list[torch.Tensor]] = [[] for _ in tops]
-    try:
+
+    @torch.no_grad()
+    def batch(x: torch.Tensor) -> list[torch.Tensor]:
         with autocast():
-            for i in range(0, len(inputs), batch_size):
-                latents = root(inputs[i : i + batch_size])
-                for out, top in zip(outputs, tops, strict=True):
-                    out.append(top(latents).float())
-    finally:
-        for m, training in zip(modules, was_training, strict=True):
-            m.train(training)
-    return [torch.cat(out) for out in outputs]
+            latents = root(x)
+            return [top(latents).float() for top in tops]
+
+    with _eval_mode([root, *tops]):
+        outputs = map(batch, _split(inputs, batch_size))
+    return [torch.cat(per_top) for per_top in zip(*outputs, strict=True)]
+
+
+def _split(inputs: torch.Tensor, batch_size: int) -> list[torch.Tensor]:
+    return [inputs[i : i + batch_size] for i in range(0, len(inputs), batch_size)]
 
 
 def evaluate(

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from fedlgr.config import ExperimentConfig
 from fedlgr.console import Progress
+from fedlgr.federated import concurrency
 from fedlgr.federated.orchestrator import Orchestrator, torch_threads
 from fedlgr.federated.result import ExperimentResult
 from fedlgr.federated.rounds import RoundLog
@@ -134,6 +135,9 @@ def _main(
         config = dataclasses.replace(
             config, runtime=dataclasses.replace(config.runtime, threads=threads)
         )
+    # How this process's clients train, made explicit (recorded like the thread count).
+    local_clients = len(range(fabric.global_rank, config.data.clients, fabric.world_size))
+    config = concurrency.resolve(config, fabric.device, local_clients)
     seed_everything(config.seed, verbose=False)
     start = time.perf_counter()
     point = _resume_point(fabric, config, resume)

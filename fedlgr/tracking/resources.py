@@ -1,8 +1,11 @@
 """What a client's training costs (SPEC 5): CPU and wall seconds, GPU utilisation and memory.
 
 CPU seconds are the process's user + system time (all its threads, plus any child
-processes) across the client's training; with several clients in one process they run
-one after another, so the difference belongs to that client. GPU utilisation is NVML's
+processes) across the client's training when a process's clients run one after another,
+so the difference belongs to that client. Clients trained side by side
+(``runtime.concurrency=threads``) are measured per thread (``time.thread_time``), and the
+process's CPU seconds over the concurrent section are then shared out in proportion
+(:func:`share_process_cpu`). GPU utilisation is NVML's
 device-wide figure sampled every 50 ms while the client trains (NVML reports no
 per-process utilisation); peak memory is torch's allocator peak on the client's device.
 Without an NVIDIA GPU both are absent (``None``), not errors.
@@ -98,25 +101,51 @@ def nvml_available() -> bool:
     return _nvml_ready
 
 
+def share_process_cpu(usages: list[Usage], process_cpu_s: float) -> None:
+    """Clients measured per thread ran side by side, over which the process spent
+    ``process_cpu_s``: give each its share in proportion to its own thread's CPU time.
+
+    With one intra-op thread per client (the split wherever clients >= cores) a client's
+    thread does all of its work and the shares are its thread times (the pool's idle main
+    thread adds next to nothing). With more, the client's OpenMP helper threads are not
+    in ``time.thread_time``; their time is shared out in the same proportion, and the
+    clients' figures still add up to what the process spent."""
+    own = sum(u.cpu_s for u in usages)
+    if own <= 0:
+        return
+    for u in usages:
+        u.cpu_s = process_cpu_s * u.cpu_s / own
+
+
+def process_cpu_seconds() -> float:
+    """This process's user + system CPU seconds (and its children's) so far."""
+    return _cpu_seconds(psutil.Process())
+
+
 @contextmanager
-def measure(device: torch.device) -> Iterator[Usage]:
-    """Measure the block's cost; the yielded ``Usage`` is filled in when it ends."""
+def measure(device: torch.device, per_thread: bool = False) -> Iterator[Usage]:
+    """Measure the block's cost; the yielded ``Usage`` is filled in when it ends.
+    ``per_thread``: CPU seconds of the calling thread only (see the module docstring)."""
     usage = Usage()
     process = psutil.Process()
+
+    def cpu() -> float:
+        return time.thread_time() if per_thread else _cpu_seconds(process)
+
     gpu = device.type == "cuda" and nvml_available()
     sampler = None
     if gpu:
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
         sampler = _NvmlSampler(device).__enter__()
-    cpu0, wall0 = _cpu_seconds(process), time.perf_counter()
+    cpu0, wall0 = cpu(), time.perf_counter()
     try:
         yield usage
     finally:
         if gpu:
             torch.cuda.synchronize(device)
         usage.wall_s = time.perf_counter() - wall0
-        usage.cpu_s = _cpu_seconds(process) - cpu0
+        usage.cpu_s = cpu() - cpu0
         if sampler is not None:
             sampler.__exit__()
             usage.gpu_util = sampler.mean

@@ -1,0 +1,108 @@
+"""Clients of one process trained side by side (``runtime.concurrency``).
+
+A batch of 16 small images cannot keep many cores busy; several clients can. With
+``threads`` a process's clients train in a pool of ``runtime.workers`` Python threads and
+the process's torch threads are split between them: on 2 cores, 2 clients train at once
+with one intra-op thread each instead of one after another with two (``bench/train.py``
+measures both, and 2 processes as the reference). PyTorch releases the GIL inside its
+operators, and OpenMP's thread count is a per-thread setting (``torch.set_num_threads``
+in a worker sets that worker's own team size), so the split needs no extra processes.
+
+Results are those of sequential training with the same threads per client: every client
+has its own model, optimiser, plugins and generators, and nothing in training draws from
+a process-wide RNG. (A different thread count per client changes the order of some
+floating-point sums, so the effective ``runtime.threads``, ``concurrency`` and ``workers``
+are recorded in the run's config, as for ``runtime.threads`` alone.)
+
+On a GPU each worker issues its work on its own CUDA stream, which first waits for the
+work queued before the pool; ``batched`` stacks the clients into one model instead
+(:mod:`fedlgr.federated.batched`). Neither is the default there: neither has been
+measured on GPU hardware yet (README "Concurrent clients").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+import torch
+
+from fedlgr.config import ExperimentConfig
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def resolve(config: ExperimentConfig, device: torch.device, clients: int) -> ExperimentConfig:
+    """``config`` with ``runtime.concurrency`` and ``runtime.workers`` made explicit for a
+    process that holds ``clients`` clients on ``device`` and ``runtime.threads`` threads
+    (resolved before this)."""
+    rt = config.runtime
+    threads = rt.threads or torch.get_num_threads()
+    mode = rt.concurrency
+    if mode == "auto":
+        several = clients > 1 and (device.type != "cpu" or threads > 1)
+        mode = "threads" if several and device.type == "cpu" else "sequential"
+    if mode == "threads":
+        default = threads if device.type == "cpu" else clients
+        workers = max(1, min(rt.workers or default, clients))
+    else:
+        workers = 1
+    return dataclasses.replace(
+        config, runtime=dataclasses.replace(rt, concurrency=mode, workers=workers)
+    )
+
+
+class ClientPool:
+    """Runs one function per client in ``workers`` threads, each with its share of the
+    process's torch threads (and, on a GPU, its own CUDA stream)."""
+
+    def __init__(self, workers: int, threads: int, device: torch.device):
+        self.workers, self.device = workers, device
+        self.threads_each = max(1, threads // workers)
+        self._local = threading.local()
+        self._executor = (
+            ThreadPoolExecutor(workers, "fedlgr-client", initializer=self._start_worker)
+            if workers > 1
+            else None
+        )
+
+    def _start_worker(self) -> None:
+        torch.set_num_threads(self.threads_each)  # this thread's OpenMP team size
+        if self.device.type == "cuda":
+            self._local.stream = torch.cuda.Stream(self.device)
+
+    def _run(self, fn: Callable[[T], R], item: T) -> R:
+        stream = getattr(self._local, "stream", None)
+        if stream is None:
+            return fn(item)
+        # Wait for what the main thread queued (downloads) before using the tensors, and
+        # finish before handing the results back.
+        stream.wait_stream(torch.cuda.default_stream(self.device))
+        with torch.cuda.stream(stream):
+            out = fn(item)
+        stream.synchronize()
+        return out
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
+        """``[fn(item) for item in items]``, side by side; an error is raised once every
+        item started has finished (the rest are not started)."""
+        if self._executor is None:
+            return [fn(item) for item in items]
+        # A single item goes to a worker too: its thread count, hence its numbers, are
+        # then those of every other item (and of sequential runs with that count).
+        main_threads = torch.get_num_threads()
+        futures = [self._executor.submit(self._run, fn, item) for item in items]
+        try:
+            return [f.result() for f in futures]
+        finally:
+            for f in futures:
+                f.cancel()
+            for f in futures:
+                if not f.cancelled():
+                    f.exception()  # wait: no client trains on after the round ended
+            # ``set_num_threads`` in a worker also sets the default of threads made later.
+            torch.set_num_threads(main_threads)
