@@ -159,3 +159,27 @@ def test_batched_clients_with_plugins_are_refused_before_the_run(synth_dir, cach
     )
     with pytest.raises(FedlgrError, match=r"client 0 \(fedprox\).*runtime\.concurrency=threads"):
         run_experiment(config)
+
+
+def test_an_interrupt_stops_the_other_clients_at_their_next_step():
+    """Ctrl-C reaches the main thread only: the clients still training in the pool stop at
+    their next step (``stop``) instead of finishing their round before the run can end."""
+    pool = concurrency.ClientPool(2, 2, CPU)
+    started, steps = threading.Barrier(2), []
+
+    def client(k):
+        if k == 0:
+            started.wait()
+            raise KeyboardInterrupt  # as the main thread would see it
+        started.wait()
+        for step in range(1000):  # a long round, checking ``stop`` as train_locally does
+            if pool.stop.is_set():
+                steps.append(step)
+                raise RuntimeError("stopped")
+            threading.Event().wait(0.01)
+        steps.append(1000)
+
+    with pytest.raises(KeyboardInterrupt):
+        pool.map(client, [0, 1])
+    assert steps and steps[0] < 1000  # client 1 gave up early
+    assert not pool.stop.is_set()  # the next round starts clean

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -76,6 +77,10 @@ class Client:
         return {key: state[key] for key in keys}
 
 
+class Stopped(Exception):
+    """Local training given up because the run was interrupted meanwhile."""
+
+
 @dataclass
 class LocalStats:
     samples: int = 0  # images (or feature rows) trained on, all epochs, rehearsal included
@@ -90,9 +95,12 @@ def train_locally(
     channels_last: bool = False,
     autocast=contextlib.nullcontext,
     on_epoch=None,
+    stop: threading.Event | None = None,
 ) -> LocalStats:
     """``epochs`` passes over the client's current task (``max_batches`` per epoch at most;
-    plugins may ask for fewer passes, and train on their own before them)."""
+    plugins may ask for fewer passes, and train on their own before them). ``stop``: once
+    set, the loop raises :class:`Stopped` at its next step (an interrupted run's clients
+    in other threads, see ``ClientPool``)."""
     model, optimizer, plugins = client.model, client.optimizer, client.plugins
     model.train()
     for plugin in plugins:
@@ -105,6 +113,8 @@ def train_locally(
         for step, (x, y) in enumerate(client.batches):
             if max_batches is not None and step >= max_batches:
                 break
+            if stop is not None and stop.is_set():
+                raise Stopped(f"client {client.index}: stopped in round {ctx.round}")
             for plugin in plugins:
                 x, y = plugin.batch(ctx, x, y)
             if len(x) < 2:  # BatchNorm cannot train on a single sample

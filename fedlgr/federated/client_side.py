@@ -200,6 +200,7 @@ class ClientSide:
                 self.channels_last,
                 self.autocast,
                 on_epoch,
+                self.pool.stop,
             )
         upload = self.upload(client)
         return TrainRes(client.index, upload, client.n_samples, stats.samples, stats.loss, usage)

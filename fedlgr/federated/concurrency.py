@@ -64,6 +64,9 @@ class ClientPool:
         self.workers, self.device = workers, device
         self.threads_each = max(1, threads // workers)
         self._local = threading.local()
+        # Set when the main thread is interrupted (Ctrl-C, SIGTERM): training loops that
+        # are given it stop at their next step instead of finishing the client's round.
+        self.stop = threading.Event()
         self._executor = (
             ThreadPoolExecutor(workers, "fedlgr-client", initializer=self._start_worker)
             if workers > 1
@@ -98,11 +101,15 @@ class ClientPool:
         futures = [self._executor.submit(self._run, fn, item) for item in items]
         try:
             return [f.result() for f in futures]
+        except BaseException:
+            self.stop.set()
+            raise
         finally:
             for f in futures:
                 f.cancel()
             for f in futures:
                 if not f.cancelled():
                     f.exception()  # wait: no client trains on after the round ended
+            self.stop.clear()
             # ``set_num_threads`` in a worker also sets the default of threads made later.
             torch.set_num_threads(main_threads)
