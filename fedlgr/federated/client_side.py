@@ -128,16 +128,21 @@ class ClientSide:
 
     def _warm_up(self, model: torch.nn.Module) -> None:
         """One untimed training step on a throwaway copy, so that kernel selection and
-        allocator set-up are not billed to the first client's first round."""
+        allocator set-up are not billed to the first client's first round (in every
+        worker of the pool: kernels are chosen per thread count)."""
         if not self.clients:
             return
-        model = copy.deepcopy(model).train()
         x, y = next(iter(self.clients[0].batches.peek()))
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        with self.autocast():
-            loss = torch.nn.functional.mse_loss(model(x).float(), y)
-        loss.backward()
+
+        def step() -> None:
+            copied = copy.deepcopy(model).train()
+            with self.autocast():
+                loss = torch.nn.functional.mse_loss(copied(x).float(), y)
+            loss.backward()
+
+        self.pool.each_worker(step)
 
     def context(self, client: Client, round_: int, task: int) -> LocalContext:
         global_weights = {k: v for k, v in client.model.state_dict().items() if k in self.keys}

@@ -90,6 +90,20 @@ class ClientPool:
         stream.synchronize()
         return out
 
+    def each_worker(self, fn: Callable[[], object]) -> None:
+        """``fn()`` once in every worker thread (with its thread count; e.g. a warm-up
+        step, whose kernels are chosen per thread count); in this thread without a pool."""
+        if self._executor is None:
+            fn()
+            return
+        arrived = threading.Barrier(self.workers)  # holds each worker until all have one
+
+        def once(_: int) -> None:
+            arrived.wait(timeout=600)
+            fn()
+
+        self.map(once, range(self.workers))
+
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
         """``[fn(item) for item in items]``, side by side; an error is raised once every
         item started has finished (the rest are not started)."""
