@@ -42,6 +42,7 @@ from torch import nn
 
 from fedlgr.continual.batchnorm import eval_mode
 from fedlgr.continual.fidelity import replay_fidelity
+from fedlgr.federated.client import backward, optimizer_step
 from fedlgr.federated.plugins import ClientPlugin, LocalContext
 from fedlgr.models.generator import LatentVAE
 from fedlgr.runtime import seeded_global_rng
@@ -173,8 +174,8 @@ class LatentReplay(ClientPlugin):
                     continue
                 loss = nn.functional.mse_loss(outputs.float(), union)
                 optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
+                backward(loss, ctx.scaler, optimizer)
+                optimizer_step(optimizer, ctx.scaler)
                 ctx.trained_samples += len(r)
                 ctx.trained_loss += float(
                     nn.functional.mse_loss(outputs[: len(r)].detach(), y)

@@ -29,6 +29,9 @@ class Client:
     data: dict[str, SceneBatches]  # task name -> the client's training batches of that task
     plugins: list[ClientPlugin] = field(default_factory=list)
     task: str = ""  # the task being trained
+    # Loss scaling for float16 autocast on a GPU (train.precision=16-mixed); None elsewhere
+    # (bf16 and float32 have float32's exponent range: nothing underflows).
+    scaler: torch.amp.GradScaler | None = None
 
     def __post_init__(self) -> None:
         self.task = self.task or next(iter(self.data))
@@ -54,6 +57,7 @@ class Client:
             "plugins": {p.name: p.state_dict() for p in self.plugins},
             "batches_rng": {t: b.generator.get_state() for t, b in self.data.items()},
             "task": self.task,
+            "scaler": None if self.scaler is None else self.scaler.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -64,6 +68,8 @@ class Client:
         for t, rng in state["batches_rng"].items():
             self.data[t].generator.set_state(rng)
         self.task = state["task"]
+        if self.scaler is not None and state.get("scaler"):
+            self.scaler.load_state_dict(state["scaler"])
 
     def download(self, weights: dict[str, torch.Tensor]) -> None:
         """Copy the server's tensors into the local model (in place, no reallocation)."""
@@ -75,6 +81,26 @@ class Client:
     def upload(self, keys: list[str]) -> dict[str, torch.Tensor]:
         state = self.model.state_dict()
         return {key: state[key] for key in keys}
+
+
+def backward(loss: torch.Tensor, scaler, optimizer: torch.optim.Optimizer) -> None:
+    """``loss.backward()``; with a ``GradScaler``, of the scaled loss, and the gradients
+    unscaled at once, so that plugins (SI, MAS, ...) see the true ones before the step."""
+    if scaler is None:
+        loss.backward()
+        return
+    scaler.scale(loss).backward()
+    scaler.unscale_(optimizer)
+
+
+def optimizer_step(optimizer: torch.optim.Optimizer, scaler) -> None:
+    """``optimizer.step()``; with a ``GradScaler``, skipped where a gradient is not finite,
+    and the scale updated."""
+    if scaler is None:
+        optimizer.step()
+        return
+    scaler.step(optimizer)
+    scaler.update()
 
 
 class Stopped(Exception):
@@ -132,10 +158,10 @@ def train_locally(
             for plugin in plugins:
                 loss = plugin.loss(ctx, x, y, outputs, loss)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            backward(loss, client.scaler, optimizer)
             for plugin in plugins:
                 plugin.before_step(ctx)
-            optimizer.step()
+            optimizer_step(optimizer, client.scaler)
             for plugin in plugins:
                 plugin.after_step(ctx)
             total_loss += task_loss * len(x)

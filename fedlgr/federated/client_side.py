@@ -23,6 +23,7 @@ from fedlgr.continual.schedule import ALL
 from fedlgr.data.augment import Augment, SceneBatches, normalize
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
+from fedlgr.errors import FedlgrError
 from fedlgr.federated.client import Client, train_locally
 from fedlgr.federated.concurrency import ClientPool, resolve
 from fedlgr.federated.evaluation import predict, predict_tops
@@ -97,15 +98,30 @@ class ClientSide:
                 *strategy.client_plugins(shard.client),
                 *continual_plugins(cfg.continual, shard.client, cfg.seed),
             ]
+            optimizer = model.configure_optimizers()
             self.clients.append(
-                Client(shard.client, model, model.configure_optimizers(), data, plugins)
+                Client(shard.client, model, optimizer, data, plugins, scaler=self._scaler())
             )
         if cfg.runtime.concurrency == "batched":
             from fedlgr.federated.batched import refuse_plugins  # torch.func: when asked
 
             refuse_plugins(self.clients)  # before any run is started, not at round 1
+            if any(c.scaler is not None for c in self.clients):
+                raise FedlgrError(
+                    "runtime.concurrency=batched does not scale losses yet: with "
+                    "train.precision=16-mixed on a GPU use runtime.concurrency=threads or "
+                    "sequential, or train.precision=bf16-mixed"
+                )
         self._prepare_test_set()
         self._warm_up(initial)
+
+    def _scaler(self) -> torch.amp.GradScaler | None:
+        """A client's loss scaler: float16 autocast on a GPU needs one (small gradients
+        underflow in float16). On CPU, Lightning Fabric runs ``16-mixed`` as bfloat16
+        autocast, which needs none."""
+        if self.config.train.precision != "16-mixed" or self.device.type != "cuda":
+            return None
+        return torch.amp.GradScaler(self.device.type)
 
     def _prepare_test_set(self) -> None:
         test = self.split.test
@@ -160,6 +176,7 @@ class ClientSide:
             client.batches,
             client.optimizer,
             seen=[client.data[t] for t in self.tasks[: task + 1]],
+            scaler=client.scaler,
         )
 
     # ------------------------------------------------------------------ the messages

@@ -47,6 +47,7 @@ class LocalContext:
     seen: list[SceneBatches] = field(default_factory=list)  # every task's batches so far
     trained_samples: int = 0  # samples a plugin trained on outside the batch loop
     trained_loss: float = 0.0  # their summed task loss
+    scaler: torch.amp.GradScaler | None = None  # the client's (client.backward / step)
 
     def plain_batches(
         self, batch_size: int | None = None, batches: SceneBatches | None = None
