@@ -24,6 +24,42 @@ from figures import report  # bench/figures.py, beside this script
 TARGETS = {"eval_ratio": (0.25, "max")}
 
 
+def evaluation_cost(side, received, repeats: int) -> dict[str, float]:
+    """Seconds of one round's evaluation of ``side``'s clients (a ``ClientSide`` whose
+    clients hold ``received``) with whole models (before point 3) and as fedlgr does it
+    now; median of ``repeats``, alternating; the outputs are checked to be identical."""
+    import torch
+
+    from fedlgr.federated.evaluation import predict
+
+    batch = side.config.train.eval_batch_size
+
+    def whole_models():
+        return [predict(c.model, side.test_inputs, batch) for c in side.clients]
+
+    def timed(fn):
+        start = time.perf_counter()
+        out = fn()
+        return time.perf_counter() - start, out
+
+    before, after = [], []
+    for repeat in range(repeats):  # alternating order: neither always runs warm
+        if repeat % 2:
+            shared_s, shared = timed(lambda: side.predictions(received))
+            whole_s, whole = timed(whole_models)
+        else:
+            whole_s, whole = timed(whole_models)
+            shared_s, shared = timed(lambda: side.predictions(received))
+        assert all(torch.equal(a, b) for a, b in zip(whole, shared, strict=True))
+        before.append(whole_s)
+        after.append(shared_s)
+    return {
+        "eval_s_before": statistics.median(before),
+        "eval_s_after": statistics.median(after),
+        "eval_ratio": statistics.median(a / b for a, b in zip(after, before, strict=True)),
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, default=400)
@@ -38,7 +74,6 @@ def main() -> int:
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
     from fedlgr.data.synth import synthesize
-    from fedlgr.federated.evaluation import predict
     from fedlgr.federated.experiment import make_fabric
     from fedlgr.federated.orchestrator import Orchestrator, torch_threads
 
@@ -62,31 +97,7 @@ def main() -> int:
     orchestrator = Orchestrator(make_fabric(config), config, scenes, split)
     side, received = orchestrator.client_side, orchestrator.server.global_weights
     batch = config.train.eval_batch_size
-
-    def whole_models():
-        return [predict(c.model, side.test_inputs, batch) for c in side.clients]
-
-    def timed(fn):
-        start = time.perf_counter()
-        out = fn()
-        return time.perf_counter() - start, out
-
-    before, after = [], []
-    for repeat in range(args.repeats):  # alternating order: neither always runs warm
-        if repeat % 2:
-            shared_s, shared = timed(lambda: side.predictions(received))
-            whole_s, whole = timed(whole_models)
-        else:
-            whole_s, whole = timed(whole_models)
-            shared_s, shared = timed(lambda: side.predictions(received))
-        assert all(torch.equal(a, b) for a, b in zip(whole, shared, strict=True))
-        before.append(whole_s)
-        after.append(shared_s)
-    figures = {
-        "eval_s_before": statistics.median(before),
-        "eval_s_after": statistics.median(after),
-        "eval_ratio": statistics.median(a / b for a, b in zip(after, before, strict=True)),
-    }
+    figures = evaluation_cost(side, received, args.repeats)
     print(
         f"fedlgr evaluation benchmark - {date.today()} - {platform.machine()}, "
         f"{os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads"
