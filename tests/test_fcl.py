@@ -47,7 +47,7 @@ def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir
             "after_task2/test",
             "after_task2/task/circle",
             "after_task2/forgetting/circle",
-            "client1/task/circle",
+            "task/client1/circle",
         )
         for m in ("loss", "rmse", "pcc")
     ]
@@ -99,7 +99,7 @@ def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store
     client, _, _ = read_run(store, result.run_id)
     for c in (0, 1):
         ups = [
-            m.value for m in client.get_metric_history(result.run_id, f"client{c}/cost/bytes_up")
+            m.value for m in client.get_metric_history(result.run_id, f"cost/client{c}/bytes_up")
         ]
         assert ups == [root_bytes] * 4
 

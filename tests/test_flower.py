@@ -93,10 +93,10 @@ def test_flower_runs_compute_what_one_process_computes(
     # Every per-round score, means and per client, all tasks and each task: to 1e-5.
     keys = [k for k in local_run.data.metrics if k.split("/", 1)[-1].startswith(("test/", "task/"))]
     keys += [k for k in local_run.data.metrics if k.startswith(("test/", "task/"))]
-    assert len(keys) > 40 and "client1/test/pcc" in keys
+    assert len(keys) > 40 and "test/client1/pcc" in keys
     if method[0] == "method=FedLGR":
-        assert "client1/task/arrow/rmse" in keys and "lgr/fd_latent" in local_run.data.metrics
-        keys += ["lgr/fd_latent", "client1/lgr/recon_mse"]
+        assert "task/client1/arrow/rmse" in keys and "lgr/fd_latent" in local_run.data.metrics
+        keys += ["lgr/fd_latent", "lgr/client1/recon_mse"]
     rounds = 2
     for key in keys:
         ours, theirs = history(client, flower.info.run_id, key), history(client, local.run_id, key)
@@ -107,10 +107,10 @@ def test_flower_runs_compute_what_one_process_computes(
     # FedRoot and FedLGR upload the root only.
     root = root_bytes(local.config)
     for c in (0, 1):
-        up = history(client, flower.info.run_id, f"client{c}/cost/bytes_up")
+        up = history(client, flower.info.run_id, f"cost/client{c}/bytes_up")
         assert up == [(r, float(root)) for r in range(1, rounds + 1)]
-        down = history(client, flower.info.run_id, f"client{c}/cost/bytes_down")
-        assert down == history(client, local.run_id, f"client{c}/cost/bytes_down")
+        down = history(client, flower.info.run_id, f"cost/client{c}/bytes_down")
+        assert down == history(client, local.run_id, f"cost/client{c}/bytes_down")
         assert down == [(1, 2.0 * root), (2, float(root))]  # the initial root, then the new
     assert "round/missing_clients" not in flower.data.metrics
     artifacts = [
@@ -185,9 +185,9 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     assert all(rows[(r, c)]["test_loss"] != "" for r in ("1", "3") for c in ("0", "1"))
     # Nothing logged was lost: every round's mean scores, robot 1's rounds 1 and 3.
     assert [s for s, _ in history(client, run.info.run_id, "test/loss")] == [1, 2, 3]
-    assert [s for s, _ in history(client, run.info.run_id, "client1/test/loss")] == [1, 3]
+    assert [s for s, _ in history(client, run.info.run_id, "test/client1/loss")] == [1, 3]
     # Back with its private state (read from disk), sent the global root it had missed.
     assert count(log, "private state restored") == restored + 1
     root = root_bytes(fast_config(synth_dir, synth_dir, store, *overrides))
-    assert history(client, run.info.run_id, "client1/cost/bytes_down")[-1] == (3, 2.0 * root)
-    assert history(client, run.info.run_id, "client0/cost/bytes_down")[-1] == (3, float(root))
+    assert history(client, run.info.run_id, "cost/client1/bytes_down")[-1] == (3, 2.0 * root)
+    assert history(client, run.info.run_id, "cost/client0/bytes_down")[-1] == (3, float(root))

@@ -617,7 +617,7 @@ def test_stored_replay_uploads_the_root_only_and_keeps_past_latents(
     client, run, _ = read_run(store, result.run_id)
     generator_client, _, _ = read_run(store, generator_run[1].run_id)
     for c in (0, 1):
-        key = f"client{c}/cost/bytes_up"
+        key = f"cost/client{c}/bytes_up"
         ups = [m.value for m in client.get_metric_history(result.run_id, key)]
         generator_ups = [
             m.value for m in generator_client.get_metric_history(generator_run[1].run_id, key)
@@ -642,7 +642,7 @@ def test_fidelity_is_logged_at_task_ends_only(generator_run, store):
     config, result = generator_run
     client, run, _ = read_run(store, result.run_id)
     names = ("fd_latent", "recon_mse", "fd_labels", "vae_epochs")
-    for key in [f"lgr/{n}" for n in names] + [f"client{c}/lgr/{n}" for c in (0, 1) for n in names]:
+    for key in [f"lgr/{n}" for n in names] + [f"lgr/client{c}/{n}" for c in (0, 1) for n in names]:
         history = client.get_metric_history(result.run_id, key)
         assert [m.step for m in history] == [2, 4], key  # rounds 2 and 4 end a task
         assert all(math.isfinite(m.value) and m.value >= 0 for m in history), key
@@ -656,7 +656,7 @@ def test_fidelity_is_logged_at_task_ends_only(generator_run, store):
     ] * 2
     for r in rows:
         if r["lgr_fd_latent"]:
-            key = f"client{r['client']}/lgr/fd_latent"
+            key = f"lgr/client{r['client']}/fd_latent"
             logged = {m.step: m.value for m in client.get_metric_history(result.run_id, key)}
             assert float(r["lgr_fd_latent"]) == pytest.approx(logged[int(r["round"])])
     mean = np.mean([float(r["lgr_fd_latent"]) for r in rows if r["round"] == "4"])

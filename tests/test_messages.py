@@ -71,7 +71,7 @@ def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):
     assert log.mean("test_loss") == 0.5  # the mean of the robots that reported
     metrics = log.metrics()
     assert metrics["round/missing_clients"] == 1.0
-    assert "client0/test/loss" in metrics and "client1/test/loss" not in metrics
+    assert "test/client0/loss" in metrics and "test/client1/loss" not in metrics
     assert [r["test_loss"] for r in log.rows()] == [0.5, None]
 
 

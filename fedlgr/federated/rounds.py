@@ -63,6 +63,13 @@ def make_fields(tasks: list[str]) -> list[Field]:
     return fields + COST_FIELDS
 
 
+def client_key(key: str, client: int) -> str:
+    """The MLflow key of ``key`` for one client: ``test/pcc/vacuum`` ->
+    ``test/client3/pcc/vacuum`` (the family first, then the client)."""
+    family, _, rest = key.partition("/")
+    return f"{family}/client{client}/{rest}"
+
+
 @dataclass
 class RoundLog:
     """Per-client rows of one round (after the collective: all clients)."""
@@ -99,7 +106,9 @@ class RoundLog:
         return out
 
     def metrics(self) -> dict[str, float]:
-        """MLflow metrics of this round: means over clients and per-client values."""
+        """MLflow metrics of this round: means over clients (``test/rmse``) and per-client
+        values under the same family (``test/client3/rmse``, ``cost/client3/cpu_s``), so
+        that MLflow's charts group a family's mean with its clients."""
         out: dict[str, float] = {"round/seconds": self.seconds}
         if self.missing:
             out["round/missing_clients"] = float(len(self.missing))
@@ -108,5 +117,5 @@ class RoundLog:
                 out[f.key] = float(np.nanmean(column))
             for client, value in enumerate(column):
                 if not math.isnan(value):
-                    out[f"client{client}/{f.key}"] = float(value)
+                    out[client_key(f.key, client)] = float(value)
         return out
