@@ -13,7 +13,7 @@ from fedlgr.config import CONF_DIR, load_config
 from fedlgr.data.columns import ALL_COLUMNS
 from fedlgr.data.synth import synthesize
 
-FAST = CONF_DIR / "debug" / "fast.yaml"
+FAST = CONF_DIR / "debug" / "tiny.yaml"  # the cheapest run through the image path
 
 
 @pytest.fixture(scope="session")

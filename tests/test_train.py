@@ -240,3 +240,21 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
     passes[:] = [0, 0, 0]
     side.predictions(received)
     assert passes == [batches, batches, batches]
+
+
+def test_the_fast_config_shows_learning_in_its_default_run(tmp_path):
+    """conf/debug/fast.yaml is the smoke test a user runs first: as shipped (no override
+    but the data), it must learn something measurable, not print PCC 0.000."""
+    from fedlgr.config import CONF_DIR, load_config
+    from fedlgr.data.synth import synthesize
+    from fedlgr.federated.experiment import run_experiment
+
+    synthesize(tmp_path / "synth", scenes=400, seed=0, size=32)
+    config = load_config(
+        CONF_DIR / "debug" / "fast.yaml",
+        [f"data.path={tmp_path / 'synth'}", f"tracking.uri=sqlite:///{tmp_path}/mlflow.db"],
+    )
+    result = run_experiment(config)
+    first, last = result.rounds[0], result.rounds[-1]
+    assert last.mean("test_pcc") > 0.1
+    assert last.mean("test_rmse") < first.mean("test_rmse") or first.mean("test_pcc") > 0.1
