@@ -18,7 +18,33 @@ from typing import Any
 from fedlgr.data.config import DataConfig
 from fedlgr.errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+def _shipped(folder: str) -> Path:
+    """``conf/`` or ``sweeps/``: the copy a wheel ships inside the package (pyproject's
+    ``force-include``, for ``pip install`` / ``uv tool install``), else the checkout's, next
+    to the package (a clone, an editable install)."""
+    package = Path(__file__).resolve().parent
+    return package / folder if (package / folder).is_dir() else package.parent / folder
+
+
+CONF_DIR = _shipped("conf")
+SWEEPS_DIR = _shipped("sweeps")
+
+
+def find_config(name: str | Path) -> Path:
+    """A config file as given, else the shipped one it names relative to ``conf/``
+    (``debug/fast.yaml``, ``conf/debug/fast.yaml`` outside a checkout, ``.yaml`` optional);
+    unchanged when neither exists (loading it then names the missing file)."""
+    path = Path(name)
+    if path.is_file() or path.is_absolute():
+        return path
+    inside = Path(*path.parts[1:]) if path.parts[:1] == ("conf",) else path
+    for candidate in (CONF_DIR / inside, (CONF_DIR / inside).with_suffix(".yaml")):
+        if candidate.is_file():
+            return candidate
+    return path
+
+
 STRATEGIES = {"avg": "Avg", "bn": "BN", "prox": "Prox", "opt": "Opt", "distill": "Distill"}
 SCOPES = {"full": "Fed", "root": "FedRoot"}
 ROOTS = ("auto", "mobilenet_v2", "mlp")

@@ -1,8 +1,11 @@
-"""Console output: plain fixed-width tables and progress bars for long work."""
+"""Console output: plain fixed-width tables, durations, and progress for long work (a bar
+on a terminal, log lines elsewhere)."""
 
 from __future__ import annotations
 
 import sys
+import threading
+import time
 from collections.abc import Iterable, Sequence
 
 
@@ -32,17 +35,43 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
     return "\n".join([line(headers), "  ".join("-" * w for w in widths), *map(line, body)])
 
 
+def duration(seconds: float) -> str:
+    """``42 s``, ``4 min``, ``1 h 20 min``: a span of time as a person reads it."""
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    minutes = round(seconds / 60)
+    return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60:02d} min"
+
+
 class Progress:
-    """``progress(done, total)`` callback drawing a tqdm bar on stderr when it is a terminal
-    (silent otherwise, so logs stay clean). Use as a context manager."""
+    """``progress(done, total)`` callback for long work. Use as a context manager.
+
+    On a terminal, a tqdm bar on stderr. Elsewhere (a log file, a batch job, a sweep
+    worker), plain lines on stderr so that the logs of long runs show progress: one each
+    time another tenth is done, at most one every ``every_s / 3`` seconds, and at least one
+    every ``every_s`` seconds while work goes on; nothing for work that ends sooner.
+    Callers may call it from several threads (clients trained side by side)."""
+
+    every_s = 30.0
 
     def __init__(self, desc: str, unit: str = "it", enabled: bool = True):
         self.desc, self.unit, self.bar = desc, unit, None
-        self.enabled = enabled and sys.stderr.isatty()
+        self.enabled = enabled
+        self.terminal = sys.stderr.isatty()
+        self._lock = threading.Lock()
+        self._start = self._said = time.monotonic()
+        self._tenths = 0
 
     def __call__(self, done: int, total: int) -> None:
         if not self.enabled:
             return
+        with self._lock:
+            if self.terminal:
+                self._draw(done, total)
+            else:
+                self._log(done, total)
+
+    def _draw(self, done: int, total: int) -> None:
         if self.bar is None:
             from tqdm.auto import tqdm
 
@@ -50,6 +79,22 @@ class Progress:
                 total=total, desc=self.desc, unit=self.unit, leave=False, dynamic_ncols=True
             )
         self.bar.update(done - self.bar.n)
+
+    def _log(self, done: int, total: int) -> None:
+        now = time.monotonic()
+        tenths = 10 * done // total if total else 0
+        quiet = now - self._said
+        if not ((tenths > self._tenths and quiet >= self.every_s / 3) or quiet >= self.every_s):
+            return
+        self._tenths, self._said = tenths, now
+        spent = now - self._start
+        left = f", about {duration(spent * (total - done) / done)} left" if 0 < done < total else ""
+        percent = f" ({100 * done // total}%)" if total else ""
+        print(
+            f"{self.desc}: {done}/{total} {self.unit}{percent} after {duration(spent)}{left}",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def __enter__(self) -> Progress:
         return self

@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import argparse
+import os
+import re
 import subprocess
 import sys
+import types
 
+import pytest
+import yaml
 from PIL import Image
 
-from fedlgr.cli import main
+from fedlgr.cli import build_parser, main, shipped_sweeps
+from fedlgr.config import CONF_DIR, SWEEPS_DIR, load_config, to_plain
+from fedlgr.console import Progress, duration
+
+from .conftest import FAST
 
 
 def test_help_does_not_import_heavy_modules():
@@ -88,9 +98,179 @@ def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path,
 
     client = mlflow.MlflowClient(store)
     runs = client.search_runs([client.get_experiment_by_name("demo").experiment_id])
-    assert sorted(r.info.run_name for r in runs) == ["FedAvg-2c-aug", "FedRootAvg-2c-aug"]
+    names = [r.info.run_name.removesuffix("-image") for r in runs]  # + modality (issue 13)
+    assert sorted(names) == ["FedAvg-2c-aug", "FedRootAvg-2c-aug"]
     assert all(r.info.status == "FINISHED" for r in runs)
     csv_before = (data / "all_data.csv").read_bytes()
     assert main(args) == 0
     assert "synthesising" not in capsys.readouterr().out
     assert (data / "all_data.csv").read_bytes() == csv_before
+
+
+# --------------------------------------------------------------------------- polish (issue 13)
+
+
+def _help(capsys, *argv: str) -> str:
+    with pytest.raises(SystemExit) as stop:
+        main([*argv, "--help"])
+    assert stop.value.code == 0
+    return capsys.readouterr().out
+
+
+def _verbs(parser) -> dict[str, argparse.ArgumentParser]:
+    """Every verb's parser (``data synth`` ...), walked from the top."""
+    found = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found[name] = sub
+                found.update({f"{name} {k}": v for k, v in _verbs(sub).items()})
+    return found
+
+
+def test_every_option_has_help_and_shows_its_default(capsys):
+    verbs = _verbs(build_parser())
+    # fedlgr deploy's parser lives in fedlgr/cli/deploy.py, which has its own owner.
+    ours = {name: p for name, p in verbs.items() if not name.startswith("deploy")}
+    assert {"run", "demo", "sweep", "report", "pretrain", "data synth", "data check"} <= set(ours)
+    silent = [
+        f"{name} {a.dest}"
+        for name, p in ours.items()
+        for a in p._actions
+        if not a.help and not isinstance(a, argparse._SubParsersAction)
+    ]
+    assert silent == []
+    out = _help(capsys, "demo")
+    assert "--scenes SCENES       scenes to synthesise if absent (default: 1000)" in out
+    assert "(default: 0)" in out  # --seed: a default of 0 is shown too
+    assert "(default: None)" not in out and "(default: False)" not in out
+    assert "(default: 128)" in _help(capsys, "data", "check")
+
+
+def test_run_print_config_resolves_like_a_run_and_runs_nothing(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # a config named relative to conf/, found from anywhere
+    overrides = ["data.path=/data/x", "federated.rounds=7"]
+    argv = ["run", "debug/fast.yaml", *overrides, "--print-config"]
+    assert main([*argv, "--tracking-uri", "sqlite:///t.db"]) == 0
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["federated"]["rounds"] == 7  # the override
+    assert printed["tracking"]["uri"] == "sqlite:///t.db"  # the option
+    expected = to_plain(load_config(CONF_DIR / "debug" / "fast.yaml", overrides))
+    assert {**printed, "tracking": {**printed["tracking"], "uri": None}} == expected
+    assert list(tmp_path.iterdir()) == []  # no store, no run
+    assert main(["run", "no/such.yaml", "--print-config"]) == 1
+    assert "no/such.yaml: config file not found" in capsys.readouterr().err
+
+
+def test_sweep_help_lists_the_shipped_sweeps(capsys):
+    out = _help(capsys, "sweep")
+    listing = out[out.index("shipped sweeps") :]
+    for path in SWEEPS_DIR.glob("*.yaml"):
+        assert f"\n  {path.stem} " in listing
+    assert "EWC lambda grid, FedAvg-EWC and FedRoot-EWC" in listing
+    assert dict(shipped_sweeps())["paper_fl"] == "the paper's FL benchmark (Table I and III)"
+
+
+def test_duration_reads_as_a_person_would():
+    assert [duration(s) for s in (0.4, 42, 240, 3599, 4800)] == [
+        "0 s",
+        "42 s",
+        "4 min",
+        "1 h 00 min",
+        "1 h 20 min",
+    ]
+
+
+def test_progress_off_a_terminal_logs_tenths_and_waits_between_lines(monkeypatch, capsys):
+    clock = [0.0]
+    monkeypatch.setattr("fedlgr.console.time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    with Progress("decoding images", "img") as progress:
+        assert progress.bar is None and not progress.terminal
+        for done in range(1, 101):
+            clock[0] = done * 0.5  # 100 images in 50 s
+            progress(done, 100)
+    lines = capsys.readouterr().err.splitlines()
+    # A tenth at most every 10 s (every_s / 3): at 10, 20, ... seconds.
+    assert lines[0] == "decoding images: 20/100 img (20%) after 10 s, about 40 s left"
+    assert [line.split()[2] for line in lines] == [
+        "20/100",
+        "40/100",
+        "60/100",
+        "80/100",
+        "100/100",
+    ]
+    assert lines[-1] == "decoding images: 100/100 img (100%) after 50 s"
+    quiet = Progress("x", "it", enabled=False)
+    quiet(1, 1)
+    assert capsys.readouterr().err == ""
+
+
+def test_default_threads_leave_busy_cores_alone(monkeypatch):
+    import psutil
+
+    from fedlgr import runtime
+
+    def machine(cores, load, percent, machine_cores=None):
+        """This process may use CPUs 0..cores-1 of machine_cores; load average; each CPU's
+        use (%) over the sample."""
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
+        monkeypatch.setattr(os, "cpu_count", lambda: machine_cores or cores)
+        monkeypatch.setattr(os, "getloadavg", lambda: (load, 0.0, 0.0))
+        monkeypatch.setattr(psutil, "cpu_percent", lambda interval, percpu: list(percent))
+
+    machine(4, 0.2, [5, 0, 10, 0])
+    assert (runtime.default_threads(), runtime.default_threads(2)) == (4, 2)  # idle: all
+    machine(2, 3.8, [100, 100])  # the loaded 2-core VM of the issue
+    assert runtime.default_threads() == 1
+    machine(4, 2.6, [100, 60, 100, 0])
+    assert runtime.busy_cores() == 2.6 and runtime.default_threads() == 1
+    # The load average still holds this process's previous run; the sample finds idle cores.
+    machine(2, 1.9, [3, 0])
+    assert runtime.busy_cores() == pytest.approx(0.03) and runtime.default_threads() == 2
+    # A 2-core cpuset on a 64-core machine: the machine's load scaled to its 2 cores (0.5);
+    # the sample reads CPUs 0 and 1 only.
+    machine(2, 16.0, [100, 100] + [0] * 62, machine_cores=64)
+    assert runtime.busy_cores() == 0.5 and runtime.default_threads() == 2
+    machine(8, 4.0, [100] * 4 + [0] * 4)
+    assert runtime.default_threads(3) == 1  # 4 idle cores over 3 processes
+
+
+def test_run_off_a_terminal_logs_progress_eta_and_threads(synth_dir, tmp_path, monkeypatch, capsys):
+    """A fresh cache (images decoded), progress on, stderr not a terminal: log lines for
+    the decoding and the client epochs; round lines with an ETA but the last; the header
+    names the effective thread count and why it is below the cores."""
+    from fedlgr import runtime
+    from fedlgr.federated import experiment
+
+    monkeypatch.setattr(Progress, "every_s", 0.0)  # a line for every step: the run is short
+    monkeypatch.setattr(runtime, "available_cores", lambda: 4)
+    monkeypatch.setattr(experiment, "available_cores", lambda: 4)
+    monkeypatch.setattr(runtime, "busy_cores", lambda: 4.0)  # every core busy
+    argv = [
+        "run",
+        str(FAST),
+        f"data.path={synth_dir}",
+        f"data.cache_dir={tmp_path / 'cache'}",
+        "tracking.enabled=false",
+        "runtime.progress=true",
+        "runtime.threads=null",  # the default decides
+        "federated.rounds=3",
+        "data.modality=image",
+        "data.clients=2",
+        "train.epochs=1",
+    ]
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    out, err = captured.out.splitlines(), captured.err.splitlines()
+    assert out[0].endswith(
+        "36 training / 12 test scenes, "
+        "1 torch thread (of 4 cores: the others are busy; runtime.threads to choose)"
+    )
+    rounds = [line for line in out if line.startswith("round ")]
+    assert len(rounds) == 3
+    assert re.search(r"\(\d+\.\d s, ETA \d+ s\)$", rounds[0]), rounds[0]
+    assert re.search(r"\(\d+\.\d s\)$", rounds[2]), rounds[2]  # nothing left to wait for
+    decoding = [line for line in err if line.startswith("decoding images: ")]
+    assert decoding[-1].startswith("decoding images: 48/48 img (100%) after")
+    epochs = [line for line in err if line.startswith("round 2/3, client epochs: ")]
+    assert epochs[-1].startswith("round 2/3, client epochs: 2/2 epoch (100%)")

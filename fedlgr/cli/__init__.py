@@ -34,8 +34,74 @@ def _crop(text: str) -> tuple[int | None, ...]:
         raise argparse.ArgumentTypeError(f"not a pixel position: {err}") from None
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """Every option's default in its help (argparse's ``ArgumentDefaultsHelpFormatter``
+    without the noise of ``None``, ``False`` and ``[]``), and paragraphs of a description or
+    epilog kept apart, and one that holds lines indented by two spaces (a listing) kept as
+    written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            "%(default)" in text
+            or default is None
+            or default is False
+            or default == []
+            or default == argparse.SUPPRESS
+            or not (action.option_strings or action.nargs in ("?", "*"))
+        ):
+            return text
+        return f"{text} (default: %(default)s)"
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        blocks = []
+        for block in text.split("\n\n"):
+            if block.startswith("  ") or "\n  " in block:
+                blocks.append("\n".join(indent + line for line in block.splitlines()))
+            else:
+                blocks.append(super()._fill_text(block, width, indent))
+        return "\n\n".join(blocks)
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser with :class:`HelpFormatter`, for the verbs too (sub-parsers are
+    made of their parent's class)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
+def shipped_sweeps() -> list[tuple[str, str]]:
+    """``(name, what it sweeps)`` for each YAML file in ``sweeps/`` (the checkout's or the
+    installed package's): its ``description:``, else its header comment's first line if
+    short. Plain text reading, no YAML parser: ``fedlgr --help`` builds this too."""
+    from fedlgr.config import SWEEPS_DIR
+
+    listing = []
+    for path in sorted(SWEEPS_DIR.glob("*.yaml")):
+        lines = path.read_text(encoding="utf-8").splitlines()
+        described = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("description:")]
+        header = lines[0].lstrip("# ").strip() if lines and lines[0].startswith("#") else ""
+        text = (described or [""])[0].strip("\"'") or (header if len(header) <= 72 else "")
+        listing.append((path.stem, text))
+    return listing
+
+
+def _sweep_epilog() -> str:
+    from fedlgr.config import SWEEPS_DIR
+
+    listing = shipped_sweeps()
+    if not listing:
+        return ""
+    width = max(len(name) for name, _ in listing)
+    lines = [f"  {name.ljust(width)}  {text}".rstrip() for name, text in listing]
+    return f"shipped sweeps (in {SWEEPS_DIR}):\n" + "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="fedlgr",
         description="Federated (continual) learning of socially appropriate robot behaviours: "
         "FedRoot, FedLGR and baselines on MANNERS-DB or a synthetic living room.",
@@ -50,12 +116,13 @@ def build_parser() -> argparse.ArgumentParser:
         "it (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.",
     )
     demo.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
-    demo.add_argument(
-        "--data", type=Path, default=DEFAULT_DATA, help="dataset folder (default %(default)s)"
-    )
+    demo.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder")
     demo.add_argument("--scenes", type=int, default=1000, help="scenes to synthesise if absent")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--tracking-uri", help="MLflow tracking URI")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the data and the runs")
+    demo.add_argument(
+        "--tracking-uri",
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)",
+    )
     demo.add_argument(
         "--fcl",
         action="store_true",
@@ -66,20 +133,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--modality",
         choices=["features", "image"],
         default="features",
-        help="--fcl: the descriptors (MLP root, about 35 s, default) or the images "
+        help="--fcl: the descriptors (MLP root, about 35 s) or the images "
         "(a root pretrained once, about 4 minutes)",
     )
     demo.add_argument(
         "--pretrain-scenes",
         type=int,
         default=2000,
-        help="--fcl: scenes (of another seed) the root is pretrained on (default %(default)s)",
+        help="--fcl: scenes (of another seed) the root is pretrained on",
     )
     demo.add_argument(
         "--pretrain-images",
         type=int,
         default=16000,
-        help="--fcl: augmented images the root is pretrained on (default %(default)s)",
+        help="--fcl: augmented images the root is pretrained on",
     )
     demo.set_defaults(run="fedlgr.cli.demo:demo")
 
@@ -90,7 +157,20 @@ def build_parser() -> argparse.ArgumentParser:
         "(e.g. conf/experiment/table1/clients2_noaug.yaml); overrides are key=value, e.g. "
         "method=FedRootAvg data.path=/path/to/manners-db federated.rounds=5.",
     )
-    run.add_argument("items", nargs="*", metavar="CONFIG|key=value")
+    run.add_argument(
+        "items",
+        nargs="*",
+        metavar="CONFIG|key=value",
+        help="a config file (a path, or a name in conf/ such as debug/fast.yaml), then "
+        "overrides such as federated.rounds=5 (without a config: the defaults)",
+    )
+    run.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved config (file, includes and overrides) as YAML and exit "
+        "without running; settings resolved at start (runtime.threads, runtime.concurrency, "
+        "...) show as given",
+    )
     run.add_argument(
         "--tracking-uri",
         help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI "
@@ -136,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sweep = verbs.add_parser(
         "sweep",
+        epilog=_sweep_epilog(),
         help="run or resume an Optuna sweep (grid or TPE) of experiments",
         description="Run the trials of SWEEP (a file in sweeps/, e.g. sweeps/ewc.yaml or just "
         "ewc) as an Optuna study, each trial an experiment tracked in MLflow under one parent "
@@ -143,22 +224,26 @@ def build_parser() -> argparse.ArgumentParser:
         "same --storage) work on it in parallel. Overrides apply to every trial, e.g. "
         "data.path=/path/to/manners-db.",
     )
-    sweep.add_argument("sweep", help="sweep file or name (see sweeps/)")
+    sweep.add_argument("sweep", help="sweep file or name (the shipped ones are listed below)")
     sweep.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     sweep.add_argument(
         "--storage",
         default="sqlite:///optuna.db",
-        help="Optuna RDB storage URL (default %(default)s; a PostgreSQL/MySQL URL for several "
+        help="Optuna RDB storage URL (default: %(default)s; a PostgreSQL/MySQL URL for several "
         "machines)",
     )
     sweep.add_argument("--study", help="study name (default: the sweep's name)")
     sweep.add_argument("--workers", type=int, default=1, help="processes on this machine")
-    sweep.add_argument("--tracking-uri", help="MLflow tracking URI")
+    sweep.add_argument(
+        "--tracking-uri",
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)",
+    )
     sweep.add_argument(
         "--heartbeat",
         type=int,
         default=None,
-        help="seconds between a worker's heartbeats; a trial silent for two is retried",
+        help="seconds between a worker's heartbeats; a trial silent for two is retried "
+        "(default: the sweep file's heartbeat_s)",
     )
     sweep.add_argument("--worker-id", type=int, default=0, help=argparse.SUPPRESS)
     sweep.set_defaults(run="fedlgr.cli.sweep:sweep")
@@ -175,11 +260,11 @@ def build_parser() -> argparse.ArgumentParser:
     pre.add_argument("--out", type=Path, required=True, help="the root's state-dict file to write")
     pre.add_argument("--width", type=float, default=1.0, help="MobileNetV2 width multiplier")
     pre.add_argument("--images", type=int, default=16000, help="augmented images to train on")
-    pre.add_argument("--size", type=int, default=128)
+    pre.add_argument("--size", type=int, default=128, help="image width and height in pixels")
     pre.add_argument(
         "--crop", type=_crop, default=None, help="LEFT,TOP,RIGHT,BOTTOM before resizing"
     )
-    pre.add_argument("--seed", type=int, default=0)
+    pre.add_argument("--seed", type=int, default=0, help="seed of the augmentation and the root")
     pre.set_defaults(run="fedlgr.cli.pretrain:pretrain")
 
     data = verbs.add_parser("data", help="create, inspect and check datasets")
@@ -188,26 +273,35 @@ def build_parser() -> argparse.ArgumentParser:
         "synth", help="write a synthetic living room in the MANNERS-DB layout"
     )
     synth.add_argument("--out", type=Path, required=True, help="folder to write")
-    synth.add_argument("--scenes", type=int, default=1000)
-    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--scenes", type=int, default=1000, help="scenes to write")
+    synth.add_argument("--seed", type=int, default=0, help="seed of the scenes and ratings")
     synth.add_argument("--size", type=int, default=128, help="image width and height in pixels")
     synth.add_argument("--force", action="store_true", help="overwrite a non-empty folder")
     synth.set_defaults(run="fedlgr.cli.data:synth")
 
     show = data_verbs.add_parser("show", help="contact sheet of a few scenes with their labels")
-    show.add_argument("folder", type=Path)
-    show.add_argument("--out", type=Path, default=Path("contact_sheet.png"))
-    show.add_argument("--scenes", type=int, default=8)
-    show.add_argument("--seed", type=int, default=0)
+    show.add_argument("folder", type=Path, help="a MANNERS-DB-layout folder")
+    show.add_argument(
+        "--out", type=Path, default=Path("contact_sheet.png"), help="the PNG file to write"
+    )
+    show.add_argument("--scenes", type=int, default=8, help="scenes on the sheet")
+    show.add_argument("--seed", type=int, default=0, help="seed of the choice of scenes")
     show.add_argument(
         "--crop", type=_crop, default=None, help="LEFT,TOP,RIGHT,BOTTOM before resizing"
     )
     show.set_defaults(run="fedlgr.cli.data:show")
 
     check = data_verbs.add_parser("check", help="validate a dataset folder and summarise it")
-    check.add_argument("folder", type=Path)
-    check.add_argument("--modality", choices=["image", "features"], default="image")
-    check.add_argument("--size", type=int, default=128)
+    check.add_argument("folder", type=Path, help="a MANNERS-DB-layout folder")
+    check.add_argument(
+        "--modality",
+        choices=["image", "features"],
+        default="image",
+        help="check the images too, or the CSV's descriptors alone",
+    )
+    check.add_argument(
+        "--size", type=int, default=128, help="image width and height to decode to, in pixels"
+    )
     check.add_argument(
         "--crop", type=_crop, default=None, help="LEFT,TOP,RIGHT,BOTTOM before resizing"
     )
@@ -216,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="skip (with a warning) scenes whose image is missing or corrupt instead of failing",
     )
-    check.add_argument("--clients", type=int, default=2)
+    check.add_argument("--clients", type=int, default=2, help="clients of the split shown")
     check.set_defaults(run="fedlgr.cli.data:check")
 
     from fedlgr.cli.deploy import add_parser as add_deploy  # argparse only: --help stays fast

@@ -12,7 +12,9 @@ def pretrain(args: argparse.Namespace) -> int:
     from fedlgr.data.dataset import load_scenes
     from fedlgr.models.pretrain import pretrain_root
 
-    scenes = load_scenes(DataConfig(path=args.data, image_size=args.size, crop=args.crop))
+    data = DataConfig(path=args.data, image_size=args.size, crop=args.crop)
+    with Progress("decoding images", unit="img") as bar:  # only when not cached yet
+        scenes = load_scenes(data, progress=bar)
     with Progress("pretraining", unit="img") as bar:
         result = pretrain_root(
             scenes, args.out, width=args.width, images=args.images, seed=args.seed, progress=bar

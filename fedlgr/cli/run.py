@@ -1,4 +1,5 @@
-"""``fedlgr run [CONFIG] [key=value ...]``: one experiment, tracked in MLflow."""
+"""``fedlgr run [CONFIG] [key=value ...] [--print-config]``: one experiment, tracked in
+MLflow (or its resolved config, printed)."""
 
 from __future__ import annotations
 
@@ -12,14 +13,19 @@ def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]
 
 
 def run(args: argparse.Namespace) -> int:
-    from fedlgr.config import load_config
-    from fedlgr.federated.experiment import run_experiment
-    from fedlgr.signals import terminate_as_interrupt
+    from fedlgr.config import find_config, load_config, to_yaml
 
     path, overrides = split_config_and_overrides(args.items)
     if args.tracking_uri:
         overrides.append(f"tracking.uri={args.tracking_uri}")
-    config = load_config(path, overrides)
+    config = load_config(None if path is None else find_config(path), overrides)
+    if args.print_config:
+        print(to_yaml(config), end="")
+        return 0
+
+    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.signals import terminate_as_interrupt
+
     with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C
         result = run_experiment(config, resume=args.resume)
     if result is not None and result.run_id:

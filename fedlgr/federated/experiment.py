@@ -17,11 +17,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fedlgr.config import ExperimentConfig
-from fedlgr.console import Progress
+from fedlgr.console import Progress, duration
 from fedlgr.federated import concurrency
 from fedlgr.federated.orchestrator import Orchestrator, torch_threads
 from fedlgr.federated.result import ExperimentResult
 from fedlgr.federated.rounds import RoundLog
+from fedlgr.runtime import available_cores
 
 
 def _epoch_counter(bar: Progress, total: int):
@@ -127,10 +128,13 @@ def _main(
     from fedlgr.data.splits import make_split
     from fedlgr.federated.resume import restore, save_checkpoint
 
+    chosen, share = config.runtime.threads, None
     if fabric.device.type == "cpu":
         # Results depend on the thread count (the order of floating-point sums): the
         # effective count goes into the config, its params and its checkpoints.
-        threads = torch_threads(config, fabric.world_size // config.runtime.num_nodes)
+        local_world = fabric.world_size // config.runtime.num_nodes
+        threads = torch_threads(config, local_world)
+        share = None if chosen is not None else max(1, available_cores() // local_world)
         torch.set_num_threads(threads)
         config = dataclasses.replace(
             config, runtime=dataclasses.replace(config.runtime, threads=threads)
@@ -141,7 +145,9 @@ def _main(
     seed_everything(config.seed, verbose=False)
     start = time.perf_counter()
     point = _resume_point(fabric, config, resume)
-    scenes = load_scenes(config.data)
+    show = fabric.global_rank == 0 and config.runtime.progress
+    with Progress("decoding images", "img", show) as bar:  # only when not cached yet
+        scenes = load_scenes(config.data, progress=bar)
     split = make_split(scenes.table, config.data)
     orchestrator = Orchestrator(fabric, config, scenes, split)
     resumed = None
@@ -155,11 +161,27 @@ def _main(
         rank0=fabric.global_rank == 0,
         tags=tags,
         parent_run_id=parent_run_id,
-        what=f"{len(split.train)} training / {len(split.test)} test scenes{processes}",
+        what=f"{len(split.train)} training / {len(split.test)} test scenes{processes}, "
+        + _threads_text(config, share),
         resumed=resumed,
         save=lambda folder, *rest: save_checkpoint(fabric, folder, orchestrator, *rest),
         start=start,
     )
+
+
+def _threads_text(config: ExperimentConfig, share: int | None) -> str:
+    """The header's account of the torch threads each process uses, and why when the
+    default chose fewer than the process's ``share`` of the cores (others are busy)."""
+    import torch
+
+    rt = config.runtime
+    threads = torch.get_num_threads()
+    text = f"{threads} torch thread{'s' if threads != 1 else ''}"
+    if share is not None and threads < share:
+        text += f" (of {share} cores: the others are busy; runtime.threads to choose)"
+    if rt.concurrency == "threads" and rt.workers > 1:
+        text += f", {rt.workers} clients side by side"
+    return text
 
 
 @dataclass
@@ -241,6 +263,7 @@ def drive(
             # (a sweep ignores the repeats).
             for round_, metrics in replayed:
                 hooks.on_round(round_, metrics)
+        eta = Eta(total - len(result.rounds))
         for step in steps[len(result.rounds) :]:
             round_, k = step.round, step.task
             show = rank0 and config.runtime.progress and local_clients > 0
@@ -265,7 +288,7 @@ def drive(
                 keep = config.tracking.keep_checkpoints
                 save(folder, result.rounds, result.run_id, spent, keep)
             missing = f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
-            say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s){missing}")
+            say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s{eta.step()}){missing}")
             if hooks.on_round is not None and rank0:
                 hooks.on_round(round_, metrics)
         result.seconds = elapsed + time.perf_counter() - start
@@ -286,6 +309,22 @@ def drive(
     say(f"\n{config.run_name} after {total} rounds ({result.seconds:.0f} s):")
     say(result.summary())
     return result
+
+
+class Eta:
+    """``, ETA 4 min`` after each round but the last: the rounds still to run times the
+    mean wall time of this process's rounds so far (logging and checkpoints included)."""
+
+    def __init__(self, rounds: int):
+        self.rounds, self.done, self.start = rounds, 0, time.perf_counter()
+
+    def step(self) -> str:
+        self.done += 1
+        left = self.rounds - self.done
+        if left <= 0:
+            return ""
+        mean = (time.perf_counter() - self.start) / self.done
+        return f", ETA {duration(mean * left)}"
 
 
 def _scores(log: RoundLog) -> str:

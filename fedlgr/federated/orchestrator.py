@@ -31,7 +31,7 @@ from fedlgr.federated.client_side import ClientSide
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainRes, nbytes
 from fedlgr.federated.rounds import RoundLog
 from fedlgr.federated.server_side import ServerSide
-from fedlgr.runtime import available_cores
+from fedlgr.runtime import default_threads
 from fedlgr.tracking.checkpoint import to_device
 
 
@@ -108,7 +108,8 @@ class Orchestrator:
 
 
 def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:
-    """Threads per process: the setting, else this machine's cores over its processes."""
+    """Threads per process: the setting, else this machine's idle cores over its processes
+    (:func:`fedlgr.runtime.default_threads`: all cores would oversubscribe a busy one)."""
     if config.runtime.threads is not None:
         return config.runtime.threads
-    return max(1, available_cores() // local_world_size)
+    return default_threads(local_world_size)
