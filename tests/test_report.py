@@ -4,7 +4,9 @@ best values and FedRoot reductions on hand-made numbers, sweeps, and the command
 from __future__ import annotations
 
 import csv
+import json
 import math
+import statistics
 
 import mlflow
 import pytest
@@ -163,6 +165,12 @@ def test_table1_rows_columns_values_and_bold_best(report, runs, store):
             assert rows[method] == ["—"] * 6, method
         assert rows[method][3:] == ["—"] * 3  # no run with ten clients
 
+    # Two seeds in FedAvg's cell: the mean, then the standard deviation over them and n.
+    client = mlflow.MlflowClient(store)
+    rmse = [client.get_run(r).data.metrics["test/rmse"] for r in runs["FedAvg"]]
+    assert rows["FedAvg"][1].split(" ", 1)[1] == f"(± {statistics.stdev(rmse):.3f}, n=2)"
+    assert "(" not in rows["FedRootAvg"][1]  # one run: nothing to spread
+
     _, augmented = blocks["W/ augmentation"]
     aug = metrics_of(store, runs["FedAvg-aug"])
     assert [parse(c) for c in augmented["FedAvg"][:3]] == [
@@ -193,7 +201,9 @@ def test_csv_and_latex_hold_the_same_numbers_as_the_markdown(report):
             table = list(csv.reader(f))
         tex = latex_rows(report.out / f"{name}.tex")
         header = table[0]
-        numbers_at = [j for j, h in enumerate(header) if j > 1 and "reduction" not in h]
+        extra = ("reduction %", " std", " n")
+        numbers_at = [j for j, h in enumerate(header) if j > 1 and not h.endswith(extra)]
+        assert all(header[j + 1] == f"{header[j]} std" for j in numbers_at)
         assert len(table) - 1 == sum(len(rows) for _, rows in blocks.values()) == len(tex)
         for row in table[1:]:
             title, label = row[0], row[1]
@@ -207,6 +217,9 @@ def test_csv_and_latex_hold_the_same_numbers_as_the_markdown(report):
                 if shown is not None:
                     decimals = len(shown.split(".")[1])
                     assert f"{float(row[j]):.{decimals}f}" == shown, (name, label)
+                    n = int(row[j + 2])
+                    assert (row[j + 1] != "") == (n > 1), (name, label)  # std from 2 runs
+                    assert (f", n={n})" in cell) == (n > 1), (name, label, cell)
                 wrap = {"best": r"\textbf{{{}}}", "second": "[{}]"}.get(mark, "{}")
                 tex_cells.append("—" if shown is None else wrap.format(shown))
             assert [c.split(" (")[0] for c in tex[title, label]] == tex_cells, (name, label)
@@ -310,7 +323,14 @@ def test_sweep_report_shows_the_best_trial_per_cell_and_goes_into_the_parent_run
         {"after_task1/test/loss": 0.2},
     )
     for trial, (loss, cpu) in enumerate([(0.2, 10.0), (0.4, 30.0)]):
-        trial_tags = {**tags, "sweep": "s1", "trial": str(trial), "mlflow.parentRunId": parent}
+        swept = json.dumps({"method": "FedAvg-EWC", "continual.ewc_lambda": 10**trial})
+        trial_tags = {
+            **tags,
+            "sweep": "s1",
+            "trial": str(trial),
+            "mlflow.parentRunId": parent,
+            "swept": swept,
+        }
         _finished_run(
             client,
             experiment_id,
@@ -323,9 +343,10 @@ def test_sweep_report_shows_the_best_trial_per_cell_and_goes_into_the_parent_run
     # The grid's best trial by the sweep's objective (test/loss: trial 0), not the mean.
     assert result.runs == 1 and [n for n, _ in result.tables] == ["table2", "table4"]
     _, rows = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
-    assert rows["FedAvg-EWC"][0] == "**0.200**" and rows["FedAvg-EWC"][1] == "—"
+    # ... and the value it won with (the method places it in the cell: not repeated).
+    assert rows["FedAvg-EWC"][0] == "**0.200** (ewc_lambda=1)" and rows["FedAvg-EWC"][1] == "—"
     _, rows = markdown_blocks(tmp_path / "out" / "table4.md")["2 clients, W/O augmentation"]
-    assert rows["CPU usage (s) ▼"][0] == "10.00"
+    assert rows["CPU usage (s) ▼"][0] == "10.00 (ewc_lambda=1)"
     assert result.logged_to == parent
     logged = {a.path for a in client.list_artifacts(parent, "report")}
     assert {"report/table2.md", "report/table4.csv"} <= logged

@@ -45,7 +45,7 @@ def _md_cell(cell: Cell) -> str:
     if cell.value is None:
         return MISSING
     text = {"best": "**{}**", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
-    return text + _reduction(cell, "(▼ {:.1f}%)", "(▲ {:.1f}%)")
+    return text + _md_escape(cell.detail()) + _reduction(cell, "(▼ {:.1f}%)", "(▲ {:.1f}%)")
 
 
 def _md_row(cells: list[str]) -> str:
@@ -111,6 +111,7 @@ def _tex_cell(cell: Cell) -> str:
     if cell.value is None:
         return MISSING
     text = {"best": r"\textbf{{{}}}", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
+    text += _tex(cell.detail("\N{PLUS-MINUS SIGN}")).replace("\N{PLUS-MINUS SIGN}", r"$\pm$")
     return text + _reduction(
         cell, r"($\blacktriangledown$~{:.1f}\%)", r"($\blacktriangle$~{:.1f}\%)"
     )
@@ -147,7 +148,7 @@ def _tex(text: str) -> str:
 def to_csv(table: Table) -> str:
     header = [table.block_header, table.row_header.lower()]
     for column in table.columns:
-        header.append(column.key)
+        header += [column.key, f"{column.key} std", f"{column.key} n"]
         if column.reduces:
             header.append(f"{column.key} reduction %")
     buffer = io.StringIO()
@@ -157,7 +158,7 @@ def to_csv(table: Table) -> str:
         for label, cells in block.rows:
             row = [block.title, label]
             for column, cell in zip(table.columns, cells, strict=True):
-                row.append(_number(cell.value))
+                row += [_number(cell.value), _number(cell.std), str(cell.runs)]
                 if column.reduces:
                     row.append(_number(cell.reduction))
             writer.writerow(row)

@@ -9,6 +9,7 @@ and sweep parent runs (``fedlgr.kind=sweep``), as are runs without the ``method`
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -19,6 +20,8 @@ from fedlgr.errors import FedlgrError
 
 KIND = "fedlgr.kind"
 NOT_EXPERIMENTS = ("report", "sweep")
+# Swept settings that place a trial in a table cell rather than tune it.
+CELL_KEYS = frozenset({"method", "data.clients", "data.augment", "config"})
 
 
 class ReportError(FedlgrError):
@@ -49,6 +52,16 @@ class RunRecord:
     @property
     def augmentation(self) -> bool:
         return self.tags.get("augmentation") == "true"
+
+    @property
+    def swept(self) -> dict[str, object]:
+        """A sweep trial's swept values (tag ``swept``, JSON), but those that choose the
+        table cell (method, clients, augmentation, base config); {} for other runs."""
+        try:
+            params = json.loads(self.tags.get("swept", "{}"))
+        except ValueError:
+            return {}
+        return {k: v for k, v in params.items() if k not in CELL_KEYS}
 
     def value(self, metric: str) -> float | None:
         v = self.metrics.get(metric)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import re
+import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -54,9 +55,21 @@ class Cell:
     runs: int = 0  # runs averaged into the value
     mark: str = ""  # "best", "second" or ""
     reduction: float | None = None  # % saved against the full-model counterpart
+    std: float | None = None  # sample standard deviation over the runs (2 runs or more)
+    won: str = ""  # a sweep's cell: the swept values of the best trial, e.g. "ewc_lambda=1000"
 
     def shown(self) -> str:
         return "" if self.value is None else f"{self.value:.{self.decimals}f}"
+
+    def detail(self, plus_minus: str = "±") -> str:
+        """What follows the number: `` (± 0.012, n=3)`` over several runs, `` (lr_top=0.01)``
+        for a sweep's best trial, else nothing."""
+        parts = []
+        if self.std is not None:
+            parts.append(f"{plus_minus} {self.std:.{self.decimals}f}, n={self.runs}")
+        if self.won:
+            parts.append(self.won)
+        return f" ({'; '.join(parts)})" if parts and self.value is not None else ""
 
 
 @dataclass
@@ -168,9 +181,14 @@ def group_runs(records: Sequence[RunRecord]) -> dict[tuple[str, int, bool], list
 
 
 def mean_cell(runs: Sequence[RunRecord], metric: str, decimals: int, scale: float = 1.0) -> Cell:
-    values = [v for v in (r.value(metric) for r in runs) if v is not None]
-    mean = scale * sum(values) / len(values) if values else None
-    return Cell(mean, decimals, len(values))
+    """The mean over ``runs`` (seeds, repeats), its standard deviation from two runs on,
+    and for a sweep's best trial the values it won with."""
+    values = [scale * v for v in (r.value(metric) for r in runs) if v is not None]
+    mean = sum(values) / len(values) if values else None
+    std = statistics.stdev(values) if len(values) > 1 else None
+    swept = runs[0].swept if len(runs) == 1 else {}
+    won = " ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in swept.items())
+    return Cell(mean, decimals, len(values), std=std, won=won)
 
 
 def after_tasks(records: Sequence[RunRecord]) -> list[int]:
@@ -304,5 +322,7 @@ def _runs_note(runs: Sequence[RunRecord], cells: Sequence[Cell], source: str) ->
     each = f"{low} to {high} runs" if low != high else f"{low} run" + "s" * (low != 1)
     return (
         f"Built from {len(runs)} finished run{'s' * (len(runs) != 1)} of {source}; "
-        f"each value is the mean over its runs ({each} per value)."
+        f"each value is the mean over its runs ({each} per value), with ± the standard "
+        "deviation and n the runs where there are several; a sweep's cell names the swept "
+        "values of its best trial."
     )
