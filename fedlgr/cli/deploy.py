@@ -64,7 +64,7 @@ def add_parser(verbs) -> None:
         "and to whoever runs flwr; server.pem and server.key stay on the SuperLink's machine; "
         "keep ca.key offline.",
     )
-    certs.add_argument("dir", type=Path, metavar="DIR")
+    certs.add_argument("dir", type=Path, metavar="DIR", help="folder to write the four files to")
     certs.add_argument(
         "--host",
         action="append",
@@ -82,7 +82,7 @@ def add_parser(verbs) -> None:
         "Write DIR/NAME (private: to that robot only) and DIR/NAME.pub (registered with "
         "flwr supernode register).",
     )
-    key.add_argument("dir", type=Path, metavar="DIR")
+    key.add_argument("dir", type=Path, metavar="DIR", help="folder to write the key pair to")
     key.add_argument("name", metavar="NAME", help="the robot's name, e.g. robot0")
     key.add_argument("--force", action="store_true", help="replace an existing key")
 
@@ -94,7 +94,9 @@ def add_parser(verbs) -> None:
         "connect",
     )
     connect.add_argument("name", metavar="NAME", help="the connection's name, e.g. robots")
-    connect.add_argument("--superlink", required=True, metavar="HOST:PORT")
+    connect.add_argument(
+        "--superlink", required=True, metavar="HOST:PORT", help="the SuperLink's control API"
+    )
     connect.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
     connect.add_argument("--default", action="store_true", help="make it flwr's default")
     insecure(connect)
@@ -127,7 +129,9 @@ def add_parser(verbs) -> None:
         "Replace this process with flower-supernode, connected to the SuperLink over TLS with "
         "the robot's registered key; the ClientApp reads the robot's data folder.",
     )
-    node.add_argument("--superlink", required=True, metavar="HOST:PORT")
+    node.add_argument(
+        "--superlink", required=True, metavar="HOST:PORT", help="the SuperLink's fleet API"
+    )
     node.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
     node.add_argument("--key", type=Path, metavar="KEY", help="the robot's private node key")
     node.add_argument("--data", type=Path, required=True, metavar="DIR", help="MANNERS-DB layout")
@@ -161,7 +165,7 @@ def add_parser(verbs) -> None:
         "Run fedlgr's app on the SuperLink: CONFIG (made absolute) must exist at that path on "
         "the SuperLink's machine; key=value overrides as in fedlgr run.",
     )
-    run.add_argument("config", metavar="CONFIG")
+    run.add_argument("config", metavar="CONFIG", help="the config file (as in fedlgr run)")
     run.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     run.add_argument(
         "--federation",
