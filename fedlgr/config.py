@@ -233,10 +233,14 @@ class TrackingConfig:
     keep_checkpoints: int = 2  # the newest K are kept while the run goes on
     checkpoint_dir: str | None = None  # default: checkpoints/ next to a sqlite store, else ./
     heartbeat_s: float = 30.0  # a live run's tag fedlgr.heartbeat is never older than this
+    system_metrics: bool = True  # MLflow's system metrics (CPU, memory, GPU) of the machine
+    system_metrics_s: float = 10.0  # seconds between two samples of them
 
     def __post_init__(self) -> None:
         if not self.experiment:
             raise ConfigError("tracking.experiment: must not be empty")
+        if not self.system_metrics_s > 0:
+            raise ConfigError(f"tracking.system_metrics_s={self.system_metrics_s}: must be > 0")
         if self.checkpoint < 0:
             raise ConfigError(f"tracking.checkpoint={self.checkpoint}: must be >= 0 (0: none)")
         _positive("tracking.keep_checkpoints", self.keep_checkpoints)

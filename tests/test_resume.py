@@ -20,7 +20,8 @@ from fedlgr.tracking import checkpoint as ckpt
 from tests.conftest import FAST, fast_config, results_csv
 
 REPO = Path(__file__).resolve().parents[1]
-TIMING = ("cpu_s", "wall_s", "seconds", "gpu_")  # measured, never equal between two runs
+# Measured, never equal between two runs (system/*: MLflow's machine-wide system metrics).
+TIMING = ("cpu_s", "wall_s", "seconds", "gpu_", "system/")
 FEDLGR = ["method=FedLGR", "continual.rounds_per_task=2", "continual.lgr_epochs=5"]
 NR = ["method=FedRoot-NR", "continual.rounds_per_task=2", "continual.nr_memory=6"]
 

@@ -521,8 +521,11 @@ def test_overrides_may_follow_options_and_stray_arguments_are_refused(
     assert main(args) == 0, capsys.readouterr().err
     client, run = _only_run(store)
     params = run.data.params
-    assert params["federated.rounds"] == "2" and params["data.path"] == str(synth_dir)
-    assert params["tracking.uri"] == store
+    assert params["federated.rounds"] == "2" and params["runtime.threads"] == "1"
+    # Machine-local paths are not params (issue 13): the config artifact keeps them.
+    assert "data.path" not in params and "tracking.uri" not in params
+    config = client.download_artifacts(run.info.run_id, "config.yaml")
+    assert f"path: {synth_dir}" in Path(config).read_text()
     assert _steps(client, run.info.run_id) == [1, 2]
     capsys.readouterr()
 

@@ -29,7 +29,7 @@ def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, st
     result = run_experiment(fast_config(synth_dir, cache_dir, store, f"method={method}"))
     client, run, artifacts = read_run(store, result.run_id)
 
-    assert run.info.status == "FINISHED" and run.info.run_name == f"{method}-2c-noaug"
+    assert run.info.status == "FINISHED" and run.info.run_name == f"{method}-2c-noaug-image"
     tags = run.data.tags
     scope = "root" if method.startswith("FedRoot") else "full"
     strategy = STRATEGY[method.removeprefix("FedRoot").removeprefix("Fed")]

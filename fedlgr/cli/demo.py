@@ -28,6 +28,9 @@ FCL_METHODS = ("FedRoot-FT", "FedLGR")
 
 
 def demo(args: argparse.Namespace) -> int:
+    from fedlgr.tracking.server import check_tracking
+
+    check_tracking(args.tracking_uri, args.overrides)  # before loading torch
     from fedlgr.config import load_config
     from fedlgr.data.synth import synthesize
     from fedlgr.federated.experiment import run_experiment
@@ -45,7 +48,7 @@ def demo(args: argparse.Namespace) -> int:
     for method in METHODS:
         config = load_config(DEMO_CONFIG, [*overrides, f"method={method}"])
         print()
-        results.append(run_experiment(config))
+        results.append(run_experiment(config, show_runs=False))
     rows = []
     for r in results:
         last = r.final
@@ -65,7 +68,7 @@ def demo(args: argparse.Namespace) -> int:
         "(test scores: mean over clients; costs: per client per round)"
     )
     print(table(["method", "loss", "RMSE", "PCC", "CPU s", "upload", "run s"], rows))
-    print("\nCompare the runs: uv run mlflow ui --backend-store-uri sqlite:///mlflow.db")
+    print_runs_hint(results)
     return 0
 
 
@@ -97,14 +100,26 @@ def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
     for method in FCL_METHODS:
         config = load_config(FCL_CONFIG, [*base, *overrides, f"method={method}"])
         print()
-        results.append(run_experiment(config))
+        results.append(run_experiment(config, show_runs=False))
     print(
         f"\nForgetting on {args.data} ({args.modality}): Task 1 = circle, then Task 2 = arrow "
         "(mean over clients; forgetting > 0: circle got worse)"
     )
     print(forgetting_table(results))
-    print("\nCompare the runs: uv run mlflow ui --backend-store-uri sqlite:///mlflow.db")
+    print_runs_hint(results)
     return 0
+
+
+def print_runs_hint(results) -> None:
+    """Where to compare the runs in MLflow's UI (link, and how to start it)."""
+    from fedlgr.tracking.mlflow_run import open_client, tracking_uri
+    from fedlgr.tracking.server import runs_hint
+
+    tracked = [r for r in results if r.run_id]
+    if tracked:
+        uri = tracking_uri(tracked[0].config)
+        run = open_client(uri).get_run(tracked[0].run_id)
+        print("\n" + runs_hint(uri, run.info.experiment_id))
 
 
 def forgetting_table(results, label=lambda r: r.config.method_name) -> str:

@@ -15,9 +15,12 @@ def sweep(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from fedlgr.sweep import load_sweep, run_sweep
+    from fedlgr.tracking.server import check_tracking
 
     overrides = list(args.overrides)
+    check_tracking(args.tracking_uri, overrides)  # before loading Optuna and MLflow
+    from fedlgr.sweep import load_sweep, run_sweep
+
     if args.workers > 1 and not any(o.startswith("runtime.threads=") for o in overrides):
         # Share this machine's cores between the workers instead of oversubscribing them.
         overrides.append(f"runtime.threads={max(1, available_cores() // args.workers)}")

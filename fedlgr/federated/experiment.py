@@ -65,6 +65,7 @@ def run_experiment(
     on_round=None,
     on_start=None,
     resume: str | bool | None = None,
+    show_runs: bool = True,
 ) -> ExperimentResult | None:
     """Run ``config`` end to end; the result in rank 0, ``None`` in other processes.
 
@@ -74,12 +75,18 @@ def run_experiment(
     after each round is logged and checkpointed; a resumed run first calls it again for
     the rounds it restored) may raise to stop the run, e.g. a sweep's
     pruner: the run is then ended KILLED if the exception has ``mlflow_status =
-    "KILLED"``, FAILED otherwise, keeping what was logged."""
+    "KILLED"``, FAILED otherwise, keeping what was logged. ``show_runs``: print at the
+    end where to see the run in MLflow's UI."""
+    from fedlgr.tracking.mlflow_run import tracking_uri
+    from fedlgr.tracking.server import check_reachable
+
+    if config.tracking.enabled:  # before any work: an unreachable server fails at once
+        check_reachable(tracking_uri(config))
     from lightning.fabric.connector import _is_using_cli
 
     echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
     fabric = make_fabric(config)
-    hooks = Hooks(echo, on_round, on_start)
+    hooks = Hooks(echo, on_round, on_start, show_runs)
     if config.runtime.world_size == 1 or _is_using_cli():
         return _main(fabric, config, parent_run_id, tags, hooks, resume)
     return fabric.launch(_main, config, parent_run_id, tags, hooks, resume)
@@ -90,6 +97,7 @@ class Hooks:
     echo: object
     on_round: object = None
     on_start: object = None
+    show_runs: bool = True
 
 
 def _resume_point(fabric, config: ExperimentConfig, resume) -> tuple[str, dict] | None:
@@ -308,6 +316,11 @@ def drive(
         return None
     say(f"\n{config.run_name} after {total} rounds ({result.seconds:.0f} s):")
     say(result.summary())
+    if tracker is not None and hooks.show_runs:
+        from fedlgr.tracking.server import runs_hint
+
+        if hint := runs_hint(tracker.uri, tracker.experiment_id):
+            say(hint)
     return result
 
 

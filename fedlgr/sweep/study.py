@@ -245,6 +245,7 @@ class Worker:
             raise optuna.TrialPruned(f"the same point as trial {twin}")
         from fedlgr.config import load_config
         from fedlgr.federated.experiment import run_experiment
+        from fedlgr.tracking.context import trial_config
 
         shown = " ".join(f"{k}={v}" for k, v in params.items())
         self.echo(f"\n=== {spec.name} trial {trial.number} (worker {self.worker}): {shown}")
@@ -266,6 +267,7 @@ class Worker:
         try:
             base, overrides = spec.trial_config_args(params)
             config = load_config(base, [*overrides, *self._tracking()])
+            config = trial_config(config, params)  # named after its swept values
             tags = {
                 "sweep": spec.name,
                 "study": self.study.study_name,
@@ -280,6 +282,7 @@ class Worker:
                 on_round=on_round,
                 on_start=lambda run_id: trial.set_user_attr("mlflow_run_id", run_id),
                 resume=self._resumable(trial, config),
+                show_runs=False,  # the sweep shows them at its end
             )
         except PrunedRun as err:
             raise optuna.TrialPruned(str(err)) from None
@@ -517,6 +520,9 @@ def run_sweep(
                 process.terminate()
     best = worker.finish_parent() if done else None
     echo("\n" + summary(worker.study, spec, best))
+    from fedlgr.tracking.server import runs_hint
+
+    echo(runs_hint(worker.tracking_uri, worker.experiment_id))
     return SweepResult(worker.study, worker.parent_run_id, done)
 
 

@@ -41,6 +41,8 @@ SAFE_KEYS = frozenset(
         "tracking.checkpoint",
         "tracking.keep_checkpoints",
         "tracking.checkpoint_dir",
+        "tracking.system_metrics",
+        "tracking.system_metrics_s",
         "data.cache_dir",
     }
 )

@@ -9,7 +9,10 @@ results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` (at the 
 the last round done) hold the costs per client per round averaged over clients and rounds
 (what Tables III/IV report). A run
 that fails is ended FAILED (KILLED on Ctrl-C or when a sweep prunes it) after saving what
-it had.
+it had. What else a run records so that runs can be told apart - its name, MLflow's
+context tags (source, user, git commit), params without machine-local paths, the dataset
+input, system metrics - is in :mod:`fedlgr.tracking.context`; an unreachable server is
+refused within seconds (:func:`fedlgr.tracking.server.check_reachable`).
 
 A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``) and a heartbeat
 (``fedlgr.heartbeat``, seconds since the epoch, refreshed every ``tracking.heartbeat_s``
@@ -33,7 +36,9 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from fedlgr.config import ExperimentConfig, flatten, to_yaml
+from fedlgr.config import ExperimentConfig, to_yaml
+from fedlgr.tracking import context
+from fedlgr.tracking.server import check_reachable
 
 DEFAULT_URI = "sqlite:///mlflow.db"
 
@@ -47,14 +52,23 @@ def tracking_uri(config: ExperimentConfig) -> str:
     return resolve_uri(config.tracking.uri)
 
 
+# MLflow 3's UI shows an experiment of this kind on its runs table ("Model training"),
+# not on its GenAI traces.
+KIND = {"mlflow.experimentKind": "custom_model_development"}
+
+
 def experiment_id(client, name: str) -> str:
     """The id of MLflow experiment ``name``, created if it does not exist yet (by this
     process or, at the same moment, by another one)."""
+    check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
     experiment = client.get_experiment_by_name(name)
     if experiment is not None:
+        for key, value in KIND.items():
+            if key not in experiment.tags:  # made by an older fedlgr or by hand
+                client.set_experiment_tag(experiment.experiment_id, key, value)
         return experiment.experiment_id
     try:
-        return client.create_experiment(name)
+        return client.create_experiment(name, tags=KIND)
     except Exception:
         experiment = client.get_experiment_by_name(name)  # another process created it first
         if experiment is None:
@@ -87,6 +101,7 @@ def open_client(uri: str):
     :func:`store_lock`)."""
     import mlflow
 
+    check_reachable(uri)
     with store_lock(uri):  # the client's construction creates and migrates the store
         client = mlflow.MlflowClient(uri)
         client.search_experiments(max_results=1)
@@ -130,6 +145,7 @@ class Tracker:
         from fedlgr.tracking.checkpoint import fingerprint
 
         self.config = config
+        self.system_metrics: context.SystemMetrics | None = None
         self.uri = tracking_uri(config)
         self.client = open_client(self.uri)
         with store_lock(self.uri):
@@ -159,17 +175,23 @@ class Tracker:
             if parent_run_id:
                 run_tags["mlflow.parentRunId"] = parent_run_id
             run = self.client.create_run(
-                self.experiment_id, run_name=config.run_name, tags=run_tags
+                self.experiment_id,
+                run_name=context.run_name(config),
+                tags=context.run_tags(run_tags),
             )
             self.run_id = run.info.run_id
-            params = flatten(config)
             from mlflow.entities import Param
 
-            items = [Param(k, v[:6000]) for k, v in params.items()]
+            items = [Param(k, v[:6000]) for k, v in context.run_params(config).items()]
             for i in range(0, len(items), 100):  # the REST API takes 100 params per batch
                 self.client.log_batch(self.run_id, params=items[i : i + 100])
             self._log_bytes(to_yaml(config).encode(), "config.yaml")
+            context.log_dataset(self.client, self.run_id, config, run_tags["dataset"])
         self._start_heartbeat()
+        if config.tracking.system_metrics:
+            interval = config.tracking.system_metrics_s
+            resumed = run_id is not None
+            self.system_metrics = context.SystemMetrics(self.run_id, self.uri, interval, resumed)
 
     def _reopen(self) -> None:
         """Resume: RUNNING again; find what is already logged, so it is not logged twice."""
@@ -208,6 +230,8 @@ class Tracker:
     def _stop_heartbeat(self) -> None:
         self._stop.set()
         self._beat.join(timeout=5)
+        if self.system_metrics is not None:
+            self.system_metrics.stop()
 
     # ------------------------------------------------------------------ logging
 

@@ -1,0 +1,147 @@
+"""What an MLflow run says about itself beyond its numbers, so that a person can tell runs
+apart in the UI: its name, MLflow's context tags, its params, its dataset and the
+machine's load while it ran.
+
+* **Name**: ``tracking.run_name``, else the method and setting with the modality
+  (``FedAvg-2c-noaug-image``); a sweep trial's name adds its swept values
+  (``FedLGR-2c-noaug-image lr_root=1e-05 replay=4``).
+* **Context tags**: ``MlflowClient.create_run`` records none; MLflow's own resolver
+  (:func:`mlflow.tracking.context.registry.resolve_tags`, what ``mlflow.start_run`` uses)
+  adds ``mlflow.user``, ``mlflow.source.name`` / ``type`` and ``mlflow.source.git.commit``
+  (of the command's checkout, else of fedlgr's own, see :func:`run_tags`).
+* **Params**: the flattened config without machine-local paths (the data folder, the
+  image cache, the store, the checkpoint folder: they differ from machine to machine and
+  say nothing about the method; ``config.yaml`` keeps them); pretrained weights by file
+  name.
+* **Dataset**: one ``log_input`` of the scenes table (one row per scene, ratings
+  averaged) with the data folder as its source: name, digest, schema and row count, no
+  data uploaded (none where the folder is not on this machine, e.g. a Flower server).
+* **System metrics**: MLflow's :class:`SystemMetricsMonitor` (CPU, memory, disk,
+  network, NVIDIA/AMD GPU when there is one) attached to the run by id, every
+  ``tracking.system_metrics_s`` seconds; one last sample when the run ends, so even a
+  short run shows some. Machine-wide figures, not per client (per-client costs are the
+  ``cost/*`` metrics).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from fedlgr.config import ExperimentConfig, flatten
+
+# Paths that belong to this machine, not to the experiment.
+LOCAL_PATHS = frozenset({"data.path", "data.cache_dir", "tracking.uri", "tracking.checkpoint_dir"})
+NAMED_WEIGHTS = ("none", "imagenet")
+
+
+def run_name(config: ExperimentConfig) -> str:
+    """``tracking.run_name``, else e.g. ``FedAvg-2c-noaug-image``."""
+    return config.tracking.run_name or f"{config.run_name}-{config.data.modality}"
+
+
+def trial_config(config: ExperimentConfig, params: Mapping[str, Any]) -> ExperimentConfig:
+    """``config`` named after its swept values: ``FedLGR-2c-noaug-image lr_root=1e-05``
+    (a setting by its last part, unless two swept settings share it)."""
+    last = [name.rsplit(".", 1)[-1] for name in params]
+    shown = " ".join(
+        f"{short if last.count(short) == 1 else name}={value}"
+        for (name, value), short in zip(params.items(), last, strict=True)
+    )
+    name = f"{run_name(config)} {shown}".strip()
+    return dataclasses.replace(config, tracking=dataclasses.replace(config.tracking, run_name=name))
+
+
+def run_tags(tags: Mapping[str, str]) -> dict[str, str]:
+    """``tags`` with MLflow's context tags (source, user, git commit) added. MLflow takes
+    the commit of the checkout that holds the command (``sys.argv[0]``), and none when the
+    command is git-ignored, as ``.venv/bin/fedlgr`` is: then the commit (branch, remote) is
+    that of the checkout fedlgr's own code runs from, if any."""
+    from mlflow.tracking.context.registry import resolve_tags
+    from mlflow.utils import git_utils
+    from mlflow.utils.mlflow_tags import MLFLOW_GIT_BRANCH, MLFLOW_GIT_COMMIT, MLFLOW_GIT_REPO_URL
+
+    out = resolve_tags(dict(tags))
+    if MLFLOW_GIT_COMMIT not in out:
+        code = str(Path(__file__).resolve().parent)
+        for key, find in (
+            (MLFLOW_GIT_COMMIT, git_utils.get_git_commit),
+            (MLFLOW_GIT_BRANCH, git_utils.get_git_branch),
+            (MLFLOW_GIT_REPO_URL, git_utils.get_git_repo_url),
+        ):
+            if (value := find(code)) is not None:
+                out[key] = value
+    return out
+
+
+def run_params(config: ExperimentConfig) -> dict[str, str]:
+    """The flattened config as params, without machine-local paths."""
+    params = {k: v for k, v in flatten(config).items() if k not in LOCAL_PATHS}
+    weights = config.model.weights
+    if weights not in NAMED_WEIGHTS:
+        params["model.weights"] = Path(weights).name
+    return params
+
+
+def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> None:
+    """Record the scenes table of ``data.path`` as the run's dataset input."""
+    import mlflow.data
+    import pandas as pd
+    from mlflow.data.dataset_source_registry import get_dataset_source_from_json
+    from mlflow.entities import DatasetInput, InputTag
+
+    from fedlgr.data.ratings import CSV_NAME, read_ratings
+
+    folder = Path(config.data.path).expanduser().resolve()
+    if not (folder / CSV_NAME).is_file():  # e.g. a Flower server: the data is on the robots
+        return
+    table = read_ratings(folder)
+    frame = pd.DataFrame({"stamp": table.stamps, **table.values, "n_ratings": table.n_ratings})
+    source = get_dataset_source_from_json(json.dumps({"uri": str(folder)}), "local")
+    with warnings.catch_warnings():
+        # MLflow's digest calls pandas in a way pandas 4 will refuse: MLflow's to fix.
+        warnings.filterwarnings("ignore", message="Starting with pandas version 4.0")
+        dataset = mlflow.data.from_pandas(frame, source=source, name=name)
+        # The stamp is an integer column and never missing.
+        warnings.filterwarnings("ignore", message="Hint: Inferred schema contains integer")
+        entity = dataset._to_mlflow_entity()  # infers the schema
+    tags = [
+        InputTag("mlflow.data.context", "training"),
+        InputTag("modality", config.data.modality),
+    ]
+    client.log_inputs(run_id, datasets=[DatasetInput(entity, tags=tags)])
+
+
+class SystemMetrics:
+    """MLflow's system-metrics monitor on run ``run_id`` (no active run needed): sampled
+    every ``interval`` seconds in a background thread; :meth:`stop` joins it and logs a
+    last sample. ``resume``: go on from the run's last system-metrics step."""
+
+    def __init__(self, run_id: str, uri: str, interval: float, resume: bool = False):
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        # It announces its start and stop at INFO on every run: not news.
+        logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
+        self.monitor = SystemMetricsMonitor(
+            run_id, sampling_interval=interval, resume_logging=resume, tracking_uri=uri
+        )
+        self.monitor.start()
+
+    def stop(self) -> None:
+        """Stop sampling and log what was sampled since the last step (a short run's only
+        one), before the run is ended. Never raises: the run's end matters more."""
+        monitor, self.monitor = self.monitor, None
+        if monitor is None:
+            return
+        monitor.finish()  # joins the thread and flushes what it had logged
+        try:
+            monitor.collect_metrics()
+            monitor.publish_metrics(monitor.aggregate_metrics())
+            monitor.mlflow_logger.flush()
+        except Exception as err:  # the store went away: the run's end reports it
+            warnings.warn(f"last system-metrics sample not logged: {err}", stacklevel=2)

@@ -1,0 +1,114 @@
+"""The tracking store as a user meets it: is it there, and where to look at the runs.
+
+``check_reachable(uri)`` refuses an ``http(s)://`` tracking URI that nothing answers in a
+few seconds, with one line that names it (MLflow's own client would retry for minutes,
+then raise a long stack trace). ``runs_hint(uri, experiment_id)`` is what ``fedlgr run``,
+``demo`` and ``sweep`` print at the end: the link that opens the experiment's runs table
+and, for a local store, the ``mlflow ui`` command that serves it first.
+
+MLflow 3 opens a browser that has not been there before on its GenAI pages (Traces,
+"Detect Issues"); the runs table is the "Model training" workflow. Its single-page app
+(``mlflow/server/js``) routes ``#/experiments/<id>/runs`` to that table and takes the
+workflow from the ``workflowType`` query parameter before the browser's stored choice,
+so the link below lands on the runs whatever the browser saw before.
+
+Light on purpose (no MLflow import): the CLI calls it before loading torch.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import urllib.error
+import urllib.parse
+import urllib.request
+from pathlib import Path
+
+from fedlgr.errors import FedlgrError
+
+UI_PORT = 5000  # mlflow ui's default
+RUNS_VIEW = "#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
+
+
+class TrackingUnreachable(FedlgrError):
+    """Nothing answers at the tracking server's address."""
+
+
+def check_reachable(uri: str, timeout: float = 5.0) -> None:
+    """Raise :class:`TrackingUnreachable` when ``uri`` is an HTTP(S) address at which
+    nothing answers within ``timeout`` seconds. Any HTTP answer counts as reachable (a
+    proxy's 401 or 404 is for MLflow to report); other stores are not probed."""
+    if not uri.startswith(("http://", "https://")):
+        return
+    probe = uri.rstrip("/") + "/health"
+    try:
+        with urllib.request.urlopen(probe, timeout=timeout):
+            pass
+    except urllib.error.HTTPError:
+        return  # something answered
+    except (OSError, ValueError) as err:
+        reason = getattr(err, "reason", err)
+        raise TrackingUnreachable(
+            f"tracking URI {uri}: no MLflow server answers there ({reason}); start one "
+            "(`mlflow server --host 127.0.0.1 --port PORT`), fix --tracking-uri / "
+            "$MLFLOW_TRACKING_URI, or leave both unset for the local sqlite store"
+        ) from None
+
+
+def check_tracking(uri: str | None, overrides: list[str]) -> None:
+    """:func:`check_reachable` on the URI a command was given: ``--tracking-uri``, else
+    its last ``tracking.uri=`` override, else ``$MLFLOW_TRACKING_URI``."""
+    from fedlgr.tracking.mlflow_run import resolve_uri
+
+    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
+    check_reachable(resolve_uri(uri or (given[-1] if given else None)))
+
+
+def runs_link(server: str, experiment_id: str) -> str:
+    """The UI address that opens experiment ``experiment_id``'s runs table."""
+    return f"{server.rstrip('/')}/{RUNS_VIEW.format(experiment_id=experiment_id)}"
+
+
+def runs_hint(uri: str, experiment_id: str) -> str:
+    """What to open to see the runs: the link for a server; for a database store, the
+    ``mlflow ui`` command that serves it, then the link. Empty for other stores."""
+    scheme = uri.split(":", 1)[0].split("+", 1)[0]
+    if scheme in ("http", "https"):
+        return f"MLflow runs: {runs_link(uri, experiment_id)}"
+    if scheme not in DATABASES:
+        return ""
+    store = _absolute_sqlite(uri) if scheme == "sqlite" else _hide_password(uri)
+    link = runs_link(f"http://127.0.0.1:{UI_PORT}", experiment_id)
+    return (
+        f"MLflow runs: start the UI with\n  {_mlflow()} ui --backend-store-uri {store} "
+        f"--port {UI_PORT}\nthen open {link}"
+    )
+
+
+def _absolute_sqlite(uri: str) -> str:
+    """``sqlite:///mlflow.db`` -> ``sqlite:////work/mlflow.db``: the command works from
+    any folder."""
+    path = uri.removeprefix("sqlite:///")
+    if uri.startswith("sqlite:///") and path and path != ":memory:":
+        return "sqlite:///" + str(Path(path).expanduser().resolve())
+    return uri
+
+
+def _hide_password(uri: str) -> str:
+    parts = urllib.parse.urlsplit(uri)
+    if parts.password is None:
+        return uri
+    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
+    return urllib.parse.urlunsplit(parts._replace(netloc=netloc))
+
+
+def _mlflow() -> str:
+    """How to call MLflow's command here: through uv when fedlgr runs under ``uv run``,
+    else the ``mlflow`` on PATH, else this interpreter's module."""
+    if os.environ.get("UV"):
+        return "uv run mlflow"
+    if shutil.which("mlflow"):
+        return "mlflow"
+    return f"{sys.executable} -m mlflow"

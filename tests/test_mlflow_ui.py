@@ -1,0 +1,151 @@
+"""What a researcher sees of the runs in MLflow (issue 13, points 1, 3 and 6): the printed
+link opens the experiment's runs table, runs are told apart (names, context tags, dataset,
+system metrics, no machine-local params), and an unreachable server fails at once."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import time
+import urllib.parse
+import urllib.request
+from pathlib import Path
+
+from fedlgr.cli import main
+from fedlgr.config import load_config
+from fedlgr.tracking.context import run_name, trial_config
+from fedlgr.tracking.server import runs_hint
+
+from .conftest import FAST
+from .test_server import free_port, mlflow_server  # noqa: F401 (a fixture)
+
+REPO = Path(__file__).resolve().parent.parent
+LINK = re.compile(r"(http://\S+)/#/experiments/(\d+)/runs\?workflowType=machine_learning")
+
+
+def rest(server: str, endpoint: str, body: dict | None = None, **query) -> dict:
+    """One call to MLflow's REST API (GET with ``query``, POST with ``body``)."""
+    url = f"{server}/api/2.0/mlflow/{endpoint}"
+    if query:
+        url += "?" + urllib.parse.urlencode(query)
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data, {"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=30) as answer:
+        return json.load(answer)
+
+
+def test_runs_on_a_server_are_told_apart_and_the_printed_link_opens_their_experiment(
+    mlflow_server,  # noqa: F811
+    synth_dir,
+    cache_dir,
+    tmp_path_factory,
+    capsys,
+):
+    links = []
+    for modality in ("image", "features"):
+        code = main(
+            [
+                "run",
+                str(FAST),
+                f"data.path={synth_dir}",
+                f"data.cache_dir={cache_dir}",
+                f"data.modality={modality}",
+                "tracking.experiment=ui-e2e",
+                "tracking.system_metrics_s=1",
+                "runtime.threads=1",
+                "--tracking-uri",
+                mlflow_server,
+            ]
+        )
+        out = capsys.readouterr().out
+        assert code == 0
+        links += LINK.findall(out)
+    experiment = rest(mlflow_server, "experiments/get-by-name", experiment_name="ui-e2e")
+    experiment_id = experiment["experiment"]["experiment_id"]
+    assert links == [(mlflow_server, experiment_id)] * 2
+    kind = {t["key"]: t["value"] for t in experiment["experiment"]["tags"]}
+    assert kind["mlflow.experimentKind"] == "custom_model_development"  # the UI shows runs
+    with urllib.request.urlopen(mlflow_server + "/", timeout=30) as page:  # the UI is there
+        assert b"<html" in page.read().lower()
+
+    runs = rest(mlflow_server, "runs/search", {"experiment_ids": [experiment_id]})["runs"]
+    assert len(runs) == 2
+    names = sorted(r["info"]["run_name"] for r in runs)
+    assert names == [
+        f"{run_name_prefix(synth_dir, cache_dir)}-features",
+        f"{run_name_prefix(synth_dir, cache_dir)}-image",
+    ]
+    local = [str(tmp_path_factory.getbasetemp()), str(synth_dir), str(cache_dir)]
+    for run in runs:
+        tags = {t["key"]: t["value"] for t in run["data"]["tags"]}
+        assert tags["mlflow.source.type"] == "LOCAL" and tags["mlflow.source.name"]
+        assert tags["mlflow.user"]
+        commit = tags["mlflow.source.git.commit"]
+        assert re.fullmatch(r"[0-9a-f]{40}", commit)
+        known = subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=REPO)
+        assert known.returncode == 0, commit  # a commit of this checkout
+        params = {p["key"]: p["value"] for p in run["data"]["params"]}
+        assert "data.cache_dir" not in params and "tracking.uri" not in params
+        assert "data.clients" in params
+        assert not [(k, v) for k, v in params.items() if any(p in v for p in local)]
+        (given,) = run["inputs"]["dataset_inputs"]
+        dataset = given["dataset"]
+        assert dataset["name"] == "synthetic" and dataset["digest"]
+        assert json.loads(dataset["source"])["uri"] == str(Path(synth_dir).resolve())
+        assert json.loads(dataset["profile"])["num_rows"] == 48
+        inputs = {t["key"]: t["value"] for t in given["tags"]}
+        assert inputs["modality"] == tags["modality"]
+        metrics = {m["key"] for m in run["data"]["metrics"]}
+        assert {"system/cpu_utilization_percentage", "system/system_memory_usage_megabytes"} <= (
+            metrics
+        )
+
+
+def run_name_prefix(synth_dir, cache_dir) -> str:
+    """The method and setting part of the fast config's run names (``FedAvg-2c-noaug``)."""
+    return load_config(FAST, [f"data.path={synth_dir}", f"data.cache_dir={cache_dir}"]).run_name
+
+
+def test_an_unreachable_tracking_server_fails_at_once_in_one_line(synth_dir, tmp_path):
+    uri = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    start = time.monotonic()
+    command = ["run", str(FAST), f"data.path={synth_dir}", "--tracking-uri", uri]
+    done = subprocess.run(
+        [sys.executable, "-m", "fedlgr", *command],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    seconds = time.monotonic() - start
+    assert done.returncode != 0
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and uri in lines[0] and "no MLflow server" in lines[0], done.stderr
+    assert seconds < 15, seconds
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+def test_sweep_trials_are_named_after_their_swept_values(synth_dir):
+    config = load_config(FAST, [f"data.path={synth_dir}", "method=FedLGR", "data.clients=3"])
+    swept = {"train.lr_root": 1e-05, "continual.lgr_replay": "stored", "data.augment": True}
+    named = trial_config(config, swept)
+    assert run_name(named) == (
+        f"{config.run_name}-{config.data.modality} lr_root=1e-05 lgr_replay=stored augment=True"
+    )
+    # Two swept settings with the same last part keep their full names.
+    twins = trial_config(config, {"train.lr": 0.1, "federated.lr": 0.2})
+    assert run_name(twins).endswith(" train.lr=0.1 federated.lr=0.2")
+
+
+def test_a_local_store_hint_gives_the_ui_command_and_the_runs_link(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    hint = runs_hint("sqlite:///mlflow.db", "7")
+    assert f"ui --backend-store-uri sqlite:///{tmp_path}/mlflow.db --port 5000" in hint
+    assert hint.endswith("http://127.0.0.1:5000/#/experiments/7/runs?workflowType=machine_learning")
+    server = runs_hint("https://mlflow.example.org/", "3")
+    assert server == (
+        "MLflow runs: https://mlflow.example.org/#/experiments/3/runs?workflowType=machine_learning"
+    )
+    assert "***" in runs_hint("postgresql://me:secret@db/mlflow", "1")
