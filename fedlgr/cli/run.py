@@ -22,6 +22,11 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(to_yaml(config), end="")
         return 0
+    if config.tracking.enabled:  # before torch's import (~12 s): an unreachable URI fails now
+        from fedlgr.tracking.mlflow_run import tracking_uri
+        from fedlgr.tracking.server import check_reachable
+
+        check_reachable(tracking_uri(config))
 
     from fedlgr.federated.experiment import run_experiment
     from fedlgr.signals import terminate_as_interrupt
