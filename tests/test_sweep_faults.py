@@ -110,7 +110,10 @@ def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     _, (parent,), (child,) = child_runs(store, "sweep-stopped")
     assert parent.info.status == "KILLED" and child.info.status == "KILLED"
 
-    assert run_sweep(load_sweep(path), storage=storage, tracking_uri=store).done  # relaunch
+    # The relaunch drops federated.rounds=100 (short trials now): a study refuses other
+    # settings unless told that they changed on purpose (--settings-changed).
+    relaunch = load_sweep(path)
+    assert run_sweep(relaunch, storage=storage, tracking_uri=store, settings_changed=True).done
     states = trials_by_state(storage, "stopped")
     complete = states["COMPLETE"]
     assert len(complete) == 4 and len({point(t.params) for t in complete}) == 4

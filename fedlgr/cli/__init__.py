@@ -233,6 +233,12 @@ def build_parser() -> argparse.ArgumentParser:
         "machines)",
     )
     sweep.add_argument("--study", help="study name (default: the sweep's name)")
+    sweep.add_argument(
+        "--settings-changed",
+        action="store_true",
+        help="go on with a study started with other settings (the sweep file or overrides, "
+        "e.g. a dataset that moved); its finished trials count as they are",
+    )
     sweep.add_argument("--workers", type=int, default=1, help="processes on this machine")
     sweep.add_argument(
         "--tracking-uri",

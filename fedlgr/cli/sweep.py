@@ -37,5 +37,6 @@ def _sweep(args: argparse.Namespace) -> int:
         tracking_uri=args.tracking_uri,
         cli_overrides=overrides,
         worker_id=args.worker_id,
+        settings_changed=args.settings_changed,
     )
     return 0 if result.done else 1

@@ -29,10 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fedlgr.config import CONF_DIR
+from fedlgr.config import CONF_DIR, SWEEPS_DIR
 from fedlgr.errors import ConfigError
 
-SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 CONFIG_KEY = "config"  # the space key that chooses the base config file
 DIRECTIONS = ("minimize", "maximize")
 SAMPLERS = ("grid", "tpe")

@@ -10,6 +10,7 @@ copy, so two workers that notice the same dead trial queue it once.
 from __future__ import annotations
 
 import copy
+import hashlib
 import warnings
 from typing import Any
 
@@ -75,7 +76,11 @@ def fail_and_retry(study, retry: RetryStaleTrial, trial_id: int) -> bool:
 
 
 def open_study(
-    spec: SweepSpec, storage: str, study_name: str | None = None, worker: int = 0
+    spec: SweepSpec,
+    storage: str,
+    study_name: str | None = None,
+    worker: int = 0,
+    settings_changed: bool = False,
 ) -> tuple[Any, RetryStaleTrial]:
     """Create or load the study (``load_if_exists``) with heartbeats and retry of dead
     workers' trials; returns the study and its :class:`RetryStaleTrial`.
@@ -88,10 +93,12 @@ def open_study(
     from fedlgr.tracking.mlflow_run import store_lock
 
     with store_lock(storage):
-        return _open_study(spec, storage, study_name, worker)
+        return _open_study(spec, storage, study_name, worker, settings_changed)
 
 
-def _open_study(spec: SweepSpec, storage: str, study_name: str | None, worker: int):
+def _open_study(
+    spec: SweepSpec, storage: str, study_name: str | None, worker: int, settings_changed: bool
+):
     import optuna
     from optuna.storages import RDBStorage
 
@@ -130,4 +137,59 @@ def _open_study(spec: SweepSpec, storage: str, study_name: str | None, worker: i
         direction=spec.direction,
         load_if_exists=True,
     )
+    check_settings(study, spec, storage, settings_changed)
     return study, retry
+
+
+SETTINGS_ATTR = "fedlgr.settings"
+# How trials run, not what they compute (``--workers`` sets the threads per trial): a
+# relaunch with other workers or on another machine goes on with the study.
+HOW_IT_RUNS = frozenset(
+    {"runtime.threads", "runtime.workers", "runtime.concurrency", "runtime.progress"}
+)
+
+
+def sweep_settings(spec: SweepSpec) -> dict[str, Any]:
+    """What a study's trials were run with: the sweep file (its SHA-256) and every
+    ``key=value`` override (the file's and the command line's, in order)."""
+    digest = hashlib.sha256(spec.path.read_bytes()).hexdigest() if spec.path else ""
+    return {"file": str(spec.path or ""), "sha256": digest, "overrides": list(spec.overrides)}
+
+
+def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = False) -> None:
+    """Record the settings with a new study; refuse to go on with a study that was started
+    with other ones: its finished trials would be taken for trials of these settings (a
+    relaunch with another ``data.path`` would train nothing and report the old table).
+    Settings that change no number (``tracking.*``, ``data.cache_dir``: those a resumed run
+    may change) and how trials run (threads, workers) are not compared. ``changed_ok``
+    (``fedlgr sweep --settings-changed``): go on, e.g. with a dataset that moved, and
+    record the new settings."""
+    now = sweep_settings(spec)
+    then = study.user_attrs.get(SETTINGS_ATTR)
+    if then is None or changed_ok:  # new (or from before studies recorded settings)
+        study.set_user_attr(SETTINGS_ATTR, now)
+        return
+    differences = []
+    if then.get("sha256") != now["sha256"]:
+        differences.append(f"the sweep file {now['file']} changed since the study began")
+    before, after = _as_dict(then.get("overrides", [])), _as_dict(now["overrides"])
+    for key in sorted(set(before) | set(after)):
+        if before.get(key) != after.get(key):
+            differences.append(
+                f"{key} (study: {before.get(key, 'not set')}, now: {after.get(key, 'not set')})"
+            )
+    if differences:
+        raise FedlgrError(
+            f"study {study.study_name!r} in {storage} was run with other settings: "
+            f"{'; '.join(differences)}. Its trials would count as trials of these settings: "
+            "start a new study with --study NAME, or relaunch with the study's own settings"
+        )
+
+
+def _as_dict(overrides: list[str]) -> dict[str, str]:
+    """``key=value`` overrides as {key: value}, the last one of a key winning; settings
+    that change no number left out."""
+    from fedlgr.tracking.checkpoint import SAFE_KEYS
+
+    pairs = dict(o.split("=", 1) for o in overrides)
+    return {k: v for k, v in pairs.items() if k not in SAFE_KEYS | HOW_IT_RUNS}

@@ -123,11 +123,12 @@ class Worker:
         tracking_uri: str | None = None,
         worker: int = 0,
         echo: Callable[..., None] = print,
+        settings_changed: bool = False,
     ):
         from fedlgr.tracking.mlflow_run import store_lock
 
         self.spec, self.storage, self.worker, self.echo = spec, storage, worker, echo
-        self.study, self.retry = open_study(spec, storage, study_name, worker)
+        self.study, self.retry = open_study(spec, storage, study_name, worker, settings_changed)
         self.tracking_uri = tracking_uri
         self.client, self.experiment_id = self._mlflow()
         self.retry.client, self.retry.experiment_id = self.client, self.experiment_id
@@ -273,6 +274,7 @@ class Worker:
                 "study": self.study.study_name,
                 "trial": str(trial.number),
                 "fedlgr.kind": "trial",
+                "swept": json.dumps(params),  # what the report shows the best trial won with
             }
             result = run_experiment(
                 config,
@@ -463,6 +465,7 @@ def run_sweep(
     cli_overrides: list[str] | None = None,
     worker_id: int = 0,
     echo: Callable[..., None] = print,
+    settings_changed: bool = False,
 ) -> SweepResult:
     """Run (or resume) the sweep with ``workers`` processes: this one and ``workers - 1``
     ``fedlgr sweep`` subprocesses on the same storage. Refuses to start (ConfigError)
@@ -475,6 +478,7 @@ def run_sweep(
         tracking_uri=tracking_uri,
         worker=worker_id,
         echo=echo,
+        settings_changed=settings_changed,
     )
     todo, running, waiting = _counts(worker.study, spec)
     total = spec.n_trials
