@@ -167,6 +167,8 @@ class Worker:
         is a study user attribute), set RUNNING again when a sweep resumes."""
         from mlflow.entities import Param
 
+        from fedlgr.tracking.context import run_tags
+
         run_id = self.study.user_attrs.get(PARENT_ATTR)
         if run_id:
             if self.client.get_run(run_id).info.status != "RUNNING":
@@ -176,19 +178,21 @@ class Worker:
         run = self.client.create_run(
             self.experiment_id,
             run_name=f"sweep {self.study.study_name}",
-            tags={
-                "fedlgr.kind": "sweep",
-                "sweep": spec.name,
-                "study": self.study.study_name,
-                "sampler": spec.sampler,
-                "objective": f"{spec.direction} {spec.metric}",
-            },
+            tags=run_tags(  # MLflow's context tags too: source, user, git commit
+                {
+                    "fedlgr.kind": "sweep",
+                    "sweep": spec.name,
+                    "study": self.study.study_name,
+                    "sampler": spec.sampler,
+                    "objective": f"{spec.direction} {spec.metric}",
+                    "storage": self.storage,  # a machine-local path for sqlite: not a param
+                }
+            ),
         )
         run_id = run.info.run_id
         params = {
             "sweep": spec.name,
             "study": self.study.study_name,
-            "storage": self.storage,
             "sampler": spec.sampler,
             "pruner": spec.pruner,
             "objective.metric": spec.metric,
