@@ -424,3 +424,39 @@ def test_a_kill_during_a_write_leaves_whole_checkpoints_only(tmp_path):
     assert 1 <= len(found) <= 2
     rounds = [ckpt.load(p)["round"] for p in found]  # every one whole
     assert rounds == sorted(rounds) and found[-1].name == f"round-{rounds[-1]:04d}.ckpt"
+
+
+def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
+    synth_dir, cache_dir, tmp_path
+):
+    """The default thread count follows the machine's load (and concurrency follows it): a
+    resume that leaves them unset takes the checkpoint's, one that sets others is refused."""
+    from fedlgr.federated.resume import MACHINE_CHOSEN, adopt_settings, load_checkpoint
+
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    chosen = ["federated.rounds=3", "runtime.threads=2", "runtime.concurrency=threads"]
+    started = []
+
+    def stop_in_round_3(round_, metrics):
+        if round_ == 3:
+            raise RuntimeError("stopped")
+
+    with pytest.raises(RuntimeError, match="stopped"):
+        run_experiment(
+            fast_config(synth_dir, cache_dir, store, *chosen),
+            on_start=started.append,
+            on_round=stop_in_round_3,
+        )
+    run_id = started[0]
+    tags = mlflow.MlflowClient(store).get_run(run_id).data.tags
+    path = ckpt.checkpoints(Path(tags["fedlgr.checkpoints"]))[-1]
+    # This machine, busier now, would choose one thread and sequential training.
+    now = fast_config(
+        synth_dir, cache_dir, store, "federated.rounds=3", "runtime.concurrency=sequential"
+    )
+    with pytest.raises(FedlgrError, match=r"runtime\.threads \(checkpoint 2, now 1\)"):
+        load_checkpoint(now, run_id, path)
+    state = load_checkpoint(now, run_id, path, frozenset(MACHINE_CHOSEN))
+    adopted = adopt_settings(now, state["config"], frozenset(MACHINE_CHOSEN)).runtime
+    assert (adopted.threads, adopted.concurrency, adopted.workers) == (2, "threads", 2)
+    assert adopt_settings(now, state["config"], frozenset()).runtime == now.runtime

@@ -100,7 +100,9 @@ class Hooks:
     show_runs: bool = True
 
 
-def _resume_point(fabric, config: ExperimentConfig, resume) -> tuple[str, dict] | None:
+def _resume_point(
+    fabric, config: ExperimentConfig, resume, adopt: frozenset[str] = frozenset()
+) -> tuple[str, dict] | None:
     """Rank 0 finds the run and its checkpoint; every process then reads it (one machine,
     or a checkpoint folder every node can reach). A refusal is raised in every process."""
     from fedlgr.errors import FedlgrError
@@ -123,7 +125,7 @@ def _resume_point(fabric, config: ExperimentConfig, resume) -> tuple[str, dict] 
     if isinstance(found, str):
         raise FedlgrError(found)
     run_id, path = found
-    return run_id, load_checkpoint(config, run_id, Path(path))
+    return run_id, load_checkpoint(config, run_id, Path(path), adopt)
 
 
 def _main(
@@ -134,9 +136,13 @@ def _main(
 
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
-    from fedlgr.federated.resume import restore, save_checkpoint
+    from fedlgr.federated.resume import MACHINE_CHOSEN, adopt_settings, restore, save_checkpoint
 
     chosen, share = config.runtime.threads, None
+    # What this launch leaves to the machine: a resumed run takes its own values instead.
+    left = {"runtime.threads": chosen, "runtime.workers": config.runtime.workers}
+    left["runtime.concurrency"] = None if config.runtime.concurrency == "auto" else "set"
+    machine = frozenset(k for k in MACHINE_CHOSEN if left[k] is None)
     if fabric.device.type == "cpu":
         # Results depend on the thread count (the order of floating-point sums): the
         # effective count goes into the config, its params and its checkpoints.
@@ -152,7 +158,11 @@ def _main(
     config = concurrency.resolve(config, fabric.device, local_clients)
     seed_everything(config.seed, verbose=False)
     start = time.perf_counter()
-    point = _resume_point(fabric, config, resume)
+    point = _resume_point(fabric, config, resume, machine)
+    if point is not None and machine:
+        config = adopt_settings(config, point[1]["config"], machine)
+        if fabric.device.type == "cpu" and config.runtime.threads:
+            torch.set_num_threads(config.runtime.threads)
     show = fabric.global_rank == 0 and config.runtime.progress
     with Progress("decoding images", "img", show) as bar:  # only when not cached yet
         scenes = load_scenes(config.data, progress=bar)

@@ -11,6 +11,7 @@ their place and atomic writing: :mod:`fedlgr.tracking.checkpoint`.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -153,12 +154,22 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
     return runs[0]
 
 
-def load_checkpoint(config: ExperimentConfig, run_id: str, path: Path) -> dict[str, Any]:
-    """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``."""
+# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
+# its checkpoint's values for them, so that it computes the same numbers.
+MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
+
+
+def load_checkpoint(
+    config: ExperimentConfig, run_id: str, path: Path, adopt: frozenset[str] = frozenset()
+) -> dict[str, Any]:
+    """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``; settings
+    in ``adopt`` (this launch left them to the machine) are not compared: the run's own
+    values are taken (:func:`adopt_settings`)."""
     state = ckpt.load(path)
     if state["run_id"] != run_id:
         raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")
-    changed = ckpt.differences(state["config"], flatten(config))
+    saved = {k: v for k, v in state["config"].items() if k not in adopt}
+    changed = ckpt.differences(saved, {k: v for k, v in flatten(config).items() if k not in adopt})
     if changed:
         more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
         shown = "; ".join(changed[:5]) + more
@@ -167,3 +178,18 @@ def load_checkpoint(config: ExperimentConfig, run_id: str, path: Path) -> dict[s
             "with the run's own settings, or start a new run without --resume"
         )
     return state
+
+
+def adopt_settings(
+    config: ExperimentConfig, saved: dict[str, str], keys: frozenset[str]
+) -> ExperimentConfig:
+    """``config`` with the checkpoint's values (``saved``: its flattened config) of the
+    machine-chosen settings ``keys``."""
+    changes: dict[str, Any] = {}
+    for key in keys:
+        value = saved.get(key)
+        if value is None or value == "None":
+            continue
+        name = key.removeprefix("runtime.")
+        changes[name] = int(value) if name in ("threads", "workers") else value
+    return dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **changes))
