@@ -154,9 +154,7 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
     return runs[0]
 
 
-# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
-# its checkpoint's values for them, so that it computes the same numbers.
-MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
+MACHINE_CHOSEN = ckpt.MACHINE_CHOSEN
 
 
 def load_checkpoint(

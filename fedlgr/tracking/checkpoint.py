@@ -124,10 +124,18 @@ def remove(folder: Path) -> None:
 # --------------------------------------------------------------------------- the config
 
 
+# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
+# its checkpoint's values for them (``resume.adopt_settings``), so that it computes the
+# same numbers; they are not part of the fingerprint a run is found by.
+MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
+
+
 def fingerprint(config: ExperimentConfig) -> str:
-    """A hash of every setting that changes the run's numbers (``SAFE_KEYS`` excluded):
-    ``--resume`` without a run id looks for an unfinished run with the same one."""
-    items = sorted((k, v) for k, v in flatten(config).items() if k not in SAFE_KEYS)
+    """A hash of every setting that changes the run's numbers (``SAFE_KEYS`` excluded, and
+    the machine-chosen thread settings, which a resume adopts): ``--resume`` without a run
+    id, and a sweep's retried trial, look for an unfinished run with the same one."""
+    skip = SAFE_KEYS | set(MACHINE_CHOSEN)
+    items = sorted((k, v) for k, v in flatten(config).items() if k not in skip)
     return hashlib.sha256(repr(items).encode()).hexdigest()[:16]
 
 
