@@ -8,6 +8,7 @@ from pathlib import Path
 
 import mlflow
 import pytest
+import torch
 
 from fedlgr.config import CONF_DIR, load_config
 from fedlgr.data.columns import ALL_COLUMNS
@@ -22,6 +23,15 @@ def synth_dir(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("synth") / "manners-synth"
     synthesize(out, scenes=48, seed=7, size=32)
     return out
+
+
+@pytest.fixture
+def one_thread():
+    """Tiny tensors: one thread is fastest and immune to other processes on the machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture

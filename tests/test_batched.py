@@ -41,12 +41,7 @@ from tests.conftest import fast_config
 TIGHT = {"rtol": 1e-5, "atol": 1e-7}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def client_side(synth_dir, cache_dir, store, *overrides) -> ClientSide:

@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import math
 from collections.abc import Callable
 
 import torch
@@ -53,7 +52,7 @@ from torch import nn
 from torch.func import functional_call, vmap
 
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.client import Client, LocalStats
+from fedlgr.federated.client import Client, LocalStats, round_stats
 from fedlgr.federated.plugins import LocalContext
 
 
@@ -117,7 +116,7 @@ def train_batched(
         if on_epoch is not None:
             on_epoch(epoch + 1)
     return [
-        _stats(client, ctx, total, n)
+        round_stats(client, ctx, total, n)
         for client, ctx, total, n in zip(clients, ctxs, totals, seen, strict=True)
     ]
 
@@ -195,15 +194,3 @@ def _batched_step(
             for k, m in enumerate(members):
                 m.buffers[n].copy_(stacked[k])
     return losses.detach()
-
-
-def _stats(client: Client, ctx: LocalContext, total: torch.Tensor, seen: int) -> LocalStats:
-    seen += ctx.trained_samples
-    mean = (float(total) + ctx.trained_loss) / max(seen, 1)
-    if not math.isfinite(mean):  # one check per round: no host sync per step
-        raise FedlgrError(
-            f"round {ctx.round}, client {client.index}: the training loss is {mean} "
-            "(not a finite number); lower the learning rates (train.lr_root, train.lr_top) "
-            "or check the data for extreme values (fedlgr data check)"
-        )
-    return LocalStats(seen, mean)

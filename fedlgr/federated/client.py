@@ -170,9 +170,15 @@ def train_locally(
             on_epoch(epoch + 1)
     for plugin in plugins:
         plugin.on_round_end(ctx)
+    return round_stats(client, ctx, total_loss, seen)
+
+
+def round_stats(client: Client, ctx: LocalContext, total: torch.Tensor, seen: int) -> LocalStats:
+    """The round's samples and mean task loss (the plugins' own training included), checked
+    to be finite once per round: no host sync per step."""
     seen += ctx.trained_samples
-    mean = (float(total_loss) + ctx.trained_loss) / max(seen, 1)
-    if not math.isfinite(mean):  # one check per round: no host sync per step
+    mean = (float(total) + ctx.trained_loss) / max(seen, 1)
+    if not math.isfinite(mean):
         raise FedlgrError(
             f"round {ctx.round}, client {client.index}: the training loss is {mean} "
             "(not a finite number); lower the learning rates (train.lr_root, train.lr_top) "
