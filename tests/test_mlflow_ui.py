@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 import time
 import urllib.parse
 import urllib.request
 from pathlib import Path
+
+import pytest
 
 from fedlgr.cli import main
 from fedlgr.config import load_config
@@ -101,6 +104,64 @@ def test_runs_on_a_server_are_told_apart_and_the_printed_link_opens_their_experi
         assert {"system/cpu_utilization_percentage", "system/system_memory_usage_megabytes"} <= (
             metrics
         )
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+HEADLESS = [  # as the machine notes start it: no sandbox as root, no calls to Google's hosts
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--window-size=1400,900",
+    "--virtual-time-budget=15000",  # let the UI's JavaScript fetch and render the runs
+]
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (.ci/run installs Debian's)")
+def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
+    mlflow_server,  # noqa: F811
+    synth_dir,
+    cache_dir,
+    tmp_path,
+    capsys,
+):
+    for method in ("FedAvg", "FedRootAvg"):
+        code = main(
+            [
+                "run",
+                str(FAST),
+                f"data.path={synth_dir}",
+                f"data.cache_dir={cache_dir}",
+                "data.modality=features",
+                f"method={method}",
+                "tracking.experiment=ui-browser",
+                "tracking.system_metrics=false",
+                "--tracking-uri",
+                mlflow_server,
+            ]
+        )
+        assert code == 0
+    out = capsys.readouterr().out
+    (link,) = {m.group(0) for m in LINK.finditer(out)}
+    experiment_id = LINK.search(out).group(2)
+    # What a browser that never saw this server renders at the printed link.
+    page = subprocess.run(
+        [CHROMIUM, *HEADLESS, f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom", link],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert page.returncode == 0, page.stderr[-2000:]
+    dom = page.stdout
+    assert "<strong>2</strong> matching runs" in dom, dom[-3000:]
+    runs = rest(mlflow_server, "runs/search", {"experiment_ids": [experiment_id]})["runs"]
+    for run in runs:  # each run is a row that links to it, under its name
+        row = f'href="#/experiments/{experiment_id}/runs/{run["info"]["run_id"]}"'
+        assert row in dom and f">{run['info']['run_name']}</span>" in dom
 
 
 def run_name_prefix(synth_dir, cache_dir) -> str:

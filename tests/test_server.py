@@ -24,8 +24,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture
-def mlflow_server(tmp_path):
+@pytest.fixture(scope="module")
+def mlflow_server(tmp_path_factory):
+    """A real ``mlflow server`` on a free localhost port, shared by a test module's tests
+    (it takes ~18 s to start); each test logs to its own experiment."""
+    tmp_path = tmp_path_factory.mktemp("mlflow-server")
     port = free_port()
     process = subprocess.Popen(
         [
