@@ -3,6 +3,7 @@ they compute one after another, for a seed."""
 
 from __future__ import annotations
 
+import gc
 import threading
 
 import pytest
@@ -98,6 +99,22 @@ def test_the_pool_splits_the_threads_and_keeps_the_order():
 
     with pytest.raises(ValueError, match="client 1 diverged"):
         pool.map(fails, [0, 1, 2])
+
+
+def test_a_dropped_pool_takes_its_worker_threads_with_it():
+    def workers() -> set[threading.Thread]:
+        return {t for t in threading.enumerate() if t.name.startswith("fedlgr-client")}
+
+    before = workers()
+    pool = concurrency.ClientPool(2, 2, torch.device("cpu"))
+    pool.each_worker(lambda: None)  # both threads started
+    mine = workers() - before
+    assert len(mine) == 2
+    del pool
+    gc.collect()
+    for thread in mine:
+        thread.join(timeout=10)
+    assert not [t for t in mine if t.is_alive()]  # a sweep's trials do not pile them up
 
 
 def test_process_cpu_is_shared_in_proportion_to_each_thread():

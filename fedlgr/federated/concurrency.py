@@ -56,6 +56,12 @@ def resolve(config: ExperimentConfig, device: torch.device, clients: int) -> Exp
     )
 
 
+def _start_worker(threads: int, local: threading.local, device: torch.device) -> None:
+    torch.set_num_threads(threads)  # this thread's OpenMP team size
+    if device.type == "cuda":
+        local.stream = torch.cuda.Stream(device)
+
+
 class ClientPool:
     """Runs one function per client in ``workers`` threads, each with its share of the
     process's torch threads (and, on a GPU, its own CUDA stream)."""
@@ -67,16 +73,19 @@ class ClientPool:
         # Set when the main thread is interrupted (Ctrl-C, SIGTERM): training loops that
         # are given it stop at their next step instead of finishing the client's round.
         self.stop = threading.Event()
+        # The initializer must not hold the pool: the executor's threads exit when it is
+        # garbage-collected, which a bound method of the pool would prevent (each dropped
+        # pool left its workers behind: a sweep's trials piled them up).
         self._executor = (
-            ThreadPoolExecutor(workers, "fedlgr-client", initializer=self._start_worker)
+            ThreadPoolExecutor(
+                workers,
+                "fedlgr-client",
+                initializer=_start_worker,
+                initargs=(self.threads_each, self._local, device),
+            )
             if workers > 1
             else None
         )
-
-    def _start_worker(self) -> None:
-        torch.set_num_threads(self.threads_each)  # this thread's OpenMP team size
-        if self.device.type == "cuda":
-            self._local.stream = torch.cuda.Stream(self.device)
 
     def _run(self, fn: Callable[[T], R], item: T) -> R:
         stream = getattr(self._local, "stream", None)
