@@ -192,6 +192,13 @@ def main() -> int:
             spans = [results.get(timeout=600) for _ in procs]
             seconds = max(end for _, end, _ in spans) - min(start for start, _, _ in spans)
             record("plain_procs_img_per_s", sum(n for *_, n in spans) / seconds)
+            if len(figures_of["plain_procs_img_per_s"]) == args.repeats:
+                # Their last repeat: wait for the processes to exit, untimed. Their exit
+                # (torch's teardown) overlapped the next job and cost it ~30% (measured
+                # with the plain threads: 0.69-0.83x the processes after their last
+                # repeat, 0.91-1.09x in the others).
+                for p in procs:
+                    p.join()
 
         def run_plain() -> None:
             model = copy.deepcopy(reference.clients[0].model)
@@ -237,8 +244,6 @@ def main() -> int:
             shift = repeat % len(jobs)  # the order rotates: none always runs first
             for job in jobs[shift:] + jobs[:shift]:
                 job()
-        for p in procs:
-            p.join()
 
         eval_side = sides["conc", 10]()
         received = {
