@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import mlflow
@@ -30,11 +31,23 @@ def test_pretrained_root_loads_as_model_weights(synth_dir, cache_dir, tmp_path):
 
 
 def test_synthetic_root_is_made_once_from_other_scenes(tmp_path, cache_dir):
-    messages = []
+    messages, reported = [], {}
+
+    @contextlib.contextmanager
+    def stage(desc: str, unit: str):  # what the demo's Progress bars are given
+        yield lambda done, total: reported.setdefault((desc, unit), []).append((done, total))
+
     settings = dict(seed=3, scenes=24, width=0.1, images=32, size=32, cache_dir=cache_dir)
-    path = synthetic_root(tmp_path, **settings, echo=messages.append)
+    path = synthetic_root(tmp_path, **settings, echo=messages.append, progress=stage)
     assert path.is_file() and (tmp_path / "synth-seed1003-24" / "all_data.csv").is_file()
     assert any("pretraining a width-0.1 MobileNetV2 root" in m for m in messages)
+    # Every stage reports, up to its end: 24 scenes written and decoded, 32 images trained.
+    ends = {stage: calls[-1] for stage, calls in reported.items()}
+    assert ends == {
+        ("synthesising", "scene"): (24, 24),
+        ("decoding images", "img"): (24, 24),
+        ("pretraining", "img"): (32, 32),
+    }
     stamp = os.stat(path).st_mtime_ns
     again = synthetic_root(tmp_path, **settings, echo=messages.append)
     assert again == path and os.stat(path).st_mtime_ns == stamp and len(messages) == 2

@@ -84,17 +84,16 @@ def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
         base = FEATURES_FCL
     else:
         probe = load_config(FCL_CONFIG, overrides)
-        with Progress("pretraining", unit="img") as bar:
-            root = synthetic_root(
-                args.data.parent / "pretrain",
-                seed=args.seed,
-                scenes=args.pretrain_scenes,
-                width=probe.model.width,
-                images=args.pretrain_images,
-                size=probe.data.image_size,
-                cache_dir=probe.data.cache_dir,
-                progress=bar,
-            )
+        root = synthetic_root(
+            args.data.parent / "pretrain",
+            seed=args.seed,
+            scenes=args.pretrain_scenes,
+            width=probe.model.width,
+            images=args.pretrain_images,
+            size=probe.data.image_size,
+            cache_dir=probe.data.cache_dir,
+            progress=Progress,  # a bar (or log lines) for each stage
+        )
         base = [f"model.weights={root}"]
     results = []
     for method in FCL_METHODS:

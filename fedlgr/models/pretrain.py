@@ -10,8 +10,10 @@ living room: another seed), save it, and start experiments from it with
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,11 +103,14 @@ def synthetic_root(
     images: int = 16000,
     size: int = 128,
     cache_dir: Path | None = None,
-    progress=None,
+    progress: Callable[[str, str], AbstractContextManager] | None = None,
     echo=print,
 ) -> Path:
     """A root pretrained on ``scenes`` synthetic scenes of seed ``seed + 1000`` (not the
-    experiments' scenes), made once in ``folder`` and reused afterwards."""
+    experiments' scenes), made once in ``folder`` and reused afterwards.
+
+    ``progress(desc, unit)``: a context manager giving a ``(done, total)`` callback for each
+    stage (synthesising, decoding, pretraining; e.g. ``fedlgr.console.Progress``)."""
     from fedlgr.data.config import DataConfig
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.synth import synthesize
@@ -115,8 +120,10 @@ def synthetic_root(
     path = folder / f"root-w{width:g}-{size}px-{scenes}scenes-{images}img-seed{seed}.pt"
     if path.is_file():
         return path
+    stage = progress or (lambda desc, unit: contextlib.nullcontext(None))
     if not (data / "all_data.csv").is_file():
-        synthesize(data, scenes, seed + PRETRAIN_SEED_OFFSET, size, force=True)
+        with stage("synthesising", "scene") as bar:
+            synthesize(data, scenes, seed + PRETRAIN_SEED_OFFSET, size, force=True, progress=bar)
     config = DataConfig(
         path=data, image_size=size, **({"cache_dir": cache_dir} if cache_dir else {})
     )
@@ -124,9 +131,10 @@ def synthetic_root(
         f"pretraining a width-{width:g} MobileNetV2 root on the descriptors of {data} "
         f"({images} images; once, then reused from {path})"
     )
-    result = pretrain_root(
-        load_scenes(config), path, width=width, images=images, seed=seed, progress=progress
-    )
+    with stage("decoding images", "img") as bar:  # only when not cached yet
+        table = load_scenes(config, progress=bar)
+    with stage("pretraining", "img") as bar:
+        result = pretrain_root(table, path, width=width, images=images, seed=seed, progress=bar)
     echo(
         f"pretrained in {result.seconds:.0f} s: descriptor MSE {result.first_loss:.2f} -> "
         f"{result.last_loss:.2f} (standardised)"
