@@ -319,7 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--clients", type=int, default=2, help="clients of the split shown")
     check.set_defaults(run="fedlgr.cli.data:check")
 
-    from fedlgr.cli.deploy import add_parser as add_deploy  # argparse only: --help stays fast
+    from fedlgr.cli.deploy_args import add_parser as add_deploy  # argparse only: --help stays fast
 
     add_deploy(verbs)
     return parser

@@ -5,7 +5,8 @@ Flower's Deployment Runtime (README "Deployment on robots (Flower)").
 where the SuperLink is, ``superlink`` and ``supernode`` replace themselves with Flower's
 processes (TLS and SuperNode authentication on unless ``--insecure``), and ``run`` submits
 fedlgr's app with ``flwr run`` and exits 0 only if the run completed. Each prints the Flower
-command it runs; ``--print-command`` prints it and stops there.
+command it runs; ``--print-command`` prints it and stops there. Their arguments are in
+:mod:`fedlgr.cli.deploy_args`.
 """
 
 from __future__ import annotations
@@ -19,9 +20,6 @@ from pathlib import Path
 
 from fedlgr.errors import FedlgrError
 
-SUPERLINK_PORT = 9092  # ours, for the Fleet, Control and ServerAppIo APIs (Flower's: 8000)
-SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machine
-
 INSECURE_WARNING = """\
 fedlgr: ############################ WARNING: --insecure ############################
 fedlgr: No TLS: model updates, configs and metrics travel in clear text.
@@ -29,150 +27,6 @@ fedlgr: No SuperNode authentication: any machine that reaches the SuperLink's po
 fedlgr: join as a robot, receive the model and send poisoned updates.
 fedlgr: Use this on a trusted test machine only (fedlgr deploy certs / node-key otherwise).
 fedlgr: ############################################################################"""
-
-
-def add_parser(verbs) -> None:
-    """The ``deploy`` verb and its sub-verbs (called by :func:`fedlgr.cli.build_parser`)."""
-    deploy = verbs.add_parser(
-        "deploy",
-        help="run on real robots with Flower: credentials, SuperLink, SuperNodes, runs",
-        description="fedlgr on Flower's Deployment Runtime: a SuperLink on a server, a "
-        "SuperNode on each robot, runs submitted with flwr run (README 'Deployment on robots').",
-    )
-    subs = deploy.add_subparsers(dest="deploy_verb", metavar="VERB", required=True)
-
-    def sub(name: str, summary: str, func: str, description: str | None = None):
-        parser = subs.add_parser(name, help=summary, description=description or summary)
-        parser.set_defaults(run=f"fedlgr.cli.deploy:{func}")
-        return parser
-
-    def insecure(parser) -> None:
-        parser.add_argument(
-            "--insecure", action="store_true", help="no TLS, no authentication: test machines only"
-        )
-
-    def print_command(parser) -> None:
-        parser.add_argument(
-            "--print-command", action="store_true", help="print Flower's command line and stop"
-        )
-
-    certs = sub(
-        "certs",
-        "write a CA and the SuperLink's TLS certificate",
-        "certs",
-        "Write ca.pem, ca.key, server.pem and server.key to DIR. ca.pem goes to every robot "
-        "and to whoever runs flwr; server.pem and server.key stay on the SuperLink's machine; "
-        "keep ca.key offline.",
-    )
-    certs.add_argument("dir", type=Path, metavar="DIR", help="folder to write the four files to")
-    certs.add_argument(
-        "--host",
-        action="append",
-        metavar="NAME_OR_IP",
-        help="a DNS name or address robots use to reach the SuperLink (repeat for several; "
-        "default: localhost, 127.0.0.1, ::1)",
-    )
-    certs.add_argument("--days", type=int, default=365, help="validity (default %(default)s)")
-    certs.add_argument("--force", action="store_true", help="replace certificates in DIR")
-
-    key = sub(
-        "node-key",
-        "write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)",
-        "node_key",
-        "Write DIR/NAME (private: to that robot only) and DIR/NAME.pub (registered with "
-        "flwr supernode register).",
-    )
-    key.add_argument("dir", type=Path, metavar="DIR", help="folder to write the key pair to")
-    key.add_argument("name", metavar="NAME", help="the robot's name, e.g. robot0")
-    key.add_argument("--force", action="store_true", help="replace an existing key")
-
-    sub("app", "print the folder of fedlgr's Flower app (for flwr run)", "app")
-
-    connect = sub(
-        "connect",
-        "point the flwr command at a SuperLink ([superlink.NAME] in $FLWR_HOME/config.toml)",
-        "connect",
-    )
-    connect.add_argument("name", metavar="NAME", help="the connection's name, e.g. robots")
-    connect.add_argument(
-        "--superlink", required=True, metavar="HOST:PORT", help="the SuperLink's control API"
-    )
-    connect.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
-    connect.add_argument("--default", action="store_true", help="make it flwr's default")
-    insecure(connect)
-
-    link = sub(
-        "superlink",
-        "start the SuperLink (the server; runs the ServerApp)",
-        "superlink",
-        "Replace this process with flower-superlink: TLS from --certs, SuperNode "
-        "authentication, no installation of dependencies at run time.",
-    )
-    link.add_argument("--certs", type=Path, metavar="DIR", help="from fedlgr deploy certs")
-    link.add_argument(
-        "--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)"
-    )
-    link.add_argument("--port", type=int, default=SUPERLINK_PORT, help="default %(default)s")
-    link.add_argument(
-        "--database",
-        type=Path,
-        metavar="FILE",
-        help="keep registered keys and runs in this SQLite file (default: in memory)",
-    )
-    insecure(link)
-    print_command(link)
-
-    node = sub(
-        "supernode",
-        "start a robot's SuperNode (runs the ClientApp on its data)",
-        "supernode",
-        "Replace this process with flower-supernode, connected to the SuperLink over TLS with "
-        "the robot's registered key; the ClientApp reads the robot's data folder.",
-    )
-    node.add_argument(
-        "--superlink", required=True, metavar="HOST:PORT", help="the SuperLink's fleet API"
-    )
-    node.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
-    node.add_argument("--key", type=Path, metavar="KEY", help="the robot's private node key")
-    node.add_argument("--data", type=Path, required=True, metavar="DIR", help="MANNERS-DB layout")
-    node.add_argument("--client", type=int, required=True, metavar="K", help="its client index")
-    node.add_argument("--state-dir", type=Path, metavar="DIR", help="private state between runs")
-    node.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
-    node.add_argument("--threads", type=int, metavar="N", help="torch threads")
-    node.add_argument(
-        "--max-retries", type=int, metavar="N", help="give up after N failed connections"
-    )
-    node.add_argument(
-        "--max-wait-time", type=float, metavar="S", help="give up after S seconds of trying"
-    )
-    node.add_argument(
-        "--idle-s",
-        type=float,
-        metavar="S",
-        help="the robot service (which keeps data and models loaded between messages) "
-        "leaves after S seconds without a message (default 900)",
-    )
-    node.add_argument(
-        "--port", type=int, default=SUPERNODE_PORT, help="its local API (default %(default)s)"
-    )
-    insecure(node)
-    print_command(node)
-
-    run = sub(
-        "run",
-        "submit a run with flwr run, stream its log and exit 0 only if it completed",
-        "run",
-        "Run fedlgr's app on the SuperLink: CONFIG (made absolute) must exist at that path on "
-        "the SuperLink's machine; key=value overrides as in fedlgr run.",
-    )
-    run.add_argument("config", metavar="CONFIG", help="the config file (as in fedlgr run)")
-    run.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
-    run.add_argument(
-        "--federation",
-        metavar="NAME",
-        help="the SuperLink connection (fedlgr deploy connect NAME; default: flwr's default)",
-    )
-    print_command(run)
 
 
 def certs(args: argparse.Namespace) -> int:
