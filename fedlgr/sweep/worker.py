@@ -1,0 +1,353 @@
+"""One worker of a sweep: runs the study's trials one at a time until it is done (or
+interrupted), each as a ``fedlgr run`` child of the sweep's MLflow parent run
+(:mod:`fedlgr.sweep.study` says how a sweep runs and recovers)."""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+from fedlgr.errors import FedlgrError
+from fedlgr.sweep.spec import SweepSpec
+from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed
+from fedlgr.sweep.trials import counts, describe_param, duplicate_of, trial_table
+
+DEFAULT_STORAGE = "sqlite:///optuna.db"
+PARENT_ATTR = "mlflow_parent_run_id"
+
+
+class PrunedRun(Exception):
+    """Raised from a run's ``on_round`` hook when the pruner stops a trial; the run ends
+    KILLED (see :func:`fedlgr.federated.experiment.run_experiment`)."""
+
+    mlflow_status = "KILLED"
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+class Worker:
+    """Runs trials of one study until it is done (or interrupted)."""
+
+    def __init__(
+        self,
+        spec: SweepSpec,
+        storage: str = DEFAULT_STORAGE,
+        *,
+        study_name: str | None = None,
+        tracking_uri: str | None = None,
+        worker: int = 0,
+        echo: Callable[..., None] = print,
+        settings_changed: bool = False,
+    ):
+        from fedlgr.tracking.mlflow_run import store_lock
+
+        self.spec, self.storage, self.worker, self.echo = spec, storage, worker, echo
+        self.study, self.retry = open_study(spec, storage, study_name, worker, settings_changed)
+        self.tracking_uri = tracking_uri
+        self.client, self.experiment_id = self._mlflow()
+        self.retry.client, self.retry.experiment_id = self.client, self.experiment_id
+        with store_lock(storage):  # two workers starting at once make one parent run
+            self.parent_run_id = self._parent()
+        self.last_trial: int | None = None
+        self.trial_id: int | None = None  # the storage id of the trial this worker runs
+
+    # ------------------------------------------------------------------ MLflow parent run
+
+    def _tracking(self) -> list[str]:
+        out = [f"tracking.experiment={self.spec.experiment}"]
+        if self.tracking_uri:
+            out.append(f"tracking.uri={self.tracking_uri}")
+        return out
+
+    def _mlflow(self):
+        import mlflow
+
+        from fedlgr.config import load_config
+        from fedlgr.tracking.mlflow_run import experiment_id, resolve_uri, store_lock, tracking_uri
+
+        base, overrides = self.spec.trial_config_args({})
+        try:
+            probe = load_config(base, [*overrides, *self._tracking()])
+            uri = tracking_uri(probe)
+        except FedlgrError:  # e.g. data.path left to the grid's config choice
+            uri = resolve_uri(self.tracking_uri)
+        self.tracking_uri = uri
+        with store_lock(uri):  # the client creates (migrates) a fresh sqlite store
+            client = mlflow.MlflowClient(uri)
+        return client, experiment_id(client, self.spec.experiment)
+
+    def _parent(self) -> str:
+        """The sweep's parent run: created by the first worker, found by the others (its id
+        is a study user attribute), set RUNNING again when a sweep resumes."""
+        from mlflow.entities import Param
+
+        from fedlgr.tracking.context import run_tags
+
+        run_id = self.study.user_attrs.get(PARENT_ATTR)
+        if run_id:
+            if self.client.get_run(run_id).info.status != "RUNNING":
+                self.client.update_run(run_id, status="RUNNING")
+            return run_id
+        spec = self.spec
+        run = self.client.create_run(
+            self.experiment_id,
+            run_name=f"sweep {self.study.study_name}",
+            tags=run_tags(  # MLflow's context tags too: source, user, git commit
+                {
+                    "fedlgr.kind": "sweep",
+                    "sweep": spec.name,
+                    "study": self.study.study_name,
+                    "sampler": spec.sampler,
+                    "objective": f"{spec.direction} {spec.metric}",
+                    "storage": self.storage,  # a machine-local path for sqlite: not a param
+                }
+            ),
+        )
+        run_id = run.info.run_id
+        params = {
+            "sweep": spec.name,
+            "study": self.study.study_name,
+            "sampler": spec.sampler,
+            "pruner": spec.pruner,
+            "objective.metric": spec.metric,
+            "objective.direction": spec.direction,
+            "trials": spec.n_trials,
+            "base": spec.base or "",
+            "overrides": " ".join(spec.overrides),
+            "space": json.dumps({p.name: describe_param(p) for p in spec.params}),
+        }
+        self.client.log_batch(run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
+        if spec.path is not None:
+            self.client.log_artifact(run_id, str(spec.path))
+        self.study.set_user_attr(PARENT_ATTR, run_id)
+        return run_id
+
+    def finish_parent(self) -> dict[str, Any] | None:
+        """Log the best trial (tags ``best.*``, metric ``best/<metric>``, ``best_trial.json``)
+        and end the parent run FINISHED."""
+        from optuna.trial import TrialState
+
+        best = None
+        if any(t.state == TrialState.COMPLETE for t in self.study.get_trials(deepcopy=False)):
+            trial = self.study.best_trial
+            best = {
+                "trial": trial.number,
+                "value": trial.value,
+                "metric": self.spec.metric,
+                "params": trial.params,
+                "mlflow_run_id": trial.user_attrs.get("mlflow_run_id"),
+            }
+            tags = {"best.trial": str(trial.number), "best.run_id": str(best["mlflow_run_id"])}
+            tags.update({f"best.{k}": str(v) for k, v in trial.params.items()})
+            for key, value in tags.items():
+                self.client.set_tag(self.parent_run_id, key, value)
+            self.client.log_metric(self.parent_run_id, f"best/{self.spec.metric}", trial.value)
+            self.client.log_dict(self.parent_run_id, best, "best_trial.json")
+        self.client.log_dict(self.parent_run_id, trial_table(self.study), "trials.json")
+        self.client.set_terminated(self.parent_run_id, "FINISHED")
+        return best
+
+    # ------------------------------------------------------------------ trials
+
+    def objective(self, trial) -> float:
+        import optuna
+
+        spec = self.spec
+        self.last_trial, self.trial_id = trial.number, trial._trial_id
+        trial.set_user_attr("worker", self.worker)
+        if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
+            trial.set_user_attr("interrupted", False)
+        params = {p.name: p.suggest(trial) for p in spec.params}
+        twin = duplicate_of(self.study, trial.number, params)
+        if twin is not None:
+            trial.set_user_attr("duplicate_of", twin)
+            raise optuna.TrialPruned(f"the same point as trial {twin}")
+        from fedlgr.config import load_config
+        from fedlgr.federated.experiment import run_experiment
+        from fedlgr.tracking.context import trial_config
+
+        shown = " ".join(f"{k}={v}" for k, v in params.items())
+        self.echo(f"\n=== {spec.name} trial {trial.number} (worker {self.worker}): {shown}")
+        intermediate = (
+            spec.metric
+            if not spec.metric.startswith(("after_task", "mean/"))
+            else "test/" + spec.metric.rsplit("/", 1)[-1]
+        )
+
+        def on_round(round_: int, metrics: dict[str, float]) -> None:
+            if intermediate in metrics:
+                with warnings.catch_warnings():  # a resumed run shows its rounds again
+                    warnings.filterwarnings("ignore", message=".*already reported")
+                    trial.report(metrics[intermediate], round_)
+                if trial.should_prune():
+                    trial.set_user_attr("pruned_at_round", round_)
+                    raise PrunedRun(f"pruned after round {round_}")
+
+        try:
+            base, overrides = spec.trial_config_args(params)
+            config = load_config(base, [*overrides, *self._tracking()])
+            config = trial_config(config, params)  # named after its swept values
+            tags = {
+                "sweep": spec.name,
+                "study": self.study.study_name,
+                "trial": str(trial.number),
+                "fedlgr.kind": "trial",
+                "swept": json.dumps(params),  # what the report shows the best trial won with
+            }
+            result = run_experiment(
+                config,
+                parent_run_id=self.parent_run_id,
+                tags=tags,
+                echo=self.echo,
+                on_round=on_round,
+                on_start=lambda run_id: trial.set_user_attr("mlflow_run_id", run_id),
+                resume=self._resumable(trial, config),
+                show_runs=False,  # the sweep shows them at its end
+            )
+        except PrunedRun as err:
+            raise optuna.TrialPruned(str(err)) from None
+        except KeyboardInterrupt:
+            trial.set_user_attr("interrupted", True)
+            raise
+        except Exception as err:
+            trial.set_user_attr("error", _one_line(err)[:1000])
+            raise
+        trial.set_user_attr("mlflow_run_id", result.run_id)
+        final = result.final_metrics()
+        if spec.metric not in final:
+            known = ", ".join(sorted(k for k in final if "client" not in k))
+            raise FedlgrError(
+                f"objective.metric={spec.metric}: this run did not log it; it logged {known}"
+            )
+        return final[spec.metric]
+
+    def _resumable(self, trial, config) -> str | None:
+        """A retried trial's MLflow run, when it left a checkpoint to continue from: the
+        copy carries the failed trial's user attributes (``mlflow_run_id``, set when its
+        run started) and reported rounds, so the retry resumes that run instead of
+        training from round 1."""
+        from fedlgr.federated.resume import checkpoint_folder
+        from fedlgr.tracking.checkpoint import checkpoints, fingerprint
+
+        run_id = trial.user_attrs.get("mlflow_run_id")
+        failed = self.study._storage.get_trial(trial._trial_id).system_attrs.get("failed_trial")
+        if failed is None or not run_id:
+            return None
+        try:
+            run = self.client.get_run(run_id)
+        except Exception:  # the run is gone from the store: start over
+            return None
+        if run.info.status == "FINISHED" or not checkpoints(checkpoint_folder(run, config)):
+            return None
+        if run.data.tags.get("fedlgr.config_hash") != fingerprint(config):
+            changed = f"settings changed since run {run_id}"
+            self.echo(f"=== trial {trial.number}: {changed}; it starts from round 1")
+            return None
+        self.echo(f"=== trial {trial.number} continues run {run_id} of trial {failed}")
+        return run_id
+
+    def run(self) -> bool:
+        """Run trials until the study is done; True when it is."""
+        import optuna
+
+        optuna.logging.set_verbosity(optuna.logging.ERROR)  # we print one line per trial
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            try:
+                return self._run()
+            except KeyboardInterrupt:  # Ctrl-C, or SIGTERM under fedlgr.signals
+                self._requeue_interrupted()
+                raise
+
+    def _run(self) -> bool:
+        import optuna
+
+        spec = self.spec
+        while True:
+            optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
+            self._fail_unborn_trials()
+            self._retry_interrupted_trials()
+            if self._someone_is_drawing():
+                time.sleep(0.5)  # let it take its point first (GridSampler may hand it out twice)
+                continue
+            todo, running, waiting = counts(self.study, spec)
+            if todo == 0 and waiting == 0:
+                if running == 0:
+                    return True
+                # Another worker is still busy: wait, in case it dies and its trial returns.
+                time.sleep(min(5.0, spec.heartbeat_s / 2))
+                continue
+            start = time.perf_counter()
+            self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
+            self.trial_id = None
+            self._report_last(time.perf_counter() - start)
+
+    def _someone_is_drawing(self) -> bool:
+        """Another worker has started a trial but not yet drawn its parameters."""
+        from optuna.trial import TrialState
+
+        running = self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+        return any(not t.params for t in running)
+
+    def _fail_unborn_trials(self) -> None:
+        """A worker killed between creating a trial and drawing its parameters leaves a
+        RUNNING trial with no params and no heartbeat, which Optuna never fails: fail it
+        once it is older than the heartbeat grace period (a live trial draws its
+        parameters within milliseconds) and queue it again. GridSampler has already given
+        it a point (system attr ``grid_id``) and counts a failed trial's point as visited,
+        so without the retry - whose copy keeps ``grid_id`` - that point would come back
+        only by chance."""
+        from datetime import datetime, timedelta
+
+        from optuna.trial import TrialState
+
+        limit = datetime.now() - timedelta(seconds=2 * self.spec.heartbeat_s + 10)
+        for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            if not t.params and t.datetime_start is not None and t.datetime_start < limit:
+                fail_and_retry(self.study, self.retry, t._trial_id)
+
+    def _requeue_interrupted(self) -> None:
+        """Ctrl-C or SIGTERM: queue this worker's trial again so the next launch redoes it
+        (as for a worker that died) and end the parent run KILLED. Optuna has recorded the
+        trial FAILED - or left it RUNNING, if the interrupt hit its own bookkeeping - and a
+        finished trial takes no new attributes, so what says it was re-queued is the copy's
+        ``retry_history``."""
+        try:
+            if self.trial_id is not None and not fail_and_retry(
+                self.study, self.retry, self.trial_id
+            ):
+                retry_failed(self.study, self.retry, self.trial_id)
+        finally:
+            self.client.set_terminated(self.parent_run_id, "KILLED")
+
+    def _retry_interrupted_trials(self) -> None:
+        """Queue any interrupted trial whose worker could not queue it (a second Ctrl-C
+        during the first one's clean-up): its point would otherwise count as done."""
+        from optuna.trial import TrialState
+
+        trials = self.study.get_trials(deepcopy=False)
+        retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+        for t in trials:
+            interrupted = t.state == TrialState.FAIL and t.user_attrs.get("interrupted")
+            if interrupted and t.number not in retried:
+                retry_failed(self.study, self.retry, t._trial_id)
+
+    def _report_last(self, seconds: float) -> None:
+        if self.last_trial is None:
+            return
+        t = self.study.get_trials(deepcopy=False)[self.last_trial]
+        if "duplicate_of" in t.user_attrs or not t.state.is_finished():
+            return
+        what = {
+            "COMPLETE": f"{self.spec.metric} {t.value:.4f}" if t.value is not None else "",
+            "PRUNED": f"pruned after round {t.user_attrs.get('pruned_at_round', '?')}",
+            "FAIL": f"FAILED: {t.user_attrs.get('error', 'see the log above')}",
+        }[t.state.name]
+        self.echo(f"=== trial {t.number}: {what} ({seconds:.0f} s)")
+        self.last_trial = None
