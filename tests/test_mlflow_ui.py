@@ -39,6 +39,12 @@ def rest(server: str, endpoint: str, body: dict | None = None, **query) -> dict:
         return json.load(answer)
 
 
+def fast_run_on(server: str, synth_dir, cache_dir, *overrides: str) -> None:
+    """``fedlgr run`` of the fast config with ``overrides``, logging to ``server``."""
+    data = [f"data.path={synth_dir}", f"data.cache_dir={cache_dir}"]
+    assert main(["run", str(FAST), *data, *overrides, "--tracking-uri", server]) == 0
+
+
 def test_runs_on_a_server_are_told_apart_and_the_printed_link_opens_their_experiment(
     mlflow_server,  # noqa: F811
     synth_dir,
@@ -48,23 +54,16 @@ def test_runs_on_a_server_are_told_apart_and_the_printed_link_opens_their_experi
 ):
     links = []
     for modality in ("image", "features"):
-        code = main(
-            [
-                "run",
-                str(FAST),
-                f"data.path={synth_dir}",
-                f"data.cache_dir={cache_dir}",
-                f"data.modality={modality}",
-                "tracking.experiment=ui-e2e",
-                "tracking.system_metrics_s=1",
-                "runtime.threads=1",
-                "--tracking-uri",
-                mlflow_server,
-            ]
+        fast_run_on(
+            mlflow_server,
+            synth_dir,
+            cache_dir,
+            f"data.modality={modality}",
+            "tracking.experiment=ui-e2e",
+            "tracking.system_metrics_s=1",
+            "runtime.threads=1",
         )
-        out = capsys.readouterr().out
-        assert code == 0
-        links += LINK.findall(out)
+        links += LINK.findall(capsys.readouterr().out)
     experiment = rest(mlflow_server, "experiments/get-by-name", experiment_name="ui-e2e")
     experiment_id = experiment["experiment"]["experiment_id"]
     assert links == [(mlflow_server, experiment_id)] * 2
@@ -130,21 +129,15 @@ def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
     capsys,
 ):
     for method in ("FedAvg", "FedRootAvg"):
-        code = main(
-            [
-                "run",
-                str(FAST),
-                f"data.path={synth_dir}",
-                f"data.cache_dir={cache_dir}",
-                "data.modality=features",
-                f"method={method}",
-                "tracking.experiment=ui-browser",
-                "tracking.system_metrics=false",
-                "--tracking-uri",
-                mlflow_server,
-            ]
+        fast_run_on(
+            mlflow_server,
+            synth_dir,
+            cache_dir,
+            "data.modality=features",
+            f"method={method}",
+            "tracking.experiment=ui-browser",
+            "tracking.system_metrics=false",
         )
-        assert code == 0
     out = capsys.readouterr().out
     (link,) = {m.group(0) for m in LINK.finditer(out)}
     experiment_id = LINK.search(out).group(2)

@@ -142,11 +142,6 @@ def _open_study(
 
 
 SETTINGS_ATTR = "fedlgr.settings"
-# How trials run, not what they compute (``--workers`` sets the threads per trial): a
-# relaunch with other workers or on another machine goes on with the study.
-HOW_IT_RUNS = frozenset(
-    {"runtime.threads", "runtime.workers", "runtime.concurrency", "runtime.progress"}
-)
 
 
 def sweep_settings(spec: SweepSpec) -> dict[str, Any]:
@@ -188,8 +183,9 @@ def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = Fals
 
 def _as_dict(overrides: list[str]) -> dict[str, str]:
     """``key=value`` overrides as {key: value}, the last one of a key winning; settings
-    that change no number left out."""
-    from fedlgr.tracking.checkpoint import SAFE_KEYS
+    that change no number left out, and how trials run (``--workers`` sets the threads per
+    trial: a relaunch with other workers or on another machine goes on with the study)."""
+    from fedlgr.tracking.checkpoint import MACHINE_CHOSEN, SAFE_KEYS
 
     pairs = dict(o.split("=", 1) for o in overrides)
-    return {k: v for k, v in pairs.items() if k not in SAFE_KEYS | HOW_IT_RUNS}
+    return {k: v for k, v in pairs.items() if k not in SAFE_KEYS and k not in MACHINE_CHOSEN}
