@@ -42,15 +42,15 @@ TIGHT = {"rtol": 1e-5, "atol": 1e-7}
 # ... plus a term set by each tensor's largest entry. The loss is taken in float32: the
 # float64 outputs are rounded to float32 first, and the two paths' outputs differ by float64
 # rounding (~1e-16, in the last bit on some kernels and not on others), so now and then one
-# output rounds to the neighbouring float32 and its gradient moves by 2^-24 of its size. That
-# error spreads over a whole tensor through the backward pass, so near-zero entries of a
-# tensor carry an error that scales with the tensor's largest entry, not with their own: an
-# Intel Xeon (AVX-512/AMX) showed 5.2e-7 on one entry of a depthwise weight's Adam first
-# moment, against TIGHT's 1e-7 (those tensors' entries reach 1-40 here). Multiplying the batched outputs by
-# 1 + 1e-15 .. 1e-13 here reproduces it (1 of 432 entries off by 1.5e-7 .. 5.8e-7), and the
-# largest excess over TIGHT was 1.3e-10 of the tensor's largest entry. 16 float32 ulps of the
-# largest entry (9.5e-7 of it) covers that 7000-fold, and a skipped Adam step (1e-3 on
-# weights <= ~1, 10% of a moment) still fails by 3 orders of magnitude.
+# output rounds to the neighbouring float32 and its gradient moves by 2^-24 of its size.
+# That error spreads over a whole tensor through the backward pass, so near-zero entries of
+# a tensor carry an error that scales with the tensor's largest entry, not with their own:
+# an Intel Xeon (AVX-512/AMX) showed 5.2e-7 on one entry of a depthwise weight's Adam first
+# moment, against TIGHT's 1e-7 (those tensors' entries reach 1-40 here). Multiplying the
+# batched outputs by 1 + 1e-15 .. 1e-13 here reproduces it (1 of 432 entries off by 1.5e-7
+# .. 5.8e-7), and the largest excess over TIGHT was 1.3e-10 of the tensor's largest entry.
+# 16 float32 ulps of the largest entry (9.5e-7 of it) covers that 7000-fold, and a skipped
+# Adam step (1e-3 on weights <= ~1, 10% of a moment) still fails by 3 orders of magnitude.
 SCALE_ULPS = 16 * torch.finfo(torch.float32).eps / 2  # 2^-20
 
 
