@@ -285,6 +285,13 @@ class ContinualConfig:
     lgr_lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
     lgr_root_epochs: int | None = 1  # two_phase: root epochs per round (None: train.epochs)
     lgr_replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
+    # Keeping replayed latents valid while the root learns (issue 19; README "How FedLGR
+    # works here"): none (the paper) | compensate | distill | compensate+distill
+    lgr_drift: str = "none"
+    lgr_compensate_ridge: float = 1.0  # compensate: ridge of the drift map (x mean eigenvalue)
+    lgr_distill_weight: float = 1.0  # distill: weight of the root's latent distillation term
+    lgr_train_blocks: int | None = None  # from task 2: only the root's last k blocks train
+    lgr_replay_layer: str = "latent"  # latent (the root's output) | freeze (the k blocks' input)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
@@ -293,9 +300,33 @@ class ContinualConfig:
         _choice("continual.lgr_schedule", self.lgr_schedule, ("two_phase", "joint"))
         _choice("continual.lgr_replay", self.lgr_replay, ("generator", "stored"))
         _choice("continual.lgr_sampler", self.lgr_sampler, ("posterior", "prior"))
+        _choice(
+            "continual.lgr_drift",
+            self.lgr_drift,
+            ("none", "compensate", "distill", "compensate+distill"),
+        )
         if not 0.0 <= self.lgr_holdout < 1.0:
             raise ConfigError(f"continual.lgr_holdout={self.lgr_holdout}: must be in [0, 1)")
-        for name in ("lgr_patience", "lgr_root_epochs"):
+        _choice("continual.lgr_replay_layer", self.lgr_replay_layer, ("latent", "freeze"))
+        if self.lgr_replay_layer == "freeze":
+            wrong = [
+                f"{name}={value}"
+                for name, value, ok in (
+                    ("lgr_train_blocks", self.lgr_train_blocks, bool(self.lgr_train_blocks)),
+                    ("lgr_schedule", self.lgr_schedule, self.lgr_schedule == "joint"),
+                    ("lgr_drift", self.lgr_drift, "compensate" not in self.lgr_drift),
+                )
+                if not ok
+            ]
+            if wrong:
+                raise ConfigError(
+                    "continual.lgr_replay_layer=freeze replays the activations entering the "
+                    "root's last lgr_train_blocks blocks, which train with the top on real and "
+                    "replayed ones together (no drift to compensate there): it needs "
+                    "lgr_train_blocks >= 1, lgr_schedule=joint and no compensation, not "
+                    + ", ".join(f"continual.{w}" for w in wrong)
+                )
+        for name in ("lgr_patience", "lgr_root_epochs", "lgr_train_blocks"):
             value = getattr(self, name)
             if value is not None and value < 0:
                 raise ConfigError(f"continual.{name}={value}: must be >= 0")
@@ -316,6 +347,8 @@ class ContinualConfig:
             "lgr_lr",
             "lgr_lr_root",
             "lgr_beta",
+            "lgr_compensate_ridge",
+            "lgr_distill_weight",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"continual.{name}={getattr(self, name)}: must be >= 0")

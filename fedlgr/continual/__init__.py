@@ -51,6 +51,11 @@ def continual_plugins(config: ContinualConfig, client: int, seed: int) -> list[C
             root_epochs=c.lgr_root_epochs,
             replay_ratio=c.lgr_replay_ratio,
             sampler=c.lgr_sampler,
+            drift=c.lgr_drift,
+            compensate_ridge=c.lgr_compensate_ridge,
+            distill_weight=c.lgr_distill_weight,
+            train_blocks=c.lgr_train_blocks,
+            replay_layer=c.lgr_replay_layer,
             seed=s,
         ),
     }

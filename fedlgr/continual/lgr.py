@@ -23,6 +23,25 @@ of a later task:
      ``train.epochs`` as in the authors' code; none when lr_R is 0);
    * ``joint``: one pass per batch, root and top together: top(root(x) U R').
 
+Keeping the replayed latents valid while the root learns (``fedlgr.continual.drift``,
+issue 19; all off is the paper's method). From the second task on:
+
+* ``lgr_drift=compensate``: at every round start an affine map from the latents of the
+  current scenes under the root as the task found it (a frozen copy, kept at the task's
+  start) to their latents under the root now - after local training and aggregation - is
+  fitted (ridge ``lgr_compensate_ridge``, shrunk towards the identity) and applied to every
+  replayed latent before the top sees it; the labeller still labels the old latent. At a
+  task's end the stored latents (and the generator's past samples, before it is refitted)
+  are carried into the current space with it.
+* ``lgr_drift=distill``: the root's loss gets ``lgr_distill_weight`` x the mean squared
+  difference between its latents of the batch and those of the frozen task-start copy
+  (feature distillation, Liu et al. CVPRW 2020): 0 at the task's start.
+* ``compensate+distill``: both.
+* ``lgr_train_blocks=k``: only the root's last k blocks train (``Root.blocks()``); the
+  others keep their weights and their BatchNorm statistics (eval mode). FedRoot still
+  averages the whole root (the frozen blocks, equal on every client, average to
+  themselves).
+
 ``lgr_replay=stored`` replays the client's real latents of past tasks (kept at each task
 end) instead of the generator's samples: an oracle that bounds what any generator can
 reach. It stores data-derived features on the client and is not private in the paper's
@@ -40,7 +59,8 @@ import copy
 import torch
 from torch import nn
 
-from fedlgr.continual.batchnorm import eval_mode
+from fedlgr.continual.batchnorm import eval_mode, freeze_batchnorm_statistics
+from fedlgr.continual.drift import DriftMap, drift_distance, fit_drift_map
 from fedlgr.continual.fidelity import replay_fidelity
 from fedlgr.federated.client import backward, optimizer_step
 from fedlgr.federated.plugins import ClientPlugin, LocalContext
@@ -49,13 +69,16 @@ from fedlgr.runtime import seeded_global_rng
 
 SCHEDULES = ("two_phase", "joint")
 REPLAYS = ("generator", "stored")
+DRIFTS = ("none", "compensate", "distill", "compensate+distill")
+LAYERS = ("latent", "freeze")
 
 
 @torch.no_grad()
 def latents_of(
-    root: nn.Module, batches, max_batches: int | None = None
+    root: nn.Module, batches, max_batches: int | None = None, block: int | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The root's latents (eval mode) and the targets of one pass over ``batches``."""
+    """The root's latents (eval mode) and the targets of one pass over ``batches``; with
+    ``block``, the activations entering that block instead, flattened per scene."""
     rs, ys = [], []
     with eval_mode(root):
         for step, (x, y) in enumerate(batches):
@@ -63,14 +86,25 @@ def latents_of(
                 break
             if x.dim() == 4:
                 x = x.contiguous(memory_format=torch.channels_last)
-            rs.append(root(x).float())
+            r = root(x) if block is None else root.forward_to(x, block).flatten(1)
+            rs.append(r.float())
             ys.append(y)
     return torch.cat(rs), torch.cat(ys)
 
 
 class LatentReplay(ClientPlugin):
     name = "lgr"
-    metric_names = ("fd_latent", "recon_mse", "fd_labels", "vae_epochs")
+    # Task ends: the replay's fidelity. Every round of a later task: the latent drift.
+    metric_names = (
+        "fd_latent",
+        "recon_mse",
+        "fd_labels",
+        "vae_epochs",
+        "drift",
+        "drift_residual",
+        "drift_past",
+        "drift_past_residual",
+    )
 
     def __init__(
         self,
@@ -89,11 +123,29 @@ class LatentReplay(ClientPlugin):
         root_epochs: int | None = 1,
         replay_ratio: float = 4.0,
         sampler: str = "posterior",
+        drift: str = "none",
+        compensate_ridge: float = 1.0,
+        distill_weight: float = 1.0,
+        train_blocks: int | None = None,
+        replay_layer: str = "latent",
         seed: int = 0,
     ):
-        if schedule not in SCHEDULES or replay not in REPLAYS:
-            raise ValueError(f"schedule {schedule!r} / replay {replay!r}")
+        if schedule not in SCHEDULES or replay not in REPLAYS or drift not in DRIFTS:
+            raise ValueError(f"schedule {schedule!r} / replay {replay!r} / drift {drift!r}")
+        if replay_layer not in LAYERS:
+            raise ValueError(f"replay layer {replay_layer!r}")
+        if replay_layer == "freeze" and (
+            not train_blocks or schedule != "joint" or "compensate" in drift
+        ):
+            raise ValueError(
+                "replay at the freeze point needs train_blocks >= 1, the joint schedule and "
+                "no compensation"
+            )
+        self.replay_layer = replay_layer
         self.schedule, self.replay = schedule, replay
+        self.compensate, self.distill = "compensate" in drift, "distill" in drift
+        self.compensate_ridge, self.distill_weight = compensate_ridge, distill_weight
+        self.train_blocks = train_blocks  # None: the whole root trains
         self.hidden, self.latent, self.batch_size = hidden, latent, batch_size
         self.vae_epochs = epochs
         self.lr, self.beta, self.patience, self.holdout = lr, beta, patience, holdout
@@ -109,6 +161,16 @@ class LatentReplay(ClientPlugin):
         self._heldout: torch.Tensor | None = None  # real latents the generator did not see
         self._current: torch.Tensor | None = None  # the last task's latents, at its end
         self._labeller_state: dict | None = None  # a restored labeller, until a top is at hand
+        # The root as the current task found it (frozen, eval mode), for compensation,
+        # distillation and the drift figures; its latents of the current scenes.
+        self.root_start: nn.Module | None = None
+        self._root_start_state: dict | None = None  # restored, until a root is at hand
+        self._start_latents: torch.Tensor | None = None
+        self._past_start: torch.Tensor | None = None  # diagnostics: past scenes, task start
+        self.drift_map: DriftMap | None = None  # fitted at this round's start
+        self._frozen: list[nn.Module] = []  # blocks kept as they are this round
+        self._latents: torch.Tensor | None = None  # the root's latents of the batch (distill)
+        self._shape: tuple[int, ...] | None = None  # freeze: one scene's replayed activations
 
     @property
     def replaying(self) -> bool:
@@ -125,16 +187,66 @@ class LatentReplay(ClientPlugin):
 
     @torch.no_grad()
     def pseudo_samples(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``n`` pseudo-latents R' and their labels T' from the pre-update top."""
+        """``n`` pseudo-latents R' and their labels T' from the pre-update top (at the freeze
+        point: from the task-start root's blocks above it and the pre-update top)."""
         latents = self.replayed_latents(n)
-        return latents, self.labeller(latents).float()
+        if self.replay_layer == "latent":
+            return latents, self.labeller(latents).float()
+        point = self.freeze_point(self.root_start)
+        above = self.root_start.forward_from(self.unflatten(latents), point)
+        return latents, self.labeller(above).float()
+
+    def freeze_point(self, root: nn.Module) -> int | None:
+        """Replay at the freeze point: the index of ``root``'s first trained block."""
+        if self.replay_layer != "freeze":
+            return None
+        return max(len(root.blocks()) - self.train_blocks, 0)
+
+    def unflatten(self, z: torch.Tensor) -> torch.Tensor:
+        """Flat replayed activations as the blocks above the freeze point take them."""
+        z = z.reshape(len(z), *self._shape)
+        return z.contiguous(memory_format=torch.channels_last) if z.dim() == 4 else z
+
+    def replay_latents(self, root: nn.Module, batches) -> torch.Tensor:
+        """What is replayed of ``batches``' scenes: the root's latents, or (freeze point)
+        the flattened activations entering the first trained block."""
+        if self.replay_layer == "latent":
+            return latents_of(root, batches)[0]
+        point = self.freeze_point(root)
+        if self._shape is None:
+            x, _ = next(iter(batches))
+            if x.dim() == 4:
+                x = x.contiguous(memory_format=torch.channels_last)
+            with torch.no_grad(), eval_mode(root):
+                self._shape = tuple(root.forward_to(x[:1], point).shape[1:])
+        return latents_of(root, batches, block=point)[0]
+
+    def _freeze_point_union(self, ctx: LocalContext, x: torch.Tensor, y: torch.Tensor):
+        """top(root above the freeze point(Z U Z')) and (y U T'): the frozen blocks run
+        once, without gradients; the trained blocks and the top see real and replayed
+        activations as one batch."""
+        root = ctx.model.root
+        point = self.freeze_point(root)
+        with torch.no_grad():
+            z = root.forward_to(x, point)
+        n = round(len(x) * self.replay_ratio)
+        if n:
+            latents, labels = self.pseudo_samples(n)
+            z = torch.cat([z, self.unflatten(latents).to(z.dtype)])
+            y = torch.cat([y, labels.to(y.dtype)])
+        r = root.forward_from(z, point)
+        self._latents = r[: len(x)]
+        return ctx.model.top(r), y
 
     def _union(self, top: nn.Module, r: torch.Tensor, y: torch.Tensor):
-        """top(R U R') and (y U T'): one batch through the top."""
+        """top(R U map(R')) and (y U T'): one batch through the top (map: the drift
+        compensation, where on; T' is labelled on the unmapped R')."""
         n = round(len(r) * self.replay_ratio)
         if n == 0:
             return top(r), y
         latents, labels = self.pseudo_samples(n)
+        if self.drift_map is not None:
+            latents = self.drift_map(latents)
         return top(torch.cat([r, latents.to(r.dtype)])), torch.cat([y, labels.to(y.dtype)])
 
     # ------------------------------------------------------------------ hooks
@@ -142,21 +254,57 @@ class LatentReplay(ClientPlugin):
     def on_task_start(self, ctx: LocalContext) -> None:
         if self.replaying:
             self.labeller = copy.deepcopy(ctx.model.top).eval().requires_grad_(False)
+            self.root_start = copy.deepcopy(ctx.model.root).eval().requires_grad_(False)
+            self._start_latents = self._past_start = None
 
-    def on_round_start(self, ctx: LocalContext) -> None:
-        if not self.replaying:
-            return
+    def _restore(self, ctx: LocalContext) -> None:
+        """The labeller and the task-start root from a checkpoint, once a model is at hand."""
         if self.labeller is None and self._labeller_state is not None:  # restored mid-task
             self.labeller = copy.deepcopy(ctx.model.top).eval().requires_grad_(False)
             self.labeller.load_state_dict(self._labeller_state)
             self._labeller_state = None
+        if self.root_start is None and self._root_start_state is not None:
+            self.root_start = copy.deepcopy(ctx.model.root).eval().requires_grad_(False)
+            self.root_start.load_state_dict(self._root_start_state)
+            self._root_start_state = None
+
+    def start_latents(self, ctx: LocalContext) -> torch.Tensor:
+        """The task-start root's latents of the current scenes (once per task)."""
+        if self._start_latents is None:
+            self._start_latents = latents_of(self.root_start, ctx.plain_batches())[0]
+        return self._start_latents
+
+    def fit_map(self, ctx: LocalContext) -> DriftMap:
+        """The drift map from the task-start root's latents of the current scenes to the
+        current root's."""
+        now = latents_of(ctx.model.root, ctx.plain_batches())[0]
+        return fit_drift_map(self.start_latents(ctx), now, self.compensate_ridge)
+
+    def on_round_start(self, ctx: LocalContext) -> None:
+        if not self.replaying:
+            return
+        self._restore(ctx)
         # Every round (a fresh optimiser, train.reset_optimizer=true, starts at train.lr_root).
         for group in ctx.optimizer.param_groups:
             if group.get("name") == "root":
                 group["lr"] = self.lr_root
+        self._freeze_blocks(ctx.model.root)
+        self.drift_map = self.fit_map(ctx) if self.compensate else None
         if self.schedule == "two_phase":
             self._train_top(ctx)
             ctx.model.top.eval().requires_grad_(False)  # phase 2: the root alone
+
+    def _freeze_blocks(self, root: nn.Module) -> None:
+        """``train_blocks``: every block below the last k keeps its weights (no gradients:
+        Adam skips them) and its BatchNorm statistics (eval mode) this round."""
+        self._frozen = []
+        if self.train_blocks is None:
+            return
+        blocks = root.blocks()
+        self._frozen = blocks[: max(len(blocks) - self.train_blocks, 0)]
+        for block in self._frozen:
+            block.requires_grad_(False)
+            freeze_batchnorm_statistics(block)
 
     def _train_top(self, ctx: LocalContext) -> None:
         """Phase 1: the top alone on the round's cached latents, with pseudo-samples."""
@@ -189,28 +337,60 @@ class LatentReplay(ClientPlugin):
         return self.root_epochs
 
     def forward(self, ctx: LocalContext, x: torch.Tensor, y: torch.Tensor):
-        if not self.replaying or self.schedule != "joint":
+        if not self.replaying:
             return None
-        return self._union(ctx.model.top, ctx.model.root(x), y)
+        if self.replay_layer == "freeze":
+            return self._freeze_point_union(ctx, x, y)
+        if self.schedule == "joint":
+            r = ctx.model.root(x)
+            self._latents = r
+            return self._union(ctx.model.top, r, y)
+        if not self.distill:
+            return None
+        r = self._latents = ctx.model.root(x)  # phase 2: the root alone (kept for the loss)
+        return ctx.model.top(r), y
+
+    def loss(self, ctx, x, y, outputs, loss):
+        if not (self.replaying and self.distill) or self._latents is None:
+            return loss
+        return loss + self.distill_weight * self.distillation(self._latents, x)
+
+    def distillation(self, latents: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """The mean squared difference between ``latents`` (the root's, of batch ``x``) and
+        the task-start root's latents of ``x`` (no gradient through those)."""
+        with torch.no_grad():
+            target = self.root_start(x).float()
+        self._latents = None
+        return nn.functional.mse_loss(latents.float(), target)
 
     def on_round_end(self, ctx: LocalContext) -> None:
         if self.replaying and self.schedule == "two_phase":  # the top as the round found it
             ctx.model.top.requires_grad_(True).train(ctx.model.training)
+        for block in self._frozen:
+            block.requires_grad_(True)
+        self._frozen, self._latents = [], None
 
     def on_task_end(self, ctx: LocalContext) -> None:
-        current = latents_of(ctx.model.root, ctx.plain_batches())[0]
+        current = self.replay_latents(ctx.model.root, ctx.plain_batches())
+        # Compensation: what is kept of past tasks moves into the space of the root as the
+        # task leaves it (the next task's start), with the map fitted on this task's scenes.
+        carry = None
+        if self.compensate and self.replaying and self.root_start is not None:
+            carry = fit_drift_map(self.start_latents(ctx), current, self.compensate_ridge)
         heldout = None
         if self.replay == "stored":
-            parts = [current] if self.memory is None else [self.memory, current]
-            self.memory = torch.cat(parts)
+            memory = self.memory if carry is None or self.memory is None else carry(self.memory)
+            self.memory = current if memory is None else torch.cat([memory, current])
         else:
-            heldout = self._fit_generator(current)
+            heldout = self._fit_generator(current, carry)
         self.tasks_learnt += 1
-        self.labeller = None
+        self.labeller = self.root_start = self.drift_map = None
+        self._start_latents = self._past_start = None
         self._heldout, self._current = heldout, current
 
-    def _fit_generator(self, current: torch.Tensor) -> torch.Tensor:
-        """Train the generator on R (and R' of past tasks); its held-out real latents."""
+    def _fit_generator(self, current: torch.Tensor, carry: DriftMap | None = None) -> torch.Tensor:
+        """Train the generator on R (and R' of past tasks, carried into the current space by
+        ``carry`` where given); its held-out real latents."""
         order = torch.randperm(len(current), generator=self.generator_rng).to(current.device)
         n_held = int(len(current) * self.holdout) if len(current) >= 10 else 0
         held, train = current[order[:n_held]], current[order[n_held:]]
@@ -224,6 +404,8 @@ class LatentReplay(ClientPlugin):
                 ).to(current.device)
         else:  # R U R': as many pseudo-latents per past task as the task has scenes
             past = self.generator.sample(len(current) * self.tasks_learnt, self.generator_rng)
+            if carry is not None:
+                past = carry(past)
             cut = len(held) * self.tasks_learnt
             train = torch.cat([train, past[cut:]])
             held = torch.cat([held, past[:cut]])
@@ -240,9 +422,12 @@ class LatentReplay(ClientPlugin):
     def task_metrics(self, ctx: LocalContext) -> dict[str, float]:
         """Replay fidelity against the real latents of every task seen so far."""
         heldout = self._heldout
-        past = [latents_of(ctx.model.root, ctx.plain_batches(batches=b))[0] for b in ctx.seen[:-1]]
+        root = ctx.model.root
+        past = [self.replay_latents(root, ctx.plain_batches(batches=b)) for b in ctx.seen[:-1]]
         real = torch.cat([*past, self._current])  # the current task's: from on_task_end
-        top = ctx.model.top
+        top, point = ctx.model.top, self.freeze_point(root)
+        if point is not None:  # the labeller's view: the blocks above the point, the top
+            top = nn.Sequential(_Above(root, point, self.unflatten), top)
         with eval_mode(top):
             self.fidelity = replay_fidelity(
                 real,
@@ -261,6 +446,35 @@ class LatentReplay(ClientPlugin):
             self.fidelity["vae_epochs"] = float(report.best_epoch)
         return dict(self.fidelity)
 
+    @torch.no_grad()
+    def round_metrics(self, ctx: LocalContext) -> dict[str, float]:
+        """The latent drift after a round of a later task (aggregation included), before
+        any task end: ``drift``, the distance between the current root's latents of the
+        current scenes and their latents at the task's start (what a robot can compute);
+        ``drift_residual``, the same after the compensation map fitted now (compensate
+        only); ``drift_past`` / ``drift_past_residual``: the same on the past tasks' scenes
+        (the true drift; a simulation reads them for the measurement only)."""
+        if not self.replaying:
+            return {}
+        self._restore(ctx)
+        if self.root_start is None:
+            return {}
+        then = self.start_latents(ctx)
+        now = latents_of(ctx.model.root, ctx.plain_batches())[0]
+        out = {"drift": drift_distance(now, then)}
+        mapping = fit_drift_map(then, now, self.compensate_ridge) if self.compensate else None
+        if mapping is not None:
+            out["drift_residual"] = drift_distance(now, mapping(then))
+        if len(ctx.seen) > 1:
+            past = [ctx.plain_batches(batches=b) for b in ctx.seen[:-1]]
+            if self._past_start is None:
+                self._past_start = torch.cat([latents_of(self.root_start, b)[0] for b in past])
+            past_now = torch.cat([latents_of(ctx.model.root, b)[0] for b in past])
+            out["drift_past"] = drift_distance(past_now, self._past_start)
+            if mapping is not None:
+                out["drift_past_residual"] = drift_distance(past_now, mapping(self._past_start))
+        return out
+
     # ------------------------------------------------------------------ state
 
     def state_dict(self) -> dict:
@@ -270,7 +484,11 @@ class LatentReplay(ClientPlugin):
             if self.labeller is None
             else self.labeller.state_dict(),
             "memory": self.memory,
+            "root_start": self._root_start_state
+            if self.root_start is None
+            else self.root_start.state_dict(),
             "tasks_learnt": self.tasks_learnt,
+            "shape": self._shape,
             "rng": self.generator_rng.get_state(),
         }
 
@@ -287,6 +505,20 @@ class LatentReplay(ClientPlugin):
             self.generator.load_state_dict(state["generator"])
         self.labeller, self._labeller_state = None, state.get("labeller")
         self.memory = state.get("memory")
+        self.root_start, self._root_start_state = None, state.get("root_start")
+        self._start_latents = self._past_start = self.drift_map = None
         self.tasks_learnt = state.get("tasks_learnt", 0)
+        self._shape = None if state.get("shape") is None else tuple(state["shape"])
         if "rng" in state:
             self.generator_rng.set_state(state["rng"])
+
+
+class _Above(nn.Module):
+    """The root's blocks from ``point`` on, over flat replayed activations."""
+
+    def __init__(self, root: nn.Module, point: int, unflatten):
+        super().__init__()
+        self.root, self.point, self.unflatten = root, point, unflatten
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.root.forward_from(self.unflatten(z), self.point)

@@ -35,7 +35,7 @@ from fedlgr.federated.messages import (
     Weights,
     check_shared,
 )
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.plugins import ClientPlugin, LocalContext
 from fedlgr.federated.scope import SCOPE_PREFIX, initial_scholar, shared_keys
 from fedlgr.federated.strategies import STRATEGIES
 from fedlgr.tracking.metrics import regression_scores
@@ -270,10 +270,7 @@ class ClientSide:
         check_shared(ins.weights, self.keys, "the server's download", prefix)
         for client in self.clients:
             client.download(ins.weights)
-        if plan.last_of_task:
-            ended = self._side_by_side(lambda c: self.end_task(c, plan.round, plan.task))
-        else:
-            ended = [(None, {})] * len(self.clients)
+        ended = self._side_by_side(lambda c: self.finish_round(c, plan))
         predictions = self.predictions(ins.weights)
         return [
             EvaluateRes(client.index, self.scores(pred, plan.task), figures, usage)
@@ -307,6 +304,20 @@ class ClientSide:
         """Is the client's root exactly the one received (no task end changed it)?"""
         state = client.model.state_dict()
         return all(torch.equal(state[k], received[k]) for k in self.root_keys)
+
+    def finish_round(self, client: Client, plan) -> tuple[Usage | None, dict[str, float]]:
+        """The plugins' round figures on the received model, then, at a task's last
+        round, the task end (its usage and figures)."""
+        figures = {}
+        if any(type(p).round_metrics is not ClientPlugin.round_metrics for p in client.plugins):
+            ctx = self.context(client, plan.round, plan.task)
+            figures = {  # outside any measurement: diagnostics are not the client's work
+                f"{p.name}_{k}": v for p in client.plugins for k, v in p.round_metrics(ctx).items()
+            }
+        if not plan.last_of_task:
+            return None, figures
+        usage, ended = self.end_task(client, plan.round, plan.task)
+        return usage, figures | ended
 
     def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, dict[str, float]]:
         """The plugins' ``on_task_end``, and what they measured then (``<plugin>_<name>``)."""

@@ -10,8 +10,9 @@ checkpoint it).
 Order of calls for one client: ``on_task_start`` (first round of a task) ->
 ``on_round_start`` -> ``epochs`` -> per batch: ``batch`` -> ``forward`` -> ``loss`` ->
 backward -> ``before_step`` -> optimiser step -> ``after_step`` -> ``on_round_end`` ->
-(upload, aggregation, download) -> ``on_task_end`` (last round of a task, on the model the
-client goes on with) -> ``task_metrics`` (logged with that round).
+(upload, aggregation, download) -> ``round_metrics`` (every round, on the received model)
+-> ``on_task_end`` (last round of a task, on the model the client goes on with) ->
+``task_metrics`` (logged with that round).
 """
 
 from __future__ import annotations
@@ -120,6 +121,11 @@ class ClientPlugin:
     def on_task_end(self, ctx: LocalContext) -> None:
         """After the last round of a task (aggregation included): importance, memories,
         generators are updated here."""
+
+    def round_metrics(self, ctx: LocalContext) -> dict[str, float]:
+        """Diagnostics measured after every round's download, before any task end (names
+        from ``metric_names``); not billed to the client's costs either."""
+        return {}
 
     def task_metrics(self, ctx: LocalContext) -> dict[str, float]:
         """Diagnostics measured right after ``on_task_end`` (names from ``metric_names``);

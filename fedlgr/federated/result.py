@@ -80,10 +80,32 @@ class ExperimentResult:
         text = table(headers, rows)
         if self.after_tasks:
             text += "\n\n" + self.task_summary()
-        fidelity = self.replay_fidelity()
-        if fidelity:
-            text += "\n\n" + fidelity
+        for section in (self.replay_fidelity(), self.latent_drift()):
+            if section:
+                text += "\n\n" + section
         return text
+
+    def latent_drift(self) -> str:
+        """FedLGR: the root's latent drift after each round of a later task, mean over
+        clients (README, "How FedLGR works here")."""
+        names = {
+            "drift": "current scenes",
+            "drift_residual": "after the map",
+            "drift_past": "past scenes (true)",
+            "drift_past_residual": "past, after the map",
+        }
+        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        rows = []
+        for log in self.rounds:
+            values = [log.mean(f"lgr_{n}") for n in present]
+            if any(v is not None for v in values):
+                rows.append(
+                    [f"round {log.round} ({log.task})", *("-" if v is None else v for v in values)]
+                )
+        if not rows:
+            return ""
+        headers = ["", *(names[n] for n in present)]
+        return "latent drift since the task's start (FD, 0 = none):\n" + table(headers, rows)
 
     def replay_fidelity(self) -> str:
         """FedLGR: the replay's fidelity at each task end, mean over clients (README)."""

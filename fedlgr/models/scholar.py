@@ -119,6 +119,18 @@ class MobileNetRoot(L.LightningModule):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.flatten(self.pool(self.features(x)), 1)
 
+    def blocks(self) -> list[nn.Module]:
+        """The root's blocks, input first: MobileNetV2's 19 ``features`` (the stem, 17
+        inverted residual blocks, the last 1x1 convolution); the pool has no weights."""
+        return list(self.features)
+
+    def forward_to(self, x: torch.Tensor, block: int) -> torch.Tensor:
+        """The activations entering block ``block`` (``forward_from`` goes on from them)."""
+        return self.features[:block](x)
+
+    def forward_from(self, z: torch.Tensor, block: int) -> torch.Tensor:
+        return torch.flatten(self.pool(self.features[block:](z)), 1)
+
 
 class MLPRoot(L.LightningModule):
     """Linear -> BatchNorm1d -> ReLU per hidden size, over the descriptor features."""
@@ -134,6 +146,18 @@ class MLPRoot(L.LightningModule):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
+
+    def blocks(self) -> list[nn.Module]:
+        """The root's blocks, input first: one Linear -> BatchNorm1d -> ReLU per hidden size."""
+        layers = list(self.net)
+        return [nn.Sequential(*layers[i : i + 3]) for i in range(0, len(layers), 3)]
+
+    def forward_to(self, x: torch.Tensor, block: int) -> torch.Tensor:
+        """The activations entering block ``block`` (``forward_from`` goes on from them)."""
+        return self.net[: 3 * block](x)
+
+    def forward_from(self, z: torch.Tensor, block: int) -> torch.Tensor:
+        return self.net[3 * block :](z)
 
 
 class Top(L.LightningModule):
