@@ -1,19 +1,23 @@
-"""FCL benchmark (issues 4 and 9). Run: ``uv run python bench/fcl.py`` (~25 minutes on 2 cores).
+"""FCL benchmark (issues 4, 9 and 19). Run: ``uv run python bench/fcl.py`` (~50 minutes on 2 cores).
 
 On the synthetic living room (1000 scenes, 2 clients), Task 1 = circle then Task 2 = arrow,
 ``--rounds-per-task`` rounds of ``--epochs`` local epochs each, in each ``--modality``:
 ``image`` (128 px; a half-width MobileNetV2 root pretrained offline on the descriptors of
 *other* synthetic scenes, seed 1000, no appropriateness labels - the stand-in for the paper's
 ImageNet weights) and ``features`` (the MLP root over the 27 descriptors + 2 mode flags of
-the same ``all_data.csv``, random init). Runs FedRoot-FT (FedRoot without a CL method),
-FedLGR and FedLGR's stored-latent oracle on ``--seeds``, and every other Table II method on
-the first seed. Prints per method the circle-test RMSE and PCC after Task 1 and after Task
-2, the forgetting (positive: circle got worse), arrow after Task 2, and the CPU seconds per
-client per round in Task 2; then the Table IV rows that ``fedlgr report`` builds from the
-runs (all rounds), and checks issue 9's targets per seed: FedLGR cuts FedRoot-FT's circle
-forgetting by >= 60% in RMSE and in PCC, learns arrow within 0.05 RMSE of FedRoot-FT, and
-its stored oracle forgets <= 0.02 RMSE; FedRoot-FT must forget beyond noise.
-``--set key=value`` applies to every run (e.g. ``continual.freeze_root_bn=true``).
+the same ``all_data.csv``, random init). On every seed of ``--seeds`` it runs the
+``--seeded`` baselines (FedRoot-FT = FedRoot without a CL method, FedRoot-NR, FedRoot-EWC)
+and the ``--lgr`` variants of FedLGR, each with its stored-latent oracle ("<label>
+(stored)"): ``FedLGR`` at its defaults, ``FedLGR-paper`` (no drift control: the paper's
+method), ``FedLGR-compensate``, ``FedLGR-distill``, ``FedLGR-blocks`` and ``FedLGR-freeze`` (one
+drift control each, see LGR_VARIANTS); ``--variant LABEL=key=value,...`` adds one. The ``--methods``
+(other Table II methods) run on the first seed. Prints per run the circle-test RMSE and
+PCC after Task 1 and after Task 2, the forgetting (positive: circle got worse), arrow after
+Task 2, the CPU seconds per client per round in Task 2 and FedLGR's latent drift after the
+last round; then the Table IV rows that ``fedlgr report`` builds from the runs (all rounds),
+and checks issue 19's targets per seed (see ``check``). ``--workdir`` keeps the data, the
+pretrained root and the MLflow store (``mlflow.db``); ``--set key=value`` applies to every
+run (e.g. ``continual.freeze_root_bn=true``).
 """
 
 from __future__ import annotations
@@ -49,7 +53,13 @@ LGR_VARIANTS = {
     "FedLGR-paper": ["continual.lgr_drift=none", "continual.lgr_train_blocks=null"],
     "FedLGR-compensate": ["continual.lgr_drift=compensate", "continual.lgr_train_blocks=null"],
     "FedLGR-distill": ["continual.lgr_drift=distill", "continual.lgr_train_blocks=null"],
-    "FedLGR-blocks": ["continual.lgr_drift=none", "continual.lgr_train_blocks=2"],
+    "FedLGR-blocks": ["continual.lgr_drift=none", "continual.lgr_train_blocks=1"],
+    "FedLGR-freeze": [  # replay at the freeze point, below the last two blocks
+        "continual.lgr_drift=none",
+        "continual.lgr_train_blocks=2",
+        "continual.lgr_replay_layer=freeze",
+        "continual.lgr_schedule=joint",
+    ],
 }
 STORED = " (stored)"
 TARGETS = {"cut": 0.60, "arrow": 0.02, "oracle": 0.03, "features_cut": 0.90}
@@ -199,9 +209,7 @@ def task2_cpu(result) -> float:
 def final_drift(result) -> dict[str, float | None]:
     """FedLGR's drift figures after the last round (mean over clients; None: not logged)."""
     last = result.rounds[-1]
-    return {
-        n: last.mean(f"lgr_{n}") if f"lgr_{n}" in last.column_names else None for n in DRIFT
-    }
+    return {n: last.mean(f"lgr_{n}") if f"lgr_{n}" in last.column_names else None for n in DRIFT}
 
 
 def report(

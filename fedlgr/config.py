@@ -286,11 +286,13 @@ class ContinualConfig:
     lgr_root_epochs: int | None = 1  # two_phase: root epochs per round (None: train.epochs)
     lgr_replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
     # Keeping replayed latents valid while the root learns (issue 19; README "How FedLGR
-    # works here"): none (the paper) | compensate | distill | compensate+distill
-    lgr_drift: str = "none"
+    # works here"): none | compensate | distill | compensate+distill. The defaults (distill
+    # at weight 10, the last root block trained) are sweeps/fedlgr_drift_image.yaml's and
+    # sweeps/fedlgr_distill_image.yaml's best point; none + train_blocks null is the paper's.
+    lgr_drift: str = "distill"
     lgr_compensate_ridge: float = 1.0  # compensate: ridge of the drift map (x mean eigenvalue)
-    lgr_distill_weight: float = 1.0  # distill: weight of the root's latent distillation term
-    lgr_train_blocks: int | None = None  # from task 2: only the root's last k blocks train
+    lgr_distill_weight: float = 10.0  # distill: weight of the root's latent distillation term
+    lgr_train_blocks: int | None = 1  # from task 2 only the root's last k blocks train (null: all)
     lgr_replay_layer: str = "latent"  # latent (the root's output) | freeze (the k blocks' input)
 
     def __post_init__(self) -> None:

@@ -133,7 +133,9 @@ def test_distillation_is_zero_at_the_task_start_and_has_the_hand_gradient():
     with torch.no_grad():
         model.root.weight[0, 0] = 1.5
     loss = distill_loss(lgr, model, x)
-    assert float(loss.detach()) == pytest.approx(3.0 * (1.0**2 + 0.0**2) / 2)  # weight x mean square
+    assert float(loss.detach()) == pytest.approx(
+        3.0 * (1.0**2 + 0.0**2) / 2
+    )  # weight x mean square
     loss.backward()
     # d/dW of 3 x mean((W x + b - r0)^2) over 2 features = 3 x 2/2 x (r - r0) x^T
     expected = torch.tensor([[6.0, 3.0, 3.0], [0.0, 0.0, 0.0]])

@@ -42,6 +42,13 @@ def test_every_shipped_sweep_loads_and_builds_its_search_space(path):
         assert spec.pruner == "median" and spec.n_trials > 0
 
 
+def test_a_grid_null_reaches_the_trial_as_an_unset_setting():
+    spec = load_sweep("fedlgr_drift_image")
+    assert None in spec.grid["continual.lgr_train_blocks"]
+    _, overrides = spec.trial_config_args({"continual.lgr_train_blocks": None})
+    assert overrides[-1] == "continual.lgr_train_blocks=null"  # not the string "None"
+
+
 def test_the_paper_grids_cover_every_method_and_setting():
     from fedlgr.config import FCL_METHODS, METHODS
 

@@ -95,6 +95,10 @@ class ExperimentResult:
             "drift_past_residual": "past, after the map",
         }
         present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        # Columns nothing was measured in (no compensation: no residuals) are left out.
+        present = [
+            n for n in present if any(log.mean(f"lgr_{n}") is not None for log in self.rounds)
+        ]
         rows = []
         for log in self.rounds:
             values = [log.mean(f"lgr_{n}") for n in present]

@@ -133,6 +133,8 @@ class SweepSpec:
 
 
 def _as_override(value: Any) -> str:
+    if value is None:  # a grid's null (YAML): the setting's "unset", e.g. lgr_train_blocks
+        return "null"
     if isinstance(value, bool):
         return str(value).lower()
     if isinstance(value, list | tuple):
