@@ -371,8 +371,19 @@ def test_replay_at_the_freeze_point_keeps_the_activations_entering_the_trained_b
 def test_replay_at_the_freeze_point_needs_trained_blocks_and_the_joint_schedule():
     message = "continual.lgr_replay_layer=freeze .* not continual.lgr_train_blocks=None"
     with pytest.raises(ConfigError, match=message):
-        load_config(None, ["method=FedLGR", "continual.lgr_replay_layer=freeze"])
-    with pytest.raises(ConfigError, match=r"not continual\.lgr_schedule=two_phase"):
+        load_config(
+            None,
+            [
+                "method=FedLGR",
+                "continual.lgr_replay_layer=freeze",
+                "continual.lgr_train_blocks=null",
+                "continual.lgr_schedule=joint",
+            ],
+        )
+    with pytest.raises(
+        ConfigError,
+        match=r"lgr_schedule=joint and no compensation, not continual\.lgr_schedule=two_phase$",
+    ):
         load_config(
             None,
             ["method=FedLGR", "continual.lgr_replay_layer=freeze", "continual.lgr_train_blocks=2"],
