@@ -349,11 +349,15 @@ class ContinualConfig:
             "lgr_lr",
             "lgr_lr_root",
             "lgr_beta",
-            "lgr_compensate_ridge",
             "lgr_distill_weight",
         ):
             if getattr(self, name) < 0:
                 raise ConfigError(f"continual.{name}={getattr(self, name)}: must be >= 0")
+        if self.lgr_compensate_ridge <= 0:  # clients hold fewer scenes than latent features
+            raise ConfigError(
+                f"continual.lgr_compensate_ridge={self.lgr_compensate_ridge}: must be > 0 "
+                "(the drift map is fitted on a client's scenes, fewer than the root's features)"
+            )
         if not 0.0 <= self.ewc_gamma <= 1.0:
             raise ConfigError(f"continual.ewc_gamma={self.ewc_gamma}: must be in 0..1")
         if self.method != "none" and not self.tasks:

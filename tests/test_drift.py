@@ -284,6 +284,7 @@ def test_frozen_blocks_are_bit_identical_after_a_task_two_round(
         ("continual.lgr_train_blocks=-1", "continual.lgr_train_blocks"),
         ("continual.lgr_distill_weight=-1", "continual.lgr_distill_weight"),
         ("continual.lgr_compensate_ridge=-1", "continual.lgr_compensate_ridge"),
+        ("continual.lgr_compensate_ridge=0", "continual.lgr_compensate_ridge=0.0: must be > 0"),
     ],
 )
 def test_bad_drift_settings_are_refused_by_name(override, setting):
