@@ -33,13 +33,7 @@ def certs(args: argparse.Namespace) -> int:
     from fedlgr.deploy.credentials import DEFAULT_HOSTS, make_certificates
 
     hosts = tuple(args.host or DEFAULT_HOSTS)
-    taken = [n for n in ("ca.pem", "ca.key", "server.pem", "server.key") if (args.dir / n).exists()]
-    if taken and not args.force:
-        raise FedlgrError(
-            f"{args.dir / taken[0]} exists: new certificates lock out every robot holding the "
-            "old ca.pem (--force replaces them)"
-        )
-    paths = make_certificates(args.dir, hosts, days=args.days)
+    paths = make_certificates(args.dir, hosts, days=args.days, force=args.force)
     print(f"wrote {', '.join(map(str, paths.values()))}")
     print(f"server certificate for {', '.join(hosts)}, valid {args.days} days")
     print(f"  {paths['ca.pem']}: to every robot and to whoever runs flwr (--ca)")
@@ -53,12 +47,7 @@ def node_key(args: argparse.Namespace) -> int:
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
         raise FedlgrError(f"node-key NAME {args.name!r}: letters, digits, '.', '_', '-' only")
-    if (args.dir / args.name).exists() and not args.force:
-        raise FedlgrError(
-            f"{args.dir / args.name} exists: a new key locks that robot out until it is "
-            "registered (--force replaces it)"
-        )
-    private, public = make_node_key(args.dir, args.name)
+    private, public = make_node_key(args.dir, args.name, force=args.force)
     print(f"wrote {private} (private: to that robot only) and {public}")
     print(f"register it with the SuperLink: flwr supernode register {shlex.quote(str(public))}")
     return 0
@@ -154,6 +143,14 @@ def supernode(args: argparse.Namespace) -> int:
     for name, folder in (("state-dir", args.state_dir), ("cache-dir", args.cache_dir)):
         if folder is not None:
             settings.append(f"{name}={_toml_string(str(_absolute(folder)))}")
+    if args.weights is not None:
+        weights = _absolute(args.weights)
+        if not weights.is_file():
+            raise FedlgrError(
+                f"--weights {weights}: no such file (this robot's copy of the root weights "
+                "a run's model.weights names)"
+            )
+        settings.append(f"weights={_toml_string(str(weights))}")
     if args.threads is not None:
         settings.append(f"threads={args.threads}")
     if args.idle_s is not None:

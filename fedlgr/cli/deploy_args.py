@@ -51,7 +51,11 @@ def add_parser(verbs) -> None:
         "default: localhost, 127.0.0.1, ::1)",
     )
     certs.add_argument("--days", type=int, default=365, help="validity (default %(default)s)")
-    certs.add_argument("--force", action="store_true", help="replace certificates in DIR")
+    certs.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the four files in DIR (a symbolic link there is refused all the same)",
+    )
 
     key = sub(
         "node-key",
@@ -62,7 +66,11 @@ def add_parser(verbs) -> None:
     )
     key.add_argument("dir", type=Path, metavar="DIR", help="folder to write the key pair to")
     key.add_argument("name", metavar="NAME", help="the robot's name, e.g. robot0")
-    key.add_argument("--force", action="store_true", help="replace an existing key")
+    key.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing key pair (a symbolic link there is refused all the same)",
+    )
 
     sub("app", "print the folder of fedlgr's Flower app (for flwr run)", "app")
 
@@ -116,6 +124,13 @@ def add_parser(verbs) -> None:
     node.add_argument("--client", type=int, required=True, metavar="K", help="its client index")
     node.add_argument("--state-dir", type=Path, metavar="DIR", help="private state between runs")
     node.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
+    node.add_argument(
+        "--weights",
+        type=Path,
+        metavar="FILE",
+        help="this robot's copy of the root weights file, for runs whose model.weights is a "
+        "file (a robot never reads a path the server names)",
+    )
     node.add_argument("--threads", type=int, metavar="N", help="torch threads")
     node.add_argument(
         "--max-retries", type=int, metavar="N", help="give up after N failed connections"

@@ -11,13 +11,16 @@ pair per robot (``fedlgr deploy certs`` / ``fedlgr deploy node-key``).
   key is not registered is refused.
 
 The same files ``openssl`` and ``ssh-keygen -t ecdsa -b 384`` would make, written with
-``cryptography`` (installed with Flower) so that the tests need neither tool.
+``cryptography`` (installed with Flower) so that the tests need neither tool. Every file is
+created new (``O_EXCL | O_NOFOLLOW``: never through a symbolic link), private keys with
+mode 0600 from their first byte.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import ipaddress
+import os
 from pathlib import Path
 
 from cryptography import x509
@@ -25,18 +28,64 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from fedlgr.errors import FedlgrError
+
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 
 
-def _private(path: Path, key) -> None:
-    path.write_bytes(
-        key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        )
-    )
-    path.chmod(0o600)
+def check_free(paths, force: bool, replacing: str) -> None:
+    """Refuse, before anything is written, a symbolic link at any of ``paths`` (even with
+    ``force``: credentials are never written through a link), something there that is not
+    a regular file, and an existing file unless ``force`` (``replacing`` says what
+    replacing it does)."""
+    for path in paths:
+        if path.is_symlink():
+            raise FedlgrError(
+                f"{path} is a symbolic link: credentials are written as new files only, "
+                "never through a link (remove it)"
+            )
+        if path.exists() and not path.is_file():
+            raise FedlgrError(f"{path} exists and is not a regular file (remove it)")
+        if path.exists() and not force:
+            raise FedlgrError(f"{path} exists: {replacing} (--force replaces it)")
+
+
+def _write(path: Path, data: bytes, private: bool, force: bool = False) -> None:
+    """``data`` as a new file at ``path``: ``O_EXCL | O_NOFOLLOW``, so an existing file or
+    a symbolic link (dangling or not) is refused; a private file is 0600 from its first
+    byte, whatever the umask. ``force`` first removes a regular file there (a new inode:
+    a hard link to the old one keeps the old bytes)."""
+    if force and path.is_file() and not path.is_symlink():
+        path.unlink()
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(path, flags, 0o600 if private else 0o644)
+    except FileExistsError:
+        raise FedlgrError(
+            f"{path} appeared (a file or a symbolic link) while credentials were written: "
+            "nothing written to it"
+        ) from None
+    except OSError as err:
+        raise FedlgrError(f"{path}: cannot create it ({err.strerror})") from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            if private:
+                os.fchmod(fd, 0o600)  # exactly 0600 under any umask (it never had more)
+            out.write(data)
+    except OSError as err:  # a full disk: no half a key left behind
+        path.unlink(missing_ok=True)
+        raise FedlgrError(f"{path}: cannot write it ({err.strerror})") from None
+
+
+def _private_bytes(key, encoding) -> bytes:
+    return key.private_bytes(serialization.Encoding.PEM, encoding, serialization.NoEncryption())
+
+
+def _folder(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise FedlgrError(f"{folder}: cannot create the folder ({err.strerror})") from None
 
 
 def _names(hosts) -> list[x509.GeneralName]:
@@ -49,9 +98,16 @@ def _names(hosts) -> list[x509.GeneralName]:
     return out
 
 
-def make_certificates(folder: Path, hosts=DEFAULT_HOSTS, days: int = 365) -> dict[str, Path]:
-    """``ca.pem``, ``ca.key``, ``server.pem``, ``server.key`` in ``folder`` for ``hosts``."""
-    folder.mkdir(parents=True, exist_ok=True)
+def make_certificates(
+    folder: Path, hosts=DEFAULT_HOSTS, days: int = 365, force: bool = False
+) -> dict[str, Path]:
+    """``ca.pem``, ``ca.key``, ``server.pem``, ``server.key`` in ``folder`` for ``hosts``
+    (``force``: replace those files; a symbolic link is refused all the same)."""
+    paths = {name: folder / name for name in ("ca.pem", "ca.key", "server.pem", "server.key")}
+    check_free(
+        paths.values(), force, "new certificates lock out every robot holding the old ca.pem"
+    )
+    _folder(folder)
     now = dt.datetime.now(dt.UTC)
     start, end = now - dt.timedelta(minutes=5), now + dt.timedelta(days=days)
     ca_key = ec.generate_private_key(ec.SECP256R1())
@@ -99,31 +155,24 @@ def make_certificates(folder: Path, hosts=DEFAULT_HOSTS, days: int = 365) -> dic
         )
         .sign(ca_key, hashes.SHA256())
     )
-    paths = {name: folder / name for name in ("ca.pem", "ca.key", "server.pem", "server.key")}
-    paths["ca.pem"].write_bytes(ca.public_bytes(serialization.Encoding.PEM))
-    _private(paths["ca.key"], ca_key)
-    paths["server.pem"].write_bytes(server.public_bytes(serialization.Encoding.PEM))
-    _private(paths["server.key"], key)
+    pkcs8 = serialization.PrivateFormat.PKCS8
+    _write(paths["ca.pem"], ca.public_bytes(serialization.Encoding.PEM), False, force)
+    _write(paths["ca.key"], _private_bytes(ca_key, pkcs8), True, force)
+    _write(paths["server.pem"], server.public_bytes(serialization.Encoding.PEM), False, force)
+    _write(paths["server.key"], _private_bytes(key, pkcs8), True, force)
     return paths
 
 
-def make_node_key(folder: Path, name: str) -> tuple[Path, Path]:
-    """``folder/name`` (private, OpenSSH) and ``folder/name.pub`` (to register)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    key = ec.generate_private_key(ec.SECP384R1())
+def make_node_key(folder: Path, name: str, force: bool = False) -> tuple[Path, Path]:
+    """``folder/name`` (private, OpenSSH) and ``folder/name.pub`` (to register);
+    ``force``: replace them (a symbolic link is refused all the same)."""
     private, public = folder / name, folder / f"{name}.pub"
-    private.write_bytes(
-        key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.OpenSSH,
-            serialization.NoEncryption(),
-        )
+    check_free((private, public), force, "a new key locks that robot out until it is registered")
+    _folder(folder)
+    key = ec.generate_private_key(ec.SECP384R1())
+    _write(private, _private_bytes(key, serialization.PrivateFormat.OpenSSH), True, force)
+    openssh = key.public_key().public_bytes(
+        serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH
     )
-    private.chmod(0o600)
-    public.write_bytes(
-        key.public_key().public_bytes(
-            serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH
-        )
-        + b"\n"
-    )
+    _write(public, openssh + b"\n", False, force)
     return private, public

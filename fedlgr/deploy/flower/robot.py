@@ -7,9 +7,10 @@ process per robot, so torch, the data and the models are loaded once, not per me
 
 The robot's SuperNode says where its data is and which client it is (``--node-config
 'data-path="/data/manners-db" client=0'``; optional ``state-dir``, ``cache-dir``,
-``threads``). The server sends the run's resolved config with every message; the robot
-loads its folder and takes its shard (``data.clients`` and ``data.seed`` fix the split,
-as in ``fedlgr run``).
+``weights``, ``threads``). The server sends the run's resolved config with every message;
+the robot reads it as data (:func:`robot_config`: no interpolation, no ``includes``, and
+every path it reads or writes is its SuperNode's, never the server's), loads its folder
+and takes its shard (``data.clients`` and ``data.seed`` fix the split, as in ``fedlgr run``).
 
 Its private state - the top, the optimiser, FedLGR's generator and labeller, CL
 importance and memories, the batch generators - never leaves: it is kept in memory and
@@ -23,12 +24,16 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from fedlgr.config import ExperimentConfig, load_config
+import yaml
+
+from fedlgr.config import ExperimentConfig, check_data, config_from_data, to_yaml
 from fedlgr.deploy.flower import wire
 from fedlgr.deploy.flower.service import state_dir
 from fedlgr.errors import FedlgrError
 
 _robots: dict[tuple[int, int], Robot] = {}  # (Flower run id, client): while the service lives
+SERVER = "the server's config"
+WEIGHTS = ("none", "imagenet")  # model.weights values that name no file
 
 
 def node_setting(node_config: dict, key: str, default=None):
@@ -112,22 +117,63 @@ def robot(run_id: int, node_config: dict, config_yaml: str) -> Robot:
     client = int(node_setting(node_config, "client"))
     key = (run_id, client)
     if key not in _robots:
+        config = robot_config(node_config, config_yaml)
         folder = state_dir(node_config) / f"run-{run_id}"
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / "config.yaml").write_text(config_yaml)
-        overrides = [
-            f"data.path={node_setting(node_config, 'data-path')}",
-            "runtime.devices=1",
-            "runtime.num_nodes=1",
-            "tracking.enabled=false",
-        ]
-        if "cache-dir" in node_config:
-            overrides.append(f"data.cache_dir={node_config['cache-dir']}")
-        if "threads" in node_config:
-            overrides.append(f"runtime.threads={int(node_config['threads'])}")
-        config = load_config(folder / "config.yaml", overrides)
+        (folder / "config.yaml").write_text(to_yaml(config))  # what this robot runs
         _robots[key] = Robot(config, client, folder)
     return _robots[key]
+
+
+class _DataLoader(yaml.SafeLoader):
+    """YAML as plain data, without aliases (a few lines of them expand to gigabytes)."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.YAMLError("an alias (*name): not accepted")
+        return super().compose_node(parent, index)
+
+
+def robot_config(node_config: dict, config_yaml: str) -> ExperimentConfig:
+    """The run's config on this robot: the server's settings read as data - no
+    interpolation, no ``includes`` - with every setting that chooses where the robot
+    reads or writes taken from its SuperNode (or the robot's default), never the
+    server's: ``data.path``, ``data.cache_dir``, a ``model.weights`` file; no tracking."""
+    try:
+        settings = yaml.load(config_yaml, Loader=_DataLoader)  # a SafeLoader
+    except yaml.YAMLError as err:
+        raise FedlgrError(f"{SERVER}: not valid YAML ({str(err).splitlines()[0]})") from None
+    check_data(settings, SERVER)
+    data, model, tracking, runtime = (
+        _section(settings, name) for name in ("data", "model", "tracking", "runtime")
+    )
+    data["path"] = str(node_setting(node_config, "data-path"))
+    data.pop("cache_dir", None)  # the robot's default unless its SuperNode names one
+    if "cache-dir" in node_config:
+        data["cache_dir"] = str(node_config["cache-dir"])
+    if model.get("weights", "none") not in WEIGHTS:  # a file on the server
+        if "weights" not in node_config:
+            raise FedlgrError(
+                f"{SERVER}: model.weights is a file, and a robot reads only its own: start "
+                "its SuperNode with --weights FILE (its copy of those root weights)"
+            )
+        model["weights"] = str(node_config["weights"])
+    for name in ("uri", "checkpoint_dir"):
+        tracking.pop(name, None)
+    tracking["enabled"] = False
+    runtime.update(devices=1, num_nodes=1)
+    if "threads" in node_config:
+        runtime["threads"] = int(node_config["threads"])
+    return config_from_data(settings, "the run's config on this robot")
+
+
+def _section(settings: dict, name: str) -> dict:
+    if settings.get(name) is None:
+        settings[name] = {}
+    section = settings[name]
+    if not isinstance(section, dict):
+        raise FedlgrError(f"{SERVER}: {name}: expected a mapping of settings")
+    return section
 
 
 def handle(kind: str, run_id: int, node_config: dict, content):

@@ -195,11 +195,18 @@ def _answer(conn: socket.socket, handle) -> None:
         )
     except Exception as err:  # the robot's failure goes back to the server as the reply
         traceback.print_exc()
-        _send(conn, {"ok": False, "error": f"{type(err).__name__}: {err}"}, b"")
+        _send(conn, {"ok": False, "error": reply_error(err)}, b"")
         return
     _send(conn, {"ok": True}, reply)
     seconds = time.perf_counter() - started
     print(f"run {header['run_id']}: {header['kind']} answered in {seconds:.1f} s", flush=True)
+
+
+def reply_error(err: Exception) -> str:
+    """What the server is told of a failure: its first line, at most 1000 characters (the
+    whole text and the traceback stay in the robot's log)."""
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[0][:1000] if lines else 'no message'}"
 
 
 if __name__ == "__main__":

@@ -1,0 +1,295 @@
+"""Secrets stay secret (issue 20): private keys are 0600 from their first byte and never
+written through a symbolic link; configs resolve no environment variable but FEDLGR_*
+and their ``${...}`` errors are one line; a robot reads the server's config as data."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import yaml
+
+from fedlgr.cli import main
+from fedlgr.config import load_config, to_plain, to_yaml
+from fedlgr.deploy.flower import robot as robot_module
+from fedlgr.deploy.flower.service import reply_error
+from fedlgr.errors import ConfigError, FedlgrError
+
+from .conftest import FAST
+
+# ---------------------------------------------------------------------- private keys
+
+# Writes the credentials into a watched folder and prints the mode each file had when it
+# was first seen. Two watchers: a thread polling the folder in a tight loop, and an audit
+# hook that looks at the folder at every audited call of the process - among them the
+# chmod that would tighten a key written with the umask's mode, so a key that is ever
+# readable by others is seen so, not by chance.
+WATCH = textwrap.dedent(
+    """
+    import json, os, sys, threading
+    from pathlib import Path
+
+    folder = Path(sys.argv[1])
+    folder.mkdir()
+    first, busy, done = {}, threading.local(), threading.Event()
+
+    def look():
+        if getattr(busy, "on", False):
+            return
+        busy.on = True
+        try:
+            for name in os.listdir(folder):
+                if name not in first:
+                    try:
+                        first.setdefault(name, os.lstat(folder / name).st_mode & 0o777)
+                    except FileNotFoundError:
+                        pass
+        finally:
+            busy.on = False
+
+    def poll():
+        while not done.is_set():
+            look()
+
+    sys.addaudithook(lambda event, args: look())
+    os.umask(0o022)
+    from fedlgr.deploy.credentials import make_certificates, make_node_key
+
+    watcher = threading.Thread(target=poll)
+    watcher.start()
+    make_certificates(folder)
+    make_node_key(folder, "robot0")
+    done.set()
+    watcher.join()
+    look()
+    print(json.dumps(first))
+    """
+)
+
+
+def test_private_keys_are_0600_from_their_first_byte(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-c", WATCH, str(tmp_path / "creds")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    first = json.loads(done.stdout)
+    assert set(first) == {"ca.pem", "ca.key", "server.pem", "server.key", "robot0", "robot0.pub"}
+    for name in ("ca.key", "server.key", "robot0"):
+        assert first[name] == 0o600, (name, oct(first[name]))
+        assert (tmp_path / "creds" / name).stat().st_mode & 0o777 == 0o600
+
+
+def one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_a_symbolic_link_at_a_credential_path_is_refused_even_with_force(tmp_path, capsys):
+    keys, target = tmp_path / "keys", tmp_path / "planted"
+    keys.mkdir()
+    (keys / "robot0").symlink_to(target)  # dangling: Path.exists() is False
+    for force in ([], ["--force"]):
+        assert main(["deploy", "node-key", str(keys), "robot0", *force]) == 1
+        line = one_line_error(capsys)
+        assert str(keys / "robot0") in line and "symbolic link" in line
+        assert not target.exists() and not (keys / "robot0.pub").exists()
+
+    creds = tmp_path / "creds"
+    creds.mkdir()
+    (creds / "ca.pem").symlink_to(target)  # a public file follows no link either
+    assert main(["deploy", "certs", str(creds)]) == 1
+    assert str(creds / "ca.pem") in one_line_error(capsys)
+    assert not target.exists() and sorted(p.name for p in creds.iterdir()) == ["ca.pem"]
+    (creds / "ca.pem").unlink()
+
+    victim = tmp_path / "victim.txt"  # a link to an existing file: its bytes stay
+    victim.write_text("mine")
+    (creds / "server.key").symlink_to(victim)
+    assert main(["deploy", "certs", str(creds), "--force"]) == 1
+    assert str(creds / "server.key") in one_line_error(capsys)
+    assert victim.read_text() == "mine"
+    assert sorted(p.name for p in creds.iterdir()) == ["server.key"]  # nothing half-made
+
+
+def test_an_existing_key_is_kept_unless_forced_and_force_writes_a_new_file(tmp_path, capsys):
+    assert main(["deploy", "node-key", str(tmp_path), "robot0"]) == 0
+    key = tmp_path / "robot0"
+    old = key.read_bytes()
+    os.link(key, tmp_path / "elsewhere")  # another name of the same file
+    assert main(["deploy", "node-key", str(tmp_path), "robot0"]) == 1
+    assert "--force" in one_line_error(capsys) and key.read_bytes() == old
+    assert main(["deploy", "node-key", str(tmp_path), "robot0", "--force"]) == 0
+    assert key.read_bytes() != old and key.stat().st_mode & 0o777 == 0o600
+    assert (tmp_path / "elsewhere").read_bytes() == old  # replaced, not written into
+
+    creds = tmp_path / "creds"
+    assert main(["deploy", "certs", str(creds)]) == 0
+    ca_key = (creds / "ca.key").read_bytes()
+    assert main(["deploy", "certs", str(creds), "--force"]) == 0
+    assert (creds / "ca.key").read_bytes() != ca_key
+    assert (creds / "ca.key").stat().st_mode & 0o777 == 0o600
+
+
+# ---------------------------------------------------------------------- configs
+
+
+def error(overrides, path=None) -> str:
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, overrides)
+    message = str(caught.value)
+    assert "\n" not in message
+    return message
+
+
+def test_configs_resolve_no_environment_variable_but_fedlgr_ones(monkeypatch):
+    monkeypatch.setenv("SECRET", "hunter2")
+    monkeypatch.setenv("FEDLGR_RUN", "from-env")
+    for value in (
+        "${oc.env:SECRET}",
+        "${oc.env:HOME}",
+        "x-${oc.env:SECRET,none}",
+        "${oc.decode:${oc.env:SECRET}}",
+        "${oc.create:abc}",
+        "${oc.select:tracking.experiment}",
+        "${oc.env:FEDLGR_${oc.env:SECRET}}",
+    ):
+        message = error([f"tracking.run_name={value}"])
+        assert message.startswith("command line: tracking.run_name="), message
+        assert "FEDLGR_" in message and "hunter2" not in message
+
+    def run_name(value: str) -> str:
+        return load_config(None, [f"tracking.run_name={value}"]).tracking.run_name
+
+    assert run_name("${oc.env:FEDLGR_RUN}") == "from-env"
+    assert run_name("${oc.env:FEDLGR_UNSET,fallback}") == "fallback"
+    assert run_name("${tracking.experiment}-${data.clients}") == "fedlgr-2"  # references
+    assert run_name("\\${oc.env:SECRET}") == "${oc.env:SECRET}"  # escaped: a literal
+
+
+def test_interpolation_errors_are_one_line_naming_the_setting_and_its_layer(tmp_path):
+    conf = tmp_path / "conf.yaml"
+    for value, says in (
+        ("${nope}", "nope"),
+        ("${tracking.experiment_x}", "experiment_x"),
+        ("${tracking.run_name}", "Recursive"),
+        ("${oc.env:FEDLGR_UNSET_FOR_TEST}", "FEDLGR_UNSET_FOR_TEST"),
+        ("${unknown_resolver:x}", "FEDLGR_"),
+    ):
+        conf.write_text(yaml.safe_dump({"tracking": {"run_name": value}}))
+        message = error([], conf)
+        assert message.startswith(f"{conf}: tracking.run_name="), message
+        assert says in message, message
+    conf.write_text("federated:\n  rounds: ${tracking.experiment}\n")
+    assert error([], conf).startswith(f"{conf}: federated.rounds=")  # a string for an int
+    assert "command line: tracking.run_name=" in error(
+        ["tracking.run_name=${tracking.experiment}", "tracking.experiment=${tracking.run_name}"]
+    )
+    assert error(["data.tasks=[{name: ${x}"]).startswith("command line: 'data.tasks=")
+    conf.write_text("includes: ['${oc.env:FEDLGR_CONF}']\n")
+    assert error([], conf).startswith(f"{conf}: includes:")
+
+
+def test_the_cli_prints_an_interpolation_error_as_one_line(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "fedlgr", "run", "tracking.run_name=${nope}", "--print-config"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+    )
+    assert done.returncode == 1 and done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("fedlgr: error: command line: "), lines
+    assert "tracking.run_name" in lines[0] and "nope" in lines[0]
+
+
+# ---------------------------------------------------------------------- the robot
+
+
+@pytest.fixture
+def built(monkeypatch):
+    """``robot()`` builds the robot's config and hands it to this instead of a Robot
+    (which would import torch and read the data)."""
+    monkeypatch.setattr(robot_module, "_robots", {})
+    monkeypatch.setattr(robot_module, "Robot", lambda config, client, folder: config)
+
+
+def server_yaml(**sections) -> str:
+    """The ServerApp's message config (``to_yaml``), with ``sections`` merged in."""
+    settings = to_plain(load_config(FAST))
+    for name, values in sections.items():
+        settings[name] = (
+            {**settings.get(name, {}), **values} if isinstance(values, dict) else values
+        )
+    return yaml.safe_dump(settings)
+
+
+def node(tmp_path, **extra) -> dict:
+    data = tmp_path / "robot-data"
+    data.mkdir(exist_ok=True)
+    return {"data-path": str(data), "client": 0, "state-dir": str(tmp_path / "state"), **extra}
+
+
+def test_a_robot_resolves_nothing_the_server_sends(tmp_path, monkeypatch, built):
+    monkeypatch.setenv("ROBOT_SECRET", "s3cr3t-value")
+    for run_id, sent in enumerate(
+        ({"modality": "${oc.env:ROBOT_SECRET}"}, {"partition": "${data.path}"})
+    ):
+        with pytest.raises(FedlgrError) as caught:
+            robot_module.robot(run_id, node(tmp_path), server_yaml(data=sent))
+        message = str(caught.value)
+        assert f"data.{next(iter(sent))}" in message and "${" in message
+        assert "s3cr3t" not in message and str(tmp_path) not in message
+    # what the service tells the server of any failure: one line
+    assert reply_error(ValueError("first\nsecond: s3cr3t-value")) == "ValueError: first"
+
+
+def test_a_robot_reads_no_file_the_server_names(tmp_path, built):
+    private = tmp_path / "robot-private.yaml"
+    private.write_text("robot_private_setting_name: 1\n")
+    sent = server_yaml(includes=[str(private)])
+    with pytest.raises(FedlgrError) as caught:
+        robot_module.robot(1, node(tmp_path), sent)
+    assert "includes" in str(caught.value)
+    assert "robot_private_setting_name" not in str(caught.value)
+
+
+def test_a_robots_paths_are_its_supernodes_never_the_servers(tmp_path, monkeypatch, built):
+    monkeypatch.setenv("FEDLGR_CACHE_DIR", str(tmp_path / "robot-cache"))
+    server = "/srv/server-chosen"
+    sent = server_yaml(
+        data={"path": f"{server}/data", "cache_dir": f"{server}/cache"},
+        model={"weights": f"{server}/root.pt"},
+        tracking={"uri": f"sqlite:///{server}/mlflow.db", "checkpoint_dir": f"{server}/ckpt"},
+    )
+    weights = tmp_path / "robot-root.pt"
+    config = robot_module.robot(1, node(tmp_path, weights=str(weights)), sent)
+    assert str(config.data.path) == str(tmp_path / "robot-data")
+    assert config.data.cache_dir == tmp_path / "robot-cache"  # the robot's default
+    assert config.model.weights == str(weights)
+    assert config.tracking.uri is None and config.tracking.checkpoint_dir is None
+    assert server not in to_yaml(config)
+    # everything else is the server's
+    expected = to_plain(load_config(FAST))
+    for section, key in (("data", "path"), ("data", "cache_dir"), ("model", "weights")):
+        expected[section].pop(key)
+    got = to_plain(config)
+    for section, key in (("data", "path"), ("data", "cache_dir"), ("model", "weights")):
+        got[section].pop(key)
+    assert {**got, "tracking": None} == {**expected, "tracking": None}
+
+    chosen = tmp_path / "node-cache"
+    config = robot_module.robot(
+        2, node(tmp_path, weights=str(weights), **{"cache-dir": str(chosen)}), sent
+    )
+    assert config.data.cache_dir == chosen
+    with pytest.raises(FedlgrError, match="--weights"):  # a file only the server has
+        robot_module.robot(3, node(tmp_path), sent)
