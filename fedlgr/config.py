@@ -11,11 +11,19 @@ messages that name the setting). ``method=FedRootProx`` is shorthand for
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fedlgr.data.config import DataConfig
+from fedlgr.data.columns import FEATURE_COLUMNS
+from fedlgr.data.config import (
+    DataConfig,
+    check_numbers,
+    check_seed,
+    format_bytes,
+    machine_memory,
+)
 from fedlgr.errors import ConfigError
 
 
@@ -50,6 +58,16 @@ SCOPES = {"full": "Fed", "root": "FedRoot"}
 ROOTS = ("auto", "mobilenet_v2", "mlp")
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
 
+
+# Bounds on purpose, each refused with its reason.
+MAX_ROUNDS = 1_000_000
+_ROUNDS_BOUND = (
+    f"at most {MAX_ROUNDS} rounds (a fixed bound: each round trains every client and logs to "
+    f"MLflow, so at even 1 s a round {MAX_ROUNDS} rounds take 12 days)"
+)
+MAX_EXPERIMENT_NAME = 500  # MLflow's mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH
+MAX_INTERVAL_S = 86_400  # heartbeat and system-metrics intervals (threading.Event.wait)
+MOBILENET_V2_NUMBERS = 2_258_036  # parameters and buffers of torchvision's features, width 1
 
 CONTINUAL = {
     "none": "FT",
@@ -97,6 +115,7 @@ class ModelConfig:
     channels_last: bool = True  # faster convolutions on CPU and GPU
 
     def __post_init__(self) -> None:
+        check_numbers("model.", self)
         _choice("model.root", self.root, ROOTS)
         if self.width <= 0:
             raise ConfigError(f"model.width={self.width}: must be > 0")
@@ -129,6 +148,7 @@ class TrainConfig:
     precision: str = "32-true"
 
     def __post_init__(self) -> None:
+        check_numbers("train.", self)
         _positive("train.epochs", self.epochs)
         _positive("train.batch_size", self.batch_size)
         _positive("train.eval_batch_size", self.eval_batch_size)
@@ -155,9 +175,10 @@ class FederatedConfig:
     distill_weight: float = 0.5  # FedDistill: weight of the teacher term in the student loss
 
     def __post_init__(self) -> None:
+        check_numbers("federated.", self)
         _choice("federated.strategy", self.strategy, tuple(STRATEGIES))
         _choice("federated.scope", self.scope, tuple(SCOPES))
-        _positive("federated.rounds", self.rounds)
+        _rounds("federated.rounds", self.rounds)
         if self.prox_mu < 0:
             raise ConfigError(f"federated.prox_mu={self.prox_mu}: must be >= 0")
         if not 0.0 <= self.distill_weight <= 1.0:
@@ -189,13 +210,20 @@ class RuntimeConfig:
     concurrency: str = "auto"
     workers: int | None = None  # clients at once with threads (default: min(clients, threads))
     progress: bool = True
+    # How long a process of a multi-process run waits for the others: for all of them to
+    # join at the start (a node never started), and at each exchange of a round (torch's
+    # default, 30 min, lets a slow process's clients finish their round).
+    timeout_s: float = 1800.0
 
     def __post_init__(self) -> None:
+        check_numbers("runtime.", self)
         _choice("runtime.accelerator", self.accelerator, ("auto", "cpu", "gpu", "cuda"))
         _choice("runtime.launcher", self.launcher, ("ddp", "ddp_spawn"))
         _choice("runtime.concurrency", self.concurrency, CONCURRENCY)
         _positive("runtime.devices", self.devices)
         _positive("runtime.num_nodes", self.num_nodes)
+        if not 0 < self.timeout_s <= 7 * 86400:
+            raise ConfigError(f"runtime.timeout_s={self.timeout_s}: must be > 0 and at most a week")
         for name in ("threads", "workers"):
             if getattr(self, name) is not None:
                 _positive(f"runtime.{name}", getattr(self, name))
@@ -214,6 +242,7 @@ class DeployConfig:
     round_timeout_s: float = 600.0  # how long the server waits for replies in one exchange
 
     def __post_init__(self) -> None:
+        check_numbers("deploy.", self)
         if self.min_clients is not None:
             _positive("deploy.min_clients", self.min_clients)
         for name in ("join_timeout_s", "round_timeout_s"):
@@ -237,15 +266,23 @@ class TrackingConfig:
     system_metrics_s: float = 10.0  # seconds between two samples of them
 
     def __post_init__(self) -> None:
+        check_numbers("tracking.", self)
         if not self.experiment:
             raise ConfigError("tracking.experiment: must not be empty")
-        if not self.system_metrics_s > 0:
-            raise ConfigError(f"tracking.system_metrics_s={self.system_metrics_s}: must be > 0")
+        if len(self.experiment) > MAX_EXPERIMENT_NAME:
+            raise ConfigError(
+                f"tracking.experiment: {len(self.experiment)} characters, MLflow allows at most "
+                f"{MAX_EXPERIMENT_NAME} (mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH)"
+            )
+        for name, what in (("heartbeat_s", "beats"), ("system_metrics_s", "samples")):
+            if not 0 < getattr(self, name) <= MAX_INTERVAL_S:
+                raise ConfigError(
+                    f"tracking.{name}={getattr(self, name)}: must be > 0 and at most "
+                    f"{MAX_INTERVAL_S} (a day: a thread waits this long between two {what})"
+                )
         if self.checkpoint < 0:
             raise ConfigError(f"tracking.checkpoint={self.checkpoint}: must be >= 0 (0: none)")
         _positive("tracking.keep_checkpoints", self.keep_checkpoints)
-        if not self.heartbeat_s > 0:
-            raise ConfigError(f"tracking.heartbeat_s={self.heartbeat_s}: must be > 0")
 
 
 @dataclass(frozen=True)
@@ -297,6 +334,7 @@ class ContinualConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
+        check_numbers("continual.", self)
         _choice("continual.method", self.method, tuple(CONTINUAL))
         _choice("continual.ewc_fisher", self.ewc_fisher, ("empirical", "model"))
         _choice("continual.lgr_schedule", self.lgr_schedule, ("two_phase", "joint"))
@@ -332,7 +370,7 @@ class ContinualConfig:
             value = getattr(self, name)
             if value is not None and value < 0:
                 raise ConfigError(f"continual.{name}={value}: must be >= 0")
-        _positive("continual.rounds_per_task", self.rounds_per_task)
+        _rounds("continual.rounds_per_task", self.rounds_per_task)
         for name in ("lgr_hidden", "lgr_latent", "lgr_epochs", "lgr_batch_size"):
             _positive(f"continual.{name}", getattr(self, name))
         if self.importance_batches is not None:
@@ -381,6 +419,13 @@ class ExperimentConfig:
     deploy: DeployConfig = field(default_factory=DeployConfig)
 
     def __post_init__(self) -> None:
+        check_numbers("", self)
+        check_seed("seed", self.seed)
+        if self.continual.tasks and self.total_rounds > MAX_ROUNDS:
+            raise ConfigError(
+                f"continual.rounds_per_task={self.continual.rounds_per_task} x "
+                f"{len(self.continual.tasks)} tasks = {self.total_rounds} rounds: {_ROUNDS_BOUND}"
+            )
         if self.continual.method == "lgr" and self.federated.scope != "root":
             raise ConfigError(
                 "continual.method=lgr (FedLGR) shares the root only: set federated.scope=root"
@@ -409,6 +454,29 @@ class ExperimentConfig:
             )
         if self.data.modality == "image" and root == "mlp":
             raise ConfigError("model.root=mlp reads the descriptors: set data.modality=features")
+        self._check_model_fits()
+
+    def _check_model_fits(self) -> None:
+        """Refuse a scholar too large to train in this machine's memory, before it is built."""
+        m = self.model
+        if self.root_kind == "mlp":
+            sizes = (len(FEATURE_COLUMNS), *m.mlp_hidden)
+            # Linear weights and bias, BatchNorm weight, bias and running mean and variance
+            root = sum(a * b + 5 * b for a, b in itertools.pairwise(sizes))
+            out, setting = sizes[-1], f"model.mlp_hidden={list(m.mlp_hidden)}"
+        else:  # the number of MobileNetV2's weights grows with the square of its width
+            root = round(MOBILENET_V2_NUMBERS * m.width**2)
+            out, setting = round(1280 * max(1.0, m.width)), f"model.width={m.width}"
+        h = m.top_hidden
+        numbers = root + 4 * out + out * h + h + 4 * h + 8 * h + 8  # BN, Linear, BN, Linear
+        need, have = 16 * numbers, machine_memory()
+        if need > have:
+            raise ConfigError(
+                f"{setting} with model.top_hidden={h}: the scholar holds ~{numbers:.2g} "
+                f"parameters and buffers, {format_bytes(need)} to train (4 bytes each for the "
+                "weights, gradients and Adam's two moments), more than this machine's "
+                f"{format_bytes(have)} of memory (psutil.virtual_memory().total)"
+            )
 
     @property
     def root_kind(self) -> str:
@@ -449,7 +517,26 @@ def _positive(setting: str, value: int) -> None:
         raise ConfigError(f"{setting}={value}: must be >= 1")
 
 
+def _rounds(setting: str, value: int) -> None:
+    _positive(setting, value)
+    if value > MAX_ROUNDS:
+        raise ConfigError(f"{setting}={value}: {_ROUNDS_BOUND}")
+
+
 # --------------------------------------------------------------------------- loading
+
+# The ``${...}`` a config file or override may hold (README "Running experiments"): a
+# reference to another setting, or an environment variable whose name starts with
+# FEDLGR_ (optionally with a default). Everything else - other variables, oc.decode,
+# oc.create, oc.select, oc.dict.*, nested interpolations - is refused before anything
+# is resolved; ``\${`` stays a literal ``${``.
+_REFERENCE = r"\.*[A-Za-z_][\w-]*(?:\.[\w-]+|\[\d+\])*"
+_FEDLGR_ENV = r"oc\.env:FEDLGR_\w+(?:,[\w ./:@+-]*)?"
+_ALLOWED = rf"\$\{{(?:{_REFERENCE}|{_FEDLGR_ENV})\}}"
+_POLICY = (
+    "a config's ${...} may name another setting (${data.clients}) or an environment "
+    "variable FEDLGR_* (${oc.env:FEDLGR_DATA}), nothing else (README 'Running experiments')"
+)
 
 
 def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
@@ -467,11 +554,14 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
         raise ConfigError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from err
     if node is None or not OmegaConf.is_dict(node):
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
-    includes = node.pop("includes", [])
-    if isinstance(includes, str) or not OmegaConf.is_list(includes):
-        includes = [includes] if isinstance(includes, str) else list(includes or [])
+    written = _plain(node)  # nothing resolved
+    includes = written.get("includes") or []
+    if "includes" in written:
+        del node["includes"]
     layers: list[Any] = []
-    for inc in includes:
+    for inc in includes if isinstance(includes, list) else [includes]:
+        if "${" in str(inc):
+            raise ConfigError(f"{path}: includes: {inc!r}: name the file (no ${{...}} here)")
         target = Path(str(inc)).with_suffix(".yaml")
         if not target.is_absolute():  # relative to conf/, else to the including file
             target = CONF_DIR / target if (CONF_DIR / target).is_file() else path.parent / target
@@ -482,15 +572,53 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
 def load_config(
     path: Path | str | None = None, overrides: list[str] | tuple[str, ...] = ()
 ) -> ExperimentConfig:
-    """Merge the defaults, ``path`` (with its includes) and ``overrides`` (``key=value``)."""
-    from omegaconf import OmegaConf
-    from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
-
+    """Merge the defaults, ``path`` (with its includes) and ``overrides`` (``key=value``).
+    ``${...}`` is checked against ``_ALLOWED`` in every layer before anything resolves."""
     layers = _read_layers(Path(path)) if path is not None else []
     bad = [o for o in overrides if "=" not in o or o.startswith("=")]
     if bad:
         raise ConfigError(f"override {bad[0]!r}: expected key=value (e.g. federated.rounds=5)")
-    layers = [*layers, ("command line", OmegaConf.from_dotlist(list(overrides)))]
+    layers = [*layers, ("command line", _dotlist(overrides))]
+    interpolated: dict[str, tuple[Any, str]] = {}
+    for source, node in layers:
+        interpolated.update(_check_interpolations(source, node))
+    return _build(layers, interpolated)
+
+
+def config_from_data(data: Any, source: str) -> ExperimentConfig:
+    """A config received as data (a robot's copy of the server's resolved config,
+    :func:`to_yaml`): settings only, checked by :func:`check_data`."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    check_data(data, source)
+    try:
+        node = OmegaConf.create(data)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{source}: {_omegaconf_message(err)}") from None
+    return _build([(source, node)], {})
+
+
+def check_data(data: Any, source: str) -> None:
+    """Refuse what would make plain settings read or resolve anything: ``includes`` and
+    any ``${`` (in a key or a value). The messages name the setting, never a value."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of settings at the top level")
+    if "includes" in data:
+        raise ConfigError(f"{source}: includes: refused (a config sent as data reads no files)")
+    for key, value in _strings(data, keys=True):
+        if "${" in value:
+            raise ConfigError(
+                f"{source}: {key}: holds ${{...}}, which a config sent as data may not "
+                "(it is resolved where it was written)"
+            )
+
+
+def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> ExperimentConfig:
+    """The dataclasses from ``layers`` (``(source, node)``, merged in order)."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
     _require_mandatory(layers)
     merged = OmegaConf.structured(ExperimentConfig)
     for source, node in layers:
@@ -499,9 +627,10 @@ def load_config(
                 node = _expand_method(node, merged)
             merged = OmegaConf.merge(merged, node)
         except OmegaConfBaseException as err:
-            raise ConfigError(f"{source}: {_omegaconf_message(err)}") from err
+            raise ConfigError(f"{source}: {_merge_message(err, merged, node)}") from err
         except ConfigError as err:
             raise ConfigError(f"{source}: {err}") from err
+    _resolve(merged, interpolated)
     # ``method`` is input shorthand: afterwards it names what the settings say.
     fed, cont = merged.federated, merged.continual
     if fed.strategy in STRATEGIES and fed.scope in SCOPES and cont.method in CONTINUAL:
@@ -520,11 +649,10 @@ def _require_mandatory(layers: list) -> None:
     """A ``???`` value (e.g. data.path in conf/data/manners.yaml) must be set by a later
     layer or the command line. (OmegaConf's merge skips ``???``, which would let an earlier
     default - the synthetic data - stand in silently.)"""
-    from omegaconf import OmegaConf
-
-    for i, (source, node) in enumerate(layers):
-        for key in _missing_keys(node):
-            later = (OmegaConf.select(n, key, default=None) for _, n in layers[i + 1 :])
+    plain = [(source, _plain(node)) for source, node in layers]  # nothing resolved
+    for i, (source, values) in enumerate(plain):
+        for key in _missing_keys(values):
+            later = (_lookup(v, key) for _, v in plain[i + 1 :])
             if not any(v is not None and v != "???" for v in later):
                 raise ConfigError(
                     f"{key}: no value (required by {source}); set it, "
@@ -532,17 +660,93 @@ def _require_mandatory(layers: list) -> None:
                 )
 
 
-def _missing_keys(node, prefix: str = "") -> list[str]:
-    """Dotted keys whose value is the mandatory marker ``???`` in this layer."""
+def _missing_keys(values: dict, prefix: str = "") -> list[str]:
+    """Dotted keys whose value is the mandatory marker ``???`` in this layer's values."""
+    keys = []
+    for key, value in values.items():
+        if value == "???":
+            keys.append(f"{prefix}{key}")
+        elif isinstance(value, dict):
+            keys += _missing_keys(value, f"{prefix}{key}.")
+    return keys
+
+
+def _lookup(values: Any, key: str) -> Any:
+    """The raw value at dotted ``key`` in a layer's values, None where there is none."""
+    for part in key.split("."):
+        if not isinstance(values, dict) or part not in values:
+            return None
+        values = values[part]
+    return values
+
+
+def _plain(node) -> Any:
+    """A layer's values as written: dicts and lists, ``${...}`` left unresolved."""
     from omegaconf import OmegaConf
 
-    keys = []
-    for key in node:
-        if OmegaConf.is_missing(node, key):
-            keys.append(f"{prefix}{key}")
-        elif OmegaConf.is_dict(node[key]):
-            keys += _missing_keys(node[key], f"{prefix}{key}.")
-    return keys
+    return OmegaConf.to_container(node, resolve=False)
+
+
+def _strings(values: Any, key: str = "", keys: bool = False):
+    """``(dotted key, string)`` for every string value (and with ``keys``, every key) in
+    plain ``values``; list items as ``key[i]``."""
+    if isinstance(values, dict):
+        for name, value in values.items():
+            if keys and isinstance(name, str):
+                yield f"{key}.{name}" if key else name, name
+            yield from _strings(value, f"{key}.{name}" if key else str(name), keys)
+    elif isinstance(values, list | tuple):
+        for i, value in enumerate(values):
+            yield from _strings(value, f"{key}[{i}]", keys)
+    elif isinstance(values, str):
+        yield key, values
+
+
+def _dotlist(overrides) -> Any:
+    """The command-line layer; an override whose value YAML cannot read is one line."""
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError)
+    try:
+        return OmegaConf.from_dotlist(list(overrides))
+    except unreadable as err:
+        for override in overrides:  # name the culprit
+            try:
+                OmegaConf.from_dotlist([override])
+            except unreadable as one:
+                raise ConfigError(f"command line: {override!r}: {_first_line(one)}") from None
+        raise ConfigError(f"command line: {_first_line(err)}") from None
+
+
+def _check_interpolations(source: Any, node) -> dict[str, tuple[Any, str]]:
+    """``{key: (source, value)}`` for every value holding ``${...}`` in one layer, each
+    checked against ``_ALLOWED`` before anything is resolved."""
+    import re
+
+    found = {}
+    for key, value in _strings(_plain(node)):
+        for start in (m.start() for m in re.finditer(r"\$\{", value)):
+            escapes = len(value[:start]) - len(value[:start].rstrip("\\"))
+            if escapes % 2 == 0 and not re.match(_ALLOWED, value[start:]):
+                raise ConfigError(f"{source}: {key}={value!r}: {_POLICY}")
+        if "${" in value:
+            found[key] = (source, value)
+    return found
+
+
+def _resolve(merged, interpolated: dict[str, tuple[Any, str]]) -> None:
+    """Resolve each ``${...}`` once, so that a reference to nothing, a loop, an unset
+    variable or a value of the wrong type is one line naming the setting and its layer."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    for key, (source, value) in interpolated.items():
+        try:
+            OmegaConf.select(merged, key)
+        except OmegaConfBaseException as err:
+            raise ConfigError(f"{source}: {key}={value!r}: {_first_line(err)}") from None
 
 
 def _expand_method(node, merged):
@@ -574,10 +778,47 @@ def _expand_method(node, merged):
     return OmegaConf.merge(update, node)
 
 
+def _merge_message(err: Exception, merged, node) -> str:
+    """:func:`_omegaconf_message`, naming the setting and value at fault where OmegaConf's
+    message does not (a list item of the wrong type: "Value '$VALUE' of type ..."): each
+    setting of ``node`` is merged alone until one fails."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if getattr(err, "full_key", None) or "$VALUE" not in str(err):
+        return _omegaconf_message(err)
+    plain = OmegaConf.to_container(node, resolve=False)
+
+    def leaves(value, prefix=""):
+        if isinstance(value, dict):
+            for key, inner in value.items():
+                yield from leaves(inner, f"{prefix}{key}.")
+        else:
+            yield prefix[:-1], value
+
+    for key, value in leaves(plain):
+        single: dict = {}
+        *parents, last = key.split(".")
+        here = single
+        for part in parents:
+            here = here.setdefault(part, {})
+        here[last] = value
+        try:
+            OmegaConf.merge(merged, single)
+        except OmegaConfBaseException:
+            text = _first_line(err).replace("Value '$VALUE' of type '$VALUE_TYPE'", "a value")
+            return f"{key}={value!r}: {text}"
+    return _omegaconf_message(err)
+
+
 def _omegaconf_message(err: Exception) -> str:
     key = getattr(err, "full_key", None)
-    first = str(err).splitlines()[0] if str(err) else type(err).__name__
+    first = _first_line(err)
     return f"{key}: {first}" if key else first
+
+
+def _first_line(err: Exception) -> str:
+    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
 
 
 # --------------------------------------------------------------------------- exporting

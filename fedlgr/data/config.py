@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
 import os
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,6 +18,11 @@ MODALITIES = ("image", "features")
 PARTITIONS = ("iid", "dirichlet")
 PARTITION_KEYS = ("task", "label")
 BAD_IMAGE_POLICIES = ("error", "skip")
+# Bounds on purpose (each message says why): numpy's and Lightning's seeding take 32-bit
+# seeds; the paper trains at 128 px with 10 copies of each scene per epoch.
+SEED_LIMIT = 2**32
+MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 4096
+MAX_AUGMENT_COPIES = 1000
 
 
 def default_cache_dir() -> Path:
@@ -28,6 +38,69 @@ def cache_dir_setting(cache_dir: Path) -> str:
     return "FEDLGR_CACHE_DIR" if from_env and Path(from_env) == cache_dir else "data.cache_dir"
 
 
+# ------------------------------------------------------------------ checks for every section
+
+
+def check_numbers(prefix: str, settings) -> None:
+    """Refuse NaN and infinite floats, and floats where the field's type says ``int``, in
+    every field of the dataclass ``settings`` (``prefix`` + field name is the setting).
+
+    OmegaConf checks the types of what it loads, but lets ``.nan`` and ``.inf`` through and
+    code may build the dataclasses directly; a NaN slips past every ``value < 0`` test.
+    """
+    hints = _type_hints(type(settings))
+    for f in dataclasses.fields(settings):
+        value = getattr(settings, f.name)
+        problem = _number_problem(hints[f.name], value)
+        if problem is not None:
+            shown = list(value) if isinstance(value, tuple) else value
+            raise ConfigError(f"{prefix}{f.name}={shown}: {problem}")
+
+
+_type_hints = functools.cache(typing.get_type_hints)
+
+
+def _number_problem(hint, value) -> str | None:
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        options = [a for a in typing.get_args(hint) if a is not type(None)]
+        return None if value is None or len(options) != 1 else _number_problem(options[0], value)
+    if origin is tuple and isinstance(value, tuple | list):
+        args = typing.get_args(hint)
+        items = args[:1] * len(value) if args[1:] == (Ellipsis,) else args
+        problems = (_number_problem(a, v) for a, v in zip(items, value, strict=False))
+        return next((p for p in problems if p is not None), None)
+    if hint is int and isinstance(value, float):
+        return "must be an integer, not a float"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "must be a finite number"
+    return None
+
+
+def check_seed(setting: str, value: int) -> None:
+    if not 0 <= value < SEED_LIMIT:
+        raise ConfigError(
+            f"{setting}={value}: must be in 0..{SEED_LIMIT - 1} (numpy's and Lightning's "
+            "seeding take 32-bit seeds)"
+        )
+
+
+def machine_memory() -> int:
+    """This machine's memory in bytes (``psutil.virtual_memory().total``)."""
+    import psutil
+
+    return psutil.virtual_memory().total
+
+
+def format_bytes(n: float) -> str:
+    """``3.2 GB``: decimal units, as ``free`` and ``df -H`` print them."""
+    units = ("B", "kB", "MB", "GB", "TB")
+    k = 0
+    while n >= 1000 and k < len(units) - 1:
+        n, k = n / 1000, k + 1
+    return f"{n:.0f} B" if k == 0 else f"{n:.1f} {units[k]}"
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     """A continual-learning task: the scenes whose ``column`` equals ``value``."""
@@ -35,6 +108,9 @@ class TaskSpec:
     name: str
     column: str
     value: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_numbers(f"data.tasks.{self.name}.", self)
 
 
 DEFAULT_TASKS = (TaskSpec("circle", USING_CIRCLE, 1.0), TaskSpec("arrow", USING_ARROW, 1.0))
@@ -75,20 +151,38 @@ class DataConfig:
             "tasks",
             tuple(t if isinstance(t, TaskSpec) else TaskSpec(**t) for t in self.tasks),
         )
+        check_numbers("data.", self)
+        check_seed("data.seed", self.seed)
         _choice("data.modality", self.modality, MODALITIES)
         _choice("data.partition", self.partition, PARTITIONS)
         _choice("data.partition_key", self.partition_key, PARTITION_KEYS)
         _choice("data.on_bad_image", self.on_bad_image, BAD_IMAGE_POLICIES)
-        if self.image_size < 16:
-            raise ConfigError(f"data.image_size={self.image_size}: must be at least 16")
+        size = self.image_size
+        if size < MIN_IMAGE_SIZE:
+            raise ConfigError(f"data.image_size={size}: must be at least {MIN_IMAGE_SIZE}")
+        if size > MAX_IMAGE_SIZE:
+            raise ConfigError(
+                f"data.image_size={size}: at most {MAX_IMAGE_SIZE} (a fixed bound: each scene "
+                f"takes 3 x size^2 bytes in the decoded image store and 12 x size^2 as float32 in "
+                f"a batch, {format_bytes(3 * size**2)} and {format_bytes(12 * size**2)} here; "
+                "the paper trains at 128 px)"
+            )
         if not 0.0 < self.test_fraction < 1.0:
             raise ConfigError(f"data.test_fraction={self.test_fraction}: must be between 0 and 1")
         if self.clients < 1:
             raise ConfigError(f"data.clients={self.clients}: need at least 1 client")
         if self.dirichlet_alpha <= 0:
             raise ConfigError(f"data.dirichlet_alpha={self.dirichlet_alpha}: must be > 0")
-        if self.augment_copies < 1:
-            raise ConfigError(f"data.augment_copies={self.augment_copies}: must be >= 1")
+        copies = self.augment_copies
+        if copies < 1:
+            raise ConfigError(f"data.augment_copies={copies}: must be >= 1")
+        if copies > MAX_AUGMENT_COPIES:
+            raise ConfigError(
+                f"data.augment_copies={copies}: at most {MAX_AUGMENT_COPIES} (a fixed bound: an "
+                "augmented epoch shows each training scene this many times, and its shuffled "
+                f"order takes 24 bytes per showing, {format_bytes(24 * copies)} per scene here; "
+                "the paper uses 10)"
+            )
         if not self.tasks:
             raise ConfigError("data.tasks: need at least one task")
         names = [t.name for t in self.tasks]

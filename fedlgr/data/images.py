@@ -23,12 +23,15 @@ import torch
 from PIL import Image, UnidentifiedImageError
 from torchvision.transforms.v2 import functional as F
 
-from fedlgr.data.config import cache_dir_setting
+from fedlgr.data.config import cache_dir_setting, format_bytes, machine_memory
 from fedlgr.errors import ConfigError, DataError, join_problems
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _STAMP_PREFIX = re.compile(r"^(\d+)(?!\d)")
 CACHE_FORMAT = 1
+# Smaller images are refused as degenerate (a 1x1 file among renders): every image is
+# resized to data.image_size, so the sizes may differ, but one this small shows no scene.
+MIN_IMAGE_SIDE = 8
 
 Crop = tuple[int | None, int | None, int | None, int | None]
 
@@ -82,6 +85,7 @@ def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
     try:
         with Image.open(path) as file:
             _refuse_oversized(path, file)
+            _refuse_degenerate(path, file, size)
             pixels = np.array(file.convert("RGB"))  # a writable copy for torch
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as err:
         # over twice the limit (or once, where warnings are errors): Pillow refuses to open
@@ -110,6 +114,16 @@ def _refuse_oversized(path: Path, file: Image.Image) -> None:
     width, height = file.size
     if Image.MAX_IMAGE_PIXELS is not None and width * height > Image.MAX_IMAGE_PIXELS:
         raise DataError(_oversized(path, f"{width}x{height} = {width * height}"))
+
+
+def _refuse_degenerate(path: Path, file: Image.Image, size: int) -> None:
+    width, height = file.size
+    if min(width, height) < MIN_IMAGE_SIDE:
+        raise DataError(
+            f"{path}: {width}x{height} pixels, under the {MIN_IMAGE_SIDE} px a side that a "
+            f"scene needs (images of any size are resized to data.image_size={size}, but one "
+            "this small is degenerate)"
+        )
 
 
 def _oversized(path: Path, pixels: str) -> str:
@@ -168,6 +182,7 @@ def load_image_store(
 
     wanted = [s for s in stamps.tolist() if s in match.files]
     files = [match.files[s] for s in wanted]
+    _check_store_fits(len(files), size)
     cache_file = None
     if cache_dir is not None:
         _check_cache_dir(cache_dir)
@@ -181,6 +196,18 @@ def load_image_store(
     if cache_file is not None:
         _save_atomically(store, cache_file)
     return store
+
+
+def _check_store_fits(n: int, size: int) -> None:
+    """Refuse a store larger than this machine's memory, before decoding or reading any."""
+    store, have = n * 3 * size**2, machine_memory()
+    if 2 * store > have:
+        raise ConfigError(
+            f"data.image_size={size}: the decoded images of {n} scenes take "
+            f"{format_bytes(store)} ({n} x 3 x {size}^2 bytes) and twice that while they are "
+            f"stacked, more than this machine's {format_bytes(have)} of memory "
+            "(psutil.virtual_memory().total)"
+        )
 
 
 def _check_cache_dir(cache_dir: Path) -> None:

@@ -186,20 +186,33 @@ def read_ratings(path: Path | str) -> SceneTable:
 
 
 def _average(path: Path, row_stamps: np.ndarray, parsed: np.ndarray) -> SceneTable:
-    """Mean of ``parsed`` (one row per rating, ``_VALUE_COLUMNS``) over each stamp's rows."""
+    """Mean of ``parsed`` (one row per rating, ``_VALUE_COLUMNS``) over each stamp's rows.
+
+    Only the labels are averaged: the mode flags and descriptors describe the scene, so all
+    rows of a stamp must agree on them (two scenes under one stamp are an error, not a mean).
+    """
     stamps, inverse, counts = np.unique(row_stamps, return_inverse=True, return_counts=True)
+    scene = [_VALUE_COLUMNS.index(c) for c in (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS)]
+    lo = np.full((len(stamps), len(scene)), np.inf)
+    hi = np.full((len(stamps), len(scene)), -np.inf)
+    np.minimum.at(lo, inverse, parsed[:, scene])
+    np.maximum.at(hi, inverse, parsed[:, scene])
+    # Equal up to how a CSV writer may round them (real data repeats the same text).
+    differ = (hi - lo) > 1e-6 * np.maximum(1.0, np.abs(hi))
     problems = []
-    for column in MODE_COLUMNS:
-        j = _VALUE_COLUMNS.index(column)
-        lo = np.full(len(stamps), np.inf)
-        hi = np.full(len(stamps), -np.inf)
-        np.minimum.at(lo, inverse, parsed[:, j])
-        np.maximum.at(hi, inverse, parsed[:, j])
-        for s in np.flatnonzero(lo != hi):
-            rows = (np.flatnonzero(inverse == s) + 1).tolist()
-            problems.append(f"stamp {stamps[s]}, column {column!r}: its rows {rows} disagree")
+    for s in np.flatnonzero(differ.any(axis=1)):
+        rows = (np.flatnonzero(inverse == s) + 1).tolist()
+        columns = [_VALUE_COLUMNS[scene[j]] for j in np.flatnonzero(differ[s])]
+        named = f"column {columns[0]!r}" if len(columns) == 1 else f"columns {columns[0]!r}"
+        if len(columns) > 1:
+            named += f" and {len(columns) - 1} more"
+        problems.append(f"stamp {stamps[s]}, {named}: its rows {rows} disagree")
     if problems:
-        raise DataError(join_problems(str(path), problems))
+        raise DataError(
+            join_problems(str(path), problems)
+            + " (a scene's mode flags and descriptors must be the same in all its rows; "
+            "only the 8 ratings are averaged)"
+        )
     sums = np.zeros((len(stamps), len(_VALUE_COLUMNS)))
     np.add.at(sums, inverse, parsed)
     means = sums / counts[:, None]

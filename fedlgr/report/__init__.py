@@ -59,6 +59,17 @@ def default_out(name: str) -> Path:
     return Path("reports") / name.replace("/", "_").replace("\\", "_")
 
 
+def _check_folder(out: Path) -> None:
+    """Refuse a report folder (``--out``) that is a file or lies under one."""
+    existing = next((p for p in (out, *out.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        where = "is a file" if existing == out else f"lies under the file {existing}"
+        raise ReportError(
+            f"{out}: {where}; the report (--out) is a folder of tables and plots: "
+            "name a new or existing folder"
+        )
+
+
 def make_report(
     uri: str,
     *,
@@ -76,13 +87,19 @@ def make_report(
     from fedlgr.report.runs import log_report, metric_histories, open_store, select_runs
     from fedlgr.report.tables import build_tables
 
+    if out is not None:  # before reading the store: a wrong --out fails at once
+        _check_folder(Path(out))
     client = open_store(uri)
     selection = select_runs(
         client, uri, experiment=experiment, sweep=sweep, dataset=dataset, modality=modality
     )
     records = selection.records
     out = Path(out) if out is not None else default_out(selection.name)
-    out.mkdir(parents=True, exist_ok=True)
+    _check_folder(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ReportError(f"{out}: cannot create the report folder ({err.strerror})") from err
     result = ReportResult(out, selection.source, uri, len(records))
     for table in build_tables(records, selection.source):
         for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
