@@ -8,7 +8,9 @@ round numbers.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import overload
 
 from fedlgr.config import ExperimentConfig
 
@@ -24,14 +26,38 @@ class Step:
     last_of_task: bool
 
 
-def schedule(config: ExperimentConfig) -> list[Step]:
+class Schedule(Sequence[Step]):
+    """The run's steps, made on demand: a run of a billion rounds holds no billion
+    ``Step`` objects (``len`` and indexing are arithmetic)."""
+
+    def __init__(self, tasks: list[str], rounds_per_task: int, task_ends: bool = True):
+        self.tasks, self.per_task, self.task_ends = tasks, rounds_per_task, task_ends
+
+    def __len__(self) -> int:
+        return len(self.tasks) * self.per_task
+
+    def after(self, done: int) -> Iterator[Step]:
+        """The steps after the first ``done``, one at a time."""
+        return (self[i] for i in range(done, len(self)))
+
+    @overload
+    def __getitem__(self, index: int) -> Step: ...
+    @overload
+    def __getitem__(self, index: slice) -> list[Step]: ...
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        k, i = divmod(index, self.per_task)
+        last = self.task_ends and i == self.per_task - 1  # plain FL has no task end
+        return Step(index + 1, k, self.tasks[k], i == 0, last)
+
+
+def schedule(config: ExperimentConfig) -> Schedule:
     tasks = list(config.continual.tasks)
     if not tasks:
-        rounds = config.federated.rounds
-        return [Step(r, 0, ALL, r == 1, False) for r in range(1, rounds + 1)]
-    per_task = config.continual.rounds_per_task
-    steps = []
-    for k, name in enumerate(tasks):
-        for i in range(per_task):
-            steps.append(Step(len(steps) + 1, k, name, i == 0, i == per_task - 1))
-    return steps
+        return Schedule([ALL], config.federated.rounds, task_ends=False)
+    return Schedule(tasks, config.continual.rounds_per_task)

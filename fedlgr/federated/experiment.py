@@ -10,6 +10,7 @@ spawns them from Python.
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import functools
 import itertools
 import time
@@ -42,10 +43,11 @@ def make_fabric(config: ExperimentConfig):
     if rt.world_size > 1:
         # Models are never wrapped in DDP (clients train independently); buffers must
         # not be broadcast between processes either.
+        timeout = datetime.timedelta(seconds=rt.timeout_s)
         strategy = (
-            DDPStrategy(start_method="spawn", broadcast_buffers=False)
+            DDPStrategy(start_method="spawn", broadcast_buffers=False, timeout=timeout)
             if rt.launcher == "ddp_spawn"
-            else DDPStrategy(broadcast_buffers=False)
+            else DDPStrategy(broadcast_buffers=False, timeout=timeout)
         )
     return Fabric(
         accelerator=accelerator,
@@ -89,7 +91,54 @@ def run_experiment(
     hooks = Hooks(echo, on_round, on_start, show_runs)
     if config.runtime.world_size == 1 or _is_using_cli():
         return _main(fabric, config, parent_run_id, tags, hooks, resume)
-    return fabric.launch(_main, config, parent_run_id, tags, hooks, resume)
+    return _launch(fabric, config, parent_run_id, tags, hooks, resume)
+
+
+def _launch(fabric, config: ExperimentConfig, *args):
+    """``fabric.launch(_main, ...)``. While the processes join (torch's rendezvous, which
+    blocks in C++ where Python's signal handlers never run) SIGTERM and Ctrl-C keep their
+    default action, ending the process at once: no MLflow run exists yet. A process that
+    waits ``runtime.timeout_s`` for the others in vain is one line."""
+    import signal
+
+    from torch.distributed import DistBackendError, DistStoreError
+
+    from fedlgr.errors import FedlgrError
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    for number in handlers:
+        signal.signal(number, signal.SIG_DFL)
+
+    def joined(fabric, *rest):
+        for number, handler in handlers.items():
+            signal.signal(number, handler)
+        return _main(fabric, *rest)
+
+    rt = config.runtime
+    try:
+        return fabric.launch(joined, config, *args)
+    except RuntimeError as err:
+        if not (isinstance(err, DistBackendError) or _peer_lost(err)):
+            raise
+        raise FedlgrError(
+            f"another process of this {fabric.world_size}-process run ended during an "
+            f"exchange ({_one_line(err)}); its own output says why (killed, or an error); "
+            "the run is ended FAILED and --resume continues it from its last checkpoint"
+        ) from None
+    except DistStoreError as err:
+        import os
+
+        where = f"{os.environ.get('MASTER_ADDR', '127.0.0.1')}:{os.environ.get('MASTER_PORT', '?')}"
+        raise FedlgrError(
+            f"runtime.num_nodes={rt.num_nodes}, runtime.devices={rt.devices}: not every process "
+            f"joined within runtime.timeout_s={rt.timeout_s:g} s at {where} "
+            f"({str(err).strip().splitlines()[0][:200]}); start the other nodes' processes "
+            "(same command, their NODE_RANK) or check MASTER_ADDR/MASTER_PORT"
+        ) from None
+    finally:
+        for number, handler in handlers.items():
+            if signal.getsignal(number) is signal.SIG_DFL:
+                signal.signal(number, handler)
 
 
 @dataclass
@@ -125,7 +174,13 @@ def _resume_point(
     if isinstance(found, str):
         raise FedlgrError(found)
     run_id, path = found
-    return run_id, load_checkpoint(config, run_id, Path(path), adopt)
+    try:
+        return run_id, load_checkpoint(config, run_id, Path(path), adopt)
+    except BaseException:
+        from fedlgr.tracking import owner
+
+        owner.release(Path(path).parent)  # claimed by find_checkpoint (rank 0)
+        raise
 
 
 def _main(
@@ -170,7 +225,14 @@ def _main(
     orchestrator = Orchestrator(fabric, config, scenes, split)
     resumed = None
     if point is not None:
-        resumed = Resumed(point[0], restore(fabric, orchestrator, point[1]), point[1]["elapsed"])
+        state = point[1]
+        resumed = Resumed(
+            point[0],
+            restore(fabric, orchestrator, state),
+            state["elapsed"],
+            Path(state["path"]).parent,
+            state.get("data_digest", ""),
+        )
     processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
     return drive(
         orchestrator,
@@ -207,6 +269,8 @@ class Resumed:
     run_id: str
     rounds: list[RoundLog]
     elapsed: float
+    folder: Path | None = None  # the checkpoint folder it was resumed from (this process owns it)
+    digest: str = ""  # of the data it trains on (checked against the checkpoint's)
 
 
 def drive(
@@ -228,7 +292,9 @@ def drive(
     The same for every runtime: what a run logs does not depend on where clients live."""
     from fedlgr.continual.forgetting import ForgettingTracker
     from fedlgr.continual.schedule import schedule
-    from fedlgr.tracking.checkpoint import checkpoint_root, remove
+    from fedlgr.tracking import owner
+    from fedlgr.tracking.checkpoint import checkpoint_root, remove, remove_temporaries
+    from fedlgr.tracking.context import data_digest
     from fedlgr.tracking.mlflow_run import Tracker, tracking_uri
 
     start = time.perf_counter() if start is None else start
@@ -249,11 +315,17 @@ def drive(
         result.after_tasks = forgetting.after
         elapsed = resumed.elapsed
     tracker, folder = None, None
+    old = resumed.folder if resumed is not None else None  # where its checkpoints were
     if rank0 and config.tracking.enabled:
         run_id = resumed.run_id if resumed is not None else None
-        tracker = Tracker(config, tags, parent_run_id, run_id=run_id)
+        digest = (resumed.digest if resumed is not None else "") or data_digest(config)
+        try:
+            tracker = Tracker(config, tags, parent_run_id, run_id=run_id, digest=digest)
+        except BaseException:
+            owner.release(old)
+            raise
         folder = checkpoint_root(config, tracking_uri(config)) / tracker.run_id
-        result.run_id = tracker.run_id
+        result.run_id, result.data_digest = tracker.run_id, digest
     plan = (
         f"{len(tasks)} tasks ({', '.join(tasks)}) x {config.continual.rounds_per_task} rounds"
         if tasks
@@ -272,6 +344,8 @@ def drive(
     try:  # from here on the MLflow run exists: whatever happens, it is ended
         if tracker is not None:
             if every:
+                owner.claim(folder, tracker.run_id)  # this process owns the run until it ends
+                remove_temporaries(folder)  # of a write a kill cut short
                 tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(folder))
             if hooks.on_start is not None:
                 hooks.on_start(tracker.run_id)
@@ -282,7 +356,7 @@ def drive(
             for round_, metrics in replayed:
                 hooks.on_round(round_, metrics)
         eta = Eta(total - len(result.rounds))
-        for step in steps[len(result.rounds) :]:
+        for step in steps.after(len(result.rounds)):
             round_, k = step.round, step.task
             show = rank0 and config.runtime.progress and local_clients > 0
             label = f"round {round_}/{total}" + (f" (task {tasks[k]})" if tasks else "")
@@ -304,7 +378,11 @@ def drive(
             if every and (round_ % every == 0 or round_ == total):
                 spent = elapsed + time.perf_counter() - start
                 keep = config.tracking.keep_checkpoints
-                save(folder, result.rounds, result.run_id, spent, keep)
+                save(folder, result.rounds, result.run_id, spent, keep, result.data_digest)
+                if old is not None and old != folder and folder is not None:
+                    remove(old)  # moved (tracking.checkpoint_dir changed): the old one is stale
+                    say(f"checkpoints moved from {old} to {folder}")
+                    old = None
             missing = f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
             say(f"{label}: {_scores(log)}  ({log.seconds:.1f} s{eta.step()}){missing}")
             if hooks.on_round is not None and rank0:
@@ -320,8 +398,13 @@ def drive(
         if tracker is not None:
             _record_failure(tracker, result, err, say)
         raise
-    if tracker is not None and every:
-        remove(folder)  # a finished run needs no checkpoint
+    finally:
+        if tracker is not None and every and getattr(tracker, "finished", False):
+            remove(folder)  # a finished run needs no checkpoint
+            if old is not None:
+                remove(old)
+        owner.release(folder)
+        owner.release(old)
     if not rank0:
         return None
     say(f"\n{config.run_name} after {total} rounds ({result.seconds:.0f} s):")
@@ -387,6 +470,14 @@ def _record_failure(tracker, result: ExperimentResult, err: BaseException, say) 
         tracker.fail(interrupted=killed)
     except Exception as problem:
         say(f"(while failing: could not end MLflow run {tracker.run_id}: {_one_line(problem)})")
+
+
+def _peer_lost(err: BaseException) -> bool:
+    """A collective failed because another process of the run is gone (gloo's words)."""
+    text = str(err)
+    return "gloo" in text and any(
+        w in text for w in ("Connection reset by peer", "Connection closed by peer", "Read error")
+    )
 
 
 def _one_line(err: BaseException) -> str:

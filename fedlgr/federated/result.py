@@ -15,6 +15,7 @@ class ExperimentResult:
     config: ExperimentConfig
     rounds: list[RoundLog] = field(default_factory=list)
     run_id: str | None = None
+    data_digest: str = ""  # of the data the run trained on (recorded in its checkpoints)
     seconds: float = 0.0
     after_tasks: list[dict[str, float]] = field(default_factory=list)  # FCL: per finished task
 

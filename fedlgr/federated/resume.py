@@ -50,6 +50,7 @@ def save_checkpoint(
     run_id: str | None,
     elapsed: float,
     keep: int,
+    digest: str = "",
 ) -> Path | None:
     """Checkpoint the run after its last round in ``rounds`` (every process calls this;
     rank 0 writes)."""
@@ -72,6 +73,7 @@ def save_checkpoint(
                 for r in rounds
             ],
             "elapsed": elapsed,
+            "data_digest": digest,  # a resume on other data is refused
         }
     target = folder if folder is not None else Path(".")  # only rank 0's folder is used
     return ckpt.save(fabric, target, rounds[-1].round, whole, keep)
@@ -94,6 +96,7 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
     """The run to resume (``resume``: its id, or True for the latest unfinished run of
     this config) and its newest checkpoint; dead RUNNING runs are marked KILLED, a live
     one is refused."""
+    from fedlgr.tracking import owner
     from fedlgr.tracking.mlflow_run import dead_reason, experiment_id, tracking_uri
 
     uri = tracking_uri(config)
@@ -105,26 +108,60 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
         except Exception:
             raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
     run_id = run.info.run_id
-    if run.info.status == "FINISHED":
-        raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
-    if run.info.status == "RUNNING":
-        reason = dead_reason(run)
-        if reason is None:
-            tags = run.data.tags
-            raise FedlgrError(
-                f"--resume: run {run_id} is still running (process {tags.get('fedlgr.pid')} "
-                f"on {tags.get('fedlgr.host')}); stop it first, or wait until it ends"
-            )
-        client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
-        client.set_terminated(run_id, "KILLED")
     folder = checkpoint_folder(run, config)
-    found = ckpt.checkpoints(folder)
-    if not found:
+    if run.info.status == "FINISHED":
+        raise FedlgrError(
+            f"--resume: run {run_id} has finished; there is nothing to resume"
+            + remove_leftover(folder, run_id)
+        )
+    if not ckpt.checkpoints(folder):
+        if folder.is_dir():  # e.g. the folder a live owner moved its checkpoints to
+            owner.claim(folder, run_id)  # refused, naming that owner
+            owner.release(folder)
         raise FedlgrError(
             f"--resume: run {run_id} has no checkpoint in {folder} (it stopped before its first "
             "checkpoint, or tracking.checkpoint=0); start it over without --resume"
         )
+    owner.claim(folder, run_id)  # from here on no other process can resume it too
+    try:
+        run = client.get_run(run_id)  # as it is now that we own it: its last owner has ended
+        if run.info.status == "FINISHED":
+            raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
+        if run.info.status == "RUNNING":
+            reason = dead_reason(run)
+            if reason is None:
+                tags = run.data.tags
+                raise FedlgrError(
+                    f"--resume: run {run_id} is still running (process "
+                    f"{tags.get('fedlgr.pid')} on {tags.get('fedlgr.host')}); stop it first, "
+                    "or wait until it ends"
+                )
+            client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
+            client.set_terminated(run_id, "KILLED")
+        found = ckpt.checkpoints(folder)
+        if not found:
+            raise FedlgrError(f"--resume: run {run_id}'s checkpoints in {folder} are gone")
+    except BaseException:
+        owner.release(folder)
+        raise
     return run_id, found[-1]
+
+
+def remove_leftover(folder: Path, run_id: str) -> str:
+    """Remove the checkpoint folder a finished run left behind (killed between its end and
+    the folder's removal); what was done, as a clause for a message ("" if nothing)."""
+    from fedlgr.tracking import owner
+
+    if not folder.is_dir():
+        return ""
+    try:
+        owner.claim(folder, run_id)  # an owner still finishing it removes the folder itself
+    except FedlgrError:
+        return ""
+    size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+    owner.release(folder)
+    ckpt.remove(folder)
+    return f" (removed the checkpoint folder it left behind, {folder}: {size / 2**20:.0f} MB)"
 
 
 def checkpoint_folder(run, config: ExperimentConfig) -> Path:
@@ -163,7 +200,9 @@ def load_checkpoint(
     """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``; settings
     in ``adopt`` (this launch left them to the machine) are not compared: the run's own
     values are taken (:func:`adopt_settings`)."""
-    state = ckpt.load(path)
+    from fedlgr.tracking.context import data_digest
+
+    state = ckpt.load(path, ckpt.RUN_KEYS)
     if state["run_id"] != run_id:
         raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")
     saved = {k: v for k, v in state["config"].items() if k not in adopt}
@@ -175,7 +214,14 @@ def load_checkpoint(
             f"--resume: the config differs from run {run_id}'s checkpoint in {shown}; resume "
             "with the run's own settings, or start a new run without --resume"
         )
-    return state
+    saved_digest = state.get("data_digest", "")  # "" in checkpoints of older fedlgr
+    if saved_digest and (now := data_digest(config)) != saved_digest:
+        raise FedlgrError(
+            f"--resume: the data in data.path={config.data.path} is not the data run {run_id} "
+            f"trained on (dataset digest {now}, the checkpoint's {saved_digest}); resume on "
+            "the run's own data, or start a new run without --resume"
+        )
+    return {**state, "path": str(path)}
 
 
 def adopt_settings(

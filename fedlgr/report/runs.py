@@ -122,9 +122,9 @@ def select_runs(
     source = f"sweep `{sweep}`{where}" if sweep else f"experiment `{experiment}`"
     base = f"tags.sweep = {_quote(sweep)}" if sweep else ""
     finished = " and ".join(f for f in (base, "attributes.status = 'FINISHED'") if f)
-    records = [
-        _record(run) for run in _pages(client.search_runs, ids, finished) if _is_experiment(run)
-    ]
+    runs = list(_pages(client.search_runs, ids, finished))
+    _remove_leftover_checkpoints(runs)
+    records = [_record(run) for run in runs if _is_experiment(run)]
     for tag, wanted in (("dataset", dataset), ("modality", modality)):
         if wanted is not None:
             records = [r for r in records if r.tags.get(tag) == wanted]
@@ -243,6 +243,18 @@ def _pages(search, *args) -> list:
         token = page.token
         if not token:
             return out
+
+
+def _remove_leftover_checkpoints(runs) -> None:
+    """A finished run killed before it removed its checkpoint folder left it behind:
+    removed, with a line (nothing resumes a finished run)."""
+    from fedlgr.federated.resume import remove_leftover
+
+    for run in runs:
+        folder = run.data.tags.get("fedlgr.checkpoints")
+        done = remove_leftover(Path(folder), run.info.run_id) if folder else ""
+        if done:
+            print(f"finished run {run.info.run_id}: {done.strip(' ()')}", flush=True)
 
 
 def _quote(text: str) -> str:

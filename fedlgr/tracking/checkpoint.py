@@ -9,10 +9,11 @@ must replace its predecessor atomically (an artifact upload can neither be renam
 place nor deleted through MLflow's API), and a remote server would receive the full model
 of every client every round.
 
-How: rank 0 writes the whole run's state (every client of every process) with Fabric's
-``save`` to a temporary name and renames it into place, so a kill during the write leaves
-the previous checkpoint intact; it keeps the newest ``tracking.keep_checkpoints`` and
-removes the folder when the run finishes. Files are read with ``weights_only=True``:
+How: rank 0 writes the whole run's state (every client of every process) to a temporary
+name in the folder itself and renames it into place, so a kill during the write leaves
+the previous checkpoint intact (and the temporary, removed at the next start); it keeps
+the newest ``tracking.keep_checkpoints`` and removes the folder when the run finishes.
+The run's owner holds a lock in the folder (:mod:`fedlgr.tracking.owner`). Files are read with ``weights_only=True``:
 only tensors and plain Python values, never code (numpy arrays are stored as tensors).
 """
 
@@ -37,6 +38,7 @@ PATTERN = re.compile(r"round-(\d+)\.ckpt")
 SAFE_KEYS = frozenset(
     {
         "runtime.progress",
+        "runtime.timeout_s",
         "tracking.uri",
         "tracking.checkpoint",
         "tracking.keep_checkpoints",
@@ -68,34 +70,89 @@ def checkpoints(folder: Path) -> list[Path]:
     return [p for _, p in sorted(found)]
 
 
+TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
+
+
 def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) -> Path | None:
     """Write ``state`` as round ``round_``'s checkpoint (rank 0; every process must call
-    this, Fabric's save synchronises them); keep the newest ``keep``."""
+    this: they wait for rank 0's write); keep the newest ``keep``.
+
+    Not ``Fabric.save``: its atomic write (Lightning's ``_atomic_save``, an fsspec
+    transaction) stages the file in ``$TMPDIR`` and moves it into place, so a kill during
+    the write leaves a file of the checkpoint's size there, and a full disk there fails a
+    run whose checkpoint folder has room. The state is plain tensors and values (no
+    wrapped modules), which ``torch.save`` writes as Fabric would."""
     path = folder / f"round-{round_:04d}.ckpt"
-    temporary = folder / f".{path.name}.tmp"
+    error = ""
     if fabric.global_rank == 0:
-        folder.mkdir(parents=True, exist_ok=True)
-    fabric.save(temporary, encode(state))
+        try:
+            _write_atomically(path, encode(state))
+        except (OSError, RuntimeError) as err:  # torch.save wraps a failed write in the latter
+            error = f"cannot write checkpoint {path}: {_io_reason(err)}"
+    if fabric.world_size > 1:
+        error = fabric.broadcast(error, src=0)
+    if error:
+        raise FedlgrError(
+            f"{error}; free space or choose another folder (tracking.checkpoint_dir=...), "
+            "then --resume (the previous checkpoint is intact)"
+        )
     if fabric.global_rank != 0:
         return None
-    os.replace(temporary, path)
     for old in checkpoints(folder)[:-keep]:
         old.unlink(missing_ok=True)
     return path
 
 
+def _io_reason(err: BaseException) -> str:
+    """The operating system's reason inside ``err`` ("No space left on device")."""
+    seen = err
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror
+        seen = seen.__cause__ or seen.__context__
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__
+
+
+def _write_atomically(path: Path, state: Any) -> None:
+    """``torch.save`` to a temporary name in ``path``'s own folder, then rename: a kill
+    leaves the previous file intact and the temporary where the next start removes it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(temporary, "wb") as handle:
+            torch.save(state, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def remove_temporaries(folder: Path) -> list[Path]:
+    """Remove what interrupted writes left in ``folder``; the files removed."""
+    if not folder.is_dir():
+        return []
+    stale = [p for p in folder.iterdir() if TEMPORARY.fullmatch(p.name)]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
 def write(path: Path, state: dict[str, Any]) -> Path:
     """Write ``state`` to ``path`` atomically, without Fabric (one process: a robot's
     private state between Flower messages); ``load`` reads it back."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    torch.save(encode({"format": FORMAT, **state}), temporary)
-    os.replace(temporary, path)
+    _write_atomically(path, encode({"format": FORMAT, **state}))
     return path
 
 
-def load(path: Path) -> dict[str, Any]:
-    """A checkpoint's state; a clear error for a file that is not a whole checkpoint."""
+RUN_KEYS = ("run_id", "round", "config", "server", "clients", "rng", "rows", "elapsed")
+
+
+def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A checkpoint's state; a clear error for a file that is not a whole checkpoint
+    (``required``: the keys it must hold, e.g. ``RUN_KEYS`` for a run's checkpoint)."""
     start_over = (
         f"delete it to resume from the previous checkpoint in {path.parent}, or start the run "
         "over without --resume"
@@ -114,6 +171,9 @@ def load(path: Path) -> dict[str, Any]:
         raise FedlgrError(
             f"{path}: not a fedlgr checkpoint of format {FORMAT} (found {found!r}); {start_over}"
         )
+    if missing := [k for k in required if k not in state]:
+        missed = ", ".join(missing)
+        raise FedlgrError(f"{path}: an incomplete checkpoint (no {missed}); {start_over}")
     return decode(state)
 
 

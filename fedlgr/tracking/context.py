@@ -88,6 +88,30 @@ def run_params(config: ExperimentConfig) -> dict[str, str]:
     return params
 
 
+def data_digest(config: ExperimentConfig) -> str:
+    """A digest of the data a run trains on: the bytes of ``data.path``'s ratings CSV and,
+    for images, of every file under its ``images/`` folder (names included). "" where the
+    data is not on this machine (a Flower server). Recorded in the run's checkpoints and
+    tag ``fedlgr.data_digest``: ``--resume`` on other data is refused. (MLflow's dataset
+    digest covers the ratings table only, not the images.)"""
+    import hashlib
+
+    from fedlgr.data.ratings import CSV_NAME
+
+    folder = Path(config.data.path).expanduser().resolve()
+    table = folder / CSV_NAME
+    if not table.is_file():
+        return ""
+    digest = hashlib.sha256(table.read_bytes())
+    images = folder / "images"
+    if config.data.modality == "image" and images.is_dir():
+        for path in sorted(images.rglob("*")):
+            if path.is_file():
+                digest.update(b"\0" + path.relative_to(images).as_posix().encode() + b"\0")
+                digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> None:
     """Record the scenes table of ``data.path`` as the run's dataset input."""
     import mlflow.data

@@ -37,8 +37,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from fedlgr.config import ExperimentConfig, to_yaml
+from fedlgr.errors import FedlgrError
 from fedlgr.tracking import context
-from fedlgr.tracking.server import check_reachable
+from fedlgr.tracking.server import check_reachable, check_sqlite_usable
 
 DEFAULT_URI = "sqlite:///mlflow.db"
 
@@ -103,6 +104,8 @@ def open_client(uri: str):
 
     check_reachable(uri)
     with store_lock(uri):  # the client's construction creates and migrates the store
+        if uri.startswith("sqlite:///"):
+            check_sqlite_usable(uri)  # after the lock: a migration under way is not a fault
         client = mlflow.MlflowClient(uri)
         client.search_experiments(max_results=1)
     return client
@@ -113,16 +116,44 @@ def dataset_name(config: ExperimentConfig) -> str:
     return "synthetic" if (path / "synth.json").is_file() else path.name
 
 
+class StoreError(FedlgrError):
+    """The tracking store refused a write (full disk, lost server, locked file)."""
+
+
+def _cause(err: BaseException) -> str:
+    """The innermost reason, one line (an MLflow error wraps SQLAlchemy's wrapping
+    sqlite's: "database or disk is full")."""
+    while getattr(err, "orig", None) is not None or err.__cause__ is not None:
+        err = getattr(err, "orig", None) or err.__cause__
+    text = str(err).strip()
+    return (text.splitlines()[0] if text else type(err).__name__)[:300]
+
+
+@contextlib.contextmanager
+def store_errors(uri: str, what: str):
+    """An error of the store inside the block, as one line naming the store and what
+    was being done (the CLI prints it without a stack trace)."""
+    try:
+        yield
+    except FedlgrError:
+        raise
+    except Exception as err:
+        raise StoreError(f"MLflow store {uri}: could not {what}: {_cause(err)}") from err
+
+
 def _uncut(method):
-    """A store write that Ctrl-C / SIGTERM does not cut in half (see fedlgr.signals)."""
+    """A store write that Ctrl-C / SIGTERM does not cut in half (see fedlgr.signals), its
+    failure one line (:func:`store_errors`)."""
     import functools
 
     from fedlgr.signals import deferred
 
+    what = method.__name__.strip("_").replace("_", " ")
+
     @functools.wraps(method)
-    def write(*args, **kwargs):
-        with deferred():
-            return method(*args, **kwargs)
+    def write(self, *args, **kwargs):
+        with deferred(), store_errors(self.uri, f"{what} (run {self.run_id})"):
+            return method(self, *args, **kwargs)
 
     return write
 
@@ -141,12 +172,26 @@ class Tracker:
         parent_run_id: str | None = None,
         *,
         run_id: str | None = None,
+        digest: str = "",
     ):
-        from fedlgr.tracking.checkpoint import fingerprint
-
         self.config = config
         self.system_metrics: context.SystemMetrics | None = None
         self.uri = tracking_uri(config)
+        self.run_id: str | None = None
+        with store_errors(self.uri, "start the MLflow run"):
+            try:
+                self._start(config, tags, parent_run_id, run_id, digest)
+            except BaseException:
+                if self.run_id is not None:  # created, then a write failed: not left RUNNING
+                    with contextlib.suppress(Exception):
+                        if hasattr(self, "_beat"):
+                            self._stop_heartbeat()
+                        self.client.set_terminated(self.run_id, "FAILED")
+                raise
+
+    def _start(self, config, tags, parent_run_id, run_id, digest) -> None:
+        from fedlgr.tracking.checkpoint import fingerprint
+
         self.client = open_client(self.uri)
         with store_lock(self.uri):
             self.experiment_id = experiment_id(self.client, config.tracking.experiment)
@@ -170,6 +215,7 @@ class Tracker:
                 "continual": config.continual.method if config.continual_learning else "none",
                 "fedlgr.config_hash": fingerprint(config),
                 "runtime": "fabric",  # where the clients ran (fedlgr deploy: flower)
+                **({"fedlgr.data_digest": digest} if digest else {}),  # --resume checks it
                 **(tags or {}),
             }
             if parent_run_id:
@@ -205,6 +251,7 @@ class Tracker:
     def _start_heartbeat(self) -> None:
         self.client.set_tag(self.run_id, "fedlgr.host", socket.gethostname())
         self.client.set_tag(self.run_id, "fedlgr.pid", str(os.getpid()))
+        self.client.set_tag(self.run_id, "fedlgr.pid_started", _started(os.getpid()))
         interval = str(self.config.tracking.heartbeat_s)
         self.client.set_tag(self.run_id, "fedlgr.heartbeat_s", interval)
         self.heartbeat()
@@ -305,7 +352,18 @@ class Tracker:
 # --------------------------------------------------------------------------- dead runs
 
 
-def _process_alive(pid: int) -> bool:
+def _started(pid: int) -> str:
+    """When process ``pid`` started (seconds since the epoch), "" if it cannot be told: with
+    the pid it tells the run's process from a later one that was given the same pid."""
+    import psutil
+
+    try:
+        return f"{psutil.Process(pid).create_time():.2f}"
+    except (psutil.Error, OSError):
+        return ""
+
+
+def _process_alive(pid: int, started: str = "") -> bool:
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -313,21 +371,27 @@ def _process_alive(pid: int) -> bool:
     except PermissionError:
         return True
     try:  # a killed child its parent has not reaped yet is a zombie: dead
-        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+        if Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] == "Z":
+            return False
     except OSError:
         return True
+    return not started or _started(pid) in ("", started)  # not the pid of a later process
 
 
 def dead_reason(run, now: float | None = None) -> str | None:
     """Why a RUNNING run is dead (its process is gone, or its heartbeat stopped), or None
-    while it may be alive. Runs without a heartbeat (sweep parents, older fedlgr) are
-    never called dead."""
+    while it may be alive. A run whose process is alive on this machine is never dead,
+    however old its heartbeat (a process stopped by Ctrl-Z, a suspended VM): the
+    heartbeat only judges runs on other machines. Runs without a heartbeat (sweep
+    parents, older fedlgr) are never called dead."""
     tags = run.data.tags
     if run.info.status != "RUNNING" or "fedlgr.heartbeat" not in tags:
         return None
     pid = tags.get("fedlgr.pid", "")
     here = tags.get("fedlgr.host") == socket.gethostname()
-    if here and pid.isdigit() and not _process_alive(int(pid)):
+    if here and pid.isdigit():
+        if _process_alive(int(pid), tags.get("fedlgr.pid_started", "")):
+            return None
         return f"its process {pid} on this machine is gone"
     age = (now or time.time()) - float(tags["fedlgr.heartbeat"])
     limit = 3 * float(tags.get("fedlgr.heartbeat_s", 30))

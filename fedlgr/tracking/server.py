@@ -39,7 +39,17 @@ class TrackingUnreachable(FedlgrError):
 def check_reachable(uri: str, timeout: float = 5.0) -> None:
     """Raise :class:`TrackingUnreachable` when ``uri`` is an HTTP(S) address at which
     nothing answers within ``timeout`` seconds. Any HTTP answer counts as reachable (a
-    proxy's 401 or 404 is for MLflow to report); other stores are not probed."""
+    proxy's 401 or 404 is for MLflow to report). A local sqlite store must be one fedlgr
+    can write (:func:`check_sqlite`); MLflow 3's plain file store is refused."""
+    if uri.startswith("sqlite:///"):
+        check_sqlite(uri)
+        return
+    if uri.startswith("file:") or "://" not in uri:
+        raise TrackingUnreachable(
+            f"tracking URI {uri}: a plain file store, which MLflow 3 keeps in maintenance "
+            "mode and fedlgr does not use; give sqlite:///PATH/mlflow.db (the default: "
+            "sqlite:///mlflow.db) or an mlflow server's http://HOST:PORT"
+        )
     if not uri.startswith(("http://", "https://")):
         return
     probe = uri.rstrip("/") + "/health"
@@ -55,6 +65,69 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
             "(`mlflow server --host 127.0.0.1 --port PORT`), fix --tracking-uri / "
             "$MLFLOW_TRACKING_URI, or leave both unset for the local sqlite store"
         ) from None
+
+
+SQLITE_HEADER = b"SQLite format 3\x00"
+
+
+def sqlite_path(uri: str) -> Path:
+    return Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()
+
+
+def check_sqlite(uri: str) -> None:
+    """One line, before MLflow meets it, for a sqlite store that is a folder, not an
+    SQLite file, read-only (or immutable), or in a folder that cannot be made or
+    written. (MLflow would retry for minutes, or end in a stack trace.)"""
+    path = sqlite_path(uri)
+    if str(path) == ":memory:":
+        return
+
+    def refuse(why: str) -> None:
+        raise TrackingUnreachable(f"tracking store {uri}: {why}")
+
+    if path.is_dir():
+        refuse(f"{path} is a folder; name the database file in it, e.g. sqlite:///{path}/mlflow.db")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        refuse(f"cannot create its folder {path.parent} ({err.strerror or err})")
+    if not os.access(path.parent, os.W_OK):
+        refuse(f"its folder {path.parent} is not writable (sqlite writes a journal next to it)")
+    if path.exists():
+        try:
+            with path.open("rb") as handle:
+                head = handle.read(len(SQLITE_HEADER))
+        except OSError as err:
+            refuse(f"cannot read {path} ({err.strerror or err})")
+        if head and head != SQLITE_HEADER:
+            refuse(f"{path} is not an SQLite database (another file is there)")
+        if not os.access(path, os.W_OK):
+            refuse(f"{path} is read-only (or immutable: lsattr); runs could not be recorded")
+
+
+def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
+    """The sqlite store opens and takes a write lock within ``wait`` seconds: a corrupted
+    file, or one that another process keeps locked, is one line (MLflow would retry for
+    minutes, then end in a stack trace)."""
+    import sqlite3
+
+    path = sqlite_path(uri)
+    if not path.is_file() or str(path) == ":memory:":
+        return
+    try:
+        connection = sqlite3.connect(path, timeout=wait)
+        try:
+            connection.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            connection.execute("BEGIN IMMEDIATE")
+            connection.rollback()
+        finally:
+            connection.close()
+    except sqlite3.DatabaseError as err:
+        if "locked" in str(err):
+            why = f"another process has kept it locked for over {wait:.0f} s"
+        else:
+            why = f"{path} is damaged ({err}); restore it from a copy, or start a new store"
+        raise TrackingUnreachable(f"tracking store {uri}: {why}") from None
 
 
 def check_tracking(uri: str | None, overrides: list[str]) -> None:

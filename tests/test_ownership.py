@@ -1,0 +1,358 @@
+"""One owner per run, resume only on the run's own data, checkpoints that leave nothing
+behind, a rendezvous that ends, and stores that fail in one line (issue 20, points 1, 4,
+5, 7 and the store cases of 8): real processes, real signals, real sqlite stores."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mlflow
+import pytest
+
+from fedlgr.cli import main
+from fedlgr.data.synth import synthesize
+from fedlgr.errors import FedlgrError
+from fedlgr.federated.resume import find_checkpoint
+from fedlgr.report.runs import select_runs
+from fedlgr.tracking import checkpoint as ckpt
+from fedlgr.tracking.mlflow_run import SENTINEL, StoreError, dead_reason
+from fedlgr.tracking.server import TrackingUnreachable, check_sqlite_usable
+from tests.conftest import fast_config
+from tests.test_resume import _args
+from tests.test_run_faults import Child, _env, _only_run, _steps
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# --------------------------------------------------------------------------- 1 and 4
+
+
+def test_a_run_has_one_owner_and_resumes_only_on_its_own_data(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    """(1b) A run whose process is stopped (Ctrl-Z) and whose heartbeat went stale is
+    alive, not dead: ``--resume`` is refused naming its owner. (4) Killed, and its data
+    regenerated, ``--resume`` is refused naming both digests. (1a) Two ``--resume`` at
+    once: one resumes, the other is refused; every round is logged once, and the old
+    checkpoint folder is gone after the move to a new one (7)."""
+    data = tmp_path / "data"
+    shutil.copytree(synth_dir, data)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    rounds = 16
+    args = _args(data, cache_dir, store, f"federated.rounds={rounds}", "tracking.heartbeat_s=1")
+    monkeypatch.chdir(tmp_path)
+    with Child(args, tmp_path, "first") as child:
+        child.wait_for(rf"round 2/{rounds}:")
+        os.kill(child.pid, signal.SIGSTOP)
+        try:
+            time.sleep(4)  # more than 3 heartbeats of 1 s
+            client, run = _only_run(store)
+            run_id = run.info.run_id
+            assert time.time() - float(run.data.tags["fedlgr.heartbeat"]) > 3
+            assert dead_reason(run) is None  # its process is alive on this machine
+            assert main(["run", *args, "--resume"]) == 1
+            said = capsys.readouterr().err
+            assert f"run {run_id} is owned by process {child.pid} on {socket.gethostname()}" in (
+                said
+            ), said
+            assert client.get_run(run_id).info.status == "RUNNING"
+        finally:
+            os.kill(child.pid, signal.SIGKILL)
+        child.process.wait()
+    old_folder = Path(client.get_run(run_id).data.tags["fedlgr.checkpoints"])
+    assert ckpt.checkpoints(old_folder)
+
+    kept = tmp_path / "kept"
+    shutil.copytree(data, kept)
+    shutil.rmtree(data)
+    synthesize(data, scenes=48, seed=8, size=32)  # other scenes in the same folder
+    assert main(["run", *args, "--resume"]) == 1
+    said = capsys.readouterr().err.strip()
+    assert len(said.splitlines()) == 1, said
+    assert re.search(
+        rf"data.path={re.escape(str(data))} is not the data run {run_id} trained on "
+        r"\(dataset digest [0-9a-f]{16}, the checkpoint's [0-9a-f]{16}\)",
+        said,
+    ), said
+    shutil.rmtree(data)
+    shutil.copytree(kept, data)  # the run's own data again: the same digest
+
+    moved = tmp_path / "moved"
+    again = [*args, f"tracking.checkpoint_dir={moved}", "--resume"]
+    with Child(again, tmp_path, "a") as a, Child(again, tmp_path, "b") as b:
+        codes = [a.process.wait(timeout=300), b.process.wait(timeout=300)]
+        errors = [a.stderr(), b.stderr()]
+    assert sorted(codes) == [0, 1], errors
+    refused = errors[codes.index(1)].strip().splitlines()[-1]
+    assert re.search(rf"run {run_id} (is owned by process \d+|has finished)", refused), refused
+    client, run = _only_run(store)
+    assert run.info.status == "FINISHED"
+    for key in (SENTINEL, "test/rmse", "cost/cpu_s"):
+        assert _steps(client, run_id, key) == list(range(1, rounds + 1)), key  # each once
+    assert not old_folder.exists()  # moved, then finished: neither folder is left
+    assert not (moved / run_id).exists()
+
+
+# --------------------------------------------------------------------------- 7
+
+
+def test_a_finished_runs_leftover_checkpoints_are_removed_by_resume_and_report(
+    synth_dir, cache_dir, tmp_path, capsys
+):
+    """A kill just after a run FINISHED leaves its checkpoint folder: ``--resume`` and
+    ``fedlgr report`` remove it, with a line."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    config = fast_config(synth_dir, cache_dir, store)
+    client = mlflow.MlflowClient(store)
+    experiment = client.create_experiment(config.tracking.experiment)
+    folder = tmp_path / "checkpoints" / "left"
+    run_id = client.create_run(experiment, tags={"fedlgr.checkpoints": str(folder)}).info.run_id
+    client.set_terminated(run_id, "FINISHED")
+
+    def leave() -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "round-0003.ckpt").write_bytes(b"\0" * 3 * 2**20)
+
+    leave()
+    with pytest.raises(FedlgrError) as refused:
+        find_checkpoint(config, run_id, client)
+    assert str(refused.value) == (
+        f"--resume: run {run_id} has finished; there is nothing to resume (removed the "
+        f"checkpoint folder it left behind, {folder}: 3 MB)"
+    )
+    assert not folder.exists()
+    leave()
+    with pytest.raises(FedlgrError, match="has no finished fedlgr runs"):  # not one of ours
+        select_runs(client, store, experiment=config.tracking.experiment)
+    said = capsys.readouterr().out
+    assert f"finished run {run_id}: removed the checkpoint folder it left behind, {folder}" in said
+    assert not folder.exists()
+
+
+FULL_DISK = """
+import resource, signal, sys
+from pathlib import Path
+import torch
+from lightning.fabric import Fabric
+from fedlgr.errors import FedlgrError
+from fedlgr.tracking import checkpoint as ckpt
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write over the limit fails with EFBIG
+fabric = Fabric(accelerator="cpu", devices=1)
+folder = Path(sys.argv[1])
+ckpt.save(fabric, folder, 1, {"format": ckpt.FORMAT, "w": torch.zeros(1000)}, keep=2)
+resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, resource.RLIM_INFINITY))
+try:
+    ckpt.save(fabric, folder, 2, {"w": torch.zeros(1_000_000)}, keep=2)
+except FedlgrError as err:
+    print("refused:", err)
+"""
+
+
+def test_a_checkpoint_is_written_in_its_folder_and_a_failed_write_leaves_nothing(tmp_path):
+    """Checkpoints are staged in their own folder, not ``$TMPDIR`` (a kill left 20-30 MB
+    there); a write that fails (full disk; here a file-size limit) is one line, the
+    previous checkpoint is intact and no temporary is left; stale temporaries of a kill
+    are removed at the next start."""
+    folder, tmp = tmp_path / "run", tmp_path / "tmp"
+    tmp.mkdir()
+    env = _env(TMPDIR=str(tmp))
+    done = subprocess.run(
+        [sys.executable, "-c", FULL_DISK, str(folder)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.startswith(
+        f"refused: cannot write checkpoint {folder}/round-0002.ckpt: File too large; free "
+        "space or choose another folder (tracking.checkpoint_dir=...)"
+    ), done.stdout + done.stderr[-3000:]
+    assert sorted(p.name for p in folder.iterdir()) == ["round-0001.ckpt"]
+    assert list(tmp.iterdir()) == []
+    assert ckpt.load(folder / "round-0001.ckpt")["w"].shape == (1000,)
+
+    stale = folder / ".round-0002.ckpt.tmp"
+    stale.write_bytes(b"cut short")
+    assert ckpt.remove_temporaries(folder) == [stale]
+    assert sorted(p.name for p in folder.iterdir()) == ["round-0001.ckpt"]
+
+
+def test_a_checkpoint_without_its_run_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "round-0001.ckpt"
+    import torch
+
+    torch.save({"format": ckpt.FORMAT}, path)
+    with pytest.raises(FedlgrError, match=r"an incomplete checkpoint \(no run_id, round, "):
+        ckpt.load(path, ckpt.RUN_KEYS)
+
+
+# --------------------------------------------------------------------------- 5
+
+
+def test_a_rendezvous_without_its_peers_ends_on_sigterm_and_on_its_timeout(
+    synth_dir, cache_dir, tmp_path
+):
+    """``runtime.num_nodes=2`` with no second node: SIGTERM ends the waiting process at
+    once (it blocks in C++, where Python's handlers never run), and
+    ``runtime.timeout_s`` ends the wait with one line."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+
+    def start(timeout: float, name: str) -> tuple[subprocess.Popen, Path]:
+        args = _args(
+            synth_dir, cache_dir, store, "runtime.num_nodes=2", f"runtime.timeout_s={timeout}"
+        )
+        err = tmp_path / f"{name}.stderr"
+        env = _env(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(_free_port()), NODE_RANK="0")
+        process = subprocess.Popen(
+            [sys.executable, "-m", "fedlgr", "run", *args],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=err.open("w"),
+            start_new_session=True,
+        )
+        return process, err
+
+    waiting, err = start(600, "waiting")
+    try:
+        deadline = time.monotonic() + 120
+        while "MEMBER: 1/2" not in err.read_text():
+            assert waiting.poll() is None and time.monotonic() < deadline, err.read_text()
+            time.sleep(0.2)
+        time.sleep(1)  # inside the rendezvous
+        os.kill(waiting.pid, signal.SIGTERM)
+        assert waiting.wait(timeout=10) == -signal.SIGTERM
+    finally:
+        if waiting.poll() is None:
+            os.killpg(waiting.pid, signal.SIGKILL)
+            waiting.wait()
+
+    alone, err = start(2, "alone")
+    assert alone.wait(timeout=120) == 1
+    last = err.read_text().strip().splitlines()[-1]
+    assert re.fullmatch(
+        r"fedlgr: error: runtime.num_nodes=2, runtime.devices=1: not every process joined "
+        r"within runtime.timeout_s=2 s at 127.0.0.1:\d+ \(.*1/2 clients joined.*\); start "
+        r"the other nodes' processes .*",
+        last,
+    ), err.read_text()[-3000:]
+    assert "Traceback" not in err.read_text()
+
+
+# --------------------------------------------------------------------------- 8: stores
+
+
+def test_stores_that_cannot_be_used_are_one_line_before_any_work(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "folder.db").mkdir()
+    (tmp_path / "text.db").write_text("not a database\n")
+    sqlite3.connect(tmp_path / "good.db").execute("create table t (x)").connection.commit()
+    damaged = bytearray((tmp_path / "good.db").read_bytes())
+    damaged[100:] = b"\xff" * (len(damaged) - 100)
+    (tmp_path / "damaged.db").write_bytes(bytes(damaged))
+    (tmp_path / "a-file").write_text("")
+    cases = {
+        f"sqlite:///{tmp_path}/folder.db": "is a folder; name the database file in it",
+        f"sqlite:///{tmp_path}/text.db": "is not an SQLite database",
+        f"sqlite:///{tmp_path}/damaged.db": "is damaged (database disk image is malformed)",
+        f"sqlite:///{tmp_path}/a-file/mlflow.db": "cannot create its folder",
+        f"file://{tmp_path}/mlruns": "a plain file store, which MLflow 3 keeps in maintenance",
+        str(tmp_path / "mlruns"): "a plain file store",
+    }
+    for uri, why in cases.items():
+        # A run through the CLI: refused before the data is loaded or a run is created.
+        args = _args(synth_dir, cache_dir, uri, "federated.rounds=1")
+        assert main(["run", *args]) == 1, uri
+        said = capsys.readouterr().err.strip()
+        assert len(said.splitlines()) == 1 and why in said and uri in said, said
+
+    locked = f"sqlite:///{tmp_path}/locked.db"
+    holder = sqlite3.connect(tmp_path / "locked.db", check_same_thread=False)
+    holder.execute("create table t (x)")
+    holder.commit()
+    holder.execute("BEGIN EXCLUSIVE")
+    try:
+        with pytest.raises(TrackingUnreachable, match="another process has kept it locked"):
+            check_sqlite_usable(locked, wait=0.5)
+    finally:
+        holder.rollback()
+        holder.close()
+    check_sqlite_usable(locked, wait=0.5)  # free again
+
+
+FULL_STORE = """
+import resource, signal, sys
+from fedlgr.config import load_config
+from fedlgr.tracking.mlflow_run import StoreError, Tracker
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+config = load_config(None, ["tracking.uri=" + sys.argv[1], "tracking.system_metrics=false"])
+tracker = Tracker(config)
+db = sys.argv[1].removeprefix("sqlite:///")
+import os
+resource.setrlimit(resource.RLIMIT_FSIZE, (os.path.getsize(db), resource.RLIM_INFINITY))
+try:
+    for round_ in range(1, 200):
+        tracker.log_round(round_, {f"m/{i}": float(i) for i in range(1000)})
+except StoreError as err:
+    print("refused:", err)
+resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+tracker.fail()
+print("ended", tracker.run_id)
+"""
+
+
+def test_a_full_store_is_one_line_and_the_run_ends_failed_once_it_has_room(tmp_path):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    done = subprocess.run(
+        [sys.executable, "-c", FULL_STORE, store],
+        env=_env(),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    refused, ended = done.stdout.strip().splitlines()
+    assert re.fullmatch(
+        rf"refused: MLflow store {re.escape(store)}: could not log round "
+        r"\(run [0-9a-f]{32}\): .+",
+        refused,
+    ), done.stdout
+    run_id = ended.split()[-1]
+    assert mlflow.MlflowClient(store).get_run(run_id).info.status == "FAILED"
+
+
+def test_store_errors_name_the_store_and_the_innermost_cause():
+    from fedlgr.tracking.mlflow_run import store_errors
+
+    def fail() -> None:
+        try:
+            raise sqlite3.OperationalError("database or disk is full")
+        except sqlite3.OperationalError as inner:
+            raise RuntimeError("(sqlite3.OperationalError) wrapped\nmore") from inner
+
+    with pytest.raises(StoreError) as err, store_errors("sqlite:///x.db", "log round"):
+        fail()
+    assert str(err.value) == (
+        "MLflow store sqlite:///x.db: could not log round: database or disk is full"
+    )
