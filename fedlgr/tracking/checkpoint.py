@@ -13,8 +13,9 @@ How: rank 0 writes the whole run's state (every client of every process) to a te
 name in the folder itself and renames it into place, so a kill during the write leaves
 the previous checkpoint intact (and the temporary, removed at the next start); it keeps
 the newest ``tracking.keep_checkpoints`` and removes the folder when the run finishes.
-The run's owner holds a lock in the folder (:mod:`fedlgr.tracking.owner`). Files are read with ``weights_only=True``:
-only tensors and plain Python values, never code (numpy arrays are stored as tensors).
+The run's owner holds a lock in the folder (:mod:`fedlgr.tracking.owner`). Files are read
+with ``weights_only=True``: only tensors and plain Python values, never code (numpy
+arrays are stored as tensors).
 """
 
 from __future__ import annotations
