@@ -20,6 +20,9 @@ def _sweep(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     check_tracking(args.tracking_uri, overrides)  # before loading Optuna and MLflow
     from fedlgr.sweep import load_sweep, run_sweep
+    from fedlgr.sweep.storage import check_storage
+
+    check_storage(args.storage, make=False)  # before the configs' checks load torch
 
     if args.workers > 1 and not any(o.startswith("runtime.threads=") for o in overrides):
         # Share this machine's cores between the workers instead of oversubscribing them.
@@ -39,4 +42,8 @@ def _sweep(args: argparse.Namespace) -> int:
         worker_id=args.worker_id,
         settings_changed=args.settings_changed,
     )
+    if result.failure:  # the table above shows each trial's error
+        from fedlgr.errors import FedlgrError
+
+        raise FedlgrError(f"sweep {spec.name}: {result.failure}")
     return 0 if result.done else 1

@@ -12,10 +12,12 @@ A sweep file (``sweeps/NAME.yaml``)::
 
 Each key of ``space`` is a config key (``key=value`` as on the command line); the special
 key ``config`` chooses the base config file itself (for grids over the paper's presets). A
-list is a grid of values; ``{low, high}`` (optionally ``log: true``, ``step``) is a range
-and ``{choices: [...]}`` a categorical, both for TPE. ``sampler`` is ``grid`` when every
-parameter is a list (Optuna's ``GridSampler``: every combination once), ``tpe`` otherwise
-(``TPESampler``; ``trials`` then says how many). The objective's metric is any metric a run
+list is a grid of values; ``{low, high}`` (optionally ``log: true`` or a ``step``) is a
+range and ``{choices: [...]}`` a categorical, both for TPE; each is checked as Optuna would
+take it when the file loads, and every trial's config and the objective with it
+(:mod:`fedlgr.sweep.checks`). ``sampler`` is ``grid`` when every parameter is a list
+(Optuna's ``GridSampler``: every combination once), ``tpe`` otherwise (``TPESampler``;
+``trials`` then says how many). The objective's metric is any metric a run
 logs, read after the last round (``test/rmse`` = the final mean RMSE, after the last task
 for FCL; ``after_task1/test/pcc``, ``mean/cost/cpu_s``, ...). ``pruner`` (``median`` |
 ``none``) stops hopeless trials from their per-round values; on by default for TPE, off
@@ -25,6 +27,8 @@ for grids (a grid wants every point measured).
 from __future__ import annotations
 
 import itertools
+import math
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -81,6 +85,19 @@ class Param:
             return trial.suggest_int(self.name, d.low, d.high, step=d.step, log=d.log)
         return trial.suggest_float(self.name, d.low, d.high, step=d.step, log=d.log)
 
+    def size(self) -> int | None:
+        """How many distinct values the parameter can take; None for a continuous range."""
+        from optuna.distributions import CategoricalDistribution, IntDistribution
+
+        d = self.distribution()
+        if isinstance(d, CategoricalDistribution):
+            return len(d.choices)
+        if isinstance(d, IntDistribution):
+            return (d.high - d.low) // d.step + 1
+        if d.step is None:
+            return None
+        return round((d.high - d.low) / d.step) + 1  # Optuna has fitted high to the step
+
 
 @dataclass(frozen=True)
 class SweepSpec:
@@ -105,16 +122,22 @@ class SweepSpec:
         """GridSampler's search space (grid sweeps)."""
         return {p.name: list(p.values) for p in self.params}
 
-    def grid_points(self) -> list[dict[str, Any]]:
+    def grid_points(self) -> Iterator[dict[str, Any]]:
+        """Every point of the grid, built one at a time (a grid can hold millions)."""
         names = [p.name for p in self.params]
-        return [
-            dict(zip(names, combo, strict=True))
-            for combo in itertools.product(*(p.values for p in self.params))
-        ]
+        for combo in itertools.product(*(p.values for p in self.params)):
+            yield dict(zip(names, combo, strict=True))
+
+    def space_size(self) -> int | None:
+        """How many distinct points the space holds; None when a range is continuous."""
+        sizes = [p.size() for p in self.params]
+        return None if None in sizes else math.prod(sizes)
 
     @property
     def n_trials(self) -> int:
-        return len(self.grid_points()) if self.sampler == "grid" else int(self.trials or 0)
+        if self.sampler == "grid":
+            return math.prod(len(p.values) for p in self.params)
+        return int(self.trials or 0)
 
     def search_space(self) -> dict[str, Any]:
         """Optuna distributions per parameter (what the trials are drawn from)."""
@@ -165,8 +188,16 @@ def find_sweep(name: str | Path) -> Path:
     raise ConfigError(f"sweep {name}: no such file; shipped sweeps: {known}")
 
 
-def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SweepSpec:
-    """Read and check a sweep file; ``overrides`` (``key=value``) apply to every trial."""
+def load_sweep(
+    path: str | Path,
+    overrides: list[str] | tuple[str, ...] = (),
+    echo: Callable[[str], None] = print,
+) -> SweepSpec:
+    """Read and check a sweep file - every parameter, the configs its trials make and the
+    objective's metric, before anything trains; ``overrides`` (``key=value``) apply to
+    every trial; ``echo`` says so before a long check (a large grid)."""
+    from fedlgr.sweep.checks import check_trial_configs
+
     path = find_sweep(path)
     raw = read_sweep_file(path)
 
@@ -240,7 +271,7 @@ def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) ->
         description=str(raw.get("description", "")),
         heartbeat_s=_integer(raw, "heartbeat_s", 30, 1, fail),
     )
-    check_trial_configs(spec)
+    check_trial_configs(spec, echo)
     return spec
 
 
@@ -295,82 +326,64 @@ def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, f
 
 
 def _param(name: str, value: Any, fail) -> Param:
+    """One ``space`` entry, checked as Optuna would take it (a grid, choices or a range)."""
     key = f"space.{name}"
     if isinstance(value, list):
-        if not value:
-            raise fail(key, "an empty grid")
-        for v in value:
-            if not (v is None or isinstance(v, str | int | float | bool)):
-                raise fail(key, f"grid values must be numbers, strings or booleans, not {v!r}")
-        return Param(name, values=tuple(value))
-    if isinstance(value, dict):
-        if "choices" in value:
-            choices = value["choices"]
-            if not isinstance(choices, list) or not choices:
-                raise fail(key, "choices: a non-empty list")
-            return Param(name, values=tuple(choices), categorical=True)
-        if "low" not in value or "high" not in value:
-            raise fail(key, "a range needs low and high (or use a list for a grid)")
-        low, high = value["low"], value["high"]
-        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (low, high)):
-            raise fail(key, "low and high must be numbers")
-        if low >= high:
-            raise fail(key, f"low ({low}) must be below high ({high})")
-        log = bool(value.get("log", False))
-        if log and low <= 0:
-            raise fail(key, "a log range needs low > 0")
-        extra = sorted(set(value) - {"low", "high", "log", "step"})
+        return Param(name, values=_values(value, key, "grid", fail))
+    if not isinstance(value, dict):
+        raise fail(key, f"expected a list (grid) or {{low, high}} / {{choices}}, not {value!r}")
+    if "choices" in value:
+        extra = sorted(set(value) - {"choices"})
         if extra:
-            raise fail(key, f"unknown range setting(s) {extra}; use low, high, log, step")
-        return Param(name, low=low, high=high, log=log, step=value.get("step"))
-    raise fail(key, f"expected a list (grid) or {{low, high}} / {{choices}}, not {value!r}")
+            raise fail(key, f"unknown setting(s) {extra} next to choices (a list of values)")
+        choices = value["choices"]
+        if not isinstance(choices, list):
+            raise fail(key, f"choices: expected a list of values, not {choices!r}")
+        return Param(name, values=_values(choices, key, "choices", fail), categorical=True)
+    extra = sorted(set(value) - {"low", "high", "log", "step"})
+    if extra:
+        raise fail(key, f"unknown range setting(s) {extra}; use low, high, log, step")
+    if "low" not in value or "high" not in value:
+        raise fail(key, "a range needs low and high (or use a list for a grid)")
+    low, high, log, step = value["low"], value["high"], value.get("log", False), value.get("step")
+    for setting, number in (("low", low), ("high", high)):
+        if isinstance(number, bool) or not isinstance(number, int | float):
+            raise fail(key, f"{setting} must be a number, not {number!r}")
+        if not math.isfinite(number):
+            raise fail(key, f"{setting} must be a finite number, not {number}")
+    if low >= high:
+        raise fail(key, f"low ({low}) must be below high ({high})")
+    if not isinstance(log, bool):
+        raise fail(key, f"log: expected true or false, not {log!r}")
+    if log and low <= 0:
+        raise fail(key, "a log range needs low > 0")
+    if step is not None:
+        number = not isinstance(step, bool) and isinstance(step, int | float)
+        if not number or not math.isfinite(step) or step <= 0:
+            raise fail(key, f"step must be a number above 0, not {step!r}")
+        if log:
+            raise fail(key, "step and log: true cannot go together (Optuna draws either)")
+        if step > high - low:
+            raise fail(key, f"step ({step}) is larger than the range ({low} to {high})")
+    param = Param(name, low=low, high=high, log=log, step=step)
+    try:
+        param.distribution()  # anything else Optuna refuses
+    except ValueError as err:
+        raise fail(key, str(err).splitlines()[0]) from err
+    return param
 
 
-def check_trial_configs(spec: SweepSpec) -> None:
-    """Every grid point (or, for TPE, every range's ends and choice) must make a valid
-    config, so a typo in a key fails now rather than in every trial. A ``data.path`` left
-    to the user (``???`` in the MANNERS-DB presets) is filled with a placeholder here."""
-    from fedlgr.config import load_config
-
-    for point in _probe_points(spec):
-        base, overrides = spec.trial_config_args(point)
-        try:
-            load_config(base, overrides)
-        except ConfigError as err:
-            if "data.path: no value" not in str(err):
-                raise ConfigError(f"{spec.path}: trial {point}: {err}") from err
-            load_config(base, [*overrides, "data.path=/path/to/manners-db"])
-
-
-def check_data(spec: SweepSpec) -> None:
-    """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start
-    rather than fail each of its trials on it. (:func:`load_sweep` does not ask this, so
-    that a sweep file can be checked without its data.)"""
-    from fedlgr.config import load_config
-
-    seen: set[Path] = set()
-    for point in _probe_points(spec):
-        base, overrides = spec.trial_config_args(point)
-        try:
-            path = Path(load_config(base, overrides).data.path)
-        except ConfigError as err:  # data.path left unset (???) by a MANNERS-DB preset
-            raise ConfigError(f"{spec.path}: {err}") from err
-        if path in seen:
-            continue
-        seen.add(path)
-        if not path.is_dir():
-            what = "a file, not the dataset folder" if path.exists() else "no such folder"
-            raise ConfigError(
-                f"{spec.path}: data.path={path}: {what}; set data.path=DIR in the sweep's "
-                "overrides or on the command line"
-            )
-
-
-def _probe_points(spec: SweepSpec) -> list[dict[str, Any]]:
-    """Every grid point, or for TPE every range's ends and the first and last choices."""
-    if spec.sampler == "grid":
-        return spec.grid_points()
-    return [
-        {p.name: (p.values[0] if p.values else p.low) for p in spec.params},
-        {p.name: (p.values[-1] if p.values else p.high) for p in spec.params},
-    ]
+def _values(values: list[Any], key: str, what: str, fail) -> tuple[Any, ...]:
+    """A grid's or choices' values: numbers, strings, booleans or null, each once."""
+    if not values:
+        raise fail(key, f"an empty {what}")
+    seen: list[Any] = []
+    for v in values:
+        if not (v is None or isinstance(v, str | int | float | bool)):
+            raise fail(key, f"{what} values must be numbers, strings or booleans, not {v!r}")
+        if isinstance(v, float) and math.isnan(v):
+            raise fail(key, f"{what} values cannot be .nan (it equals no value, not even itself)")
+        if any(type(v) is type(u) and v == u for u in seen):
+            raise fail(key, f"{v!r} is listed twice")
+        seen.append(v)
+    return tuple(values)

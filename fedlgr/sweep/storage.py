@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import os
 import warnings
+from pathlib import Path
 from typing import Any
 
 from fedlgr.errors import FedlgrError
@@ -89,11 +91,129 @@ def open_study(
     the study; two processes doing that at once make one fail (``table ... already
     exists``, a UNIQUE constraint on the version or the study name), so it happens under
     the file lock MLflow's sqlite stores are opened under (``<file>.lock``). A server
-    database (PostgreSQL, MySQL) is not locked."""
+    database (PostgreSQL, MySQL) is not locked. A storage that cannot hold the study is
+    one :class:`FedlgrError` line naming it (:func:`check_storage`)."""
     from fedlgr.tracking.mlflow_run import store_lock
 
+    path = check_storage(storage)
     with store_lock(storage):
+        if path is not None:
+            _wait_for_writes(path, storage)
         return _open_study(spec, storage, study_name, worker, settings_changed)
+
+
+SQLITE_HEADER = b"SQLite format 3\x00"
+LOCK_WAIT_S = 5.0  # another process's write that takes longer than this is not a sweep's
+
+
+def sqlite_path(storage: str) -> Path | None:
+    """The file of an sqlite storage URL; None for a server database or an in-memory one."""
+    from sqlalchemy.engine import make_url
+
+    url = make_url(storage)
+    database = url.database or ""
+    if url.get_backend_name() != "sqlite" or database in ("", ":memory:") or url.query:
+        return None
+    return Path(database).expanduser()
+
+
+def check_storage(storage: str, make: bool = True) -> Path | None:
+    """Refuse, in one line naming it, a storage that cannot hold a study, before anything
+    waits on it: not a database URL; an sqlite path that is a folder, a file that is not
+    an sqlite database, a folder that cannot be made or written in, a file another
+    process keeps locked. ``make``: create the sqlite file's folder and lock file (else
+    only look). The sqlite file, for sqlite."""
+    from sqlalchemy.exc import ArgumentError
+
+    def fail(problem: str) -> FedlgrError:
+        return FedlgrError(f"--storage {storage}: {problem}")
+
+    try:
+        path = sqlite_path(storage)
+    except ArgumentError as err:
+        raise fail("not a database URL (e.g. sqlite:///optuna.db or postgresql://HOST/DB)") from err
+    if path is None:
+        return None
+    if path.is_dir():
+        raise fail(f"{path} is a folder, not an sqlite file")
+    if not make:
+        folder = next(p for p in path.absolute().parents if p.exists())
+        if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+            what = "not a folder" if not folder.is_dir() else "not writable"
+            raise fail(f"cannot create {path}: {folder} is {what}")
+        _check_header(path, fail)
+        _wait_for_writes(path, storage)
+        return path
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise fail(f"cannot create the folder {path.parent}: {err.strerror or err}") from err
+    try:  # the lock file store_lock keeps beside it: the folder takes new files
+        with open(f"{path}.lock", "a"):
+            pass
+    except OSError as err:
+        raise fail(f"cannot write in {path.parent}: {err.strerror or err}") from err
+    _check_header(path, fail)
+    return path
+
+
+def _check_header(path: Path, fail) -> None:
+    """A file that does not begin as sqlite files do is some other file."""
+    try:
+        if path.is_file() and path.stat().st_size:
+            with path.open("rb") as f:
+                head = f.read(len(SQLITE_HEADER))
+            if head != SQLITE_HEADER:
+                raise fail(f"{path} is not an sqlite database (another kind of file?)")
+    except OSError as err:
+        raise fail(f"cannot read {path}: {err.strerror or err}") from err
+
+
+def _wait_for_writes(path: Path, storage: str) -> None:
+    """Wait up to :data:`LOCK_WAIT_S` for another process's write to the sqlite file to
+    end (a sweep's workers write for milliseconds): one that holds it longer is named,
+    instead of the minute Optuna's connections wait (``timeout: 60``)."""
+    import contextlib
+    import sqlite3
+
+    if not (path.is_file() and path.stat().st_size):
+        return
+    try:
+        with contextlib.closing(sqlite3.connect(path, timeout=LOCK_WAIT_S)) as db:
+            db.isolation_level = None
+            db.execute("BEGIN IMMEDIATE")
+            db.execute("ROLLBACK")
+    except sqlite3.Error as err:
+        raise storage_error(storage, err) from err
+
+
+def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
+    """One line for an error of the study's storage (Optuna's ``StorageInternalError``,
+    SQLAlchemy's and sqlite's errors); None for any other error."""
+    import sqlite3
+
+    import optuna
+    from sqlalchemy.exc import SQLAlchemyError
+
+    internal = optuna.exceptions.StorageInternalError
+    if not isinstance(err, internal | SQLAlchemyError | sqlite3.Error):
+        return None
+    cause = err.__cause__ if isinstance(err, internal) else err
+    cause = getattr(cause, "orig", None) or cause  # SQLAlchemy wraps the driver's error
+    text = (str(cause).strip().splitlines() or [type(cause).__name__])[0]
+    known = {
+        "database is locked": "the sqlite file is locked by another process (one that "
+        "holds it for long: another program, or a sweep stopped with Ctrl-Z?)",
+        "file is not a database": "not an sqlite database (another kind of file, or damaged)",
+        "database disk image is malformed": "the sqlite file is damaged (malformed); "
+        "move it away to start a new study",
+        "unable to open database file": "cannot open the sqlite file (a folder, or a folder "
+        "that cannot be written in?)",
+        "attempt to write a readonly database": "the sqlite file is read-only",
+        "database or disk is full": "the disk is full",
+    }
+    problem = next((v for k, v in known.items() if k in text), text)
+    return FedlgrError(f"--storage {storage}: {problem}")
 
 
 def _open_study(
@@ -118,7 +238,11 @@ def _open_study(
                 ),
             )
     except Exception as err:
-        raise FedlgrError(f"--storage {storage}: cannot open the study storage: {err}") from err
+        problem = storage_error(storage, err)
+        if problem is None:
+            text = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            problem = FedlgrError(f"--storage {storage}: cannot open the study storage: {text}")
+        raise problem from err
     if spec.sampler == "grid":
         sampler = optuna.samplers.GridSampler(spec.grid, seed=spec.seed)
     else:
@@ -129,15 +253,21 @@ def _open_study(
         if spec.pruner == "median"
         else optuna.pruners.NopPruner()
     )
-    study = optuna.create_study(
-        study_name=study_name or spec.name,
-        storage=rdb,
-        sampler=sampler,
-        pruner=pruner,
-        direction=spec.direction,
-        load_if_exists=True,
-    )
-    check_settings(study, spec, storage, settings_changed)
+    try:
+        study = optuna.create_study(
+            study_name=study_name or spec.name,
+            storage=rdb,
+            sampler=sampler,
+            pruner=pruner,
+            direction=spec.direction,
+            load_if_exists=True,
+        )
+        check_settings(study, spec, storage, settings_changed)
+    except Exception as err:
+        problem = storage_error(storage, err)
+        if problem is None:
+            raise
+        raise problem from err
     return study, retry
 
 

@@ -5,11 +5,18 @@ by default; a PostgreSQL/MySQL URL lets several machines share one study). Every
 this process, the ``--workers N`` extra processes it starts, or ``fedlgr sweep`` run again
 elsewhere on the same storage - runs trials one at a time until the study is done:
 
+* every parameter, every trial's config and the objective's metric are checked before
+  the first trial (:mod:`fedlgr.sweep.checks`);
 * a grid is done when every point has finished (complete, pruned or failed); a TPE study
-  when ``trials`` trials have;
-* a trial that raises is recorded FAILED with its error (user attr ``error``) and the sweep
-  goes on; Ctrl-C or SIGTERM (:mod:`fedlgr.signals`) re-queues the running trial, so the
-  next launch redoes it, and ends the parent run KILLED;
+  when ``trials`` trials have - or when its space has no point left that has not run
+  (a finite space smaller than ``trials``, or a sampler that keeps proposing old points:
+  :func:`fedlgr.sweep.trials.no_new_point`), which it says in one line;
+* a trial that raises is recorded FAILED with its error (user attr ``error``, the
+  end-of-sweep table, tag ``fedlgr.error`` of its MLflow run or ``trial.N.error`` of the
+  parent) and the sweep goes on; a sweep whose every trial failed ends its parent run
+  FAILED (and ``fedlgr sweep`` exits 1); Ctrl-C or SIGTERM (:mod:`fedlgr.signals`)
+  re-queues the running trial, so the next launch redoes it, and ends the parent run
+  KILLED;
 * a worker that dies (killed, machine lost) stops sending heartbeats; after two missed
   heartbeats another worker (or the next launch) marks its trial FAILED and re-queues it
   (:mod:`fedlgr.sweep.storage`) - also a trial killed before it drew its parameters,
@@ -20,7 +27,8 @@ elsewhere on the same storage - runs trials one at a time until the study is don
   ``duplicate_of``) before it trains.
 
 MLflow: one parent run per sweep (tag ``fedlgr.kind=sweep``: the study's settings and, at
-the end, the best trial and its params) and one child run per trial - the same run as
+the end, the best trial and its params - logged once, by the process that started the
+``--workers``) and one child run per trial - the same run as
 ``fedlgr run`` - tagged ``sweep`` and ``trial`` and linked with ``parent_run_id`` (the
 active-run stack is thread-local, so ``nested=True`` is not used).
 """
@@ -34,8 +42,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from fedlgr.signals import Terminated
-from fedlgr.sweep.spec import SweepSpec, check_data
-from fedlgr.sweep.trials import counts, summary
+from fedlgr.sweep.checks import check_data
+from fedlgr.sweep.spec import SweepSpec
+from fedlgr.sweep.trials import all_failed, counts, ran, summary
 from fedlgr.sweep.worker import DEFAULT_STORAGE, Worker
 
 
@@ -44,6 +53,7 @@ class SweepResult:
     study: Any
     parent_run_id: str
     done: bool
+    failure: str | None = None  # every trial failed: how many, and the first error
 
 
 def run_sweep(
@@ -72,14 +82,16 @@ def run_sweep(
         settings_changed=settings_changed,
     )
     todo, running, waiting = counts(worker.study, spec)
-    total = spec.n_trials
+    total, size = spec.n_trials, spec.space_size()
     echo(
         f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
         f"study {worker.study.study_name!r} in {storage} "
-        f"({total - todo - running - waiting if spec.sampler == 'tpe' else total - todo} "
+        f"({ran(worker.study) if spec.sampler == 'tpe' else total - todo} "
         f"done, {running} running, {waiting} queued); MLflow experiment {spec.experiment!r}, "
         f"parent run {worker.parent_run_id}"
     )
+    if spec.sampler == "tpe" and size is not None and size < total:
+        echo(f"sweep {spec.name}: its space has {size} distinct points: it stops once each has run")
     helpers = []
     for k in range(1, workers):
         command = [
@@ -113,9 +125,12 @@ def run_sweep(
                 process.wait()
             except KeyboardInterrupt:
                 process.terminate()
+    if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
+        return SweepResult(worker.study, worker.parent_run_id, done)
     best = worker.finish_parent() if done else None
     echo("\n" + summary(worker.study, spec, best))
     from fedlgr.tracking.server import runs_hint
 
     echo(runs_hint(worker.tracking_uri, worker.experiment_id))
-    return SweepResult(worker.study, worker.parent_run_id, done)
+    failure = all_failed(worker.study) if done else None
+    return SweepResult(worker.study, worker.parent_run_id, done, failure)

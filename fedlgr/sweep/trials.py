@@ -3,9 +3,13 @@ trial as a row, and the table a sweep ends with."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from fedlgr.sweep.spec import SweepSpec
+
+# A sampler whose last draws were all points already run has, by all signs, no new one.
+DUPLICATES_IN_A_ROW = 50
 
 
 def same_point(a: dict[str, Any], b: dict[str, Any]) -> bool:
@@ -13,11 +17,19 @@ def same_point(a: dict[str, Any], b: dict[str, Any]) -> bool:
     return a.keys() == b.keys() and all(a[k] == b[k] for k in a)
 
 
-def counts(study, spec: SweepSpec) -> tuple[int, int, int]:
-    """(trials still to start, running, waiting) - what is left of the study."""
+def point_key(spec: SweepSpec, params: dict[str, Any]) -> tuple | None:
+    """A trial's params as a tuple in the space's order - equal points, equal keys, as
+    :func:`same_point` has it - or None when they are not a point of this space."""
+    if params.keys() != {p.name for p in spec.params}:
+        return None
+    return tuple(params[p.name] for p in spec.params)
+
+
+def _split(trials):
+    """(running, waiting, finished) trials; finished leaves out skipped duplicates and the
+    failed trials that were queued again (their copy stands for them)."""
     from optuna.trial import TrialState
 
-    trials = study.get_trials(deepcopy=False)
     retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
     running = [t for t in trials if t.state == TrialState.RUNNING]
     waiting = [t for t in trials if t.state == TrialState.WAITING]
@@ -28,18 +40,76 @@ def counts(study, spec: SweepSpec) -> tuple[int, int, int]:
         and "duplicate_of" not in t.user_attrs
         and not (t.state == TrialState.FAIL and t.number in retried)
     ]
+    return running, waiting, finished
+
+
+def counts(study, spec: SweepSpec) -> tuple[int, int, int]:
+    """(trials still to start, running, waiting) - what is left of the study. A grid's
+    points are never listed (a grid can hold millions): trials are matched by key."""
+    trials = study.get_trials(deepcopy=False)
+    running, waiting, finished = _split(trials)
     if spec.sampler == "grid":
-        points = spec.grid_points()
-        open_points = [p for p in points if not any(same_point(p, t.params) for t in finished)]
+        values = [set(p.values) for p in spec.params]
+
+        def in_grid(key: tuple | None) -> bool:
+            return key is not None and all(v in vs for v, vs in zip(key, values, strict=True))
+
+        covered = {k for t in finished if in_grid(k := point_key(spec, t.params))}
+        open_points = math.prod(len(vs) for vs in values) - len(covered)
         # Wait only for running trials that may still cover an open point.
         running = [
-            t for t in running if not t.params or any(same_point(p, t.params) for p in open_points)
+            t
+            for t in running
+            if not t.params or (in_grid(k := point_key(spec, t.params)) and k not in covered)
         ]
-        covered = [t.params for t in running]
-        todo = sum(not any(same_point(p, c) for c in covered) for p in open_points)
+        todo = open_points - len({point_key(spec, t.params) for t in running if t.params})
     else:
         todo = max(0, spec.n_trials - len(finished) - len(running) - len(waiting))
+        if no_new_point(study, spec) is not None:
+            todo = 0
     return todo, len(running), len(waiting)
+
+
+def no_new_point(study, spec: SweepSpec) -> str | None:
+    """Why a TPE study can draw no point it has not run yet, or None: every distinct
+    point of its finite space has run (or is running), or the sampler's last
+    :data:`DUPLICATES_IN_A_ROW` draws were all points already run. Without this rule a
+    space with fewer points than ``trials`` is sampled for ever, each draw a skipped
+    duplicate."""
+    trials = study.get_trials(deepcopy=False)
+    running, _, finished = _split(trials)
+    tried = {point_key(spec, t.params) for t in [*finished, *running] if t.params}
+    size = spec.space_size()
+    if size is not None and len(tried) >= size:
+        return f"its space has {size} distinct point{'s' * (size != 1)} and every one has run"
+    streak = 0
+    for t in sorted(trials, key=lambda t: t.number, reverse=True):
+        if not t.state.is_finished():
+            continue
+        if "duplicate_of" not in t.user_attrs:
+            break
+        streak += 1
+    if streak < DUPLICATES_IN_A_ROW:
+        return None
+    space = "a continuous space" if size is None else f"its space has {size} distinct points"
+    return f"the sampler's last {streak} draws were all points already run ({space})"
+
+
+def all_failed(study) -> str | None:
+    """When every trial that ran failed: how many, and the first one's error."""
+    from optuna.trial import TrialState
+
+    finished = _split(study.get_trials(deepcopy=False))[2]
+    if not finished or any(t.state != TrialState.FAIL for t in finished):
+        return None
+    first = finished[0]
+    error = first.user_attrs.get("error", "no error recorded")
+    return f"all {len(finished)} trials failed; trial {first.number}: {error}"
+
+
+def ran(study) -> int:
+    """How many trials have run (finished, duplicates and re-queued failures left out)."""
+    return len(_split(study.get_trials(deepcopy=False))[2])
 
 
 def duplicate_of(study, number: int, params: dict[str, Any]) -> int | None:
@@ -85,11 +155,13 @@ def trial_table(study) -> list[dict[str, Any]]:
 def summary(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
     from fedlgr.console import table
 
-    rows = []
+    rows, errors = [], []
     for row in trial_table(study):
         if "duplicate_of" in row:
             continue
         note = row.get("error", "")
+        if note and len(note) > 60:  # the whole error below the table
+            errors.append(f"trial {row['trial']}: {note}")
         mark = " *" if best and row["trial"] == best["trial"] else ""
         rows.append(
             [
@@ -101,6 +173,8 @@ def summary(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
             ]
         )
     text = table(["trial", "state", spec.metric, "params", "error"], rows)
+    if errors:
+        text += "\n\n" + "\n".join(errors)
     if best:
         shown = " ".join(f"{k}={v}" for k, v in best["params"].items())
         text += f"\n\nbest (*): trial {best['trial']}, {spec.metric} {best['value']:.4f}: {shown}"

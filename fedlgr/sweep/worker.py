@@ -4,6 +4,7 @@ interrupted), each as a ``fedlgr run`` child of the sweep's MLflow parent run
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 import warnings
@@ -12,8 +13,16 @@ from typing import Any
 
 from fedlgr.errors import FedlgrError
 from fedlgr.sweep.spec import SweepSpec
-from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed
-from fedlgr.sweep.trials import counts, describe_param, duplicate_of, trial_table
+from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed, storage_error
+from fedlgr.sweep.trials import (
+    all_failed,
+    counts,
+    describe_param,
+    duplicate_of,
+    no_new_point,
+    ran,
+    trial_table,
+)
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
 PARENT_ATTR = "mlflow_parent_run_id"
@@ -130,7 +139,15 @@ class Worker:
 
     def finish_parent(self) -> dict[str, Any] | None:
         """Log the best trial (tags ``best.*``, metric ``best/<metric>``, ``best_trial.json``)
-        and end the parent run FINISHED."""
+        and end the parent run FINISHED - FAILED when every trial failed. Every worker
+        that sees the study done may get here, and a finished sweep launched again does:
+        the best trial is logged once (under the storage's lock), not once per process."""
+        from fedlgr.tracking.mlflow_run import store_lock
+
+        with store_lock(self.storage):
+            return self._finish_parent()
+
+    def _finish_parent(self) -> dict[str, Any] | None:
         from optuna.trial import TrialState
 
         best = None
@@ -143,14 +160,20 @@ class Worker:
                 "params": trial.params,
                 "mlflow_run_id": trial.user_attrs.get("mlflow_run_id"),
             }
-            tags = {"best.trial": str(trial.number), "best.run_id": str(best["mlflow_run_id"])}
-            tags.update({f"best.{k}": str(v) for k, v in trial.params.items()})
-            for key, value in tags.items():
-                self.client.set_tag(self.parent_run_id, key, value)
-            self.client.log_metric(self.parent_run_id, f"best/{self.spec.metric}", trial.value)
-            self.client.log_dict(self.parent_run_id, best, "best_trial.json")
+            key = f"best/{self.spec.metric}"
+            logged = self.client.get_run(self.parent_run_id).data
+            shown = logged.metrics.get(key)
+            already = logged.tags.get("best.trial") == str(trial.number) and shown == trial.value
+            if not already:
+                tags = {"best.trial": str(trial.number), "best.run_id": str(best["mlflow_run_id"])}
+                tags.update({f"best.{k}": str(v) for k, v in trial.params.items()})
+                for name, value in tags.items():
+                    self.client.set_tag(self.parent_run_id, name, value)
+                self.client.log_metric(self.parent_run_id, key, trial.value)
+                self.client.log_dict(self.parent_run_id, best, "best_trial.json")
         self.client.log_dict(self.parent_run_id, trial_table(self.study), "trials.json")
-        self.client.set_terminated(self.parent_run_id, "FINISHED")
+        status = "FAILED" if all_failed(self.study) else "FINISHED"
+        self.client.set_terminated(self.parent_run_id, status)
         return best
 
     # ------------------------------------------------------------------ trials
@@ -158,20 +181,46 @@ class Worker:
     def objective(self, trial) -> float:
         import optuna
 
-        spec = self.spec
         self.last_trial, self.trial_id = trial.number, trial._trial_id
         trial.set_user_attr("worker", self.worker)
         if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
             trial.set_user_attr("interrupted", False)
+        try:
+            return self._train(trial)
+        except optuna.TrialPruned:
+            raise
+        except Exception as err:  # recorded where the end-of-sweep table and MLflow show it
+            self._record_error(trial, _one_line(err)[:1000])
+            raise
+
+    def _record_error(self, trial, error: str) -> None:
+        """The trial's error as its user attribute ``error`` and as the tag
+        ``fedlgr.error`` of its MLflow run - or, for a trial that failed before its run
+        began, as the tag ``trial.N.error`` of the sweep's parent run."""
+        trial.set_user_attr("error", error)
+        run_id = trial.user_attrs.get("mlflow_run_id")
+        try:
+            if run_id:
+                self.client.set_tag(run_id, "fedlgr.error", error)
+            else:
+                self.client.set_tag(self.parent_run_id, f"trial.{trial.number}.error", error)
+        except Exception as problem:  # never raised over the trial's own error
+            self.echo(f"=== trial {trial.number}: could not tag MLflow: {_one_line(problem)}")
+
+    def _train(self, trial) -> float:
+        """Draw the trial's point and run it; its value of the objective's metric."""
+        import optuna
+
+        from fedlgr.config import load_config
+        from fedlgr.federated.experiment import run_experiment
+        from fedlgr.tracking.context import trial_config
+
+        spec = self.spec
         params = {p.name: p.suggest(trial) for p in spec.params}
         twin = duplicate_of(self.study, trial.number, params)
         if twin is not None:
             trial.set_user_attr("duplicate_of", twin)
             raise optuna.TrialPruned(f"the same point as trial {twin}")
-        from fedlgr.config import load_config
-        from fedlgr.federated.experiment import run_experiment
-        from fedlgr.tracking.context import trial_config
-
         shown = " ".join(f"{k}={v}" for k, v in params.items())
         self.echo(f"\n=== {spec.name} trial {trial.number} (worker {self.worker}): {shown}")
         intermediate = (
@@ -214,9 +263,6 @@ class Worker:
             raise optuna.TrialPruned(str(err)) from None
         except KeyboardInterrupt:
             trial.set_user_attr("interrupted", True)
-            raise
-        except Exception as err:
-            trial.set_user_attr("error", _one_line(err)[:1000])
             raise
         trial.set_user_attr("mlflow_run_id", result.run_id)
         final = result.final_metrics()
@@ -264,6 +310,13 @@ class Worker:
             except KeyboardInterrupt:  # Ctrl-C, or SIGTERM under fedlgr.signals
                 self._requeue_interrupted()
                 raise
+            except Exception as err:  # the study's storage failed (full, locked, damaged)
+                problem = storage_error(self.storage, err)
+                if problem is None:
+                    raise
+                with contextlib.suppress(Exception):  # MLflow's store is another one
+                    self.client.set_terminated(self.parent_run_id, "FAILED")
+                raise problem from err
 
     def _run(self) -> bool:
         import optuna
@@ -279,6 +332,7 @@ class Worker:
             todo, running, waiting = counts(self.study, spec)
             if todo == 0 and waiting == 0:
                 if running == 0:
+                    self._say_why_stopped()
                     return True
                 # Another worker is still busy: wait, in case it dies and its trial returns.
                 time.sleep(min(5.0, spec.heartbeat_s / 2))
@@ -287,6 +341,14 @@ class Worker:
             self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
             self.trial_id = None
             self._report_last(time.perf_counter() - start)
+
+    def _say_why_stopped(self) -> None:
+        """A TPE study that ends before ``trials`` because no new point is left says so."""
+        spec = self.spec
+        done = ran(self.study)
+        why = no_new_point(self.study, spec) if spec.sampler != "grid" else None
+        if why and done < spec.n_trials:
+            self.echo(f"sweep {spec.name}: stopped after {done} of {spec.n_trials} trials: {why}")
 
     def _someone_is_drawing(self) -> bool:
         """Another worker has started a trial but not yet drawn its parameters."""
