@@ -581,7 +581,7 @@ def load_config(
     layers = [*layers, ("command line", _dotlist(overrides))]
     interpolated: dict[str, tuple[Any, str]] = {}
     for source, node in layers:
-        interpolated.update(_check_interpolations(source, node))
+        interpolated.update(check_interpolations(source, node))
     return _build(layers, interpolated)
 
 
@@ -720,7 +720,7 @@ def _dotlist(overrides) -> Any:
         raise ConfigError(f"command line: {_first_line(err)}") from None
 
 
-def _check_interpolations(source: Any, node) -> dict[str, tuple[Any, str]]:
+def check_interpolations(source: Any, node) -> dict[str, tuple[Any, str]]:
     """``{key: (source, value)}`` for every value holding ``${...}`` in one layer, each
     checked against ``_ALLOWED`` before anything is resolved."""
     import re

@@ -385,3 +385,23 @@ def test_the_best_figure_is_logged_once_however_many_workers_finish(
     assert parent.info.status == "FINISHED" and parent.data.tags["best.trial"] == "0"
     history = client.get_metric_history(result.parent_run_id, "best/test/rmse")
     assert [(m.step, m.value) for m in history] == [(0, 0.7)]
+
+
+def test_a_sweep_file_resolves_no_environment_variable(tmp_path, monkeypatch):
+    """The config files' rule holds in sweep files: ``${oc.env:...}`` of a variable that
+    is not FEDLGR_* is refused, its value never shown."""
+    from fedlgr.errors import ConfigError
+    from fedlgr.sweep.spec import load_sweep
+
+    monkeypatch.setenv("SWEEP_SECRET", "s3cr3t-value")
+    path = tmp_path / "leak.yaml"
+    path.write_text(
+        "name: leak\nbase: conf/debug/tiny.yaml\ntrials: 1\n"
+        "objective: {metric: test/rmse, direction: minimize}\n"
+        "space:\n  train.lr_top: {choices: [0.1]}\n"
+        "overrides: ['tracking.run_name=${oc.env:SWEEP_SECRET}']\n"
+    )
+    with pytest.raises(ConfigError) as refused:
+        load_sweep(path)
+    assert "s3cr3t-value" not in str(refused.value)
+    assert str(path) in str(refused.value) and "oc.env" in str(refused.value)

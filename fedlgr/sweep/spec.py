@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fedlgr.config import CONF_DIR, SWEEPS_DIR
+from fedlgr.config import CONF_DIR, SWEEPS_DIR, check_interpolations
 from fedlgr.errors import ConfigError
 
 CONFIG_KEY = "config"  # the space key that chooses the base config file
@@ -292,7 +292,12 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
                 f"not a {kind}"
             )
         # OmegaConf's loader also refuses a key given twice, which safe_load lets pass.
-        raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True) if top else {}
+        raw = {}
+        if top:
+            node = OmegaConf.load(path)
+            # The config files' rule: ${setting} references and ${oc.env:FEDLGR_*} only.
+            check_interpolations(path, node)
+            raw = OmegaConf.to_container(node, resolve=True)
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}{_yaml_problem(err)}") from err
     except OmegaConfBaseException as err:  # e.g. ${...} that names nothing
