@@ -554,6 +554,8 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
         raise ConfigError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from err
     if node is None or not OmegaConf.is_dict(node):
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
+    if len(node) == 0:  # an empty file would run every default without a word
+        raise ConfigError(f"{path}: holds no settings (an empty file); give a config that does")
     written = _plain(node)  # nothing resolved
     includes = written.get("includes") or []
     if "includes" in written:

@@ -228,3 +228,10 @@ def test_an_image_store_larger_than_the_memory_is_refused_before_decoding(tmp_pa
         "bytes) and twice that while they are stacked, more than this machine's 700.0 kB of "
         "memory (psutil.virtual_memory().total)"
     )
+
+
+def test_an_empty_config_file_is_refused(tmp_path):
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    with pytest.raises(ConfigError, match=r"empty.yaml: holds no settings \(an empty file\)"):
+        load_config(empty)
