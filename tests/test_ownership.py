@@ -265,15 +265,22 @@ def test_stores_that_cannot_be_used_are_one_line_before_any_work(
     monkeypatch.chdir(tmp_path)
     (tmp_path / "folder.db").mkdir()
     (tmp_path / "text.db").write_text("not a database\n")
-    sqlite3.connect(tmp_path / "good.db").execute("create table t (x)").connection.commit()
-    damaged = bytearray((tmp_path / "good.db").read_bytes())
-    damaged[100:] = b"\xff" * (len(damaged) - 100)
-    (tmp_path / "damaged.db").write_bytes(bytes(damaged))
+    good = sqlite3.connect(tmp_path / "good.db")
+    good.execute("create table t (x)")
+    good.executemany("insert into t values (?)", [("x" * 100,)] * 2000)  # ~50 pages
+    good.commit()
+    good.close()
+    whole = (tmp_path / "good.db").read_bytes()
+    (tmp_path / "damaged.db").write_bytes(whole[:100] + b"\xff" * (len(whole) - 100))
+    inner = bytearray(whole)
+    inner[5 * 4096 : 9 * 4096] = b"\xff" * (4 * 4096)  # pages the schema does not read
+    (tmp_path / "inner.db").write_bytes(bytes(inner))
     (tmp_path / "a-file").write_text("")
     cases = {
         f"sqlite:///{tmp_path}/folder.db": "is a folder; name the database file in it",
         f"sqlite:///{tmp_path}/text.db": "is not an SQLite database",
         f"sqlite:///{tmp_path}/damaged.db": "is damaged (database disk image is malformed)",
+        f"sqlite:///{tmp_path}/inner.db": "is damaged (database disk image is malformed",
         f"sqlite:///{tmp_path}/a-file/mlflow.db": "cannot create its folder",
         f"file://{tmp_path}/mlruns": "a plain file store, which MLflow 3 keeps in maintenance",
         str(tmp_path / "mlruns"): "a plain file store",

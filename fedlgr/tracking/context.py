@@ -141,6 +141,16 @@ def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> Non
     client.log_inputs(run_id, datasets=[DatasetInput(entity, tags=tags)])
 
 
+class _FirstLine(logging.Filter):
+    """Keeps the first line of a record's message (and drops its traceback)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage().strip()
+        record.msg, record.args = (text.splitlines()[0][:300] if text else text), None
+        record.exc_info = record.exc_text = None
+        return True
+
+
 class SystemMetrics:
     """MLflow's system-metrics monitor on run ``run_id`` (no active run needed): sampled
     every ``interval`` seconds in a background thread; :meth:`stop` joins it and logs a
@@ -149,8 +159,13 @@ class SystemMetrics:
     def __init__(self, run_id: str, uri: str, interval: float, resume: bool = False):
         from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
 
-        # It announces its start and stop at INFO on every run: not news.
+        # It announces its start and stop at INFO on every run: not news. A failed write
+        # is logged with the whole SQL statement and its parameters: one line is enough.
         logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
+        # (A logger's filter sees only its own records: the monitor module's logger.)
+        monitor_log = logging.getLogger("mlflow.system_metrics.system_metrics_monitor")
+        if not any(isinstance(f, _FirstLine) for f in monitor_log.filters):
+            monitor_log.addFilter(_FirstLine())
         self.monitor = SystemMetricsMonitor(
             run_id, sampling_interval=interval, resume_logging=resume, tracking_uri=uri
         )

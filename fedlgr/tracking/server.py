@@ -105,6 +105,9 @@ def check_sqlite(uri: str) -> None:
             refuse(f"{path} is read-only (or immutable: lsattr); runs could not be recorded")
 
 
+QUICK_CHECK_BYTES = 256 * 2**20
+
+
 def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
     """The sqlite store opens and takes a write lock within ``wait`` seconds: a corrupted
     file, or one that another process keeps locked, is one line (MLflow would retry for
@@ -118,6 +121,11 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
         connection = sqlite3.connect(path, timeout=wait)
         try:
             connection.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            if path.stat().st_size < QUICK_CHECK_BYTES:  # ~20 ms per MB: skipped for big ones
+                problems = connection.execute("PRAGMA quick_check(1)").fetchone()
+                if problems and problems[0] != "ok":
+                    found = " ".join(problems[0].split())
+                    raise sqlite3.DatabaseError(f"database disk image is malformed: {found}")
             connection.execute("BEGIN IMMEDIATE")
             connection.rollback()
         finally:
