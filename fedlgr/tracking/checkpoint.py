@@ -20,6 +20,7 @@ arrays are stored as tensors).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
@@ -179,7 +180,11 @@ def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
 
 
 def remove(folder: Path) -> None:
+    """Remove a run's checkpoint folder, and the folder of runs' folders if that is left
+    empty (a finished run leaves nothing behind)."""
     shutil.rmtree(folder, ignore_errors=True)
+    with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile
+        folder.parent.rmdir()
 
 
 # --------------------------------------------------------------------------- the config
