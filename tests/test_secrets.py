@@ -293,3 +293,24 @@ def test_a_robots_paths_are_its_supernodes_never_the_servers(tmp_path, monkeypat
     assert config.data.cache_dir == chosen
     with pytest.raises(FedlgrError, match="--weights"):  # a file only the server has
         robot_module.robot(3, node(tmp_path), sent)
+
+
+@pytest.mark.parametrize(
+    ("option", "said"),
+    [
+        (["--days", "-5"], "--days -5: certificates must be valid for 1 to 3650 days"),
+        (["--days", "0"], "--days 0: certificates must be valid for 1 to 3650 days"),
+        (["--days", "99999999"], "--days 99999999: certificates must be valid for 1 to 3650"),
+        (["--host", ""], "--host '': not an IP address or a DNS name"),
+        (["--host", "bad host!"], "--host 'bad host!': not an IP address or a DNS name"),
+        (["--host", "a" * 64 + ".lan"], "not an IP address or a DNS name"),
+    ],
+)
+def test_certificates_no_robot_could_use_are_refused_before_anything_is_written(
+    tmp_path, capsys, option, said
+):
+    folder = tmp_path / "creds"
+    assert main(["deploy", "certs", str(folder), *option]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and said in err, err
+    assert not folder.exists()

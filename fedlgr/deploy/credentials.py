@@ -21,6 +21,7 @@ from __future__ import annotations
 import datetime as dt
 import ipaddress
 import os
+import re
 from pathlib import Path
 
 from cryptography import x509
@@ -98,11 +99,41 @@ def _names(hosts) -> list[x509.GeneralName]:
     return out
 
 
+MAX_DAYS = 3650  # ten years: longer outlives any key and overflows no date
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def check_validity(days: int) -> None:
+    if not 1 <= days <= MAX_DAYS:
+        raise FedlgrError(
+            f"--days {days}: certificates must be valid for 1 to {MAX_DAYS} days (ten years)"
+        )
+
+
+def check_host(host: str) -> None:
+    """A host name or address a TLS client can match: an IP address, or a DNS name of
+    letters, digits and hyphens (a leading ``*.`` wildcard allowed), at most 253 long."""
+    try:
+        ipaddress.ip_address(host)
+        return
+    except ValueError:
+        pass
+    name = host.removeprefix("*.").rstrip(".")
+    if not name or len(host) > 253 or not all(_LABEL.fullmatch(p) for p in name.split(".")):
+        raise FedlgrError(
+            f"--host {host!r}: not an IP address or a DNS name (letters, digits, hyphens and "
+            "dots, labels of at most 63, at most 253 in all); robots could never match it"
+        )
+
+
 def make_certificates(
     folder: Path, hosts=DEFAULT_HOSTS, days: int = 365, force: bool = False
 ) -> dict[str, Path]:
     """``ca.pem``, ``ca.key``, ``server.pem``, ``server.key`` in ``folder`` for ``hosts``
     (``force``: replace those files; a symbolic link is refused all the same)."""
+    check_validity(days)
+    for host in hosts:
+        check_host(host)
     paths = {name: folder / name for name in ("ca.pem", "ca.key", "server.pem", "server.key")}
     check_free(
         paths.values(), force, "new certificates lock out every robot holding the old ca.pem"

@@ -141,14 +141,28 @@ def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> Non
     client.log_inputs(run_id, datasets=[DatasetInput(entity, tags=tags)])
 
 
-class _FirstLine(logging.Filter):
-    """Keeps the first line of a record's message (and drops its traceback)."""
+class FirstLine(logging.Filter):
+    """Keeps a record to one line: its message's first, and its exception's first (the
+    traceback dropped). For MLflow's loggers, which log a failed store write with the
+    SQL statement, its parameters and two stack traces before fedlgr's one-line error."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         text = record.getMessage().strip()
-        record.msg, record.args = (text.splitlines()[0][:300] if text else text), None
+        line = text.splitlines()[0][:300] if text else text
+        if record.exc_info and record.exc_info[1] is not None:
+            cause = str(record.exc_info[1]).strip()
+            line = f"{line.rstrip('.')}: {cause.splitlines()[0][:300] if cause else ''}"
+        record.msg, record.args = line, None
         record.exc_info = record.exc_text = None
         return True
+
+
+def one_line_logs(*names: str) -> None:
+    """:class:`FirstLine` on each named logger (once)."""
+    for name in names:
+        log = logging.getLogger(name)
+        if not any(isinstance(f, FirstLine) for f in log.filters):
+            log.addFilter(FirstLine())
 
 
 class SystemMetrics:
@@ -163,9 +177,7 @@ class SystemMetrics:
         # is logged with the whole SQL statement and its parameters: one line is enough.
         logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
         # (A logger's filter sees only its own records: the monitor module's logger.)
-        monitor_log = logging.getLogger("mlflow.system_metrics.system_metrics_monitor")
-        if not any(isinstance(f, _FirstLine) for f in monitor_log.filters):
-            monitor_log.addFilter(_FirstLine())
+        one_line_logs("mlflow.system_metrics.system_metrics_monitor")
         self.monitor = SystemMetricsMonitor(
             run_id, sampling_interval=interval, resume_logging=resume, tracking_uri=uri
         )

@@ -103,6 +103,7 @@ def open_client(uri: str):
     import mlflow
 
     check_reachable(uri)
+    context.one_line_logs("mlflow.store.db.utils")  # a failed write: one line, no traces
     with store_lock(uri):  # the client's construction creates and migrates the store
         if uri.startswith("sqlite:///"):
             check_sqlite_usable(uri)  # after the lock: a migration under way is not a fault
