@@ -109,7 +109,10 @@ def _launch(fabric, config: ExperimentConfig, *args):
     for number in handlers:
         signal.signal(number, signal.SIG_DFL)
 
+    started: list[bool] = []
+
     def joined(fabric, *rest):
+        started.append(True)
         for number, handler in handlers.items():
             signal.signal(number, handler)
         return _main(fabric, *rest)
@@ -117,15 +120,9 @@ def _launch(fabric, config: ExperimentConfig, *args):
     rt = config.runtime
     try:
         return fabric.launch(joined, config, *args)
-    except RuntimeError as err:
-        if not (isinstance(err, DistBackendError) or _peer_lost(err)):
-            raise
-        raise FedlgrError(
-            f"another process of this {fabric.world_size}-process run ended during an "
-            f"exchange ({_one_line(err)}); its own output says why (killed, or an error); "
-            "the run is ended FAILED and --resume continues it from its last checkpoint"
-        ) from None
     except DistStoreError as err:
+        if started:  # mid-run: a peer is gone
+            raise FedlgrError(_peer_message(fabric, err)) from None
         import os
 
         where = f"{os.environ.get('MASTER_ADDR', '127.0.0.1')}:{os.environ.get('MASTER_PORT', '?')}"
@@ -135,6 +132,10 @@ def _launch(fabric, config: ExperimentConfig, *args):
             f"({str(err).strip().splitlines()[0][:200]}); start the other nodes' processes "
             "(same command, their NODE_RANK) or check MASTER_ADDR/MASTER_PORT"
         ) from None
+    except RuntimeError as err:  # after DistStoreError, one of its kind
+        if not (isinstance(err, DistBackendError) or _peer_lost(err)):
+            raise
+        raise FedlgrError(_peer_message(fabric, err)) from None
     finally:
         for number, handler in handlers.items():
             if signal.getsignal(number) is signal.SIG_DFL:
@@ -470,6 +471,14 @@ def _record_failure(tracker, result: ExperimentResult, err: BaseException, say) 
         tracker.fail(interrupted=killed)
     except Exception as problem:
         say(f"(while failing: could not end MLflow run {tracker.run_id}: {_one_line(problem)})")
+
+
+def _peer_message(fabric, err: BaseException) -> str:
+    return (
+        f"another process of this {fabric.world_size}-process run ended during an exchange "
+        f"({_one_line(err)}); its own output says why (killed, or an error); the run is "
+        "ended FAILED and --resume continues it from its last checkpoint"
+    )
 
 
 def _peer_lost(err: BaseException) -> bool:
