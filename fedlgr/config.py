@@ -194,6 +194,9 @@ class FederatedConfig:
 CONCURRENCY = ("auto", "sequential", "threads", "batched")
 
 
+MAX_PER_MACHINE = 1024  # processes, torch threads or client threads on one machine
+
+
 @dataclass(frozen=True)
 class RuntimeConfig:
     """Where the clients run: one process by default, or sharded over processes/nodes."""
@@ -222,6 +225,13 @@ class RuntimeConfig:
         _choice("runtime.concurrency", self.concurrency, CONCURRENCY)
         _positive("runtime.devices", self.devices)
         _positive("runtime.num_nodes", self.num_nodes)
+        for name in ("devices", "threads", "workers"):
+            value = getattr(self, name)
+            if value is not None and value > MAX_PER_MACHINE:
+                raise ConfigError(
+                    f"runtime.{name}={value}: at most {MAX_PER_MACHINE} (a fixed bound, more "
+                    "than any machine's cores or GPUs: each is a process or a thread)"
+                )
         if not 0 < self.timeout_s <= 7 * 86400:
             raise ConfigError(f"runtime.timeout_s={self.timeout_s}: must be > 0 and at most a week")
         for name in ("threads", "workers"):
@@ -546,6 +556,8 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     path = path.resolve()
     if path in seen:
         raise ConfigError(f"{path}: includes itself (via {' -> '.join(p.name for p in seen)})")
+    if path.is_dir():
+        raise ConfigError(f"{path}: a folder, not a config file (name a .yaml file in it)")
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     try:

@@ -235,3 +235,35 @@ def test_an_empty_config_file_is_refused(tmp_path):
     empty.write_text("")
     with pytest.raises(ConfigError, match=r"empty.yaml: holds no settings \(an empty file\)"):
         load_config(empty)
+
+
+def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsys):
+    """Found by the fault sweep: tracebacks at runtime.threads=1000000 (1004 MemoryErrors)
+    and runtime.accelerator=gpu on a machine without one; a sweep's --workers 100000 started
+    processes until SIGTERM, --workers 0 ran one; a folder given as the config, and an
+    empty --tracking-uri (it fell back to the default store)."""
+    import torch
+
+    from fedlgr.config import SWEEPS_DIR
+    from tests.conftest import FAST
+
+    fast, sweep = str(FAST), str(SWEEPS_DIR / "fedlgr.yaml")
+    assert "runtime.threads=1000000: at most 1024" in refused(["runtime.threads=1000000"])
+    assert "runtime.devices=5000: at most 1024" in refused(["runtime.devices=5000"])
+    cases = [
+        (["run", str(tmp_path)], f"{tmp_path}: a folder, not a config file"),
+        (["run", fast, "--tracking-uri", ""], "--tracking-uri '': empty"),
+        (["sweep", sweep, "--workers", "0"], "--workers 0: from 1 to"),
+        (["sweep", sweep, "--workers", "100000"], "--workers 100000: from 1 to"),
+    ]
+    if not torch.cuda.is_available():
+        cases.append(
+            (
+                ["run", fast, "runtime.accelerator=gpu"],
+                "runtime.accelerator=gpu: no CUDA GPU on this machine",
+            )
+        )
+    for argv, said in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and said in err, (argv, err)

@@ -359,6 +359,8 @@ def main(argv: list[str] | None = None) -> int:
         from fedlgr.runtime import tune_allocator
 
         tune_allocator()
+        if getattr(args, "tracking_uri", None) == "":  # '' would fall back to the default
+            raise FedlgrError("--tracking-uri '': empty; give a URI, or leave it out")
         # MLflow announces its sqlite schema set-up at INFO on every new store: not news.
         logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
         verb = getattr(importlib.import_module(module_name), func_name)

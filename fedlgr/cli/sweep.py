@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 
+from fedlgr.errors import FedlgrError
 from fedlgr.runtime import available_cores
 
 
@@ -18,6 +20,12 @@ def _sweep(args: argparse.Namespace) -> int:
     from fedlgr.tracking.server import check_tracking
 
     overrides = list(args.overrides)
+    cores = os.cpu_count() or 1
+    if not 1 <= args.workers <= 4 * cores:
+        raise FedlgrError(
+            f"--workers {args.workers}: from 1 to {4 * cores} (4 x this machine's {cores} "
+            "cores); each worker is a process that trains one trial at a time"
+        )
     check_tracking(args.tracking_uri, overrides)  # before loading Optuna and MLflow
     from fedlgr.sweep import load_sweep, run_sweep
     from fedlgr.sweep.storage import check_storage
@@ -43,7 +51,5 @@ def _sweep(args: argparse.Namespace) -> int:
         settings_changed=args.settings_changed,
     )
     if result.failure:  # the table above shows each trial's error
-        from fedlgr.errors import FedlgrError
-
         raise FedlgrError(f"sweep {spec.name}: {result.failure}")
     return 0 if result.done else 1

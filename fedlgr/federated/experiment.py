@@ -39,6 +39,16 @@ def make_fabric(config: ExperimentConfig):
 
     rt = config.runtime
     accelerator = "cuda" if rt.accelerator == "gpu" else rt.accelerator
+    if accelerator == "cuda":
+        import torch
+
+        from fedlgr.errors import FedlgrError
+
+        if not torch.cuda.is_available():
+            raise FedlgrError(
+                f"runtime.accelerator={rt.accelerator}: no CUDA GPU on this machine "
+                "(torch.cuda.is_available() is False); use runtime.accelerator=auto or cpu"
+            )
     strategy = "auto"
     if rt.world_size > 1:
         # Models are never wrapped in DDP (clients train independently); buffers must

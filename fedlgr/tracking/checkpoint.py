@@ -96,7 +96,7 @@ def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) ->
     if error:
         raise FedlgrError(
             f"{error}; free space or choose another folder (tracking.checkpoint_dir=...), "
-            "then --resume (the previous checkpoint is intact)"
+            "then --resume (the checkpoints before it are intact)"
         )
     if fabric.global_rank != 0:
         return None

@@ -46,6 +46,8 @@ DEFAULT_URI = "sqlite:///mlflow.db"
 
 def resolve_uri(uri: str | None) -> str:
     """``uri`` if given, else ``$MLFLOW_TRACKING_URI``, else the local sqlite store."""
+    if uri is not None and not uri.strip():
+        raise FedlgrError("tracking URI '': empty; give one, or leave it unset for the default")
     return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
 
 
