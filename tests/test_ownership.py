@@ -4,8 +4,10 @@ behind, a rendezvous that ends, and stores that fail in one line (issue 20, poin
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import resource
 import shutil
 import signal
 import socket
@@ -53,7 +55,7 @@ def test_a_run_has_one_owner_and_resumes_only_on_its_own_data(
     data = tmp_path / "data"
     shutil.copytree(synth_dir, data)
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    rounds = 16
+    rounds = 10
     args = _args(data, cache_dir, store, f"federated.rounds={rounds}", "tracking.heartbeat_s=1")
     monkeypatch.chdir(tmp_path)
     with Child(args, tmp_path, "first") as child:
@@ -144,46 +146,44 @@ def test_a_finished_runs_leftover_checkpoints_are_removed_by_resume_and_report(
     assert not folder.exists()
 
 
-FULL_DISK = """
-import resource, signal, sys
-from pathlib import Path
-import torch
-from lightning.fabric import Fabric
-from fedlgr.errors import FedlgrError
-from fedlgr.tracking import checkpoint as ckpt
-
-signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write over the limit fails with EFBIG
-fabric = Fabric(accelerator="cpu", devices=1)
-folder = Path(sys.argv[1])
-ckpt.save(fabric, folder, 1, {"format": ckpt.FORMAT, "w": torch.zeros(1000)}, keep=2)
-resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, resource.RLIM_INFINITY))
-try:
-    ckpt.save(fabric, folder, 2, {"w": torch.zeros(1_000_000)}, keep=2)
-except FedlgrError as err:
-    print("refused:", err)
-"""
+@contextlib.contextmanager
+def _file_size_limit(limit: int):
+    """A full disk, for this process: writes past ``limit`` bytes of a file fail with
+    EFBIG (SIGXFSZ ignored) until the block ends."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
 
 
-def test_a_checkpoint_is_written_in_its_folder_and_a_failed_write_leaves_nothing(tmp_path):
+def test_a_checkpoint_is_written_in_its_folder_and_a_failed_write_leaves_nothing(
+    tmp_path, monkeypatch
+):
     """Checkpoints are staged in their own folder, not ``$TMPDIR`` (a kill left 20-30 MB
     there); a write that fails (full disk; here a file-size limit) is one line, the
     previous checkpoint is intact and no temporary is left; stale temporaries of a kill
     are removed at the next start."""
+    import tempfile
+
+    import torch
+    from lightning.fabric import Fabric
+
     folder, tmp = tmp_path / "run", tmp_path / "tmp"
     tmp.mkdir()
-    env = _env(TMPDIR=str(tmp))
-    done = subprocess.run(
-        [sys.executable, "-c", FULL_DISK, str(folder)],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert done.stdout.startswith(
-        f"refused: cannot write checkpoint {folder}/round-0002.ckpt: File too large; free "
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # re-read $TMPDIR
+    fabric = Fabric(accelerator="cpu", devices=1)
+    ckpt.save(fabric, folder, 1, {"format": ckpt.FORMAT, "w": torch.zeros(1000)}, keep=2)
+    with _file_size_limit(200_000), pytest.raises(FedlgrError) as refused:
+        ckpt.save(fabric, folder, 2, {"format": ckpt.FORMAT, "w": torch.zeros(10**6)}, keep=2)
+    assert str(refused.value).startswith(
+        f"cannot write checkpoint {folder}/round-0002.ckpt: File too large; free "
         "space or choose another folder (tracking.checkpoint_dir=...)"
-    ), done.stdout + done.stderr[-3000:]
+    ), refused.value
     assert sorted(p.name for p in folder.iterdir()) == ["round-0001.ckpt"]
     assert list(tmp.iterdir()) == []
     assert ckpt.load(folder / "round-0001.ckpt")["w"].shape == (1000,)
@@ -231,6 +231,7 @@ def test_a_rendezvous_without_its_peers_ends_on_sigterm_and_on_its_timeout(
         return process, err
 
     waiting, err = start(600, "waiting")
+    alone, alone_err = start(2, "alone")  # side by side: two start-ups cost one
     try:
         deadline = time.monotonic() + 120
         while "MEMBER: 1/2" not in err.read_text():
@@ -239,13 +240,13 @@ def test_a_rendezvous_without_its_peers_ends_on_sigterm_and_on_its_timeout(
         time.sleep(1)  # inside the rendezvous
         os.kill(waiting.pid, signal.SIGTERM)
         assert waiting.wait(timeout=10) == -signal.SIGTERM
+        assert alone.wait(timeout=120) == 1
     finally:
-        if waiting.poll() is None:
-            os.killpg(waiting.pid, signal.SIGKILL)
-            waiting.wait()
-
-    alone, err = start(2, "alone")
-    assert alone.wait(timeout=120) == 1
+        for process in (waiting, alone):
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+    err = alone_err
     last = err.read_text().strip().splitlines()[-1]
     assert re.fullmatch(
         r"fedlgr: error: runtime.num_nodes=2, runtime.devices=1: not every process joined "
@@ -306,48 +307,24 @@ def test_stores_that_cannot_be_used_are_one_line_before_any_work(
     check_sqlite_usable(locked, wait=0.5)  # free again
 
 
-FULL_STORE = """
-import resource, signal, sys
-from fedlgr.config import load_config
-from fedlgr.tracking.mlflow_run import StoreError, Tracker
+def test_a_full_store_is_one_line_and_the_run_ends_failed_once_it_has_room(tmp_path, capfd):
+    from fedlgr.config import load_config
+    from fedlgr.tracking.mlflow_run import Tracker
 
-signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-config = load_config(None, ["tracking.uri=" + sys.argv[1], "tracking.system_metrics=false"])
-tracker = Tracker(config)
-db = sys.argv[1].removeprefix("sqlite:///")
-import os
-resource.setrlimit(resource.RLIMIT_FSIZE, (os.path.getsize(db), resource.RLIM_INFINITY))
-try:
-    for round_ in range(1, 200):
-        tracker.log_round(round_, {f"m/{i}": float(i) for i in range(1000)})
-except StoreError as err:
-    print("refused:", err)
-resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
-tracker.fail()
-print("ended", tracker.run_id)
-"""
-
-
-def test_a_full_store_is_one_line_and_the_run_ends_failed_once_it_has_room(tmp_path):
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    done = subprocess.run(
-        [sys.executable, "-c", FULL_STORE, store],
-        env=_env(),
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    refused, ended = done.stdout.strip().splitlines()
+    config = load_config(None, [f"tracking.uri={store}", "tracking.system_metrics=false"])
+    tracker = Tracker(config)
+    size = (tmp_path / "mlflow.db").stat().st_size
+    with _file_size_limit(size), pytest.raises(StoreError) as refused:
+        for round_ in range(1, 200):
+            tracker.log_round(round_, {f"m/{i}": float(i) for i in range(1000)})
     assert re.fullmatch(
-        rf"refused: MLflow store {re.escape(store)}: could not log round "
-        r"\(run [0-9a-f]{32}\): .+",
-        refused,
-    ), done.stdout
-    run_id = ended.split()[-1]
-    assert mlflow.MlflowClient(store).get_run(run_id).info.status == "FAILED"
-    assert "Traceback" not in done.stderr, done.stderr[-3000:]  # MLflow's own log: one line
+        rf"MLflow store {re.escape(store)}: could not log round \(run {tracker.run_id}\): .+",
+        str(refused.value),
+    ), refused.value
+    tracker.fail()
+    assert mlflow.MlflowClient(store).get_run(tracker.run_id).info.status == "FAILED"
+    assert "Traceback" not in capfd.readouterr().err  # MLflow's own log of it: one line
 
 
 def test_store_errors_name_the_store_and_the_innermost_cause():

@@ -109,6 +109,13 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
             raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
     run_id = run.info.run_id
     folder = checkpoint_folder(run, config)
+    for _ in range(3):  # a resume under way may move the run's checkpoints meanwhile
+        if folder.is_dir():
+            break
+        run = client.get_run(run_id)
+        if (moved := checkpoint_folder(run, config)) == folder:
+            break
+        folder = moved
     if run.info.status == "FINISHED":
         raise FedlgrError(
             f"--resume: run {run_id} has finished; there is nothing to resume"
