@@ -255,6 +255,7 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
         (["run", fast, "--tracking-uri", ""], "--tracking-uri '': empty"),
         (["sweep", sweep, "--workers", "0"], "--workers 0: from 1 to"),
         (["sweep", sweep, "--workers", "100000"], "--workers 100000: from 1 to"),
+        (["sweep", sweep, "--heartbeat", str(10**12)], f"--heartbeat {10**12}: from 1 to 86400"),
     ]
     if not torch.cuda.is_available():
         cases.append(

@@ -304,6 +304,8 @@ def test_a_robots_paths_are_its_supernodes_never_the_servers(tmp_path, monkeypat
         (["--host", ""], "--host '': not an IP address or a DNS name"),
         (["--host", "bad host!"], "--host 'bad host!': not an IP address or a DNS name"),
         (["--host", "a" * 64 + ".lan"], "not an IP address or a DNS name"),
+        (["--host", "999.1.1.1"], "--host '999.1.1.1': not an IP address or a DNS name"),
+        (["--host", "robot.example."], "no trailing dot"),
     ],
 )
 def test_certificates_no_robot_could_use_are_refused_before_anything_is_written(

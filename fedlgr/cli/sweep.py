@@ -39,6 +39,11 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.heartbeat is not None:
         from dataclasses import replace
 
+        from fedlgr.sweep.spec import MAX_HEARTBEAT_S
+
+        if not 1 <= args.heartbeat <= MAX_HEARTBEAT_S:
+            raise FedlgrError(f"--heartbeat {args.heartbeat}: from 1 to {MAX_HEARTBEAT_S} s")
+
         spec = replace(spec, heartbeat_s=args.heartbeat)
     result = run_sweep(
         spec,

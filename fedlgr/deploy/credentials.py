@@ -118,11 +118,18 @@ def check_host(host: str) -> None:
         return
     except ValueError:
         pass
-    name = host.removeprefix("*.").rstrip(".")
-    if not name or len(host) > 253 or not all(_LABEL.fullmatch(p) for p in name.split(".")):
+    name = host.removeprefix("*.")
+    labels = name.split(".")
+    if (
+        not name
+        or len(host) > 253
+        or not all(_LABEL.fullmatch(p) for p in labels)
+        or labels[-1].isdigit()  # a mistyped address (999.1.1.1), not a name
+    ):
         raise FedlgrError(
             f"--host {host!r}: not an IP address or a DNS name (letters, digits, hyphens and "
-            "dots, labels of at most 63, at most 253 in all); robots could never match it"
+            "dots, no trailing dot, labels of at most 63, at most 253 in all; a leading *. "
+            "for a wildcard); robots could never match it"
         )
 
 

@@ -271,6 +271,8 @@ def load_sweep(
         description=str(raw.get("description", "")),
         heartbeat_s=_integer(raw, "heartbeat_s", 30, 1, fail),
     )
+    if spec.heartbeat_s > MAX_HEARTBEAT_S:
+        raise fail("heartbeat_s", f"{spec.heartbeat_s} is above {MAX_HEARTBEAT_S} (one day)")
     check_trial_configs(spec, echo)
     return spec
 
@@ -319,6 +321,9 @@ def _yaml_problem(err) -> str:
     elif context:
         problem += f" ({context})"
     return f"{where}: not valid YAML: {problem}"
+
+
+MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
 
 
 def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail) -> int:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import logging
 import os
 import socket
 import tempfile
@@ -105,7 +106,9 @@ def open_client(uri: str):
     import mlflow
 
     check_reachable(uri)
-    context.one_line_logs("mlflow.store.db.utils")  # a failed write: one line, no traces
+    # MLflow logs a failed store write (with its SQL and two stack traces) before raising
+    # it; fedlgr's StoreError names the store and the cause in one line: only that is shown.
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
     with store_lock(uri):  # the client's construction creates and migrates the store
         if uri.startswith("sqlite:///"):
             check_sqlite_usable(uri)  # after the lock: a migration under way is not a fault
