@@ -53,6 +53,28 @@ def _raise_or_defer(interrupt: KeyboardInterrupt) -> None:
     raise interrupt
 
 
+def _in_finaliser(frame, depth: int = 8) -> bool:
+    """Whether the handler interrupted a finaliser (``__del__``, a weakref callback run
+    by the garbage collector): Python prints an exception raised there ("Exception
+    ignored in ...") and goes on, so the signal would be lost (a sweep went on for
+    minutes after SIGTERM)."""
+    while frame is not None and depth > 0:
+        code = frame.f_code
+        if code.co_name == "__del__" or "weakref" in code.co_filename:
+            return True
+        frame, depth = frame.f_back, depth - 1
+    return False
+
+
+def _again(signum: int) -> None:
+    """Deliver ``signum`` to this process again in a moment, outside the finaliser."""
+    import os
+
+    timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    timer.start()
+
+
 @contextlib.contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`Terminated` in the main thread.
@@ -70,11 +92,17 @@ def terminate_as_interrupt() -> Iterator[None]:
     received: list[int] = []
 
     def on_term(signum: int, frame) -> None:
+        if _in_finaliser(frame):
+            _again(signum)  # raised here, it would be printed and dropped
+            return
         if not received:
             received.append(signum)
             _raise_or_defer(Terminated(signal.Signals(signum).name))
 
     def on_int(signum: int, frame) -> None:
+        if _in_finaliser(frame):
+            _again(signum)
+            return
         _raise_or_defer(KeyboardInterrupt())
 
     previous = signal.signal(signal.SIGTERM, on_term)

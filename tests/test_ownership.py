@@ -341,3 +341,25 @@ def test_store_errors_name_the_store_and_the_innermost_cause():
     assert str(err.value) == (
         "MLflow store sqlite:///x.db: could not log round: database or disk is full"
     )
+
+
+def test_a_sigterm_that_lands_in_a_finaliser_is_not_lost():
+    """Found by the re-test: a SIGTERM whose handler ran inside a weakref callback of the
+    garbage collector was printed ("Exception ignored in ...") and dropped, and the sweep
+    went on for minutes. It is delivered again once the finaliser is done."""
+    from fedlgr.signals import Terminated, terminate_as_interrupt
+
+    class Finalised:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            deadline = time.monotonic() + 0.2
+            while time.monotonic() < deadline:  # the handler runs here, inside __del__
+                pass
+
+    with pytest.raises(Terminated), terminate_as_interrupt():
+        thing = Finalised()
+        del thing
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            time.sleep(0.01)
+        pytest.fail("SIGTERM was lost")

@@ -327,6 +327,8 @@ def _save_atomically(store: ImageStore, cache_file: Path) -> None:
         cache_file.parent.mkdir(parents=True, exist_ok=True)
         torch.save(payload, tmp)
         tmp.replace(cache_file)
-    except OSError as err:  # a read-only cache folder must not stop the run
+    except (OSError, RuntimeError) as err:  # a read-only or full cache folder: the run goes on
+        # (torch.save reports a failed write as a RuntimeError: "unexpected pos ...")
         tmp.unlink(missing_ok=True)
-        warnings.warn(f"{cache_file}: could not write the image cache ({err})", stacklevel=3)
+        reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else type(err).__name__
+        warnings.warn(f"{cache_file}: could not write the image cache ({reason})", stacklevel=3)

@@ -304,7 +304,12 @@ def drive(
     from fedlgr.continual.forgetting import ForgettingTracker
     from fedlgr.continual.schedule import schedule
     from fedlgr.tracking import owner
-    from fedlgr.tracking.checkpoint import checkpoint_root, remove, remove_temporaries
+    from fedlgr.tracking.checkpoint import (
+        checkpoint_root,
+        checkpoints,
+        remove,
+        remove_temporaries,
+    )
     from fedlgr.tracking.context import data_digest
     from fedlgr.tracking.mlflow_run import Tracker, tracking_uri
 
@@ -414,6 +419,8 @@ def drive(
             remove(folder)  # a finished run needs no checkpoint
             if old is not None:
                 remove(old)
+        elif folder is not None and every and not checkpoints(folder) and folder != old:
+            remove(folder)  # ended before its first checkpoint: only its lock file is there
         owner.release(folder)
         owner.release(old)
     if not rank0:

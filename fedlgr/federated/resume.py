@@ -172,15 +172,16 @@ def remove_leftover(folder: Path, run_id: str) -> str:
 
 
 def checkpoint_folder(run, config: ExperimentConfig) -> Path:
-    """Where ``run`` keeps its checkpoints: its tag, else the default place for it."""
+    """Where ``run`` keeps its checkpoints: where this config puts them (next to the store,
+    or under ``tracking.checkpoint_dir``) if they are there - a store moved or copied with
+    its checkpoints, a folder named on the command line - else the run's tag."""
     from fedlgr.tracking.mlflow_run import tracking_uri
 
+    here = ckpt.checkpoint_root(config, tracking_uri(config)) / run.info.run_id
     tagged = run.data.tags.get("fedlgr.checkpoints")
-    return (
-        Path(tagged)
-        if tagged
-        else ckpt.checkpoint_root(config, tracking_uri(config)) / run.info.run_id
-    )
+    if not tagged or ckpt.checkpoints(here):
+        return here
+    return Path(tagged)
 
 
 def _latest_unfinished(config: ExperimentConfig, client, experiment: str):

@@ -195,4 +195,5 @@ class SystemMetrics:
             monitor.publish_metrics(monitor.aggregate_metrics())
             monitor.mlflow_logger.flush()
         except Exception as err:  # the store went away: the run's end reports it
-            warnings.warn(f"last system-metrics sample not logged: {err}", stacklevel=2)
+            first = str(err).strip().splitlines()[0][:200] if str(err).strip() else type(err)
+            warnings.warn(f"last system-metrics sample not logged: {first}", stacklevel=2)
