@@ -139,7 +139,7 @@ def _launch(fabric, config: ExperimentConfig, *args):
         raise FedlgrError(
             f"runtime.num_nodes={rt.num_nodes}, runtime.devices={rt.devices}: not every process "
             f"joined within runtime.timeout_s={rt.timeout_s:g} s at {where} "
-            f"({str(err).strip().splitlines()[0][:200]}); start the other nodes' processes "
+            f"({_one_line(err)}); start the other nodes' processes "
             "(same command, their NODE_RANK) or check MASTER_ADDR/MASTER_PORT"
         ) from None
     except RuntimeError as err:  # after DistStoreError, one of its kind

@@ -195,5 +195,6 @@ class SystemMetrics:
             monitor.publish_metrics(monitor.aggregate_metrics())
             monitor.mlflow_logger.flush()
         except Exception as err:  # the store went away: the run's end reports it
-            first = str(err).strip().splitlines()[0][:200] if str(err).strip() else type(err)
+            text = str(err).strip()
+            first = text.splitlines()[0][:200] if text else type(err).__name__
             warnings.warn(f"last system-metrics sample not logged: {first}", stacklevel=2)
