@@ -89,3 +89,29 @@ def _settings(tree: dict, prefix: str = "") -> set[tuple[str, str]]:
         else:
             leaves.add((f"{prefix}{key}", repr(value)))
     return leaves
+
+
+def test_deployment_secrets_and_robot_state_are_git_ignored():
+    """What `fedlgr deploy` writes where the README runs it is never committed by mistake:
+    the CA's and the robots' private keys, the robots' state, the SuperLink's database."""
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    paths = [
+        "creds/ca.key",
+        "creds/robot0",
+        "creds/robot0.pub",
+        "robots/robot0/run-1/client-0.ckpt",
+        "link.db",
+        "link.db-wal",
+        "link.db-shm",
+        "deploy/server.key",
+    ]
+    out = subprocess.run(
+        ["git", "check-ignore", "--no-index", *paths],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert out.stdout.split() == paths, out.stderr
