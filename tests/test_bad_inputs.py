@@ -268,3 +268,40 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
         assert main(argv) == 1, argv
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and said in err, (argv, err)
+
+
+def test_found_by_the_third_sweep_are_one_line_before_any_work(
+    tmp_path, synth_dir, cache_dir, capsys, monkeypatch
+):
+    """A checkpoint folder that is a file, or lies under one (a read-only mount took the
+    same path: a traceback from the owner's lock and a FAILED run), is refused before the
+    MLflow run exists; `fedlgr data synth --size 100000` drew for minutes and ignored
+    SIGTERM; `fedlgr report --out ''` filled the current folder with the report."""
+    from tests.conftest import FAST
+
+    store = tmp_path / "mlflow.db"
+    afile = tmp_path / "ckfile"
+    afile.write_text("x")
+    base = ["run", str(FAST), f"data.path={synth_dir}", "--tracking-uri", f"sqlite:///{store}"]
+    for folder in (afile, afile / "sub"):
+        assert main([*base, f"tracking.checkpoint_dir={folder}"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"fedlgr: error: cannot make the checkpoint folder {folder} ")
+        assert "tracking.checkpoint_dir=..." in err and len(err.splitlines()) == 1
+    client = mlflow.MlflowClient(f"sqlite:///{store}")
+    assert not client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+    assert main(["data", "synth", "--out", str(tmp_path / "s"), "--size", "100000"]) == 1
+    assert "size=100000: images are 16 to 4096 pixels wide" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+    monkeypatch.chdir(tmp_path)
+    before = sorted(tmp_path.iterdir())
+    for out in ("", "."):
+        assert main(["report", "--out", out, "--tracking-uri", f"sqlite:///{store}"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err == (
+            "fedlgr: error: --out names the current folder ('' or .): name a folder of its "
+            "own for the report's tables and plots (default: reports/NAME)"
+        )
+    assert sorted(tmp_path.iterdir()) == before

@@ -111,7 +111,7 @@ def _launch(fabric, config: ExperimentConfig, *args):
     waits ``runtime.timeout_s`` for the others in vain is one line."""
     import signal
 
-    from torch.distributed import DistBackendError, DistStoreError
+    from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
 
     from fedlgr.errors import FedlgrError
 
@@ -130,17 +130,22 @@ def _launch(fabric, config: ExperimentConfig, *args):
     rt = config.runtime
     try:
         return fabric.launch(joined, config, *args)
-    except DistStoreError as err:
+    except (DistStoreError, DistNetworkError) as err:  # the latter: a process that joins
         if started:  # mid-run: a peer is gone
             raise FedlgrError(_peer_message(fabric, err)) from None
         import os
 
         where = f"{os.environ.get('MASTER_ADDR', '127.0.0.1')}:{os.environ.get('MASTER_PORT', '?')}"
+        way_out = (
+            "start the other nodes' processes (same command, their NODE_RANK) or check "
+            "MASTER_ADDR/MASTER_PORT"
+            if rt.num_nodes > 1
+            else "this machine's processes start slowly when it is busy: raise runtime.timeout_s"
+        )
         raise FedlgrError(
             f"runtime.num_nodes={rt.num_nodes}, runtime.devices={rt.devices}: not every process "
             f"joined within runtime.timeout_s={rt.timeout_s:g} s at {where} "
-            f"({_one_line(err)}); start the other nodes' processes "
-            "(same command, their NODE_RANK) or check MASTER_ADDR/MASTER_PORT"
+            f"({_one_line(err)}); {way_out}"
         ) from None
     except RuntimeError as err:  # after DistStoreError, one of its kind
         if not (isinstance(err, DistBackendError) or _peer_lost(err)):
@@ -334,6 +339,12 @@ def drive(
     old = resumed.folder if resumed is not None else None  # where its checkpoints were
     if rank0 and config.tracking.enabled:
         run_id = resumed.run_id if resumed is not None else None
+        if config.tracking.checkpoint and save is not None:  # before the MLflow run exists
+            try:
+                owner.check_folder(checkpoint_root(config, tracking_uri(config)))
+            except BaseException:
+                owner.release(resumed.folder if resumed is not None else None)
+                raise
         digest = (resumed.digest if resumed is not None else "") or data_digest(config)
         try:
             tracker = Tracker(config, tags, parent_run_id, run_id=run_id, digest=digest)

@@ -60,7 +60,12 @@ def default_out(name: str) -> Path:
 
 
 def _check_folder(out: Path) -> None:
-    """Refuse a report folder (``--out``) that is a file or lies under one."""
+    """Refuse a report folder (``--out``) that is empty, a file or lies under one."""
+    if str(out) in ("", "."):
+        raise ReportError(
+            "--out names the current folder ('' or .): name a folder of its own for the "
+            "report's tables and plots (default: reports/NAME)"
+        )
     existing = next((p for p in (out, *out.parents) if p.exists()), None)
     if existing is not None and not existing.is_dir():
         where = "is a file" if existing == out else f"lies under the file {existing}"

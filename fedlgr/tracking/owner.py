@@ -34,6 +34,27 @@ class RunOwned(FedlgrError):
     """Another live process owns the run."""
 
 
+def unusable(folder: Path, err: OSError) -> str:
+    """Why checkpoints cannot go to ``folder``, and the way out."""
+    reason = err.strerror or str(err)
+    return (
+        f"cannot make the checkpoint folder {folder} ({reason}); name one this user can "
+        "write (tracking.checkpoint_dir=...), or tracking.checkpoint=0 for no checkpoints"
+    )
+
+
+def check_folder(folder: Path) -> None:
+    """Refuse, before a run starts, a checkpoint root that cannot be made or written."""
+    import errno
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise OSError(errno.EACCES, "not writable")
+    except OSError as err:
+        raise FedlgrError(unusable(folder, err)) from None
+
+
 def claim(folder: Path, run_id: str) -> None:
     """Become ``run_id``'s owner (``folder``: its checkpoint folder, created if needed), or
     raise :class:`RunOwned` naming the live owner. Claiming a folder this process already
@@ -41,7 +62,10 @@ def claim(folder: Path, run_id: str) -> None:
     path = folder / NAME
     if path in _held:
         return
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise FedlgrError(f"run {run_id}: {unusable(folder, err)}") from None
     try:  # O_NOFOLLOW: a planted link is not a way to make the owner write elsewhere
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     except OSError as err:

@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from fedlgr.data.columns import ALL_COLUMNS
+from fedlgr.data.config import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
 from fedlgr.data.synth.appropriateness import RaterPool, true_appropriateness
 from fedlgr.data.synth.drawing import render
 from fedlgr.data.synth.layout import Layout, descriptors, sample_layout
@@ -140,8 +141,11 @@ def synthesize(
     """
     if scenes < 1:
         raise ConfigError(f"scenes={scenes}: need at least 1 scene")
-    if size < 16:
-        raise ConfigError(f"size={size}: images must be at least 16 pixels wide")
+    if not MIN_IMAGE_SIZE <= size <= MAX_IMAGE_SIZE:
+        raise ConfigError(
+            f"size={size}: images are {MIN_IMAGE_SIZE} to {MAX_IMAGE_SIZE} pixels wide (as "
+            "data.image_size; each scene is drawn at twice that first)"
+        )
     out = Path(out)
     start = time.perf_counter()
     _prepare(out, force)
