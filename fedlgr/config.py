@@ -243,16 +243,31 @@ class RuntimeConfig:
         return self.devices * self.num_nodes
 
 
+EVALUATE_MODES = ("with_next_round", "separate")  # deploy.evaluate
+
+
 @dataclass(frozen=True)
 class DeployConfig:
     """Real robots behind a Flower SuperLink (``fedlgr deploy``; README "Deployment")."""
 
-    min_clients: int | None = None  # replies a round needs to go on (default: data.clients)
+    min_clients: int | None = None  # replies a round needs to go on (default: half, >= 1)
     join_timeout_s: float = 300.0  # how long round 1 waits for data.clients robots to join
     round_timeout_s: float = 600.0  # how long the server waits for replies in one exchange
+    # with_next_round: a robot evaluates the new global tensors at the start of the next
+    # round's training message (one exchange per round, one last evaluate message);
+    # separate: a train and an evaluate exchange every round.
+    evaluate: str = "with_next_round"
+    # the roster file on the SuperLink's machine (fedlgr deploy node-key writes it): only
+    # its robots take part, each in its slot; "none": any node that joins (no SuperNode
+    # authentication, --insecure test machines only)
+    roster: str | None = None
 
     def __post_init__(self) -> None:
         check_numbers("deploy.", self)
+        if self.evaluate not in EVALUATE_MODES:
+            raise ConfigError(
+                f"deploy.evaluate={self.evaluate!r}: expected one of {', '.join(EVALUATE_MODES)}"
+            )
         if self.min_clients is not None:
             _positive("deploy.min_clients", self.min_clients)
         for name in ("join_timeout_s", "round_timeout_s"):

@@ -80,12 +80,23 @@ class Federation:
         return (self.logs / f"{name}.log").read_text(errors="replace")
 
     def start_superlink(self) -> None:
+        """``fedlgr deploy superlink``: SuperNodes use the gateway on ``self.port``, ``flwr``
+        (connection ``local``) Flower's own port on loopback, ``self.internal_port``."""
+        self.internal_port = free_port()
         link = ["superlink", "--certs", str(self.creds), "--host", "127.0.0.1"]
-        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link, "--port", str(self.port)])
-        wait_port(self.port)
+        link += ["--port", str(self.port), "--internal-port", str(self.internal_port)]
+        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link])
+        wait_port(self.port)  # the gateway listens once Flower does
+        ca = str(self.creds / "ca.pem")
+        local = f"127.0.0.1:{self.internal_port}"
+        self.fedlgr("connect", "local", "--superlink", local, "--ca", ca)
 
-    def node_key(self, name: str, register: bool = True) -> Path:
-        self.fedlgr("node-key", str(self.creds), name)
+    @property
+    def roster(self) -> Path:
+        return self.creds / "roster.yaml"  # fedlgr deploy node-key adds each robot to it
+
+    def node_key(self, name: str, register: bool = True, roster: bool = True) -> Path:
+        self.fedlgr("node-key", str(self.creds), name, *(() if roster else ("--no-roster",)))
         if register:
             out = subprocess.run(
                 ["flwr", "supernode", "register", str(self.creds / f"{name}.pub")],
@@ -101,12 +112,13 @@ class Federation:
         return self.folder / "robots" / name
 
     def start_supernode(
-        self, name: str, key: Path, client: int, data: Path, extra: list[str] = ()
+        self, name: str, key: Path, client: int | None, data: Path, extra: list[str] = ()
     ) -> subprocess.Popen:
+        """``client``: the slot the robot expects (``--client``); None: the roster's."""
         robot = self.robot_dir(name)
         node = ["supernode", "--superlink", f"127.0.0.1:{self.port}"]
         node += ["--ca", str(self.creds / "ca.pem"), "--key", str(key), "--data", str(data)]
-        node += ["--client", str(client), "--state-dir", str(robot)]
+        node += [*(() if client is None else ("--client", str(client))), "--state-dir", str(robot)]
         node += ["--cache-dir", str(robot / "cache"), "--port", str(free_port())]
         return self.spawn(name, [str(BIN / "fedlgr"), "deploy", *node, *extra])
 

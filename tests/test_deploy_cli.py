@@ -7,8 +7,10 @@ from __future__ import annotations
 import datetime as dt
 import ipaddress
 import shlex
+import shutil
 import sys
 import tomllib
+from pathlib import Path
 
 import pytest
 from cryptography import x509
@@ -54,7 +56,13 @@ def test_certs_verify_for_the_hosts_given(tmp_path, capsys):
     ca = x509.load_pem_x509_certificate((folder / "ca.pem").read_bytes())
     server = x509.load_pem_x509_certificate((folder / "server.pem").read_bytes())
     store, now = Store([ca]), dt.datetime.now(dt.UTC)
+    # and 127.0.0.1, where Flower's own processes reach the SuperLink behind the gateway
+    loopback = x509.IPAddress(ipaddress.ip_address("127.0.0.1"))
     for name in (x509.DNSName("robots.lab"), x509.IPAddress(ipaddress.ip_address("10.0.0.5"))):
+        verifier = PolicyBuilder().store(store).time(now).build_server_verifier(name)
+        chain = verifier.verify(server, [])
+        assert chain[-1] == ca
+    for name in (loopback,):
         verifier = PolicyBuilder().store(store).time(now).build_server_verifier(name)
         chain = verifier.verify(server, [])
         assert chain[-1] == ca
@@ -62,7 +70,7 @@ def test_certs_verify_for_the_hosts_given(tmp_path, capsys):
         PolicyBuilder().store(store).time(now).build_server_verifier(x509.DNSName("localhost"))
     )
     with pytest.raises(VerificationError):
-        localhost.verify(server, [])  # only the hosts given
+        localhost.verify(server, [])  # only the hosts given, and 127.0.0.1
 
     assert main(["deploy", "certs", str(folder)]) == 1  # would lock the robots out
     assert str(folder / "ca.pem") in capsys.readouterr().err
@@ -130,15 +138,25 @@ def test_connect_starts_a_config(tmp_path, certs, monkeypatch):
 
 
 def test_superlink_command_has_tls_and_node_auth(certs, capsys):
+    """Flower on loopback (port + 1) behind fedlgr's Fleet-only gateway on the port."""
     assert main(["deploy", "superlink", "--certs", str(certs), "--print-command"]) == 0
-    cmd = printed(capsys)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3, lines
+    cmd = shlex.split(lines[0])
     assert cmd[0] == str(deploy_cli._flower("flower-superlink"))
     assert option(cmd, "--ssl-ca-certfile") == str(certs / "ca.pem")
     assert option(cmd, "--ssl-certfile") == str(certs / "server.pem")
     assert option(cmd, "--ssl-keyfile") == str(certs / "server.key")
     assert "--enable-supernode-auth" in cmd and "--insecure" not in cmd
     assert "--disable-runtime-dependency-installation" in cmd
-    assert option(cmd, "--host") == "127.0.0.1" and option(cmd, "--port") == "9092"
+    assert option(cmd, "--host") == "127.0.0.1" and option(cmd, "--port") == "9093"
+    assert lines[1] == (
+        "fedlgr: the robots' port https://127.0.0.1:9092 is fedlgr's gateway: POST "
+        "/v1/fleet/<name> forwarded to https://127.0.0.1:9093, the rest refused (403)"
+    )
+    assert lines[2].endswith(
+        f"fedlgr deploy connect NAME --superlink 127.0.0.1:9093 --ca {certs / 'ca.pem'}"
+    )
 
 
 def test_superlink_insecure_warns_and_drops_auth(capsys):
@@ -146,10 +164,11 @@ def test_superlink_insecure_warns_and_drops_auth(capsys):
     assert main(cmd) == 0
     out = capsys.readouterr()
     assert "No TLS" in out.err and "No SuperNode authentication" in out.err
-    cmd = shlex.split(out.out.strip())
+    cmd = shlex.split(out.out.strip().splitlines()[0])
     assert "--insecure" in cmd and "--enable-supernode-auth" not in cmd
     assert not any(c.startswith("--ssl") for c in cmd)
-    assert option(cmd, "--host") == "0.0.0.0"
+    assert option(cmd, "--host") == "127.0.0.1"  # Flower; the gateway takes 0.0.0.0
+    assert "http://0.0.0.0:9092 is fedlgr's gateway" in out.out
 
 
 def test_superlink_refuses_a_missing_certificate(certs, capsys):
@@ -161,9 +180,8 @@ def test_superlink_refuses_a_missing_certificate(certs, capsys):
     assert "--certs" in capsys.readouterr().err
 
 
-def test_supernode_node_config(tmp_path, certs, capsys):
-    data = tmp_path / "robot data"
-    data.mkdir()
+def test_supernode_node_config(tmp_path, certs, synth_dir, capsys):
+    data = Path(shutil.copytree(synth_dir, tmp_path / "robot data"))
     key, _ = make_node_key(tmp_path / "keys", "robot1")
     state = tmp_path / "it's state"
     args = ["deploy", "supernode", "--superlink", "robots.lab:9092", "--ca", str(certs / "ca.pem")]
@@ -184,7 +202,7 @@ def test_supernode_node_config(tmp_path, certs, capsys):
     }
 
 
-def test_supernode_refuses_missing_files(tmp_path, certs, capsys):
+def test_supernode_refuses_missing_files(tmp_path, certs, synth_dir, capsys):
     data = tmp_path / "data"
     data.mkdir()
     key, _ = make_node_key(tmp_path / "keys", "robot1")
@@ -202,11 +220,40 @@ def test_supernode_refuses_missing_files(tmp_path, certs, capsys):
         assert main([*base, *extra, "--print-command"]) == 1, case
         assert named in capsys.readouterr().err, case
 
+    data = Path(shutil.copytree(synth_dir, tmp_path / "robot"))
     assert main([*base, "--data", str(data), "--insecure", "--print-command"]) == 0
     out = capsys.readouterr()
     assert "No TLS" in out.err
     cmd = shlex.split(out.out.strip())
     assert "--insecure" in cmd and "--root-certificates" not in cmd
+    # Node authentication needs TLS: refused here, not passed on to Flower.
+    insecure = [*base, "--data", str(data), "--insecure", "--key", str(key), "--print-command"]
+    assert main(insecure) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "fedlgr: error: --insecure turns TLS off, and SuperNode authentication needs TLS: "
+        "drop --key (or drop --insecure)"
+    )
+
+
+def test_a_robot_with_a_broken_dataset_is_refused_when_its_supernode_starts(
+    tmp_path, certs, synth_dir, capsys
+):
+    """At start, in one line naming the file, row and cell - not when a run arrives."""
+    data = Path(shutil.copytree(synth_dir, tmp_path / "robot"))
+    csv_path = data / "all_data.csv"
+    lines = csv_path.read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[-1] = "abc"
+    lines[5] = ",".join(cells)
+    csv_path.write_text("\n".join(lines) + "\n")
+    key, _ = make_node_key(tmp_path / "keys", "robot0")
+    args = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--client", "0"]
+    args += ["--ca", str(certs / "ca.pem"), "--key", str(key), "--data", str(data)]
+    assert main([*args, "--print-command"]) == 1
+    out = capsys.readouterr()
+    [line] = out.err.strip().splitlines()
+    assert line.startswith(f"fedlgr: error: {csv_path}") and "'abc'" in line
+    assert "flower-supernode" not in out.out  # nothing was started
 
 
 def test_run_command(tmp_path, monkeypatch, capsys):
@@ -246,7 +293,7 @@ def fake_flwr(tmp_path, monkeypatch):
 
 def test_run_exit_status_follows_the_flower_run(tmp_path, fake_flwr, monkeypatch, capsys):
     config = tmp_path / "conf.yaml"
-    config.write_text("{}\n")
+    config.write_text("seed: 3\ndeploy:\n  roster: none\n")
     monkeypatch.setenv("FAKE_STATUS", "finished:completed|")
     assert main(["deploy", "run", str(config), "--federation", "robots"]) == 0
     out = capsys.readouterr().out
@@ -260,3 +307,29 @@ def test_run_exit_status_follows_the_flower_run(tmp_path, fake_flwr, monkeypatch
         "fedlgr: error: Flower run 4242 ended finished:failed: "
         "ServerApp failed with exception: boom"
     ]
+
+
+def test_run_reports_a_config_typo_before_anything_is_submitted(tmp_path, fake_flwr, capsys):
+    """Checked on the submitting machine when the config is there: one line, no flwr run."""
+    config = tmp_path / "conf.yaml"
+    config.write_text("seed: 3\n")
+    assert main(["deploy", "run", str(config), "federated.roundz=3"]) == 1
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("fedlgr: error: ") and "federated.roundz" in line
+    assert not fake_flwr.exists()  # flwr was never called
+
+
+def test_run_without_a_roster_is_refused_before_anything_is_submitted(tmp_path, fake_flwr, capsys):
+    config = tmp_path / "conf.yaml"
+    config.write_text("seed: 3\n")
+    assert main(["deploy", "run", str(config)]) == 1
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("fedlgr: error: deploy.roster is not set: ")
+    roster = tmp_path / "roster.yaml"
+    assert main(["deploy", "run", str(config), f"deploy.roster={roster}"]) == 1
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line == (
+        f"fedlgr: error: roster {roster}: no such file (fedlgr deploy node-key DIR NAME "
+        "writes DIR/roster.yaml)"
+    )
+    assert not fake_flwr.exists()  # flwr was never called

@@ -5,12 +5,14 @@ unauthorised robot refused, a robot killed mid-round and back with its private s
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import subprocess
 import threading
 import time
+from pathlib import Path
 
 import mlflow
 import pytest
@@ -23,7 +25,7 @@ from tests.flower_federation import Federation
 
 pytestmark = pytest.mark.slow
 
-ROBOTS = ("robot0", "robot1")
+ROBOTS = ("robot0", "robot1", "robot2")  # on the roster as clients 0, 1, 2
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +34,7 @@ def federation(tmp_path_factory, synth_dir):
     try:
         fed.start_superlink()
         fed.keys = {name: fed.node_key(name) for name in ROBOTS}
-        for client, name in enumerate(ROBOTS):
+        for client, name in enumerate(ROBOTS[:2]):  # robot2 is started by the tests using it
             fed.start_supernode(name, fed.keys[name], client, synth_dir)
         yield fed
     finally:
@@ -40,8 +42,9 @@ def federation(tmp_path_factory, synth_dir):
     assert not fed.leftovers()  # every process of the federation is gone
 
 
-def settings(synth_dir, store, name: str) -> list[str]:
-    return [f"data.path={synth_dir}", f"tracking.uri={store}", f"tracking.run_name={name}"]
+def settings(synth_dir, store, name: str, federation=None) -> list[str]:
+    out = [f"data.path={synth_dir}", f"tracking.uri={store}", f"tracking.run_name={name}"]
+    return out + ([f"deploy.roster={federation.roster}"] if federation is not None else [])
 
 
 def the_run(store: str, name: str, out: str) -> mlflow.entities.Run:
@@ -53,7 +56,7 @@ def the_run(store: str, name: str, out: str) -> mlflow.entities.Run:
 
 
 def flower_run(federation, synth_dir, store, name, *overrides) -> tuple[mlflow.entities.Run, str]:
-    proc = federation.run(FAST, [*settings(synth_dir, store, name), *overrides])
+    proc = federation.run(FAST, [*settings(synth_dir, store, name, federation), *overrides])
     out, _ = proc.communicate(timeout=900)
     assert proc.returncode == 0, out[-3000:]  # fedlgr deploy run: 0 only if completed
     return the_run(store, name, out), out
@@ -72,11 +75,8 @@ def root_bytes(config) -> int:
 
 @pytest.mark.parametrize(
     "method",
-    [
-        ["method=FedRootAvg", "federated.rounds=2"],
-        ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=3"],
-    ],
-    ids=["FedRootAvg", "FedLGR"],
+    [["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=3"]],
+    ids=["FedLGR"],  # FedRootAvg: the resume test below, killed once and resumed
 )
 def test_flower_runs_compute_what_one_process_computes(
     federation, synth_dir, cache_dir, store, method
@@ -87,6 +87,13 @@ def test_flower_runs_compute_what_one_process_computes(
     local = run_experiment(
         fast_config(synth_dir, cache_dir, store, *method, f"tracking.run_name=local-{method[0]}")
     )
+    assert_computes_what_one_process_computes(store, flower, local, 2)
+    assert "round 2, evaluate: 2 of 2 replies" in out
+
+
+def assert_computes_what_one_process_computes(store, flower, local, rounds: int) -> None:
+    """The Flower run's per-round scores, bytes, artifacts and params are the in-process
+    run's (``local``)."""
     client = mlflow.MlflowClient(store)
     local_run = client.get_run(local.run_id)
     assert local_run.data.tags["runtime"] == "fabric"
@@ -94,13 +101,14 @@ def test_flower_runs_compute_what_one_process_computes(
     keys = [k for k in local_run.data.metrics if k.split("/", 1)[-1].startswith(("test/", "task/"))]
     keys += [k for k in local_run.data.metrics if k.startswith(("test/", "task/"))]
     assert len(keys) > 40 and "test/client1/pcc" in keys
-    if method[0] == "method=FedLGR":
+    if local.config.method == "FedLGR":
         assert "task/client1/arrow/rmse" in keys and "lgr/fd_latent" in local_run.data.metrics
         keys += ["lgr/fd_latent", "lgr/client1/recon_mse"]
-    rounds = 2
     for key in keys:
-        ours, theirs = history(client, flower.info.run_id, key), history(client, local.run_id, key)
-        assert [s for s, _ in ours] == [s for s, _ in theirs] and ours, key
+        # every point, unsorted by step: a round logged twice (a resume) would show here
+        ours = sorted((m.step, m.value) for m in client.get_metric_history(flower.info.run_id, key))
+        theirs = history(client, local.run_id, key)
+        assert [s for s, _ in ours] == [s for s, _ in theirs] and ours, (key, ours)
         for (_, a), (_, b) in zip(ours, theirs, strict=True):
             assert math.isclose(a, b, rel_tol=0, abs_tol=1e-5), (key, a, b)
     # Bytes counted on the Flower messages (tensor payloads) = what one process reports:
@@ -111,54 +119,127 @@ def test_flower_runs_compute_what_one_process_computes(
         assert up == [(r, float(root)) for r in range(1, rounds + 1)]
         down = history(client, flower.info.run_id, f"cost/client{c}/bytes_down")
         assert down == history(client, local.run_id, f"cost/client{c}/bytes_down")
-        assert down == [(1, 2.0 * root), (2, float(root))]  # the initial root, then the new
-    assert "round/missing_clients" not in flower.data.metrics
+        # the initial root, then the new one each round
+        assert down == [(1, 2.0 * root)] + [(r, float(root)) for r in range(2, rounds + 1)]
+    assert "round/missing_clients" not in client.get_run(flower.info.run_id).data.metrics
     artifacts = [
         {a.path for a in client.list_artifacts(r)} for r in (flower.info.run_id, local.run_id)
     ]
     assert artifacts[0] == artifacts[1] and "results.csv" in artifacts[0]
-    assert set(flower.data.params) == set(local_run.data.params)
-    assert f"round {rounds}, evaluate: 2 of 2 replies" in out
-
-
-def test_a_robot_without_a_registered_key_is_refused(federation, synth_dir):
-    key = federation.node_key("intruder", register=False)
-    proc = federation.start_supernode(
-        "intruder", key, 0, synth_dir, ["--max-retries", "2", "--max-wait-time", "20"]
-    )
-    assert proc.wait(timeout=120) == 1
-    assert "Failed to activate SuperNode" in federation.log("intruder")
-    assert "No SuperNode found with the given public key" in federation.log("superlink")
+    assert set(flower.data.params) == set(local_run.data.params) | {"deploy.roster"}
 
 
 def count(path, text: str) -> int:
     return path.read_text().count(text) if path.exists() else 0
 
 
+def wait_online(federation, name: str, timeout: float = 120) -> None:
+    """Until the SuperNode ``name`` is connected (Flower logs its node id)."""
+    deadline = time.monotonic() + timeout
+    while "SuperNode ID" not in federation.log(name):
+        assert time.monotonic() < deadline, federation.log(name)[-2000:]
+        time.sleep(0.2)
+
+
+def start_until_online(federation, name: str, synth_dir, timeout: float = 180) -> None:
+    """Start ``name``'s SuperNode again until the SuperLink takes it (a key whose last
+    connection has not yet timed out is refused for up to ~1 min)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        node = federation.start_supernode(name, federation.keys[name], None, synth_dir, QUICK)
+        try:
+            node.wait(timeout=15)  # refused: try again
+        except subprocess.TimeoutExpired:
+            wait_online(federation, name)
+            return
+        assert time.monotonic() < deadline, federation.log(name)[-2000:]
+        time.sleep(2)
+
+
+def stop(federation, name: str) -> None:
+    proc = federation.procs[name]
+    proc.terminate()
+    proc.wait(timeout=30)
+
+
+def test_roster_keeps_strangers_unrostered_keys_and_claimed_slots_out_of_a_run(
+    federation, synth_dir, store
+):
+    """Three intruders and a run of three clients: a SuperNode whose key was never
+    registered (refused by the SuperLink), one whose key is registered but not on the
+    roster (online, never sent a message), and robot2 - slot 2 on the roster - whose
+    SuperNode claims client 0 (its ClientApp refuses the run's slot before its service
+    starts). None takes part; the run goes on with robots 0 and 1 and says why."""
+    stranger = federation.node_key("stranger", register=False, roster=False)
+    unrostered = federation.node_key("unrostered", roster=False)
+    assert "unrostered" not in federation.roster.read_text()
+    options = ["--max-retries", "2", "--max-wait-time", "20"]
+    strange = federation.start_supernode("stranger", stranger, None, synth_dir, options)
+    federation.start_supernode("unrostered", unrostered, 1, synth_dir)
+    federation.start_supernode("robot2", federation.keys["robot2"], 0, synth_dir)
+    try:
+        assert strange.wait(timeout=120) == 1
+        assert "Failed to activate SuperNode" in federation.log("stranger")
+        assert "No SuperNode found with the given public key" in federation.log("superlink")
+        for name in ("unrostered", "robot2"):
+            wait_online(federation, name)
+        overrides = ["method=FedRootAvg", "federated.rounds=1", "data.clients=3"]
+        proc = federation.run(FAST, [*settings(synth_dir, store, "roster", federation), *overrides])
+        out, _ = proc.communicate(timeout=600)
+    finally:
+        for name in ("unrostered", "robot2"):
+            stop(federation, name)
+    assert proc.returncode == 0, out[-3000:]  # 2 of 3 robots: the default quorum
+    run = the_run(store, "roster", out)
+    assert "is not on the roster" in out and "it is sent no work" in out
+    assert "robot2 (client 2) failed: " in out and "the run's roster gives its key client 2" in out
+    assert "refused node" in out and "robot2 (client 2) claims another slot" in out
+    refused = run.data.tags["fedlgr.refused"]
+    assert "is not on the roster" in refused and "robot2 (client 2) claims another slot" in refused
+    assert run.data.tags["fedlgr.robots"].startswith("robot0 (client 0), robot1 (client 1)")
+    client = mlflow.MlflowClient(store)
+    assert history(client, run.info.run_id, "round/missing_clients") == [(1, 1.0)]
+    assert run.data.tags["fedlgr.missing_robots"] == "round 1: client 2"
+    # Nothing reached the unrostered node's robot; robot2's robot never started.
+    for name in ("unrostered", "robot2"):
+        assert count(federation.robot_dir(name) / "robot.log", "received") == 0, name
+        assert not list(federation.robot_dir(name).glob("run-*")), name
+    rows = {(r["round"], r["client"]): r for r in results_csv(client, run.info.run_id)}
+    assert rows[("1", "0")]["test_loss"] != "" and rows[("1", "1")]["test_loss"] != ""
+    assert rows[("1", "2")]["test_loss"] == ""
+
+
+QUICK = ["--max-retries", "1", "--max-wait-time", "5"]  # a refused SuperNode exits in ~5 s
+
+
 def keep_starting(federation, run: subprocess.Popen, synth_dir) -> None:
     while run.poll() is None:
-        node = federation.start_supernode("robot1", federation.keys["robot1"], 1, synth_dir)
+        key = federation.keys["robot1"]
+        node = federation.start_supernode("robot1", key, None, synth_dir, QUICK)
         try:
-            node.wait(timeout=10)  # refused: try again
+            node.wait(timeout=15)  # refused: try again
         except subprocess.TimeoutExpired:
             return  # it is in
-        time.sleep(2)
+        time.sleep(1)
 
 
 def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state(
     federation, synth_dir, store
 ):
-    """SIGKILL robot 1's SuperNode and robot service while it trains in round 2: round 2
-    aggregates robot 0 alone and records client 1 missing; robot 1 is started again at
-    once (same key, same state folder) and takes part in round 3 with its private state,
-    read back from disk by its new service."""
+    """Three robots, default settings (quorum: 2 of 3). SIGKILL robot 1's SuperNode and
+    robot service while it answers its second message - round 1's evaluation and round
+    2's training: rounds 1 and 2 go on without its row and name it; robot 1 is started
+    again at once (same key, same state folder; refused for about a minute, until the
+    SuperLink has missed its heartbeats) and takes part in the last round of 5 with its
+    private state, read back from disk by its new service."""
     robot = federation.robot_dir("robot1")
     log = robot / "robot.log"
     trained = count(log, "train received")
     restored = count(log, "private state restored")
-    overrides = ["method=FedRootAvg", "federated.rounds=3", "deploy.min_clients=1"]
+    start_until_online(federation, "robot2", synth_dir)
+    overrides = ["method=FedRootAvg", "federated.rounds=5", "data.clients=3"]
     overrides += ["deploy.round_timeout_s=120"]
-    proc = federation.run(FAST, [*settings(synth_dir, store, "dropout"), *overrides])
+    proc = federation.run(FAST, [*settings(synth_dir, store, "dropout", federation), *overrides])
     deadline = time.monotonic() + 300
     while count(log, "train received") < trained + 2:  # round 2's training has begun
         assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()[-3000:]
@@ -171,23 +252,87 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     # missed heartbeats, ~1 min), so the SuperNode exits 1 until then.
     restart = threading.Thread(target=keep_starting, args=(federation, proc, synth_dir))
     restart.start()
-    out, _ = proc.communicate(timeout=600)
-    restart.join()
+    try:
+        out, _ = proc.communicate(timeout=600)
+    finally:
+        restart.join()
+        stop(federation, "robot2")
     assert proc.returncode == 0, out[-3000:]
     run = the_run(store, "dropout", out)
     client = mlflow.MlflowClient(store)
     assert run.info.status == "FINISHED"
-    assert history(client, run.info.run_id, "round/missing_clients") == [(2, 1.0)]
-    assert run.data.tags["fedlgr.missing"] == "round 2: client 1"
-    assert "round 2, train: 1 of 2 replies" in out and "missing: client 1" in out
+    missed = history(client, run.info.run_id, "round/missing_clients")
+    assert missed[:2] == [(1, 1.0), (2, 1.0)] and all(r < 5 for r, _ in missed), missed
+    assert run.data.tags["fedlgr.missing"].startswith("round 1: client 1; round 2: client 1")
+    assert run.data.tags["fedlgr.missing_robots"].startswith(
+        "round 1: robot1 (client 1); round 2: robot1 (client 1)"
+    )
+    assert "round 1, evaluate + round 2 train: 2 of 3 replies" in out
+    # the SuperLink answers for a robot it has lost (an error reply), or it stays silent
+    named = (
+        "round 1, evaluate + round 2 train: robot1 (client 1) failed: ",
+        "no reply from robot1",
+    )
+    assert any(text in out for text in named), out[-3000:]
+    assert "missing: client 1" in out
     rows = {(r["round"], r["client"]): r for r in results_csv(client, run.info.run_id)}
     assert rows[("2", "1")]["test_loss"] == "" and rows[("2", "0")]["test_loss"] != ""
-    assert all(rows[(r, c)]["test_loss"] != "" for r in ("1", "3") for c in ("0", "1"))
-    # Nothing logged was lost: every round's mean scores, robot 1's rounds 1 and 3.
-    assert [s for s, _ in history(client, run.info.run_id, "test/loss")] == [1, 2, 3]
-    assert [s for s, _ in history(client, run.info.run_id, "test/client1/loss")] == [1, 3]
+    assert all(rows[("5", c)]["test_loss"] != "" for c in ("0", "1", "2"))
+    # Nothing logged was lost: every round's mean scores, robot 1's last round.
+    assert [s for s, _ in history(client, run.info.run_id, "test/loss")] == [1, 2, 3, 4, 5]
+    assert [s for s, _ in history(client, run.info.run_id, "test/client1/loss")][-1] == 5
     # Back with its private state (read from disk), sent the global root it had missed.
     assert count(log, "private state restored") == restored + 1
     root = root_bytes(fast_config(synth_dir, synth_dir, store, *overrides))
-    assert history(client, run.info.run_id, "cost/client1/bytes_down")[-1] == (3, 2.0 * root)
-    assert history(client, run.info.run_id, "cost/client0/bytes_down")[-1] == (3, float(root))
+    first_back = history(client, run.info.run_id, "cost/client1/bytes_down")[0]
+    assert first_back[0] in (3, 4, 5) and first_back[1] == 2.0 * root
+    assert history(client, run.info.run_id, "cost/client0/bytes_down")[-1] == (5, float(root))
+
+
+def serverapps(federation) -> list[int]:
+    """The ServerApp processes of this federation (``flwr-serverapp``, started by the
+    SuperLink's SuperExec)."""
+    found = []
+    for pid in federation.leftovers():
+        with contextlib.suppress(OSError):
+            if b"flwr-serverapp" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                found.append(pid)
+    return found
+
+
+def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_process_computes(
+    federation, synth_dir, cache_dir, store
+):
+    """FedRootAvg, 3 rounds: SIGKILL of the ServerApp once round 1 is logged; ``fedlgr
+    deploy run CONFIG --resume`` continues the same MLflow run from its newest checkpoint,
+    the robots from their own state (a robot asked again what it answered last sends the
+    same reply). Every round is logged once, with the in-process run's scores to 1e-5
+    (an uninterrupted Flower run gives them: the test above, for FedLGR), bytes,
+    artifacts and params."""
+    method = ["method=FedRootAvg", "federated.rounds=3"]
+    base = [*settings(synth_dir, store, "resumed", federation), *method]
+    proc = federation.run(FAST, base)
+    client = mlflow.MlflowClient(store)
+    deadline = time.monotonic() + 400
+    while True:
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()[-3000:]
+        experiment = client.get_experiment_by_name("fedlgr-debug")
+        runs = client.search_runs([experiment.experiment_id], "attributes.run_name = 'resumed'")
+        if runs and history(client, runs[0].info.run_id, "test/loss"):
+            run_id = runs[0].info.run_id
+            break
+        time.sleep(0.1)
+    [serverapp] = serverapps(federation)
+    os.kill(serverapp, signal.SIGKILL)
+    proc.kill()  # the log stream (what Ctrl-C stops); the run on the SuperLink is dead
+    proc.communicate()
+    resumed = federation.run(FAST, [*base, "--resume"])
+    out, _ = resumed.communicate(timeout=600)
+    assert resumed.returncode == 0, out[-3000:]
+    assert f"resuming run {run_id} after round" in out
+    run = client.get_run(run_id)
+    assert run.info.status == "FINISHED"
+    local = run_experiment(
+        fast_config(synth_dir, cache_dir, store, *method, "tracking.run_name=local-resumed")
+    )
+    assert_computes_what_one_process_computes(store, run, local, 3)

@@ -75,6 +75,32 @@ def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):
     assert [r["test_loss"] for r in log.rows()] == [0.5, None]
 
 
+def test_the_summary_averages_a_robot_s_costs_over_the_rounds_it_took_part_in(config):
+    """One missed round leaves the robot's CPU, upload and the mean row as numbers (they
+    were nan), averaged over what was measured."""
+    from fedlgr.federated.result import ExperimentResult
+
+    server = ServerSide(config)
+    scores = [0.5] * (len(server.fields) - 8)
+    result = ExperimentResult(config)
+    for round_, present in ((1, (0, 1)), (2, (0,)), (3, (0, 1))):
+        rows = {}
+        for c in present:
+            trained = TrainRes(c, {}, 12, 24, 0.25, Usage(1.0 + c + round_, 2.0, None, None))
+            rows[c] = server.row(trained, EvaluateRes(c, scores), 1000 * (c + 1), 300)
+        missing = tuple(c for c in (0, 1) if c not in present)
+        result.rounds.append(server.round_log(RoundPlan(round_), server.table(rows), 1.0, missing))
+    table = result.summary()
+    assert "nan" not in table
+    # client  loss  RMSE  PCC  CPU s/round  wall s/round  upload/round
+    cells = {line[:8].strip(): line[8:].split() for line in table.splitlines()[2:] if line.strip()}
+    cpu = {name: float(row[3]) for name, row in cells.items()}
+    assert cells["client 1"][5:] == ["2.0", "KB"]  # its upload, over rounds 1 and 3
+    assert cpu["client 0"] == (2 + 3 + 4) / 3  # rounds 1-3
+    assert cpu["client 1"] == (3 + 5) / 2  # rounds 1 and 3: round 2 is missing
+    assert cpu["mean"] == (2 + 3 + 4 + 3 + 5) / 5
+
+
 def test_the_wire_carries_tensors_as_their_raw_bytes():
     weights = {
         "root.w": torch.randn(3, 4),
@@ -84,6 +110,9 @@ def test_the_wire_carries_tensors_as_their_raw_bytes():
     res = TrainRes(1, weights, 10, 20, 0.5, Usage(1.0, 2.0, 30.0, None))
     content = wire.encode_train_res(res)
     assert wire.payload_bytes(content) == nbytes(weights) == 48 + 40 + 8
+    # one Flower Array for all the tensors: Flower moves each Array as an object of its
+    # own (an HTTP request each way)
+    assert [len(r) for r in content.array_records.values()] == [1]
     back = wire.decode_train_res(content)
     assert all(
         torch.equal(back.weights[k], v) and back.weights[k].dtype == v.dtype
@@ -92,10 +121,11 @@ def test_the_wire_carries_tensors_as_their_raw_bytes():
     assert (back.client, back.n_samples, back.samples, back.loss) == (1, 10, 20, 0.5)
     assert back.usage == Usage(1.0, 2.0, 30.0, None)
 
-    ins, text = wire.decode_train_ins(
+    ins, evaluate, text = wire.decode_train_ins(
         wire.encode_train_ins(TrainIns(RoundPlan(3, 1, True, False)), "seed: 1")
     )
     assert ins == TrainIns(RoundPlan(3, 1, True, False), None) and text == "seed: 1"
+    assert evaluate is None
     ins, _ = wire.decode_evaluate_ins(
         wire.encode_evaluate_ins(EvaluateIns(RoundPlan(3), weights), "x")
     )
@@ -105,3 +135,31 @@ def test_the_wire_carries_tensors_as_their_raw_bytes():
     back = wire.decode_evaluate_res(wire.encode_evaluate_res(evaluated))
     assert back.scores[0] == 1.0 and math.isnan(back.scores[1])
     assert back.figures == {"lgr_fd_latent": 2.5} and back.usage is None
+
+
+def test_one_message_carries_a_round_s_evaluation_and_the_next_round_s_training():
+    """deploy.evaluate=with_next_round: the new global tensors travel once, for the
+    evaluation of round 2 and the training of round 3; the reply carries both results."""
+    weights = {"root.w": torch.randn(3, 4), "root.b": torch.randn(4)}
+    content = wire.encode_train_ins(
+        TrainIns(RoundPlan(3, 1, True, False)),
+        "seed: 1",
+        EvaluateIns(RoundPlan(2, 0, False, True), weights),
+    )
+    assert wire.payload_bytes(content) == nbytes(weights)  # the tensors once
+    ins, evaluate, text = wire.decode_train_ins(content)
+    assert ins == TrainIns(RoundPlan(3, 1, True, False), None) and text == "seed: 1"
+    assert evaluate.plan == RoundPlan(2, 0, False, True)
+    assert all(torch.equal(evaluate.weights[k], v) for k, v in weights.items())
+    with pytest.raises(ValueError, match="one set of tensors"):
+        wire.encode_train_ins(
+            TrainIns(RoundPlan(3), weights), "", EvaluateIns(RoundPlan(2), weights)
+        )
+
+    trained = TrainRes(1, weights, 10, 20, 0.5, Usage(1.0, 2.0, None, None))
+    evaluated = EvaluateRes(1, [0.25, 0.5], {"lgr_fd_latent": 2.5}, Usage(3.0, 4.0, None, None))
+    reply = wire.encode_train_res(trained, evaluated)
+    assert wire.payload_bytes(reply) == nbytes(weights)
+    assert wire.decode_train_res(reply).n_samples == 10
+    assert wire.decode_evaluated(reply) == evaluated
+    assert wire.decode_evaluated(wire.encode_train_res(trained)) is None

@@ -32,7 +32,9 @@ fedlgr: ########################################################################
 def certs(args: argparse.Namespace) -> int:
     from fedlgr.deploy.credentials import DEFAULT_HOSTS, make_certificates
 
-    hosts = tuple(args.host or DEFAULT_HOSTS)
+    # 127.0.0.1 always: Flower's own processes (SuperExec, the ServerApp) and flwr on the
+    # SuperLink's machine reach it there, behind fedlgr's gateway (superlink's --internal-port).
+    hosts = tuple(dict.fromkeys([*(args.host or DEFAULT_HOSTS), "127.0.0.1"]))
     paths = make_certificates(args.dir, hosts, days=args.days, force=args.force)
     print(f"wrote {', '.join(map(str, paths.values()))}")
     print(f"server certificate for {', '.join(hosts)}, valid {args.days} days")
@@ -47,8 +49,25 @@ def node_key(args: argparse.Namespace) -> int:
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
         raise FedlgrError(f"node-key NAME {args.name!r}: letters, digits, '.', '_', '-' only")
+    roster = None
+    if not args.no_roster:
+        from fedlgr.deploy.roster import ROSTER_NAME, Roster
+
+        roster = Roster.read_or_empty(args.dir / ROSTER_NAME)
+        if args.client is not None and args.client < 0:
+            raise FedlgrError(f"--client {args.client}: a client slot is 0 or more")
+        taken = [m for m in roster.members if m.client == args.client and m.name != args.name]
+        if args.client is not None and taken:
+            raise FedlgrError(
+                f"--client {args.client}: {taken[0]} holds that slot in {roster.path}"
+            )
+    elif args.client is not None:
+        raise FedlgrError("--client K is the robot's slot on the roster: drop --no-roster")
     private, public = make_node_key(args.dir, args.name, force=args.force)
     print(f"wrote {private} (private: to that robot only) and {public}")
+    if roster is not None:
+        member = roster.add(args.name, public.read_text(), args.client)
+        print(f"added {member} to {roster.write()}")
     print(f"register it with the SuperLink: flwr supernode register {shlex.quote(str(public))}")
     return 0
 
@@ -98,32 +117,106 @@ def connect(args: argparse.Namespace) -> int:
     return 0
 
 
+EXPOSED_CONTROL_WARNING = """\
+fedlgr: ####################### WARNING: --expose-control-api #######################
+fedlgr: Flower serves ALL its APIs on this port, not only the robots' Fleet API: anyone
+fedlgr: who reaches it (ca.pem is public) can register a SuperNode key with flwr
+fedlgr: supernode register (then join as a robot) and submit runs with flwr run - code
+fedlgr: that runs on this server. Firewall the port to trusted machines, or drop the
+fedlgr: option (the default: the Fleet API alone there, the Control API on 127.0.0.1).
+fedlgr: ############################################################################"""
+
+
 def superlink(args: argparse.Namespace) -> int:
+    """Flower's SuperLink behind fedlgr's Fleet-only gateway (:mod:`fedlgr.deploy.gateway`)
+    on ``--host``/``--port``, bound to 127.0.0.1:``--internal-port`` itself; or, with
+    ``--expose-control-api``, Flower alone on ``--host``/``--port`` with all its APIs."""
     exe = _flower("flower-superlink")
     cmd = [str(exe)]
+    tls = None
     if args.insecure:
         cmd.append("--insecure")
     else:
         if args.certs is None:
             raise FedlgrError("--certs DIR is required (fedlgr deploy certs DIR), or --insecure")
-        for flag, name in (
-            ("--ssl-ca-certfile", "ca.pem"),
-            ("--ssl-certfile", "server.pem"),
-            ("--ssl-keyfile", "server.key"),
-        ):
-            cmd += [flag, str(_existing(args.certs / name, "--certs", "fedlgr deploy certs DIR"))]
+        tls = tuple(
+            _existing(args.certs / name, "--certs", "fedlgr deploy certs DIR")
+            for name in ("ca.pem", "server.pem", "server.key")
+        )
+        flags = ("--ssl-ca-certfile", "--ssl-certfile", "--ssl-keyfile")
+        for flag, path in zip(flags, tls, strict=True):
+            cmd += [flag, str(path)]
         cmd.append("--enable-supernode-auth")
-    cmd += ["--disable-runtime-dependency-installation", "--host", args.host]
-    cmd += ["--port", str(args.port)]
-    if args.database is not None:
-        cmd += ["--database", str(_absolute(args.database))]
-    return _exec(cmd, args)
+    cmd.append("--disable-runtime-dependency-installation")
+    if args.expose_control_api:
+        if args.internal_port is not None:
+            raise FedlgrError("--internal-port is the gateway's: drop it or --expose-control-api")
+        print(EXPOSED_CONTROL_WARNING, file=sys.stderr, flush=True)
+        cmd += ["--host", args.host, "--port", str(args.port)]
+        cmd += _database(args)
+        return _exec(cmd, args)
+    internal = _internal_port(args)
+    cmd += ["--host", "127.0.0.1", "--port", str(internal), *_database(args)]
+    return _gateway(cmd, args, internal, tls)
+
+
+def _internal_port(args: argparse.Namespace) -> int:
+    """Flower's own port on 127.0.0.1 behind the gateway: ``--internal-port``, else --port + 1."""
+    internal = args.port + 1 if args.internal_port is None else args.internal_port
+    for option, port in (("--port", args.port), ("--internal-port", internal)):
+        if not 1 <= port <= 65535:
+            raise FedlgrError(f"{option} {port}: a port is 1 to 65535")
+    if internal == args.port:
+        raise FedlgrError(f"--internal-port {internal}: must differ from --port (the robots')")
+    return internal
+
+
+def _database(args: argparse.Namespace) -> list[str]:
+    return [] if args.database is None else ["--database", str(_absolute(args.database))]
+
+
+def _gateway(
+    cmd: list[str], args: argparse.Namespace, internal: int, tls: tuple[Path, ...] | None
+) -> int:
+    """Print what ``superlink`` runs, then run Flower's ``cmd`` behind the gateway."""
+    from fedlgr.deploy import gateway
+
+    files = None if tls is None else gateway.Tls(*tls)
+    if files is not None and not gateway.covers_loopback(files.cert):
+        raise FedlgrError(
+            f"--certs: {files.cert} does not name 127.0.0.1, where the gateway and Flower's "
+            "own processes reach the SuperLink: make the certificates again with --host "
+            "127.0.0.1 besides the robots' names (fedlgr deploy certs DIR --host NAME --host "
+            "127.0.0.1)"
+        )
+    if args.insecure:
+        _warn_insecure()
+    scheme = "http" if files is None else "https"
+    flwr = ["--insecure"] if files is None else ["--ca", str(files.ca)]
+    connect = ["fedlgr", "deploy", "connect", "NAME", "--superlink", f"127.0.0.1:{internal}"]
+    print(shlex.join(cmd))
+    print(
+        f"fedlgr: the robots' port {scheme}://{args.host}:{args.port} is fedlgr's gateway: "
+        f"POST /v1/fleet/<name> forwarded to {scheme}://127.0.0.1:{internal}, the rest "
+        "refused (403)"
+    )
+    print(
+        "fedlgr: flwr run and flwr supernode register work from this machine only: "
+        + shlex.join([*connect, *flwr]),
+        flush=True,
+    )
+    if args.print_command:
+        return 0
+    from fedlgr.signals import terminate_as_interrupt
+
+    with terminate_as_interrupt():  # SIGTERM (systemd, docker stop) stops Flower too
+        return gateway.run(cmd, _env(Path(cmd[0])), args.host, args.port, internal, files)
 
 
 def supernode(args: argparse.Namespace) -> int:
     exe = _flower("flower-supernode")
     _address(args.superlink)
-    if args.client < 0:
+    if args.client is not None and args.client < 0:
         raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
     if args.threads is not None and args.threads < 1:
         raise FedlgrError(f"--threads {args.threads}: must be 1 or more")
@@ -136,10 +229,24 @@ def supernode(args: argparse.Namespace) -> int:
         cmd.append("--insecure")
     else:
         cmd += ["--root-certificates", str(_existing(args.ca, "--ca", "fedlgr deploy certs"))]
-    if args.key is not None or not args.insecure:
+    if args.insecure and args.key is not None:
+        raise FedlgrError(
+            "--insecure turns TLS off, and SuperNode authentication needs TLS: drop --key "
+            "(or drop --insecure)"
+        )
+    if not args.insecure:
         key = _existing(args.key, "--key", "fedlgr deploy node-key DIR NAME")
         cmd += ["--auth-supernode-private-key", str(key)]
-    settings = [f"data-path={_toml_string(str(data))}", f"client={args.client}"]
+    from fedlgr.data.ratings import read_ratings
+
+    # A broken ratings file is found now, in one line, not when the first run's first
+    # message reaches the robot (the images are decoded then, at the run's image size).
+    read_ratings(data)
+    settings = [f"data-path={_toml_string(str(data))}"]
+    if args.client is not None:
+        settings.append(f"client={args.client}")
+    if args.own_data:
+        settings.append("own-data=true")
     for name, folder in (("state-dir", args.state_dir), ("cache-dir", args.cache_dir)):
         if folder is not None:
             settings.append(f"{name}={_toml_string(str(_absolute(folder)))}")
@@ -177,12 +284,22 @@ def run(args: argparse.Namespace) -> int:
     run_config = (
         f"config={_toml_string(str(config))} overrides={_toml_string(shlex.join(args.overrides))}"
     )
+    if args.resume:
+        run_config += f" resume={_toml_string(args.resume)}"
     link = [args.federation] if args.federation else []
     cmd = [str(flwr), "run", str(APP_DIR), *link, "--stream", "--run-config", run_config]
     print(shlex.join(cmd), flush=True)
     if args.print_command:
         return 0
-    if not config.is_file():
+    if config.is_file():
+        from fedlgr.config import load_config
+        from fedlgr.deploy.roster import roster_of
+
+        # Here, in a second, rather than on the server after the run was submitted and
+        # its ServerApp started (~40 s): a typo is the commonest mistake. The roster too,
+        # as the ServerApp will read it (runs are submitted on the SuperLink's machine).
+        roster_of(load_config(config, args.overrides))
+    else:
         print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
     env = {**_env(flwr), "PYTHONUNBUFFERED": "1"}
     run_id = None
@@ -247,6 +364,9 @@ def _env(exe: Path) -> dict[str, str]:
     env = {**os.environ, "PATH": f"{exe.parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     env.setdefault("FLWR_TELEMETRY_ENABLED", "0")
     env.setdefault("FLWR_DISABLE_UPDATE_CHECK", "1")  # flwr is pinned (pyproject.toml)
+    # How often a SuperExec looks for work (a ServerApp to start on the SuperLink, a
+    # ClientApp per message on a robot): Flower's default of 1 s adds up to 1 s per message.
+    env.setdefault("FLWR_SUPEREXEC_TASK_POLL_INTERVAL", "0.2")
     return env
 
 

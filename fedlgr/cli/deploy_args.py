@@ -62,7 +62,8 @@ def add_parser(verbs) -> None:
         "write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)",
         "node_key",
         "Write DIR/NAME (private: to that robot only) and DIR/NAME.pub (registered with "
-        "flwr supernode register).",
+        "flwr supernode register), and add the robot with its client slot and public key to "
+        "the roster DIR/roster.yaml (a Flower run's deploy.roster).",
     )
     key.add_argument("dir", type=Path, metavar="DIR", help="folder to write the key pair to")
     key.add_argument("name", metavar="NAME", help="the robot's name, e.g. robot0")
@@ -70,6 +71,18 @@ def add_parser(verbs) -> None:
         "--force",
         action="store_true",
         help="replace an existing key pair (a symbolic link there is refused all the same)",
+    )
+    key.add_argument(
+        "--client",
+        type=int,
+        metavar="K",
+        help="the robot's client slot on the roster DIR/roster.yaml (default: its slot if "
+        "NAME is there, else the lowest free one)",
+    )
+    key.add_argument(
+        "--no-roster",
+        action="store_true",
+        help="do not add the robot to DIR/roster.yaml (its SuperNode then takes part in no run)",
     )
 
     sub("app", "print the folder of fedlgr's Flower app (for flwr run)", "app")
@@ -91,14 +104,30 @@ def add_parser(verbs) -> None:
         "superlink",
         "start the SuperLink (the server; runs the ServerApp)",
         "superlink",
-        "Replace this process with flower-superlink: TLS from --certs, SuperNode "
-        "authentication, no installation of dependencies at run time.",
+        "Start flower-superlink on 127.0.0.1:--internal-port (TLS from --certs, SuperNode "
+        "authentication, no installation of dependencies at run time) and serve the robots' "
+        "--host/--port with fedlgr's gateway, which passes on Flower's Fleet API only: flwr "
+        "run and flwr supernode register work from this machine only.",
     )
     link.add_argument("--certs", type=Path, metavar="DIR", help="from fedlgr deploy certs")
     link.add_argument(
         "--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)"
     )
-    link.add_argument("--port", type=int, default=SUPERLINK_PORT, help="default %(default)s")
+    link.add_argument(
+        "--port", type=int, default=SUPERLINK_PORT, help="the robots' port (default %(default)s)"
+    )
+    link.add_argument(
+        "--internal-port",
+        type=int,
+        metavar="PORT",
+        help="Flower's own port on 127.0.0.1, for flwr on this machine (default: --port + 1)",
+    )
+    link.add_argument(
+        "--expose-control-api",
+        action="store_true",
+        help="no gateway: Flower itself on --host/--port with ALL its APIs, so anyone who "
+        "reaches the port can register keys and submit runs (firewalled networks only)",
+    )
     link.add_argument(
         "--database",
         type=Path,
@@ -121,7 +150,20 @@ def add_parser(verbs) -> None:
     node.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
     node.add_argument("--key", type=Path, metavar="KEY", help="the robot's private node key")
     node.add_argument("--data", type=Path, required=True, metavar="DIR", help="MANNERS-DB layout")
-    node.add_argument("--client", type=int, required=True, metavar="K", help="its client index")
+    node.add_argument(
+        "--own-data",
+        action="store_true",
+        help="the robot's own data: all of --data is its shard, split into its own train and "
+        "test scenes by data.seed (default: --data holds the whole dataset and the robot "
+        "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
+    )
+    node.add_argument(
+        "--client",
+        type=int,
+        metavar="K",
+        help="the client slot this robot expects; the roster decides, and a run whose roster "
+        "gives its key another slot is refused by the robot (default: whatever the roster says)",
+    )
     node.add_argument("--state-dir", type=Path, metavar="DIR", help="private state between runs")
     node.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
     node.add_argument(
@@ -164,5 +206,13 @@ def add_parser(verbs) -> None:
         "--federation",
         metavar="NAME",
         help="the SuperLink connection (fedlgr deploy connect NAME; default: flwr's default)",
+    )
+    run.add_argument(
+        "--resume",
+        nargs="?",
+        const="latest",
+        metavar="RUN_ID",
+        help="continue an interrupted Flower run (its MLflow id; default: the latest "
+        "unfinished run of this config) from its newest checkpoint, in the same MLflow run",
     )
     print_command(run)

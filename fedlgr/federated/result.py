@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from fedlgr.config import ExperimentConfig
@@ -63,17 +64,18 @@ class ExperimentResult:
         last = self.final
         scores = ["test_loss", "test_rmse", "test_pcc"]
         costs = ["cpu_s", "wall_s", "bytes_up"]
-        per_round = {n: np.mean([r.column(n) for r in self.rounds], axis=0) for n in costs}
+        # Over the rounds a client took part in (a robot that dropped out has NaN rows).
+        per_round = {n: np.stack([r.column(n) for r in self.rounds]) for n in costs}
         rows = [
             [
                 f"client {c}",
                 *(float(last.column(n)[c]) for n in scores),
-                *(float(per_round[n][c]) for n in costs),
+                *(_nanmean(per_round[n][:, c]) for n in costs),
             ]
             for c in range(len(last.table))
         ]
         rows.append(
-            ["mean", *(last.mean(n) for n in scores), *(float(per_round[n].mean()) for n in costs)]
+            ["mean", *(last.mean(n) for n in scores), *(_nanmean(per_round[n]) for n in costs)]
         )
         for row in rows:
             row[-1] = _human_bytes(row[-1])
@@ -153,8 +155,18 @@ class ExperimentResult:
         return table(["task", "tested on", "loss", "RMSE", "PCC", "forgetting"], rows)
 
 
+def _nanmean(values) -> float:
+    """The mean of the values that are not NaN (NaN when there are none, without numpy's
+    warning)."""
+    import numpy as np
+
+    present = np.asarray(values, dtype=float)
+    present = present[~np.isnan(present)]
+    return float(present.mean()) if present.size else math.nan
+
+
 def _human_bytes(n: float | None) -> str:
-    if n is None:
+    if n is None or math.isnan(n):
         return "-"
     for unit in ("B", "KB", "MB", "GB"):
         if n < 1024 or unit == "GB":

@@ -59,32 +59,69 @@ def save_checkpoint(
     parts = _gather(fabric, part)
     whole: dict[str, Any] = {}
     if parts is not None:
-        whole = {
-            "format": ckpt.FORMAT,
-            "fedlgr": __version__,
-            "run_id": run_id,
-            "round": rounds[-1].round,
-            "config": flatten(orchestrator.config),
-            "server": to_device(state["server"], CPU),
-            "clients": {i: c for p in parts for i, c in p["clients"].items()},
-            "rng": [p["rng"] for p in parts],  # per process
-            "rows": [
-                {"round": r.round, "task": r.task, "table": r.table, "seconds": r.seconds}
-                for r in rounds
-            ],
-            "elapsed": elapsed,
-            "data_digest": digest,  # a resume on other data is refused
-        }
+        clients = {i: c for p in parts for i, c in p["clients"].items()}
+        rng = [p["rng"] for p in parts]  # per process
+        whole = checkpoint_state(
+            orchestrator.config, run_id, rounds, state["server"], clients, rng, elapsed, digest
+        )
     target = folder if folder is not None else Path(".")  # only rank 0's folder is used
     return ckpt.save(fabric, target, rounds[-1].round, whole, keep)
+
+
+def checkpoint_state(
+    config: ExperimentConfig,
+    run_id: str | None,
+    rounds: list[RoundLog],
+    server: dict,
+    clients: dict,
+    rng: list,
+    elapsed: float,
+    digest: str,
+) -> dict[str, Any]:
+    """A run's checkpoint after its last round in ``rounds`` (every runtime's)."""
+    return {
+        "format": ckpt.FORMAT,
+        "fedlgr": __version__,
+        "run_id": run_id,
+        "round": rounds[-1].round,
+        "config": flatten(config),
+        "server": to_device(server, CPU),
+        "clients": clients,
+        "rng": rng,
+        "rows": [
+            {
+                "round": r.round,
+                "task": r.task,
+                "table": r.table,
+                "seconds": r.seconds,
+                "missing": list(r.missing),
+            }
+            for r in rounds
+        ],
+        "elapsed": elapsed,
+        "data_digest": digest,  # a resume on other data is refused
+    }
 
 
 def restore(fabric, orchestrator: Orchestrator, state: dict[str, Any]) -> list[RoundLog]:
     """Load ``state`` into the orchestrator and this process's RNGs; the rounds so far."""
     orchestrator.load_state_dict(state)
     ckpt.set_rng_states(state["rng"][fabric.global_rank])
+    return restored_rounds(state, orchestrator.fields)
+
+
+def restored_rounds(state: dict[str, Any], fields) -> list[RoundLog]:
+    """A checkpoint's rounds (``missing``: robots that dropped out; none before fedlgr
+    recorded them)."""
     return [
-        RoundLog(r["round"], r["task"], orchestrator.fields, np.asarray(r["table"]), r["seconds"])
+        RoundLog(
+            r["round"],
+            r["task"],
+            fields,
+            np.asarray(r["table"]),
+            r["seconds"],
+            tuple(r.get("missing", ())),
+        )
         for r in state["rows"]
     ]
 

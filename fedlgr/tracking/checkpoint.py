@@ -77,7 +77,8 @@ TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
 
 def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) -> Path | None:
     """Write ``state`` as round ``round_``'s checkpoint (rank 0; every process must call
-    this: they wait for rank 0's write); keep the newest ``keep``.
+    this: they wait for rank 0's write); keep the newest ``keep``. ``fabric`` None: a
+    process of its own (the Flower ServerApp).
 
     Not ``Fabric.save``: its atomic write (Lightning's ``_atomic_save``, an fsspec
     transaction) stages the file in ``$TMPDIR`` and moves it into place, so a kill during
@@ -86,19 +87,20 @@ def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) ->
     wrapped modules), which ``torch.save`` writes as Fabric would."""
     path = folder / f"round-{round_:04d}.ckpt"
     error = ""
-    if fabric.global_rank == 0:
+    rank, world = (0, 1) if fabric is None else (fabric.global_rank, fabric.world_size)
+    if rank == 0:
         try:
             _write_atomically(path, encode(state))
         except (OSError, RuntimeError) as err:  # torch.save wraps a failed write in the latter
             error = f"cannot write checkpoint {path}: {_io_reason(err)}"
-    if fabric.world_size > 1:
+    if world > 1:
         error = fabric.broadcast(error, src=0)
     if error:
         raise FedlgrError(
             f"{error}; free space or choose another folder (tracking.checkpoint_dir=...), "
             "then --resume (the checkpoints before it are intact)"
         )
-    if fabric.global_rank != 0:
+    if rank != 0:
         return None
     for old in checkpoints(folder)[:-keep]:
         old.unlink(missing_ok=True)

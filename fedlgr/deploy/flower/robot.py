@@ -5,12 +5,15 @@
 orchestrator runs. It runs inside the robot service (:mod:`.service`), a long-lived
 process per robot, so torch, the data and the models are loaded once, not per message.
 
-The robot's SuperNode says where its data is and which client it is (``--node-config
-'data-path="/data/manners-db" client=0'``; optional ``state-dir``, ``cache-dir``,
-``weights``, ``threads``). The server sends the run's resolved config with every message;
-the robot reads it as data (:func:`robot_config`: no interpolation, no ``includes``, and
-every path it reads or writes is its SuperNode's, never the server's), loads its folder
-and takes its shard (``data.clients`` and ``data.seed`` fix the split, as in ``fedlgr run``).
+The robot's SuperNode says where its data is (``--node-config
+'data-path="/data/manners-db"'``; optional: ``client``, the slot it expects, and
+``state-dir``, ``cache-dir``, ``weights``, ``threads``); the server says which client it
+is (its slot on the roster). The server sends the run's resolved config with every
+message; the robot reads it as data (:func:`robot_config`: no interpolation, no
+``includes``, and every path it reads or writes is its SuperNode's, never the server's),
+loads its folder and takes its shard (``data.clients`` and ``data.seed`` fix the split, as
+in ``fedlgr run``) - or, with ``own-data`` (``fedlgr deploy supernode --own-data``), the
+whole folder: the robot's own scenes, split into its train and test scenes.
 
 Its private state - the top, the optimiser, FedLGR's generator and labeller, CL
 importance and memories, the batch generators - never leaves: it is kept in memory and
@@ -28,10 +31,10 @@ import yaml
 
 from fedlgr.config import ExperimentConfig, check_data, config_from_data, to_yaml
 from fedlgr.deploy.flower import wire
-from fedlgr.deploy.flower.service import state_dir
+from fedlgr.deploy.flower.service import encode, state_dir
 from fedlgr.errors import FedlgrError
 
-_robots: dict[tuple[int, int], Robot] = {}  # (Flower run id, client): while the service lives
+_robots: dict[tuple[int | str, int], Robot] = {}  # (run, client): while the service lives
 SERVER = "the server's config"
 WEIGHTS = ("none", "imagenet")  # model.weights values that name no file
 
@@ -39,9 +42,10 @@ WEIGHTS = ("none", "imagenet")  # model.weights values that name no file
 def node_setting(node_config: dict, key: str, default=None):
     value = node_config.get(key, default)
     if value is None:
+        hint = " (a run without a roster, deploy.roster=none, takes it from there)"
         raise FedlgrError(
-            f"SuperNode --node-config lacks {key!r}: start it with "
-            "--node-config 'data-path=\"/path/to/data\" client=0'"
+            f"SuperNode --node-config lacks {key!r}{hint if key == 'client' else ''}: start "
+            "it with fedlgr deploy supernode --data DIR [--client K]"
         )
     return value
 
@@ -49,7 +53,7 @@ def node_setting(node_config: dict, key: str, default=None):
 class Robot:
     """One robot's client between messages: built once per process, state on disk."""
 
-    def __init__(self, config: ExperimentConfig, client: int, folder: Path):
+    def __init__(self, config: ExperimentConfig, client: int, folder: Path, own_data: bool = False):
         import torch
         from lightning.fabric import seed_everything
 
@@ -69,24 +73,59 @@ class Robot:
             torch.set_num_threads(torch_threads(config, 1))
         seed_everything(config.seed, verbose=False)
         scenes = load_scenes(config.data)
-        split = make_split(scenes.table, config.data)
+        split = own_split(scenes.table, config, client) if own_data else None
+        split = split or make_split(scenes.table, config.data)
         self.side = ClientSide(config, scenes, split, [client], fabric.device, fabric.autocast)
         self.client = self.side.clients[0]
         self.path = folder / f"client-{client}.ckpt"
         self.started, self.ended = -1, -1  # the last task begun and ended
+        self.trained = -1  # the last round trained
+        # The last message answered ([kind, round, round evaluated first or -1]) and the
+        # reply (Flower's encoding): asked again - a server that died after this robot
+        # answered and was resumed - the robot sends the same reply, and trains nothing.
+        self.answered: list | None = None
+        self.reply = b""
         if self.path.is_file():
             from fedlgr.tracking import checkpoint as ckpt
 
             state = ckpt.load(self.path)
             self.side.load_state_dict(ckpt.to_device({client: state["client"]}, fabric.device))
             self.started, self.ended = state["started"], state["ended"]
+            self.trained = state.get("trained", -1)
+            self.answered, self.reply = state.get("answered"), state.get("reply", b"")
             print(f"client {client}: private state restored from {self.path}", flush=True)
 
     def save(self) -> None:
         from fedlgr.tracking import checkpoint as ckpt
 
-        state = ckpt.to_device(self.client.state_dict(), "cpu")
-        ckpt.write(self.path, {"client": state, "started": self.started, "ended": self.ended})
+        state = {
+            "client": ckpt.to_device(self.client.state_dict(), "cpu"),
+            "started": self.started,
+            "ended": self.ended,
+            "trained": self.trained,
+            "answered": self.answered,
+            "reply": self.reply,
+        }
+        ckpt.write(self.path, state)
+
+    def answer(self, identity: list, work) -> bytes:
+        """``work()``'s reply content, encoded, written to disk with the state it leaves;
+        the reply already sent when ``identity`` is the message answered last."""
+        if identity == self.answered and self.reply:
+            print(f"{identity[0]} of round {identity[1]} answered before: same reply", flush=True)
+            return self.reply
+        if identity[0] == "train" and identity[1] <= self.trained:
+            raise FedlgrError(
+                f"round {identity[1]}: this robot has trained round {self.trained} already - "
+                "the server was resumed from an older checkpoint than the robot's state "
+                "(resume a Flower run with tracking.checkpoint=1)"
+            )
+        reply = encode(work())
+        self.answered, self.reply = identity, reply
+        if identity[0] == "train":
+            self.trained = identity[1]
+        self.save()
+        return reply
 
     def train(self, ins):
         """The round's training; a robot that missed a task's last round ends that task
@@ -101,27 +140,40 @@ class Robot:
             ins = dataclasses.replace(ins, plan=dataclasses.replace(plan, first_of_task=True))
         [res] = self.side.train(ins)
         self.started = plan.task
-        self.save()
         return res
 
     def evaluate(self, ins):
         [res] = self.side.evaluate(ins)
         if ins.plan.last_of_task:
             self.ended = ins.plan.task
-        self.save()
         return res
 
 
-def robot(run_id: int, node_config: dict, config_yaml: str) -> Robot:
-    """This node's robot for the message's run (built on the run's first message)."""
-    client = int(node_setting(node_config, "client"))
+def own_split(table, config: ExperimentConfig, client: int):
+    """A robot's own folder as its whole shard: its scenes split into train and test by
+    ``data.seed`` and ``data.test_fraction``, its tasks as configured - the split of a
+    one-client run, labelled ``client``."""
+    from fedlgr.data.splits import FederatedSplit, make_split
+
+    one = make_split(table, dataclasses.replace(config.data, clients=1))
+    shard = dataclasses.replace(one.clients[0], client=client)
+    return FederatedSplit(one.train, one.test, one.test_tasks, [shard])
+
+
+def robot(run_id: int | str, node_config: dict, config_yaml: str, slot: int | None = None) -> Robot:
+    """This node's robot for the message's run (built on the run's first message), as
+    client ``slot`` - the roster's, sent by the server - or, in a run without a roster,
+    the client its SuperNode names."""
+    # (a slot other than the SuperNode's --client is refused by the ClientApp already)
+    client = int(node_setting(node_config, "client")) if slot is None else slot
     key = (run_id, client)
     if key not in _robots:
         config = robot_config(node_config, config_yaml)
         folder = state_dir(node_config) / f"run-{run_id}"
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "config.yaml").write_text(to_yaml(config))  # what this robot runs
-        _robots[key] = Robot(config, client, folder)
+        own = str(node_config.get("own-data", "false")).lower() == "true"
+        _robots[key] = Robot(config, client, folder, own_data=own)
     return _robots[key]
 
 
@@ -176,12 +228,24 @@ def _section(settings: dict, name: str) -> dict:
     return section
 
 
-def handle(kind: str, run_id: int, node_config: dict, content):
-    """The reply content to a ``train`` or ``evaluate`` message's content."""
+def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
+    """The reply (Flower's encoding of its content) to a ``train`` or ``evaluate``
+    message's content. The robot's state is kept under the run the server names (its
+    MLflow run: a resumed run is a new Flower run), else under the Flower run."""
+    slot, run = wire.slot(content), wire.run_key(content) or str(run_id)
     if kind == "train":
-        ins, config_yaml = wire.decode_train_ins(content)
-        return wire.encode_train_res(robot(run_id, node_config, config_yaml).train(ins))
+        ins, evaluate, config_yaml = wire.decode_train_ins(content)
+        client = robot(run, node_config, config_yaml, slot)
+        identity = ["train", ins.plan.round, -1 if evaluate is None else evaluate.plan.round]
+
+        def work():
+            evaluated = None if evaluate is None else client.evaluate(evaluate)  # last round's
+            return wire.encode_train_res(client.train(ins), evaluated)
+
+        return client.answer(identity, work)
     if kind == "evaluate":
         ins, config_yaml = wire.decode_evaluate_ins(content)
-        return wire.encode_evaluate_res(robot(run_id, node_config, config_yaml).evaluate(ins))
+        client = robot(run, node_config, config_yaml, slot)
+        identity = ["evaluate", ins.plan.round, ins.plan.round]
+        return client.answer(identity, lambda: wire.encode_evaluate_res(client.evaluate(ins)))
     raise FedlgrError(f"unknown message type {kind!r} (fedlgr answers train and evaluate)")

@@ -9,17 +9,30 @@ which speaks to the robots with :mod:`fedlgr.deploy.flower.wire` messages and ag
 with :class:`fedlgr.federated.server_side.ServerSide`, the very code of the in-process
 runs.
 
+Exchanges: with ``deploy.evaluate=with_next_round`` (the default) a round costs one
+exchange - each robot evaluates the new global tensors at the start of the next round's
+training message, and one last evaluate message ends the run; ``separate`` sends a train
+and an evaluate message every round (what a robot reports for round r then does not wait
+for round r + 1).
+
 Drop-outs: each exchange waits ``deploy.round_timeout_s`` at most; the round aggregates
 the uploads that arrived if there are at least ``deploy.min_clients`` of them (default:
-all clients), records the missing clients (NaN rows, ``round/missing_clients``, tag
-``fedlgr.missing``), and a robot that comes back is sent the global tensors with its
-next training message. Checkpoints and ``--resume`` are not available here yet: the
-robots' state is on the robots.
+half the robots, at least one), records the missing clients (NaN rows,
+``round/missing_clients``, tag ``fedlgr.missing``), and a robot that comes back is sent
+the global tensors with its next training message. A robot that drops out while it
+answers a combined message misses the evaluation of the round before too.
+
+Checkpoints: what the server holds is checkpointed every ``tracking.checkpoint`` rounds as
+``fedlgr run`` does (:meth:`FlowerRounds.save`); ``fedlgr deploy run CONFIG --resume``
+continues the same MLflow run from the newest one. The robots keep their own state under
+the MLflow run's id, and a robot asked again what it last answered (the server died after
+it answered) sends the same reply again.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import shlex
 import time
 
@@ -27,7 +40,9 @@ from flwr.app import Context, Message, RecordDict
 from flwr.serverapp import Grid, ServerApp
 
 from fedlgr.config import ExperimentConfig, load_config, to_yaml
+from fedlgr.continual.schedule import schedule
 from fedlgr.deploy.flower import wire
+from fedlgr.deploy.roster import roster_of
 from fedlgr.errors import FedlgrError
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainRes
 from fedlgr.federated.rounds import RoundLog
@@ -37,6 +52,12 @@ app = ServerApp()
 POLL_S = 0.2  # how often the server asks the SuperLink for replies
 
 
+def quorum(clients: int) -> int:
+    """The uploads a round needs by default (``deploy.min_clients``): half the robots,
+    at least one - one robot's drop-out does not end a run."""
+    return max(1, math.ceil(clients / 2))
+
+
 class FlowerRounds:
     """``run_round`` for :func:`drive`, with the clients on the robots."""
 
@@ -44,12 +65,70 @@ class FlowerRounds:
 
     def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
         self.grid, self.config, self.echo = grid, config, echo
+        self.roster = roster_of(config)
         self.server = ServerSide(config)
         self.fields = self.server.fields
         self.config_yaml = to_yaml(config)
         self.holders: set[int] = set()  # nodes that hold the current global tensors
-        self.min_clients = config.deploy.min_clients or config.data.clients
+        self.min_clients = config.deploy.min_clients or quorum(config.data.clients)
         self.joined = False
+        self.steps = schedule(config)
+        # (plan, uploads by client, bytes down by node, failures by node) of the next
+        # round, trained in the exchange that evaluated this one (with_next_round)
+        self.pending: tuple[RoundPlan, dict, dict[int, int], dict[int, str]] | None = None
+        self.slots: dict[int, int | None] = {}  # admitted node -> its client (None: no roster)
+        self.names: dict[int, str] = {}  # admitted node -> "robot0 (client 0)"
+        self.refused: dict[int, str] = {}  # node -> why it is sent nothing
+        self.failures: dict[int, str] = {}  # node -> its error in the last exchange
+        self.run_id: str | None = None  # the MLflow run (for tags), once it exists
+        self.tags: dict[str, str] = {}
+        self.missed: list[str] = []  # "round 2: robot1 (client 1)"
+
+    # ------------------------------------------------------------------ who takes part
+
+    def online(self) -> list[int]:
+        """The admitted nodes online now, by client slot. A node seen for the first time is
+        admitted if the roster lists the key the SuperLink authenticated it with (its slot
+        is the roster's), else refused - named, tagged and never sent a message."""
+        nodes = list(self.grid.get_nodes())
+        for info in nodes:
+            node = info.node_id
+            if node in self.slots or node in self.refused:
+                continue
+            if self.roster is None:
+                self.slots[node], self.names[node] = None, f"node {node}"
+                continue
+            member = self.roster.member(bytes(info.public_key))
+            if member is None:
+                key = _fingerprint(bytes(info.public_key))
+                self.refuse(node, f"its key {key} is not on the roster {self.roster.path}")
+            elif member.client >= self.config.data.clients:
+                self.refuse(node, f"{member}: the run has data.clients={self.config.data.clients}")
+            else:
+                self.slots[node], self.names[node] = member.client, str(member)
+                self.echo(f"{member} is online (node {node})")
+        here = {info.node_id for info in nodes}
+        admitted = [n for n in self.slots if n in here and n not in self.refused]
+        return sorted(admitted, key=lambda n: (self.slots[n] is None, self.slots[n] or 0, n))
+
+    def refuse(self, node: int, why: str) -> None:
+        self.refused[node] = why
+        self.slots.pop(node, None)
+        self.echo(f"refused node {node}: {why}; it is sent no work")
+        self.tag("fedlgr.refused", "; ".join(f"node {n}: {w}" for n, w in self.refused.items()))
+
+    def started(self, run_id: str) -> None:
+        """:class:`Hooks` ``on_start``: the MLflow run exists; tags said before go to it."""
+        self.run_id = run_id
+        for key, value in self.tags.items():
+            self.tag(key, value)
+
+    def tag(self, key: str, value: str) -> None:
+        self.tags[key] = value
+        if self.run_id is not None and self.config.tracking.enabled:
+            from fedlgr.tracking.mlflow_run import open_client, tracking_uri
+
+            open_client(tracking_uri(self.config)).set_tag(self.run_id, key, value[:5000])
 
     def wait_for_robots(self) -> None:
         """Until every client's robot has joined, or ``deploy.join_timeout_s``."""
@@ -59,23 +138,35 @@ class FlowerRounds:
         )
         nodes: list[int] = []
         while time.monotonic() < deadline:
-            nodes = list(self.grid.get_node_ids())
+            nodes = self.online()
             if len(nodes) >= want:
                 break
-            time.sleep(1.0)
+            time.sleep(0.5)
         if len(nodes) < self.min_clients:
             raise FedlgrError(
                 f"{len(nodes)} of {want} robots joined within deploy.join_timeout_s="
                 f"{self.config.deploy.join_timeout_s:g} (deploy.min_clients={self.min_clients})"
             )
-        self.echo(f"{len(nodes)} robots joined (nodes {', '.join(map(str, sorted(nodes)))})")
+        self.echo(f"{len(nodes)} of {want} robots joined: {', '.join(self.name(n) for n in nodes)}")
+        self.tag("fedlgr.robots", ", ".join(self.name(n) for n in nodes))
         self.joined = True
 
-    def exchange(self, kind: str, contents: dict[int, RecordDict], round_: int):
+    def name(self, node: int) -> str:
+        return self.names.get(node, f"node {node}")
+
+    # ------------------------------------------------------------------ messages
+
+    def exchange(self, kind: str, contents: dict[int, RecordDict], round_: int, label: str = ""):
         """Send ``contents`` (node -> message content); the replies that came back in
-        time, by node. Error replies (a robot's exception) are reported, not raised."""
+        time, by node. Error replies (a robot's exception) are reported, not raised: a
+        robot whose SuperNode claims a slot the roster does not give it is refused."""
         messages = [
-            Message(content, dst_node_id=node, message_type=kind, group_id=str(round_))
+            Message(
+                wire.stamp_run(content, self.run_id or ""),
+                dst_node_id=node,
+                message_type=kind,
+                group_id=str(round_),
+            )
             for node, content in contents.items()
         ]
         # Grid.send_and_receive polls every 3 s: up to 6 s idle per round for two
@@ -95,14 +186,22 @@ class FlowerRounds:
         # robot is the one the message was sent to.
         to_node = {m.metadata.message_id: m.metadata.dst_node_id for m in messages}
         out = {}
+        self.failures = {}
         for reply in replies:
             node = to_node.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
             if reply.has_error():
-                self.echo(f"round {round_}, {kind}: node {node} failed: {reply.error.reason}")
+                reason = " ".join(str(reply.error.reason).split())
+                self.failures[node] = reason
+                self.echo(f"round {round_}, {label or kind}: {self.name(node)} failed: {reason}")
+                if "the run's roster gives its key client" in reason:
+                    self.refuse(node, f"{self.name(node)} claims another slot")
             else:
                 out[node] = reply
+        silent = [self.name(n) for n in contents if n not in out and n not in self.failures]
+        late = f"; no reply from {', '.join(silent)}" if silent else ""
         self.echo(
-            f"round {round_}, {kind}: {len(out)} of {len(messages)} replies ({seconds:.1f} s)"
+            f"round {round_}, {label or kind}: {len(out)} of {len(messages)} replies "
+            f"({seconds:.1f} s){late}"
         )
         return out
 
@@ -114,52 +213,211 @@ class FlowerRounds:
         last_of_task: bool = False,
         progress=None,
     ) -> RoundLog:
+        """One round: its training (or the uploads the previous round's exchange brought
+        back), aggregation, and its evaluation - with ``deploy.evaluate=with_next_round``
+        in the same exchange as the next round's training."""
         if not self.joined:
             self.wait_for_robots()
         start = time.perf_counter()
         plan = RoundPlan(round_, task, first_of_task, last_of_task)
-        nodes = sorted(self.grid.get_node_ids())
-        down: dict[int, int] = {}
-        contents = {}
-        for node in nodes:
-            ins = self.server.train_ins(plan, holds_global=node in self.holders)
-            contents[node] = wire.encode_train_ins(ins, self.config_yaml)
-            down[node] = wire.payload_bytes(contents[node])
-        trained: dict[int, tuple[int, TrainRes, int]] = {}  # client -> (node, upload, bytes)
-        for node, reply in self.exchange("train", contents, round_).items():
-            res = wire.decode_train_res(reply.content)
-            if res.client in trained:
-                self.echo(
-                    f"round {round_}: nodes {trained[res.client][0]} and {node} both "
-                    f"serve client {res.client}; node {node}'s upload is ignored"
-                )
-                continue
-            trained[res.client] = (node, res, wire.payload_bytes(reply.content))
-        self.holders = set()
+        if self.pending is not None and self.pending[0] == plan:
+            _, trained, down, failures = self.pending
+        else:
+            trained, down = self.train(plan)
+            failures = dict(self.failures)
+        self.pending = None
         if len(trained) < self.min_clients:
+            causes = "".join(f"; {self.name(n)}: {why}" for n, why in failures.items())
             raise FedlgrError(
                 f"round {round_}: {len(trained)} of {self.config.data.clients} robots sent "
                 f"their update within deploy.round_timeout_s={self.config.deploy.round_timeout_s:g}"
-                f" (deploy.min_clients={self.min_clients})"
+                f" (deploy.min_clients={self.min_clients}){causes}"
             )
         # In client order, as in one process: the same sums to the last bit.
         self.server.aggregate(trained[c][1] for c in sorted(trained))
-        ins = EvaluateIns(plan, self.server.global_weights)
-        contents = {
-            node: wire.encode_evaluate_ins(ins, self.config_yaml) for node, _, _ in trained.values()
-        }
-        rows = {}
-        for node, reply in self.exchange("evaluate", contents, round_).items():
-            res = wire.decode_evaluate_res(reply.content)
-            if res.client not in trained or trained[res.client][0] != node:
-                continue
-            self.holders.add(node)
-            _, upload, up = trained[res.client]
-            received = down[node] + wire.payload_bytes(contents[node])
-            rows[res.client] = self.server.row(upload, res, up, received)
+        evaluate = EvaluateIns(plan, self.server.global_weights)
+        after = self.next_plan(round_)
+        contents, received = {}, {}
+        serving = {node: client for client, (node, _, _) in trained.items()}
+        if after is None:
+            kind = "evaluate"
+            for node in serving:
+                contents[node] = wire.encode_evaluate_ins(
+                    evaluate, self.config_yaml, self.slots.get(node)
+                )
+        else:
+            kind = "train"
+            following_plan = RoundPlan(*after)
+            for node in sorted({*self.online(), *(n for n in serving if n in self.slots)}):
+                slot = self.slots.get(node)
+                if node in serving:  # evaluates this round's tensors, then trains on them
+                    ins = self.server.train_ins(following_plan)
+                    contents[node] = wire.encode_train_ins(ins, self.config_yaml, evaluate, slot)
+                else:  # missed this round: trains the next one on the tensors it is sent
+                    ins = self.server.train_ins(following_plan, holds_global=False)
+                    contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
+        for node, content in contents.items():
+            received[node] = wire.payload_bytes(content)
+        rows, following = {}, {}
+        self.holders = set()
+        label = kind if after is None else f"evaluate + round {round_ + 1} train"
+        for node, reply in self.exchange(kind, contents, round_, label).items():
+            if kind == "evaluate":
+                res = wire.decode_evaluate_res(reply.content)
+            else:
+                res = wire.decode_evaluated(reply.content)
+                self.keep_upload(following, node, reply, round_ + 1)
+            if res is not None and serving.get(node) == res.client:
+                self.holders.add(node)
+                _, upload, up = trained[res.client]
+                rows[res.client] = self.server.row(upload, res, up, down[node] + received[node])
+        if after is not None:
+            # what the next round's rows count as downloaded: nothing more for a robot that
+            # evaluated here (the tensors served both), the tensors for one that missed it
+            following_down = {
+                n: 0 if n in serving else received[n] for n, _, _ in following.values()
+            }
+            self.pending = (following_plan, following, following_down, dict(self.failures))
         missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
+        if missing:
+            by_client = {c: self.name(n) for c, (n, _, _) in trained.items()}
+            by_client |= {s: self.names[n] for n, s in self.slots.items() if s is not None}
+            self.missed.append(
+                f"round {round_}: " + ", ".join(by_client.get(c, f"client {c}") for c in missing)
+            )
+            self.tag("fedlgr.missing_robots", "; ".join(self.missed))
         seconds = time.perf_counter() - start
         return self.server.round_log(plan, self.server.table(rows), seconds, missing)
+
+    def next_plan(self, round_: int) -> tuple[int, int, bool, bool] | None:
+        """The plan of the round after ``round_`` where its training goes with this
+        round's evaluation (``deploy.evaluate=with_next_round``), else None."""
+        if self.config.deploy.evaluate != "with_next_round" or round_ >= len(self.steps):
+            return None
+        step = self.steps[round_]  # steps are 1-based rounds: this is round_ + 1
+        return step.round, step.task, step.first_of_task, step.last_of_task
+
+    def train(self, plan: RoundPlan):
+        """A training exchange of its own (round 1, ``deploy.evaluate=separate``): the
+        uploads by client, and each node's bytes down."""
+        down: dict[int, int] = {}
+        contents = {}
+        for node in self.online():
+            ins = self.server.train_ins(plan, holds_global=node in self.holders)
+            contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=self.slots[node])
+            down[node] = wire.payload_bytes(contents[node])
+        trained: dict[int, tuple[int, TrainRes, int]] = {}  # client -> (node, upload, bytes)
+        for node, reply in self.exchange("train", contents, plan.round).items():
+            self.keep_upload(trained, node, reply, plan.round)
+        return trained, down
+
+    def keep_upload(self, trained: dict, node: int, reply: Message, round_: int) -> None:
+        res = wire.decode_train_res(reply.content)
+        slot = self.slots.get(node)
+        if slot is not None and res.client != slot:
+            self.echo(
+                f"round {round_}: {self.name(node)} sent client {res.client}'s upload; ignored"
+            )
+            return
+        if res.client in trained:
+            self.echo(
+                f"round {round_}: {self.name(trained[res.client][0])} and {self.name(node)} "
+                f"both serve client {res.client}; {self.name(node)}'s upload is ignored"
+            )
+            return
+        trained[res.client] = (node, res, wire.payload_bytes(reply.content))
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict:
+        """What the server holds between rounds: the global tensors, the strategy's state,
+        the uploads of the next round already trained (one exchange per round), which
+        robots hold the global tensors, and the drop-outs so far. The robots keep theirs."""
+        pending = None
+        if self.pending is not None:
+            plan, trained, down, failures = self.pending
+            uploads = {c: [n, _upload_state(res), b] for c, (n, res, b) in trained.items()}
+            pending = {
+                "plan": [plan.round, plan.task, plan.first_of_task, plan.last_of_task],
+                "uploads": uploads,
+                "down": down,
+                "failures": failures,
+            }
+        return {
+            "server": self.server.state_dict(),
+            "pending": pending,
+            "holders": sorted(self.holders),
+            "missed": list(self.missed),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.server.load_state_dict(state["server"], "cpu")
+        self.holders = set(state["holders"])
+        self.missed = list(state["missed"])
+        pending = state["pending"]
+        if pending is not None:
+            trained = {
+                int(c): (n, _upload(res), b) for c, (n, res, b) in pending["uploads"].items()
+            }
+            plan = RoundPlan(*pending["plan"])
+            self.pending = (plan, trained, dict(pending["down"]), dict(pending["failures"]))
+
+    def save(self, folder, rounds: list[RoundLog], run_id, elapsed, keep, digest=""):
+        """``drive``'s checkpoint: what ``fedlgr run`` writes, with this server's state and
+        no clients (they are on the robots)."""
+        from fedlgr.federated.resume import checkpoint_state
+        from fedlgr.tracking import checkpoint as ckpt
+
+        rng = [ckpt.rng_states()]
+        whole = checkpoint_state(
+            self.config, run_id, rounds, self.state_dict(), {}, rng, elapsed, digest
+        )
+        return ckpt.save(None, folder, rounds[-1].round, whole, keep)
+
+    def restore(self, state: dict) -> list[RoundLog]:
+        """Load a checkpoint (:meth:`save`); the rounds so far."""
+        from fedlgr.federated.resume import restored_rounds
+        from fedlgr.tracking import checkpoint as ckpt
+
+        self.load_state_dict(state["server"])
+        ckpt.set_rng_states(state["rng"][0])
+        return restored_rounds(state, self.fields)
+
+
+def _upload_state(res: TrainRes) -> dict:
+    u = res.usage
+    return {
+        "client": res.client,
+        "weights": res.weights,
+        "n_samples": res.n_samples,
+        "samples": res.samples,
+        "loss": res.loss,
+        "usage": [u.cpu_s, u.wall_s, u.gpu_util, u.gpu_mem_mb],
+    }
+
+
+def _upload(state: dict) -> TrainRes:
+    from fedlgr.tracking.resources import Usage
+
+    return TrainRes(
+        state["client"],
+        state["weights"],
+        state["n_samples"],
+        state["samples"],
+        state["loss"],
+        Usage(*state["usage"]),
+    )
+
+
+def _fingerprint(public_key: bytes) -> str:
+    from cryptography.exceptions import UnsupportedAlgorithm
+
+    from fedlgr.deploy.roster import fingerprint
+
+    try:
+        return fingerprint(public_key)
+    except (ValueError, TypeError, UnsupportedAlgorithm):
+        return "(none: no SuperNode authentication)"
 
 
 def config_of(context: Context) -> ExperimentConfig:
@@ -171,10 +429,41 @@ def config_of(context: Context) -> ExperimentConfig:
 
 @app.main()
 def main(grid: Grid, context: Context) -> None:
-    from fedlgr.federated.experiment import Hooks, drive
+    from pathlib import Path
+
+    from fedlgr.federated.experiment import Hooks, Resumed, drive
 
     echo = functools.partial(print, flush=True)
     config = config_of(context)
     rounds = FlowerRounds(grid, config, echo)
+    resumed = None
+    resume = str(context.run_config.get("resume", ""))
+    if resume:  # fedlgr deploy run CONFIG --resume [RUN_ID]
+        from fedlgr.federated.resume import find_checkpoint, load_checkpoint
+        from fedlgr.tracking import owner
+        from fedlgr.tracking.mlflow_run import open_client, tracking_uri
+
+        if not config.tracking.enabled:
+            raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
+        which = True if resume == "latest" else resume
+        run_id, path = find_checkpoint(config, which, open_client(tracking_uri(config)))
+        try:
+            state = load_checkpoint(config, run_id, path)
+        except BaseException:
+            owner.release(path.parent)
+            raise
+        folder = Path(state["path"]).parent
+        resumed = Resumed(
+            run_id, rounds.restore(state), state["elapsed"], folder, state["data_digest"]
+        )
     tags = {"runtime": "flower", "flower.run_id": str(context.run_id)}
-    drive(rounds, config, Hooks(echo), tags=tags, what="robots behind a Flower SuperLink")
+    hooks = Hooks(echo, on_start=rounds.started)
+    drive(
+        rounds,
+        config,
+        hooks,
+        tags=tags,
+        what="robots behind a Flower SuperLink",
+        resumed=resumed,
+        save=rounds.save,
+    )

@@ -23,6 +23,7 @@ import fcntl
 import hashlib
 import json
 import os
+import signal
 import socket
 import struct
 import subprocess
@@ -165,6 +166,9 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
     server.listen()
     server.settimeout(idle_s)
     (folder / "robot.pid").write_text(str(os.getpid()))
+    # SIGTERM (a supervisor's stop, a shutdown) leaves through the finally below: no stale
+    # robot.pid or robot.sock.
+    signal.signal(signal.SIGTERM, _leave)
     print(f"robot service {os.getpid()} listening on {path}", flush=True)
     try:
         while True:
@@ -176,23 +180,40 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
             with conn:
                 try:
                     _answer(conn, handle)
+                except _Probe:  # start() checking that the service listens
+                    pass
                 except OSError as err:  # the ClientApp went away (its SuperNode was killed)
                     print(f"could not answer: {err}", flush=True)
+    except _Stopped:
+        print("SIGTERM: leaving", flush=True)
     finally:
         server.close()
         path.unlink(missing_ok=True)
         (folder / "robot.pid").unlink(missing_ok=True)
 
 
+class _Probe(Exception):
+    """A connection closed before it sent a byte: a check that the service listens."""
+
+
+class _Stopped(Exception):
+    """SIGTERM."""
+
+
+def _leave(signum, frame) -> None:
+    raise _Stopped
+
+
 def _answer(conn: socket.socket, handle) -> None:
     conn.settimeout(None)
+    first = conn.recv(1, socket.MSG_PEEK)
+    if not first:
+        raise _Probe
     header, payload = _receive(conn)
     print(f"run {header['run_id']}: {header['kind']} received", flush=True)
     started = time.perf_counter()
     try:
-        reply = encode(
-            handle(header["kind"], header["run_id"], header["node_config"], decode(payload))
-        )
+        reply = handle(header["kind"], header["run_id"], header["node_config"], decode(payload))
     except Exception as err:  # the robot's failure goes back to the server as the reply
         traceback.print_exc()
         _send(conn, {"ok": False, "error": reply_error(err)}, b"")

@@ -1,0 +1,150 @@
+"""A Flower round's wall time, today's protocol against the one before issue 21.
+
+Two real federations on localhost, each a SuperLink with TLS and SuperNode authentication
+and two SuperNodes started with ``fedlgr deploy`` as the README says
+(``tests/flower_federation``): one runs this checkout, the other the commit ``--before``
+(default fa15ccd, the last before issue 21: a train and an evaluate exchange per round,
+one Flower ``Array`` per tensor, no gateway), from a git worktree put first on
+``PYTHONPATH``. Each runs FedRootAvg for 3 rounds on the tiny debug config with its robot
+services warm (a 1-round run first), alternating, ``--repeats`` times. Each run's output
+is read line by line and stamped: the table shows the time to the ServerApp's first line,
+the exchanges and what follows the last one. Last, the time ``fedlgr deploy run`` takes to
+report a config typo.
+
+    uv run python bench/flower.py [--repeats 2] [--rounds 3] [--before fa15ccd]
+
+Run it on a quiet machine: the exchanges wait on processes that Flower starts, and any
+other work on the cores stretches them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fedlgr.data.synth import synthesize  # noqa: E402
+from tests.flower_federation import Federation  # noqa: E402
+
+CONFIG = ROOT / "conf" / "debug" / "tiny.yaml"
+EXCHANGE = re.compile(r"round (\d+), [^:]*(train|evaluate): (\d+) of (\d+) replies \(([\d.]+) s\)")
+
+
+def timed_run(fed, overrides: list[str]) -> dict:
+    """One ``fedlgr deploy run``: its wall time, phases and exit status."""
+    started = time.monotonic()
+    proc = fed.run(CONFIG, overrides)
+    first = last_exchange = None
+    exchanges: list[float] = []
+    lines = []
+    for line in proc.stdout:
+        now = time.monotonic() - started
+        lines.append(line)
+        if first is None and " rounds x " in line:
+            first = now
+        found = EXCHANGE.search(line)
+        if found:
+            exchanges.append(float(found.group(5)))
+            last_exchange = now
+    proc.wait()
+    wall = time.monotonic() - started
+    if proc.returncode != 0:
+        sys.exit("".join(lines[-40:]) + f"\nbench: the run failed (exit {proc.returncode})")
+    return {"wall": wall, "first": first, "exchanges": exchanges, "after": wall - last_exchange}
+
+
+def old_federation(folder: Path, before: str):
+    """A federation running commit ``before`` (a worktree first on PYTHONPATH)."""
+    tree = folder / "before"
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), before],
+        check=True,
+        capture_output=True,
+    )
+    spec = importlib.util.spec_from_file_location(
+        "before_federation", tree / "tests" / "flower_federation.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    fed = module.Federation(folder / "federation-before")
+    fed.env["PYTHONPATH"] = str(tree)
+    return fed, tree
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--before", default="fa15ccd", help="the commit to compare with")
+    args = parser.parse_args()
+    folder = Path(tempfile.mkdtemp(prefix="fedlgr-bench-flower-"))
+    data = folder / "data"
+    synthesize(data, scenes=48, seed=7, size=32)
+    store = f"sqlite:///{folder}/mlflow.db"
+    now = Federation(folder / "federation")
+    before, tree = old_federation(folder, args.before)
+    feds = {f"before ({args.before})": before, "now": now}
+    results: dict[str, list[dict]] = {name: [] for name in feds}
+    base = [f"data.path={data}", f"tracking.uri={store}", "method=FedRootAvg"]
+    extra = {"now": [f"deploy.roster={now.roster}"], f"before ({args.before})": []}
+    try:
+        for name, fed in feds.items():
+            fed.start_superlink()
+            for client, robot in enumerate(("robot0", "robot1")):
+                fed.start_supernode(robot, fed.node_key(robot), client, data)
+            print(f"{name}: warming the robot services (a 1-round run) ...", flush=True)
+            warm = [*base, *extra[name], "federated.rounds=1", f"tracking.run_name=warm-{name}"]
+            print(f"  {timed_run(fed, warm)['wall']:.1f} s", flush=True)
+        for repeat in range(args.repeats):
+            order = list(feds) if repeat % 2 == 0 else list(reversed(feds))
+            for name in order:
+                overrides = [*base, *extra[name], f"federated.rounds={args.rounds}"]
+                run = timed_run(feds[name], [*overrides, f"tracking.run_name={name}-{repeat}"])
+                results[name].append(run)
+                print(
+                    f"  {name} #{repeat}: {run['wall']:.1f} s ({len(run['exchanges'])} exchanges)",
+                    flush=True,
+                )
+        started = time.monotonic()
+        typo = now.run(CONFIG, [*base, *extra["now"], "federated.roundz=3"])
+        out, _ = typo.communicate(timeout=300)
+        typo_s = time.monotonic() - started
+    finally:
+        for fed in feds.values():
+            fed.stop()
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)])
+    print()
+    print(f"FedRootAvg, {args.rounds} rounds, 2 robots on localhost, services warm")
+    print(f"medians of {args.repeats} runs each, seconds")
+    print("| code | wall | to ServerApp's first line | exchanges (each) | after the last |")
+    print("|---|---|---|---|---|")
+    for name, runs in results.items():
+        each = [x for r in runs for x in r["exchanges"]]
+        print(
+            f"| {name} | {statistics.median(r['wall'] for r in runs):.1f} "
+            f"| {statistics.median(r['first'] for r in runs):.1f} "
+            f"| {len(runs[0]['exchanges'])} x {statistics.median(each):.1f} "
+            f"| {statistics.median(r['after'] for r in runs):.1f} |"
+        )
+    old = statistics.median(r["wall"] for r in results[f"before ({args.before})"])
+    new = statistics.median(r["wall"] for r in results["now"])
+    ok_wall = new <= old / 3
+    print(f"\nnow / before: {new / old:.2f} (target <= 0.33: {'met' if ok_wall else 'MISSED'})")
+    last = out.strip().splitlines()[-1] if out.strip() else ""
+    print(f"config typo reported in {typo_s:.1f} s (exit {typo.returncode}): {last}")
+    ok = typo.returncode == 1 and "roundz" in last and typo_s < 5
+    print(f"typo target (< 5 s, one line naming it): {'met' if ok else 'MISSED'}")
+    return 0 if ok and ok_wall else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,193 @@
+"""The federation's roster: which robot (its name and client slot) holds which public key.
+
+``fedlgr deploy node-key DIR NAME`` adds each new robot to ``DIR/roster.yaml``; a Flower
+run names the file (``deploy.roster``). The ServerApp sends work only to nodes whose key
+the SuperLink authenticated (SuperNode authentication) and the roster lists, and it gives
+each its slot: a node never chooses its own client. Any other node that comes online is
+refused - sent nothing - and named in the run's output and its MLflow tag
+``fedlgr.refused``.
+
+The file is plain YAML, read as data::
+
+    robots:
+    - name: robot0
+      client: 0
+      key: ecdsa-sha2-nistp384 AAAA...   # the robot's NAME.pub
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+from cryptography.exceptions import UnsupportedAlgorithm
+from cryptography.hazmat.primitives import serialization
+
+from fedlgr.errors import FedlgrError
+
+ROSTER_NAME = "roster.yaml"
+HEADER = (
+    "# fedlgr's roster: the robots of this federation, their client slots and public keys.\n"
+    "# fedlgr deploy node-key adds to it; a Flower run names it with deploy.roster=PATH.\n"
+)
+
+
+def key_der(key: bytes | str) -> bytes:
+    """A public key (OpenSSH, as in ``NAME.pub``, or PEM, as Flower keeps it) as DER
+    SubjectPublicKeyInfo: one spelling to compare."""
+    data = key.encode() if isinstance(key, str) else bytes(key)
+    if data.lstrip().startswith(b"-----BEGIN"):
+        public = serialization.load_pem_public_key(data)
+    else:
+        public = serialization.load_ssh_public_key(data.strip())
+    return public.public_bytes(
+        serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo
+    )
+
+
+def fingerprint(key: bytes | str) -> str:
+    """Short and stable: the first 16 hex digits of the key's SHA-256."""
+    return hashlib.sha256(key_der(key)).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class Member:
+    name: str
+    client: int
+    key: str  # the OpenSSH public key line
+
+    def __str__(self) -> str:
+        return f"{self.name} (client {self.client})"
+
+
+class Roster:
+    def __init__(self, members: list[Member], path: Path | None = None):
+        self.members, self.path = list(members), path
+        self._by_key = {key_der(m.key): m for m in self.members}
+
+    @classmethod
+    def read(cls, path: Path | str) -> Roster:
+        path = Path(path)
+        if not path.is_file():
+            raise FedlgrError(
+                f"roster {path}: no such file (fedlgr deploy node-key DIR NAME writes "
+                f"DIR/{ROSTER_NAME})"
+            )
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except (yaml.YAMLError, UnicodeDecodeError) as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise FedlgrError(f"roster {path}: not valid YAML ({first})") from None
+        entries = data.get("robots") if isinstance(data, dict) else None
+        if not isinstance(entries, list):
+            raise FedlgrError(f"roster {path}: expected 'robots:' and a list of robots")
+        members = [_member(path, i, entry) for i, entry in enumerate(entries)]
+        _check_unique(path, members)
+        return cls(members, path)
+
+    @classmethod
+    def read_or_empty(cls, path: Path) -> Roster:
+        return cls.read(path) if path.exists() else cls([], path)
+
+    def write(self, path: Path | None = None) -> Path:
+        """All of it, replacing the file at once (a reader never sees half a roster)."""
+        path = Path(path or self.path)
+        rows = [{"name": m.name, "client": m.client, "key": m.key} for m in self.members]
+        text = HEADER + yaml.safe_dump({"robots": rows}, sort_keys=False, width=1000)
+        partial = path.with_name(f".{path.name}.partial")
+        partial.unlink(missing_ok=True)
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        partial.replace(path)
+        return path
+
+    def add(self, name: str, key: str, client: int | None = None) -> Member:
+        """A new robot (a name already there is replaced: a new key for that robot keeps
+        its slot unless ``client`` says otherwise); ``client`` None: the lowest free slot."""
+        old = next((m for m in self.members if m.name == name), None)
+        others = [m for m in self.members if m.name != name]
+        if client is None:
+            client = old.client if old is not None else _lowest_free(others)
+        taken = next((m for m in others if m.client == client), None)
+        if taken is not None:
+            raise FedlgrError(f"--client {client}: {taken} holds that slot in {self.path}")
+        member = Member(name, client, key.strip())
+        self.members = sorted([*others, member], key=lambda m: m.client)
+        self._by_key = {key_der(m.key): m for m in self.members}
+        return member
+
+    def member(self, public_key: bytes | str) -> Member | None:
+        """The robot that holds ``public_key`` (None: not on the roster, or not a key)."""
+        if not public_key:
+            return None
+        try:
+            return self._by_key.get(key_der(public_key))
+        except (ValueError, TypeError, UnsupportedAlgorithm):
+            return None
+
+    def check_slots(self, clients: int) -> None:
+        """Every client of the run has a robot."""
+        held = {m.client for m in self.members}
+        missing = [c for c in range(clients) if c not in held]
+        if missing:
+            raise FedlgrError(
+                f"roster {self.path}: no robot for client {', '.join(map(str, missing))} of "
+                f"data.clients={clients} (fedlgr deploy node-key DIR NAME --client K adds one)"
+            )
+
+
+def _member(path: Path, index: int, entry) -> Member:
+    where = f"roster {path}: robot {index + 1}"
+    if not isinstance(entry, dict) or set(entry) != {"name", "client", "key"}:
+        raise FedlgrError(f"{where}: expected exactly name, client and key")
+    name, client, key = entry["name"], entry["client"], entry["key"]
+    if not isinstance(name, str) or not name:
+        raise FedlgrError(f"{where}: name must be a non-empty string")
+    if isinstance(client, bool) or not isinstance(client, int) or client < 0:
+        raise FedlgrError(f"{where} ({name}): client must be an integer >= 0, not {client!r}")
+    try:
+        key_der(str(key))
+    except (ValueError, TypeError, UnsupportedAlgorithm) as err:
+        raise FedlgrError(f"{where} ({name}): key is not a public key ({err})") from None
+    return Member(name, client, str(key).strip())
+
+
+def _check_unique(path: Path, members: list[Member]) -> None:
+    for what, value in (("name", lambda m: m.name), ("client", lambda m: m.client)):
+        seen: dict = {}
+        for m in members:
+            if value(m) in seen:
+                raise FedlgrError(f"roster {path}: {seen[value(m)]} and {m} share a {what}")
+            seen[value(m)] = m
+    keys: dict[bytes, Member] = {}
+    for m in members:
+        der = key_der(m.key)
+        if der in keys:
+            raise FedlgrError(f"roster {path}: {keys[der]} and {m} hold the same key")
+        keys[der] = m
+
+
+def _lowest_free(members: list[Member]) -> int:
+    held = {m.client for m in members}
+    return next(c for c in range(len(held) + 1) if c not in held)
+
+
+def roster_of(config) -> Roster | None:
+    """A Flower run's roster (``deploy.roster``), checked against ``data.clients``; None for
+    ``none`` (any node that joins takes part, as the client its SuperNode names)."""
+    path = config.deploy.roster
+    if path is None:
+        raise FedlgrError(
+            "deploy.roster is not set: a Flower run takes part only the robots of a roster "
+            "(fedlgr deploy node-key DIR NAME writes DIR/roster.yaml; deploy.roster=PATH), "
+            "or deploy.roster=none on a test machine without SuperNode authentication"
+        )
+    if path == "none":
+        return None
+    roster = Roster.read(path)
+    roster.check_slots(config.data.clients)
+    return roster

@@ -1,0 +1,69 @@
+"""A robot between Flower messages: the robot service (``fedlgr.deploy.flower.service``)
+as a real process - a start-up probe is not logged as a failure, SIGTERM leaves no stale
+pid file or socket - and the robot's data, its own or its slot's shard."""
+
+from __future__ import annotations
+
+import dataclasses
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from fedlgr.config import load_config
+from fedlgr.deploy.flower import service
+
+
+def test_sigterm_leaves_no_pid_file_or_socket_and_a_probe_is_not_an_error(tmp_path):
+    folder = tmp_path / "robot"
+    folder.mkdir()
+    log = (folder / "robot.log").open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fedlgr.deploy.flower.service", str(folder), "600"],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        # What ClientApp's start() does: connect until the service listens, then close.
+        service._connect(service.socket_path(folder), wait=120).close()
+        assert (folder / "robot.pid").read_text() == str(proc.pid)
+        assert service.socket_path(folder).exists()
+        time.sleep(0.5)  # the service has taken the probe
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = (folder / "robot.log").read_text()
+    assert "SIGTERM: leaving" in text
+    assert "could not answer" not in text and "Traceback" not in text
+    assert not (folder / "robot.pid").exists()
+    assert not service.socket_path(folder).exists()
+
+
+def test_a_robot_with_its_own_data_trains_and_scores_on_its_own_scenes(synth_dir, tmp_path):
+    """``--own-data``: the robot's whole folder is its shard - its own train/test split by
+    data.seed, the split of a one-client run - under the slot the roster gives it; without
+    it, the robot takes its slot's shard of the whole dataset, as ``fedlgr run`` does."""
+    from fedlgr.data.dataset import load_scenes
+    from fedlgr.data.splits import make_split
+    from fedlgr.deploy.flower.robot import Robot
+    from tests.conftest import FAST
+
+    config = load_config(FAST, [f"data.path={synth_dir}", "method=FedRootAvg"])
+    scenes = load_scenes(config.data)
+    one = make_split(scenes.table, dataclasses.replace(config.data, clients=1))
+    full = make_split(scenes.table, config.data)
+
+    own = Robot(config, 1, tmp_path / "own", own_data=True)
+    [shard] = own.side.split.clients
+    assert shard.client == 1 and own.client.index == 1
+    assert np.array_equal(shard.train, one.clients[0].train)  # all its training scenes
+    assert np.array_equal(own.side.split.test, one.test)  # scored on its own test scenes
+    assert len(shard.train) + len(own.side.split.test) == len(scenes.table)
+
+    shared = Robot(config, 1, tmp_path / "shard")
+    assert np.array_equal(shared.side.split.clients[1].train, full.clients[1].train)
+    assert len(full.clients[1].train) < len(shard.train)
