@@ -219,7 +219,7 @@ def built(monkeypatch):
     """``robot()`` builds the robot's config and hands it to this instead of a Robot
     (which would import torch and read the data)."""
     monkeypatch.setattr(robot_module, "_robots", {})
-    monkeypatch.setattr(robot_module, "Robot", lambda config, client, folder: config)
+    monkeypatch.setattr(robot_module, "Robot", lambda config, client, folder, **_: config)
 
 
 def server_yaml(**sections) -> str:
