@@ -305,3 +305,21 @@ def test_found_by_the_third_sweep_are_one_line_before_any_work(
             "own for the report's tables and plots (default: reports/NAME)"
         )
     assert sorted(tmp_path.iterdir()) == before
+
+
+def test_synthetic_data_goes_to_a_folder_of_its_own_that_can_be_written(
+    tmp_path, capsys, monkeypatch
+):
+    """Found by the re-test: `data synth` to a read-only place was a traceback, and
+    `--out ''` wrote the dataset into the current folder."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["data", "synth", "--out", str(afile / "s"), "--scenes", "1", "--size", "16"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"fedlgr: error: {afile / 's'}: cannot write there (")
+    assert len(err.splitlines()) == 1
+    monkeypatch.chdir(tmp_path)
+    for out in ("", "."):
+        assert main(["data", "synth", "--out", out, "--scenes", "1", "--size", "16"]) == 1
+        assert "--out names the current folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

@@ -460,3 +460,17 @@ def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
     adopted = adopt_settings(now, state["config"], frozenset(MACHINE_CHOSEN)).runtime
     assert (adopted.threads, adopted.concurrency, adopted.workers) == (2, "threads", 2)
     assert adopt_settings(now, state["config"], frozenset()).runtime == now.runtime
+
+
+def test_a_run_resumed_without_checkpoints_removes_its_old_folder_when_it_finishes(interrupted):
+    """Found by the re-test of the third sweep: `--resume tracking.checkpoint=0` finished
+    the run and left its old checkpoints and lock behind."""
+    import dataclasses
+
+    config, run_id, folder = interrupted
+    config = dataclasses.replace(
+        config, tracking=dataclasses.replace(config.tracking, checkpoint=0)
+    )
+    result = run_experiment(config, resume=run_id)
+    assert [r.round for r in result.rounds] == [1, 2, 3, 4]
+    assert not folder.exists()

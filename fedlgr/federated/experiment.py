@@ -426,9 +426,10 @@ def drive(
             _record_failure(tracker, result, err, say)
         raise
     finally:
-        if tracker is not None and every and getattr(tracker, "finished", False):
-            remove(folder)  # a finished run needs no checkpoint
-            if old is not None:
+        if tracker is not None and getattr(tracker, "finished", False):
+            if every:
+                remove(folder)  # a finished run needs no checkpoint
+            if old is not None:  # also when resumed with tracking.checkpoint=0
                 remove(old)
         elif folder is not None and every and not checkpoints(folder) and folder != old:
             remove(folder)  # ended before its first checkpoint: only its lock file is there

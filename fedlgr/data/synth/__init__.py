@@ -124,7 +124,10 @@ def _prepare(out: Path, force: bool) -> None:
             raise DataError(f"{out}: folder is not empty; pass --force to overwrite it")
         csv_path.unlink(missing_ok=True)
         shutil.rmtree(images, ignore_errors=True)
-    images.mkdir(parents=True, exist_ok=True)
+    try:
+        images.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DataError(f"{out}: cannot write there ({err.strerror or err})") from None
 
 
 def synthesize(
@@ -145,6 +148,11 @@ def synthesize(
         raise ConfigError(
             f"size={size}: images are {MIN_IMAGE_SIZE} to {MAX_IMAGE_SIZE} pixels wide (as "
             "data.image_size; each scene is drawn at twice that first)"
+        )
+    if str(out) in ("", "."):
+        raise ConfigError(
+            "--out names the current folder ('' or .): name a folder of its own for the "
+            "dataset (e.g. data/manners-synth)"
         )
     out = Path(out)
     start = time.perf_counter()
