@@ -105,6 +105,7 @@ def test_deployment_secrets_and_robot_state_are_git_ignored():
         "link.db",
         "link.db-wal",
         "link.db-shm",
+        "mlflow.db.lock",  # the store's lock, beside it after `fedlgr demo`
         "deploy/server.key",
     ]
     out = subprocess.run(
