@@ -1,8 +1,9 @@
 """A Flower round's wall time, today's protocol against the one before issue 21.
 
-Two real federations on localhost, each a SuperLink with TLS and SuperNode authentication
+Real federations on localhost, each a SuperLink with TLS and SuperNode authentication
 and two SuperNodes started with ``fedlgr deploy`` as the README says
-(``tests/flower_federation``): one runs this checkout, the other the commit ``--before``
+(``tests/flower_federation``): one runs this checkout, one this checkout with
+``--cold-apps`` (Flower's own SuperExec; ``--no-cold`` leaves it out), one the commit ``--before``
 (default fa15ccd, the last before issue 21: a train and an evaluate exchange per round,
 one Flower ``Array`` per tensor, no gateway), from a git worktree put first on
 ``PYTHONPATH``. Each runs FedRootAvg for 3 rounds on the tiny debug config with its robot
@@ -85,6 +86,13 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--before", default="fa15ccd", help="the commit to compare with")
+    parser.add_argument(
+        "--cold",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also run this checkout with --cold-apps (Flower's own SuperExec: a process per "
+        "ClientApp message and per ServerApp run), to show what the warm executor saves",
+    )
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="fedlgr-bench-flower-"))
     data = folder / "data"
@@ -93,19 +101,28 @@ def main() -> int:
     now = Federation(folder / "federation")
     before, tree = old_federation(folder, args.before)
     feds = {f"before ({args.before})": before, "now": now}
-    results: dict[str, list[dict]] = {name: [] for name in feds}
     base = [f"data.path={data}", f"tracking.uri={store}", "method=FedRootAvg"]
     extra = {"now": [f"deploy.roster={now.roster}"], f"before ({args.before})": []}
+    flags = {name: [] for name in feds}  # of fedlgr deploy superlink / supernode
+    if args.cold:
+        cold = Federation(folder / "federation-cold")
+        feds["now, --cold-apps"] = cold
+        extra["now, --cold-apps"] = [f"deploy.roster={cold.roster}"]
+        flags["now, --cold-apps"] = ["--cold-apps"]
+    results: dict[str, list[dict]] = {name: [] for name in feds}
     try:
         for name, fed in feds.items():
-            fed.start_superlink()
+            cold = flags[name]  # the before-commit's Federation takes no flags
+            fed.start_superlink(*([cold] if cold else []))
             for client, robot in enumerate(("robot0", "robot1")):
-                fed.start_supernode(robot, fed.node_key(robot), client, data)
+                fed.start_supernode(
+                    robot, fed.node_key(robot), client, data, *([cold] if cold else [])
+                )
             print(f"{name}: warming the robot services (a 1-round run) ...", flush=True)
             warm = [*base, *extra[name], "federated.rounds=1", f"tracking.run_name=warm-{name}"]
             print(f"  {timed_run(fed, warm)['wall']:.1f} s", flush=True)
         for repeat in range(args.repeats):
-            order = list(feds) if repeat % 2 == 0 else list(reversed(feds))
+            order = list(feds) if repeat % 2 == 0 else list(reversed(feds))  # no order bias
             for name in order:
                 overrides = [*base, *extra[name], f"federated.rounds={args.rounds}"]
                 run = timed_run(feds[name], [*overrides, f"tracking.run_name={name}-{repeat}"])

@@ -79,11 +79,11 @@ class Federation:
     def log(self, name: str) -> str:
         return (self.logs / f"{name}.log").read_text(errors="replace")
 
-    def start_superlink(self) -> None:
+    def start_superlink(self, extra: list[str] = ()) -> None:
         """``fedlgr deploy superlink``: SuperNodes use the gateway on ``self.port``, ``flwr``
         (connection ``local``) Flower's own port on loopback, ``self.internal_port``."""
         self.internal_port = free_port()
-        link = ["superlink", "--certs", str(self.creds), "--host", "127.0.0.1"]
+        link = ["superlink", "--certs", str(self.creds), "--host", "127.0.0.1", *extra]
         link += ["--port", str(self.port), "--internal-port", str(self.internal_port)]
         self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link])
         wait_port(self.port)  # the gateway listens once Flower does

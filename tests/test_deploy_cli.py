@@ -141,8 +141,11 @@ def test_superlink_command_has_tls_and_node_auth(certs, capsys):
     """Flower on loopback (port + 1) behind fedlgr's Fleet-only gateway on the port."""
     assert main(["deploy", "superlink", "--certs", str(certs), "--print-command"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 3, lines
+    assert len(lines) == 4, lines
     cmd = shlex.split(lines[0])
+    assert cmd[-2:] == ["--isolation", "process"]  # fedlgr's executor runs the ServerApps
+    assert "--root-certificates" in lines[1] and "fedlgr.deploy.flower.executor" in lines[1]
+    del lines[1]
     assert cmd[0] == str(deploy_cli._flower("flower-superlink"))
     assert option(cmd, "--ssl-ca-certfile") == str(certs / "ca.pem")
     assert option(cmd, "--ssl-certfile") == str(certs / "server.pem")
@@ -168,6 +171,8 @@ def test_superlink_insecure_warns_and_drops_auth(capsys):
     assert "--insecure" in cmd and "--enable-supernode-auth" not in cmd
     assert not any(c.startswith("--ssl") for c in cmd)
     assert option(cmd, "--host") == "127.0.0.1"  # Flower; the gateway takes 0.0.0.0
+    executor = shlex.split(out.out.strip().splitlines()[1])
+    assert executor[-1] == "--insecure" and "--root-certificates" not in executor
     assert "http://0.0.0.0:9092 is fedlgr's gateway" in out.out
 
 
@@ -188,7 +193,8 @@ def test_supernode_node_config(tmp_path, certs, synth_dir, capsys):
     args += ["--key", str(key), "--data", str(data), "--client", "1", "--state-dir", str(state)]
     assert main([*args, "--threads", "2", "--port", "9095", "--print-command"]) == 0
     cmd = printed(capsys)
-    assert cmd[0] == str(deploy_cli._flower("flower-supernode"))
+    # flower-supernode through fedlgr's launcher, its idle poll shortened
+    assert cmd[:5] == [sys.executable, "-m", "fedlgr.deploy.flower.supernode", "--poll-s", "0.5"]
     assert option(cmd, "--superlink") == "robots.lab:9092"
     assert option(cmd, "--root-certificates") == str(certs / "ca.pem")
     assert option(cmd, "--auth-supernode-private-key") == str(key)
@@ -333,3 +339,35 @@ def test_run_without_a_roster_is_refused_before_anything_is_submitted(tmp_path, 
         "writes DIR/roster.yaml)"
     )
     assert not fake_flwr.exists()  # flwr was never called
+
+
+def test_the_supernode_launcher_shortens_only_flowers_idle_poll_and_reply_wait(monkeypatch):
+    """flwr 1.41's SuperNode sleeps 3 s when the SuperLink has no message and 0.5 s between
+    looks for the ClientApp's reply, with no setting for either; the launcher shortens those
+    two. If a flwr upgrade changes the loop, this fails: look again at supernode.py."""
+    import inspect
+
+    from flwr.supernode import start_client_internal as internal
+
+    from fedlgr.deploy.flower import supernode
+
+    source = inspect.getsource(internal)
+    assert source.count("time.sleep(3)") == 1, "flwr's idle poll is no longer time.sleep(3)"
+    assert source.count("time.sleep(0.5)") == 2, "flwr's reply wait is no longer 0.5 s"
+    waits: list[float] = []
+    monkeypatch.setattr(supernode.time, "sleep", waits.append)
+    clock = supernode._Clock(0.25)
+    clock.sleep(3)
+    clock.sleep(0.5)
+    clock.sleep(0.05)
+    assert waits == [0.25, supernode.REPLY_WAIT_S, 0.05]
+    assert clock.monotonic is supernode.time.monotonic  # the rest of time passes through
+
+
+@pytest.mark.parametrize("poll", ["0", "0.01", "4", "nan", "-1"])
+def test_supernode_refuses_a_poll_outside_its_range(tmp_path, synth_dir, poll, capsys):
+    data = Path(shutil.copytree(synth_dir, tmp_path / "robot"))
+    args = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(data)]
+    assert main([*args, "--insecure", "--poll-s", poll, "--print-command"]) == 1
+    [line] = capsys.readouterr().err.strip().splitlines()[-1:]
+    assert line == (f"fedlgr: error: --poll-s {float(poll)}: must be between 0.05 and 3.0 seconds")

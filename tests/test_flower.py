@@ -230,14 +230,16 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     robot service while it answers its second message - round 1's evaluation and round
     2's training: rounds 1 and 2 go on without its row and name it; robot 1 is started
     again at once (same key, same state folder; refused for about a minute, until the
-    SuperLink has missed its heartbeats) and takes part in the last round of 5 with its
-    private state, read back from disk by its new service."""
+    SuperLink has missed its heartbeats) and takes part in the last round with its private
+    state, read back from disk by its new service. Rounds take ~1 s once robot 1 is
+    declared lost: 20 of them leave it the time to come back."""
     robot = federation.robot_dir("robot1")
     log = robot / "robot.log"
     trained = count(log, "train received")
     restored = count(log, "private state restored")
     start_until_online(federation, "robot2", synth_dir)
-    overrides = ["method=FedRootAvg", "federated.rounds=5", "data.clients=3"]
+    rounds = 20
+    overrides = ["method=FedRootAvg", f"federated.rounds={rounds}", "data.clients=3"]
     overrides += ["deploy.round_timeout_s=120"]
     proc = federation.run(FAST, [*settings(synth_dir, store, "dropout", federation), *overrides])
     deadline = time.monotonic() + 300
@@ -262,7 +264,7 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     client = mlflow.MlflowClient(store)
     assert run.info.status == "FINISHED"
     missed = history(client, run.info.run_id, "round/missing_clients")
-    assert missed[:2] == [(1, 1.0), (2, 1.0)] and all(r < 5 for r, _ in missed), missed
+    assert missed[:2] == [(1, 1.0), (2, 1.0)] and all(r < rounds for r, _ in missed), missed
     assert run.data.tags["fedlgr.missing"].startswith("round 1: client 1; round 2: client 1")
     assert run.data.tags["fedlgr.missing_robots"].startswith(
         "round 1: robot1 (client 1); round 2: robot1 (client 1)"
@@ -277,16 +279,17 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     assert "missing: client 1" in out
     rows = {(r["round"], r["client"]): r for r in results_csv(client, run.info.run_id)}
     assert rows[("2", "1")]["test_loss"] == "" and rows[("2", "0")]["test_loss"] != ""
-    assert all(rows[("5", c)]["test_loss"] != "" for c in ("0", "1", "2"))
+    assert all(rows[(str(rounds), c)]["test_loss"] != "" for c in ("0", "1", "2"))
     # Nothing logged was lost: every round's mean scores, robot 1's last round.
-    assert [s for s, _ in history(client, run.info.run_id, "test/loss")] == [1, 2, 3, 4, 5]
-    assert [s for s, _ in history(client, run.info.run_id, "test/client1/loss")][-1] == 5
+    steps = list(range(1, rounds + 1))
+    assert [s for s, _ in history(client, run.info.run_id, "test/loss")] == steps
+    assert [s for s, _ in history(client, run.info.run_id, "test/client1/loss")][-1] == rounds
     # Back with its private state (read from disk), sent the global root it had missed.
     assert count(log, "private state restored") == restored + 1
     root = root_bytes(fast_config(synth_dir, synth_dir, store, *overrides))
     first_back = history(client, run.info.run_id, "cost/client1/bytes_down")[0]
-    assert first_back[0] in (3, 4, 5) and first_back[1] == 2.0 * root
-    assert history(client, run.info.run_id, "cost/client0/bytes_down")[-1] == (5, float(root))
+    assert 3 <= first_back[0] <= rounds and first_back[1] == 2.0 * root
+    assert history(client, run.info.run_id, "cost/client0/bytes_down")[-1] == (rounds, float(root))
 
 
 def serverapps(federation) -> list[int]:
@@ -295,7 +298,8 @@ def serverapps(federation) -> list[int]:
     found = []
     for pid in federation.leftovers():
         with contextlib.suppress(OSError):
-            if b"flwr-serverapp" in Path(f"/proc/{pid}/cmdline").read_bytes():
+            # forked by fedlgr's executor: named as Flower's own process
+            if Path(f"/proc/{pid}/comm").read_text().strip() == "flwr-serverapp":
                 found.append(pid)
     return found
 

@@ -136,18 +136,24 @@ def test_the_robots_port_passes_the_fleet_api_on(federation):
     )
 
 
-def flower_of(gateway: subprocess.Popen) -> psutil.Process:
-    [child] = psutil.Process(gateway.pid).children()
-    assert "flower-superlink" in " ".join(child.cmdline())
+def child_of(gateway: subprocess.Popen, name: str) -> psutil.Process:
+    """The gateway's child whose command line holds ``name``."""
+    children = psutil.Process(gateway.pid).children()
+    [child] = [c for c in children if name in " ".join(c.cmdline())]
     return child
+
+
+def flower_of(gateway: subprocess.Popen) -> psutil.Process:
+    return child_of(gateway, "flower-superlink")
 
 
 def test_sigterm_stops_flower_too(own_federation):
     gateway = own_federation.procs["superlink"]
     child = flower_of(gateway)
+    executor = child_of(gateway, "fedlgr.deploy.flower.executor")
     gateway.send_signal(signal.SIGTERM)
     assert gateway.wait(timeout=30) == 128 + signal.SIGTERM
-    assert not child.is_running()
+    assert not child.is_running() and not executor.is_running()
     assert "fedlgr: terminated (SIGTERM)" in own_federation.log("superlink")
 
 
@@ -162,16 +168,43 @@ def test_flower_dying_ends_the_gateway(own_federation):
     assert line in own_federation.log("superlink").splitlines()
 
 
+def test_the_serverapp_executor_dying_ends_the_gateway(own_federation):
+    """In process isolation Flower starts no ServerApp of its own: without fedlgr's
+    executor a run would wait for ever, so the gateway stops, saying why."""
+    gateway = own_federation.procs["superlink"]
+    flower = flower_of(gateway)
+    child_of(gateway, "fedlgr.deploy.flower.executor").kill()
+    assert gateway.wait(timeout=30) == 1
+    line = (
+        "fedlgr: error: its ServerApp executor ended (killed by SIGKILL); its log is above. "
+        "The gateway stops too."
+    )
+    assert line in own_federation.log("superlink").splitlines()
+    assert not flower.is_running()
+
+
 def test_print_command_shows_flower_on_loopback_and_the_gateway(tmp_path, capsys):
     assert main(["deploy", "certs", str(tmp_path)]) == 0
     capsys.readouterr()
     args = ["deploy", "superlink", "--certs", str(tmp_path), "--host", "0.0.0.0"]
     assert main([*args, "--port", "9200", "--print-command"]) == 0
     out = capsys.readouterr()
-    flower, gateway, connect = out.out.strip().splitlines()
+    flower, executor, gateway, connect = out.out.strip().splitlines()
     cmd = shlex.split(flower)
     assert cmd[cmd.index("--host") + 1 :][:3] == ["127.0.0.1", "--port", "9201"]
     assert "--enable-supernode-auth" in cmd
+    # Flower runs no ServerApp itself: fedlgr's executor forks them, over TLS on loopback
+    assert cmd[-2:] == ["--isolation", "process"]
+    assert shlex.split(executor)[1:] == [
+        "-m",
+        "fedlgr.deploy.flower.executor",
+        "--preload",
+        "serverapp",
+        "--runtime-api-address",
+        "127.0.0.1:9201",
+        "--root-certificates",
+        str(tmp_path / "ca.pem"),
+    ]
     assert gateway == (
         "fedlgr: the robots' port https://0.0.0.0:9200 is fedlgr's gateway: POST "
         "/v1/fleet/<name> forwarded to https://127.0.0.1:9201, the rest refused (403)"
@@ -183,6 +216,9 @@ def test_print_command_shows_flower_on_loopback_and_the_gateway(tmp_path, capsys
 
     assert main([*args, "--internal-port", "9300", "--print-command"]) == 0
     assert "--port 9300" in capsys.readouterr().out
+    assert main([*args, "--cold-apps", "--print-command"]) == 0  # Flower's own SuperExec
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and "--isolation" not in lines[0]
     assert main([*args, "--internal-port", "9200", "--port", "9200", "--print-command"]) == 1
     assert "--internal-port 9200: must differ from --port" in capsys.readouterr().err
 

@@ -157,7 +157,13 @@ def superlink(args: argparse.Namespace) -> int:
         return _exec(cmd, args)
     internal = _internal_port(args)
     cmd += ["--host", "127.0.0.1", "--port", str(internal), *_database(args)]
-    return _gateway(cmd, args, internal, tls)
+    executor = None
+    if not args.cold_apps:  # its ServerApps forked from a warm process (flower/executor.py)
+        cmd += ["--isolation", "process"]
+        executor = [sys.executable, "-m", "fedlgr.deploy.flower.executor", "--preload"]
+        executor += ["serverapp", "--runtime-api-address", f"127.0.0.1:{internal}"]
+        executor += ["--insecure"] if tls is None else ["--root-certificates", str(tls[0])]
+    return _gateway(cmd, args, internal, tls, executor)
 
 
 def _internal_port(args: argparse.Namespace) -> int:
@@ -176,7 +182,11 @@ def _database(args: argparse.Namespace) -> list[str]:
 
 
 def _gateway(
-    cmd: list[str], args: argparse.Namespace, internal: int, tls: tuple[Path, ...] | None
+    cmd: list[str],
+    args: argparse.Namespace,
+    internal: int,
+    tls: tuple[Path, ...] | None,
+    executor: list[str] | None,
 ) -> int:
     """Print what ``superlink`` runs, then run Flower's ``cmd`` behind the gateway."""
     from fedlgr.deploy import gateway
@@ -195,6 +205,8 @@ def _gateway(
     flwr = ["--insecure"] if files is None else ["--ca", str(files.ca)]
     connect = ["fedlgr", "deploy", "connect", "NAME", "--superlink", f"127.0.0.1:{internal}"]
     print(shlex.join(cmd))
+    if executor is not None:
+        print(shlex.join(executor))
     print(
         f"fedlgr: the robots' port {scheme}://{args.host}:{args.port} is fedlgr's gateway: "
         f"POST /v1/fleet/<name> forwarded to {scheme}://127.0.0.1:{internal}, the rest "
@@ -210,11 +222,14 @@ def _gateway(
     from fedlgr.signals import terminate_as_interrupt
 
     with terminate_as_interrupt():  # SIGTERM (systemd, docker stop) stops Flower too
-        return gateway.run(cmd, _env(Path(cmd[0])), args.host, args.port, internal, files)
+        env = _env(Path(cmd[0]))
+        return gateway.run(cmd, env, args.host, args.port, internal, files, executor)
 
 
 def supernode(args: argparse.Namespace) -> int:
-    exe = _flower("flower-supernode")
+    from fedlgr.deploy.flower.supernode import POLL_RANGE
+
+    _flower("flower-supernode")  # Flower is installed here
     _address(args.superlink)
     if args.client is not None and args.client < 0:
         raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
@@ -223,7 +238,15 @@ def supernode(args: argparse.Namespace) -> int:
     data = _absolute(args.data)
     if not data.is_dir():
         raise FedlgrError(f"--data {data}: no such folder (the robot's dataset, MANNERS-DB layout)")
-    cmd = [str(exe), "--superlink", args.superlink]
+    low, high = POLL_RANGE
+    if not low <= args.poll_s <= high:  # NaN too
+        raise FedlgrError(f"--poll-s {args.poll_s}: must be between {low} and {high} seconds")
+    # flower-supernode, its idle poll shortened and its ClientApps forked from a warm
+    # process (fedlgr/deploy/flower/supernode.py and executor.py say why)
+    cmd = [sys.executable, "-m", "fedlgr.deploy.flower.supernode", "--poll-s", str(args.poll_s)]
+    if not args.cold_apps:
+        cmd += ["--warm-apps", f"127.0.0.1:{args.port}"]
+    cmd += ["--superlink", args.superlink]
     if args.insecure:
         _no_ca(args)
         cmd.append("--insecure")

@@ -129,6 +129,12 @@ def add_parser(verbs) -> None:
         "reaches the port can register keys and submit runs (firewalled networks only)",
     )
     link.add_argument(
+        "--cold-apps",
+        action="store_true",
+        help="start each ServerApp as Flower does, a new process per run (~10 s of imports "
+        "before round 1); by default they are forked from a process that has imported them",
+    )
+    link.add_argument(
         "--database",
         type=Path,
         metavar="FILE",
@@ -186,6 +192,20 @@ def add_parser(verbs) -> None:
         metavar="S",
         help="the robot service (which keeps data and models loaded between messages) "
         "leaves after S seconds without a message (default 900)",
+    )
+    node.add_argument(
+        "--poll-s",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (default "
+        "%(default)s; Flower's own is 3, which every round waited out)",
+    )
+    node.add_argument(
+        "--cold-apps",
+        action="store_true",
+        help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
+        "default they are forked from a process that has imported them",
     )
     node.add_argument(
         "--port", type=int, default=SUPERNODE_PORT, help="its local API (default %(default)s)"

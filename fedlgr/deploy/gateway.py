@@ -54,6 +54,7 @@ HOP_BY_HOP = frozenset(
     }
 )
 UPSTREAM_TIMEOUT_S = 300.0  # above the SuperNode's own 30 s per request
+EXECUTOR = "fedlgr.deploy.flower.executor"  # the module of the executor's command
 READY_TIMEOUT_S = 300.0  # flower-superlink listens after ~10 s here
 STOP_GRACE_S = 15.0  # its shutdown stops its SuperExec and a run's ServerApp
 
@@ -157,25 +158,32 @@ def run(
     port: int,
     internal_port: int,
     tls: Tls | None,
+    executor: list[str] | None = None,
 ) -> int:
     """Start the ``superlink`` command (Flower bound to 127.0.0.1:``internal_port``) and
     serve the gateway on ``host``:``port`` once Flower listens; plain HTTP if ``tls`` is
-    None. Flower is stopped (SIGTERM, SIGKILL after a grace) however this ends; it dying
-    ends the gateway with a :class:`FedlgrError`."""
+    None. ``executor``: the command of the SuperExec that runs its ServerApps (Flower in
+    ``process`` isolation; ``--parent-pid`` Flower's is added), started once Flower
+    listens. Flower and the executor are stopped (SIGTERM, SIGKILL after a grace) however
+    this ends; either dying ends the gateway with a :class:`FedlgrError`."""
     listener = _bind(host, port)  # a port in use is refused before Flower starts
-    child = subprocess.Popen(superlink, env=env, preexec_fn=_die_with_parent)
+    children = [subprocess.Popen(superlink, env=env, preexec_fn=_die_with_parent)]
     try:
-        _wait_listening(child, internal_port)
-        asyncio.run(_serve(child, listener, internal_port, tls))
+        _wait_listening(children[0], internal_port)
+        if executor is not None:
+            command = [*executor, "--parent-pid", str(children[0].pid)]
+            children.append(subprocess.Popen(command, env=env, preexec_fn=_die_with_parent))
+        asyncio.run(_serve(children, listener, internal_port, tls))
     finally:
         listener.close()
         with deferred():  # a signal now would cut the stop short
-            _stop(child)
+            for child in reversed(children):
+                _stop(child)
     return 0
 
 
 async def _serve(
-    child: subprocess.Popen, listener: socket.socket, internal_port: int, tls: Tls | None
+    children: list[subprocess.Popen], listener: socket.socket, internal_port: int, tls: Tls | None
 ) -> None:
     scheme = "https" if tls else "http"
     verify = ssl.create_default_context(cafile=str(tls.ca)) if tls else False
@@ -193,7 +201,7 @@ async def _serve(
     )
     server = uvicorn.Server(config)
     host, port = listener.getsockname()[:2]
-    watch = asyncio.create_task(_watch(child, server))
+    watch = asyncio.create_task(_watch(children, server))
     _say(f"serving {scheme}://{host}:{port} (Fleet API only) for the SuperLink at 127.0.0.1")
     try:
         # uvicorn stops on SIGTERM/SIGINT, then raises the signal again: the caller's
@@ -202,12 +210,13 @@ async def _serve(
     finally:
         watch.cancel()
         await app.client.aclose()
-    if child.poll() is not None:
-        raise FedlgrError(_ended(child))
+    for child in children:
+        if child.poll() is not None:
+            raise FedlgrError(_ended(child))
 
 
-async def _watch(child: subprocess.Popen, server: uvicorn.Server) -> None:
-    while child.poll() is None:
+async def _watch(children: list[subprocess.Popen], server: uvicorn.Server) -> None:
+    while all(child.poll() is None for child in children):
         await asyncio.sleep(0.5)
     server.should_exit = True
 
@@ -252,7 +261,8 @@ def _stop(child: subprocess.Popen) -> None:
 def _ended(child: subprocess.Popen) -> str:
     code = child.returncode
     how = f"exit {code}" if code >= 0 else f"killed by {signal.Signals(-code).name}"
-    return f"flower-superlink ended ({how}); its log is above. The gateway stops too."
+    what = "its ServerApp executor" if EXECUTOR in child.args else "flower-superlink"
+    return f"{what} ended ({how}); its log is above. The gateway stops too."
 
 
 def _die_with_parent() -> None:

@@ -1,0 +1,89 @@
+"""fedlgr's warm SuperExec (``fedlgr.deploy.flower.executor``): a task's process is a fork
+that runs the entry point Flower would have started, with the command line Flower's own
+executor builds. The real Flower runs (tests/test_flower.py) go through it end to end."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+from flwr.supercore.constant import TaskType
+from flwr.supercore.exit import exit_handler
+from flwr.supercore.superexec.executor import ExecutionSpec, LaunchResultStatus, subprocess_executor
+
+from fedlgr.deploy.flower import executor
+
+
+def spec(task_type=TaskType.CLIENT_APP, **fields) -> ExecutionSpec:
+    base = dict(
+        task_type=task_type,
+        runtime_api_address="127.0.0.1:9094",
+        token="tok-1",
+        insecure=True,
+        root_certificates_path=None,
+        runtime_dependency_install=False,
+        parent_pid=4242,
+        suppress_output=False,
+        task_id=7,
+    )
+    return ExecutionSpec(**{**base, **fields})
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {},
+        {"task_type": TaskType.SERVER_APP, "insecure": False, "root_certificates_path": "ca.pem"},
+        {"parent_pid": None, "runtime_dependency_install": True},
+    ],
+)
+def test_a_task_gets_the_command_line_flowers_own_executor_gives_it(monkeypatch, fields):
+    started: list[list[str]] = []
+    monkeypatch.setattr(
+        subprocess_executor.subprocess, "Popen", lambda args, **_: started.append(args)
+    )
+    subprocess_executor.SubprocessExecutor().launch(spec(**fields))
+    assert executor.task_argv(spec(**fields)) == started[0]
+
+
+def test_a_task_runs_in_a_fork_named_as_flowers_process_and_is_reaped(tmp_path, monkeypatch):
+    out = tmp_path / "child.json"
+
+    def entry():
+        import sys
+
+        record = {
+            "argv": sys.argv,
+            "comm": Path("/proc/self/comm").read_text().strip(),
+            "handlers": len(exit_handler.registered_exit_handlers),
+            "pid": os.getpid(),
+        }
+        out.write_text(json.dumps(record))
+        raise SystemExit(3)
+
+    monkeypatch.setattr(executor, "_entry", lambda task_type: entry)
+    exit_handler.add_exit_handler(lambda: None)  # the parent's: not run in the task
+    try:
+        fork = executor.ForkExecutor()
+        assert fork.launch(spec()).status == LaunchResultStatus.ACCEPTED
+        [pid] = fork.children
+        deadline = time.monotonic() + 30
+        while fork.children and time.monotonic() < deadline:
+            fork.reconcile()
+            time.sleep(0.05)
+    finally:
+        exit_handler.registered_exit_handlers.pop()
+    assert not fork.children  # reaped: no zombie left
+    record = json.loads(out.read_text())
+    assert record["pid"] == pid != os.getpid()
+    assert record["argv"] == executor.task_argv(spec())
+    assert record["comm"] == "flwr-clientapp" and record["handlers"] == 0
+
+
+def test_only_client_and_server_apps_are_run():
+    result = executor.ForkExecutor().launch(spec(task_type=TaskType.MODEL))
+    assert result.status == LaunchResultStatus.FAILED
+    assert "runs ClientApps and ServerApps" in result.message
