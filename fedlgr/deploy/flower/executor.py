@@ -171,6 +171,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--parent-pid", type=int)
     parser.add_argument("--preload", choices=sorted(PRELOAD), action="append", default=[])
     args = parser.parse_args(argv)
+    import warnings
+
+    # Python 3.12+ warns at every fork of a process with threads; this one's only other
+    # thread is Flower's parent-process monitor, which holds no lock a task needs.
+    warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
     for kind in args.preload:
         for module in PRELOAD[kind]:
             importlib.import_module(module)
