@@ -7,15 +7,18 @@ import csv
 import json
 import math
 import statistics
+from pathlib import Path
 
 import mlflow
 import pytest
 
 from fedlgr.cli import main
-from fedlgr.config import FCL_METHODS, METHODS
+from fedlgr.config import FCL_METHODS, METHODS, load_config
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.report import ReportError, make_report
 from fedlgr.report.tables import mark_best, mark_lower_of_pair, reduction_percent
+from fedlgr.tracking.checkpoint import fingerprint
+from fedlgr.tracking.context import run_params
 from tests.conftest import fast_config
 
 EXPERIMENT = "report-test"
@@ -376,3 +379,156 @@ def test_runs_of_several_datasets_must_be_told_apart(store, tmp_path):
     assert result.runs == 1 and result.logged_to is None
     _, rows = markdown_blocks(tmp_path / "b" / "table1.md")["W/O augmentation"]
     assert rows["FedAvg"][0] == "**0.300**"
+
+
+# --------------------------------------------------------------------------- replicates
+
+
+def _tracked_run(client, experiment_id, overrides, metrics, *, start, tags=None) -> str:
+    """A FINISHED run as the Tracker writes one - the config's tags, its flattened config as
+    params, the final metrics - without training; started at ``start`` (ms)."""
+    config = load_config(None, overrides)
+    run_tags = {
+        "method": config.method_name,
+        "benchmark": "FCL" if config.continual_learning else "FL",
+        "clients": str(config.data.clients),
+        "augmentation": str(config.data.augment).lower(),
+        "dataset": "synthetic",
+        "modality": config.data.modality,
+        "fedlgr.config_hash": fingerprint(config),
+        **(tags or {}),
+    }
+    run_id = client.create_run(experiment_id, start_time=start, tags=run_tags).info.run_id
+    for key, value in run_params(config).items():
+        client.log_param(run_id, key, value)
+    for key, value in metrics.items():
+        client.log_metric(run_id, key, value, step=1)
+    client.set_terminated(run_id, "FINISHED")
+    return run_id
+
+
+def _scores(rmse: float) -> dict[str, float]:
+    return {"test/loss": rmse**2, "test/rmse": rmse, "test/pcc": 0.5}
+
+
+def test_runs_of_one_cell_with_other_rounds_are_refused_naming_the_setting(
+    store, tmp_path, monkeypatch, capsys
+):
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("rounds", artifact_location=tmp_path.as_uri())
+    # A 5-round run and two 20-round seeds; tracking.* and runtime.* differ too, and the
+    # seeds: none of them splits a cell.
+    plans = [
+        (["federated.rounds=5", "seed=0", "runtime.threads=1"], 0.9),
+        (["federated.rounds=20", "seed=0", "tracking.run_name=a"], 0.5),
+        (["federated.rounds=20", "seed=1", "data.seed=3", "runtime.threads=2"], 0.7),
+    ]
+    for k, (overrides, rmse) in enumerate(plans):
+        _tracked_run(client, experiment_id, ["method=FedAvg", *overrides], _scores(rmse), start=k)
+
+    uri = ["report", "--tracking-uri", store, "--experiment", "rounds", "--no-log"]
+    assert main([*uri, "--out", str(tmp_path / "mixed")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith(
+        "fedlgr: error: experiment `rounds`: the cell FL FedAvg, 2 clients, without "
+        "augmentation holds runs of other settings than their seeds: "
+        "federated.rounds (20: 2 runs, 5: 1 run)."
+    )
+    assert "--where federated.rounds=" in err
+    assert "runtime." not in err and "tracking.run_name" not in err and "data.seed (" not in err
+
+    # Reported apart: the 20-round runs are two seeds of one setting, averaged.
+    monkeypatch.chdir(tmp_path)  # the default folder is the filter's own
+    assert main([*uri, "--where", "federated.rounds=20"]) == 0
+    out = Path("reports", "rounds", "federated.rounds=20")
+    assert str(out) in capsys.readouterr().out
+    _, rows = markdown_blocks(out / "table1.md")["W/O augmentation"]
+    assert rows["FedAvg"][1] == f"**0.600** (± {statistics.stdev([0.5, 0.7]):.3f}, n=2)"
+    assert "experiment `rounds` (federated.rounds=20)" in (out / "table1.md").read_text()
+
+
+def test_two_runs_of_one_seed_are_one_replicate_the_newest_kept(store, tmp_path):
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("repeats", artifact_location=tmp_path.as_uri())
+    older = _tracked_run(client, experiment_id, ["method=FedAvg"], _scores(0.9), start=1000)
+    newer = _tracked_run(client, experiment_id, ["method=FedAvg"], _scores(0.5), start=2000)
+
+    result = make_report(store, experiment="repeats", out=tmp_path / "out", log=False)
+    assert result.runs == 1
+    _, rows = markdown_blocks(tmp_path / "out" / "table1.md")["W/O augmentation"]
+    assert rows["FedAvg"][1] == "**0.500**"  # the newest run's value, n=1: no spread
+    with (tmp_path / "out" / "table1.csv").open(newline="") as f:
+        fedavg = next(r for r in csv.DictReader(f) if r["method"] == "FedAvg")
+    assert fedavg["2c/test/rmse n"] == "1" and float(fedavg["2c/test/rmse"]) == 0.5
+    said = [n for n in result.notes if "repeat" in n]
+    assert len(said) == 1 and result.summary().count("repeat the settings and seeds") == 1
+    assert f"kept run {newer[:8]}, left out {older[:8]}" in said[0]
+    assert said[0] in (tmp_path / "out" / "table1.md").read_text()
+
+
+def test_an_empty_block_is_left_out(store, tmp_path):
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("no-aug", artifact_location=tmp_path.as_uri())
+    _tracked_run(client, experiment_id, ["method=FedRootAvg"], _scores(0.8), start=1)
+    make_report(store, experiment="no-aug", out=tmp_path / "out", log=False)
+    assert list(markdown_blocks(tmp_path / "out" / "table1.md")) == ["W/O augmentation"]
+    assert "W/ augmentation" not in (tmp_path / "out" / "table1.tex").read_text()
+    with (tmp_path / "out" / "table1.csv").open(newline="") as f:
+        assert {r["augmentation"] for r in csv.DictReader(f)} == {"W/O augmentation"}
+
+
+def test_two_studies_of_one_sweep_are_reported_apart(store, tmp_path, monkeypatch, capsys):
+    """The same sweep launched twice on fresh Optuna storages: two studies of one name,
+    each with its parent run, in one MLflow store."""
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("twice", artifact_location=tmp_path.as_uri())
+    sweep = {"sweep": "twice", "study": "twice"}
+    parents = []
+    for start, trials in ((1000, [("0.01", 0.3)]), (5000, [("0.01", 0.8), ("0.001", 0.6)])):
+        parent = _finished_run(
+            client,
+            experiment_id,
+            {**sweep, "fedlgr.kind": "sweep", "objective": "minimize test/rmse"},
+            {},
+        )
+        client.update_run(parent, status="FINISHED")
+        parents.append(parent)
+        for k, (lr, rmse) in enumerate(trials):
+            tags = {
+                **sweep,
+                "fedlgr.kind": "trial",
+                "trial": str(k),
+                "mlflow.parentRunId": parent,
+                "swept": json.dumps({"train.lr_top": float(lr)}),
+            }
+            overrides = ["method=FedAvg", f"train.lr_top={lr}"]
+            _tracked_run(
+                client, experiment_id, overrides, _scores(rmse), start=start + k, tags=tags
+            )
+    # The parents' start times: the second launch is the newer one.
+    old, new = parents
+    assert client.get_run(old).info.start_time <= client.get_run(new).info.start_time
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["report", "--tracking-uri", store, "--sweep", "twice"]) == 0
+    printed = capsys.readouterr().out
+    folder = Path("reports", "sweeps", "twice", f"twice-{new[:8]}")
+    _, rows = markdown_blocks(folder / "table1.md")["W/O augmentation"]
+    # Only the newest study's trials: its best (0.6), not the other study's 0.3.
+    assert rows["FedAvg"][1] == "**0.600** (lr_top=0.001)"
+    assert printed.count("has 2 studies in this store") == 1
+    assert f"reported the newest, study `twice` (parent run {new}" in printed
+    assert f"not reported: study `twice` (parent run {old}" in printed
+    assert "--study" in printed
+    assert f"logged to MLflow run {new} under report/" in printed
+    assert {a.path for a in client.list_artifacts(new, "report")} >= {"report/table1.md"}
+    assert client.list_artifacts(old, "report") == []
+
+    result = make_report(store, sweep="twice", study=old[:8], out=tmp_path / "old")
+    assert result.runs == 1 and result.logged_to == old
+    assert result.source == "sweep `twice`, study `twice`"
+    _, rows = markdown_blocks(tmp_path / "old" / "table1.md")["W/O augmentation"]
+    assert rows["FedAvg"][1] == "**0.300** (lr_top=0.01)"
+    with pytest.raises(ReportError, match="sweep `twice` has no study 'nope'"):
+        make_report(store, sweep="twice", study="nope", out=tmp_path / "none")

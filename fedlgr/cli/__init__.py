@@ -192,8 +192,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read the finished runs of an experiment (or the trials of a sweep) from "
         "MLflow and write Tables I-IV (tableN.md/.tex/.csv: FL and FCL results, FL and FCL "
         "costs) and PNG plots to --out, then log that folder to MLflow (a run named 'report', "
-        "or the sweep's parent run) under report/. Several runs of one method and setting "
-        "(e.g. seeds) are averaged.",
+        "or the reported study's parent run) under report/. A cell averages the runs of one "
+        "method and setting whose settings differ only in their seeds (seed, data.seed); a "
+        "repeated seed counts once (the newest run); runs of one cell with other settings are "
+        "refused: narrow them with --where.",
     )
     rep.add_argument(
         "--experiment",
@@ -204,7 +206,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="only the trials of this sweep (tag sweep=NAME), in every experiment or in "
         "--experiment",
     )
-    rep.add_argument("--out", type=Path, help="output folder (default: reports/NAME)")
+    rep.add_argument(
+        "--study",
+        help="with --sweep: the study to report, by name or parent run id (default: the "
+        "newest study of the sweep in this store)",
+    )
+    rep.add_argument(
+        "--where",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="only runs with this setting, as MLflow holds it (e.g. federated.rounds=20; "
+        "repeatable)",
+    )
+    rep.add_argument(
+        "--out",
+        type=Path,
+        help="output folder (default: reports/EXPERIMENT or reports/sweeps/SWEEP/STUDY-RUNID, "
+        "with a sub-folder for --dataset/--modality/--where)",
+    )
     rep.add_argument(
         "--tracking-uri",
         help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)",

@@ -34,10 +34,12 @@ class ReportResult:
     tables: list[tuple[str, int]] = field(default_factory=list)  # (name, runs)
     plots: list[str] = field(default_factory=list)
     logged_to: str | None = None  # the MLflow run holding the report
+    notes: list[str] = field(default_factory=list)  # said once: the study, repeats left out
 
     def summary(self) -> str:
         s = "s" if self.runs != 1 else ""
-        lines = [f"Report on {self.runs} finished run{s} of {self.source} ({self.uri}):"]
+        lines = [*self.notes]
+        lines.append(f"Report on {self.runs} finished run{s} of {self.source} ({self.uri}):")
         for name, runs in self.tables:
             s = "s" if runs != 1 else ""
             title = f"{name} ({TITLES[name]})"
@@ -80,13 +82,21 @@ def make_report(
     *,
     experiment: str | None = None,
     sweep: str | None = None,
+    study: str | None = None,
     out: Path | None = None,
     dataset: str | None = None,
     modality: str | None = None,
+    where: dict[str, str] | None = None,
     log: bool = True,
 ) -> ReportResult:
-    """Write the tables and plots of ``experiment`` or ``sweep`` to ``out`` (default
-    ``reports/<name>``) and, with ``log``, log them to MLflow."""
+    """Write the tables and plots of ``experiment`` or one study of ``sweep`` to ``out``
+    (default ``reports/<experiment>`` or ``reports/sweeps/<sweep>/<study>-<parent run>``,
+    a sub-folder per filter) and, with ``log``, log them to MLflow.
+
+    Each cell averages replicates only (:mod:`~fedlgr.report.cells`): repeats of one seed
+    count once, runs of other settings in one cell are refused (narrow them with
+    ``where``, e.g. ``{"federated.rounds": "20"}``)."""
+    from fedlgr.report.cells import best_per_cell, check_cells, newest_per_seed
     from fedlgr.report.plots import write_plots
     from fedlgr.report.render import to_csv, to_latex, to_markdown
     from fedlgr.report.runs import log_report, metric_histories, open_store, select_runs
@@ -96,17 +106,30 @@ def make_report(
         _check_folder(Path(out))
     client = open_store(uri)
     selection = select_runs(
-        client, uri, experiment=experiment, sweep=sweep, dataset=dataset, modality=modality
+        client,
+        uri,
+        experiment=experiment,
+        sweep=sweep,
+        study=study,
+        dataset=dataset,
+        modality=modality,
+        where=where,
     )
-    records = selection.records
-    out = Path(out) if out is not None else default_out(selection.name)
+    records, repeats = newest_per_seed(selection.records)
+    if selection.objective:  # a sweep's best setting per cell
+        records = best_per_cell(records, selection.objective)
+    check_cells(records, selection.source)
+    notes = [*selection.notes, *([repeats] if repeats else [])]
+    if out is None:
+        out = selection.folder or default_out(selection.name)
+    out = Path(out)
     _check_folder(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ReportError(f"{out}: cannot create the report folder ({err.strerror})") from err
-    result = ReportResult(out, selection.source, uri, len(records))
-    for table in build_tables(records, selection.source):
+    result = ReportResult(out, selection.source, uri, len(records), notes=notes)
+    for table in build_tables(records, selection.source, notes):
         for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
             (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
         result.tables.append((table.name, table.runs))

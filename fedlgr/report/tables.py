@@ -11,8 +11,9 @@
   and upload too), a block per setting that has runs. As in the paper, the lower value of
   each pair is marked and the FedRoot cell carries its reduction in %.
 
-Several runs of one cell (same method, clients and augmentation: seeds, repeats) are
-averaged; a cell without runs has no value.
+Several runs of one cell (same method, clients and augmentation) are averaged: replicates,
+whose settings differ only in their seeds (:mod:`fedlgr.report.cells` makes sure of it); a
+cell without runs has no value, and a block without runs is left out.
 """
 
 from __future__ import annotations
@@ -186,7 +187,7 @@ def mean_cell(runs: Sequence[RunRecord], metric: str, decimals: int, scale: floa
     values = [scale * v for v in (r.value(metric) for r in runs) if v is not None]
     mean = sum(values) / len(values) if values else None
     std = statistics.stdev(values) if len(values) > 1 else None
-    swept = runs[0].swept if len(runs) == 1 else {}
+    swept = runs[0].swept if runs and all(r.swept == runs[0].swept for r in runs) else {}
     won = " ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in swept.items())
     return Cell(mean, decimals, len(values), std=std, won=won)
 
@@ -226,6 +227,8 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
     cells = group_runs(runs)
     blocks = []
     for augmented, title in BLOCKS:
+        if not any(r.augmentation == augmented for r in runs):
+            continue  # nothing ran in this setting: no block of dashes
         rows = [
             (m, [mean_cell(cells.get((m, c, augmented), []), metric, 3) for c, metric in metrics])
             for m in method_order(benchmark, runs)
@@ -305,14 +308,20 @@ def cost_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Tab
     )
 
 
-def build_tables(records: Sequence[RunRecord], source: str) -> list[Table]:
-    """Tables I-IV, each only if its benchmark (FL or FCL) has runs."""
+def build_tables(
+    records: Sequence[RunRecord], source: str, notes: Sequence[str] = ()
+) -> list[Table]:
+    """Tables I-IV, each only if its benchmark (FL or FCL) has runs; ``notes`` (what the
+    report says once: the study reported, repeats left out) end each table."""
     tables = [
         score_table(records, "FL", source),
         score_table(records, "FCL", source),
         cost_table(records, "FL", source),
         cost_table(records, "FCL", source),
     ]
+    for table in tables:
+        if table is not None:
+            table.notes += notes
     return [t for t in tables if t is not None]
 
 
