@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -583,6 +584,12 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
     if len(node) == 0:  # an empty file would run every default without a word
         raise ConfigError(f"{path}: holds no settings (an empty file); give a config that does")
+    if any(not SETTING_NAME.fullmatch(str(key)) for key in node):
+        # e.g. a text file named as a config or a sweep's base: its text is not echoed
+        raise ConfigError(
+            f"{path}: not a config file: its top level is not `setting: value` lines "
+            "(a setting name is letters, digits, _ and .)"
+        )
     written = _plain(node)  # nothing resolved
     includes = written.get("includes") or []
     if "includes" in written:
@@ -641,6 +648,9 @@ def check_data(data: Any, source: str) -> None:
                 f"{source}: {key}: holds ${{...}}, which a config sent as data may not "
                 "(it is resolved where it was written)"
             )
+
+
+SETTING_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]{0,99}")
 
 
 def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> ExperimentConfig:

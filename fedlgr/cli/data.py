@@ -11,8 +11,10 @@ from fedlgr.console import Progress, table
 def synth(args: argparse.Namespace) -> int:
     from fedlgr.data.columns import LABEL_SHORT_NAMES
     from fedlgr.data.synth import synthesize
+    from fedlgr.signals import terminate_as_interrupt
 
-    with Progress("synthesising", unit="scene") as bar:
+    # SIGTERM (timeout, Slurm) is a Ctrl-C: synthesize removes what it had written
+    with terminate_as_interrupt(), Progress("synthesising", unit="scene") as bar:
         s = synthesize(args.out, args.scenes, args.seed, args.size, force=args.force, progress=bar)
     print(
         f"wrote {s.scenes} scenes ({s.circle} circle, {s.arrow} arrow) and {s.ratings} ratings "

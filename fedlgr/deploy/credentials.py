@@ -83,8 +83,10 @@ def _private_bytes(key, encoding) -> bytes:
 
 
 def _folder(folder: Path) -> None:
+    """The credentials folder, made 0700 (it holds private keys and the roster: under
+    umask 000 it was 0777, and anyone could replace a public key or the roster in it)."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as err:
         raise FedlgrError(f"{folder}: cannot create the folder ({err.strerror})") from None
 

@@ -117,6 +117,13 @@ def sqlite_path(storage: str) -> Path | None:
     return Path(database).expanduser()
 
 
+def _in_memory(storage: str) -> bool:
+    from sqlalchemy.engine import make_url
+
+    url = make_url(storage)
+    return url.database in (None, "", ":memory:") or url.query.get("mode") == "memory"
+
+
 def check_storage(storage: str, make: bool = True) -> Path | None:
     """Refuse, in one line naming it, a storage that cannot hold a study, before anything
     waits on it: not a database URL; an sqlite path that is a folder, a file that is not
@@ -132,6 +139,11 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         path = sqlite_path(storage)
     except ArgumentError as err:
         raise fail("not a database URL (e.g. sqlite:///optuna.db or postgresql://HOST/DB)") from err
+    if path is None and storage.startswith("sqlite:") and _in_memory(storage):
+        raise fail(
+            "an in-memory sqlite database keeps nothing (the study is lost when the sweep "
+            "ends, and no other worker can join it): name a file, e.g. sqlite:///optuna.db"
+        )
     if path is None:
         return None
     if path.is_dir():
@@ -148,11 +160,12 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise fail(f"cannot create the folder {path.parent}: {err.strerror or err}") from err
+    from fedlgr.tracking.mlflow_run import StoreError, open_lock_file
+
     try:  # the lock file store_lock keeps beside it: the folder takes new files
-        with open(f"{path}.lock", "a"):
-            pass
-    except OSError as err:
-        raise fail(f"cannot write in {path.parent}: {err.strerror or err}") from err
+        os.close(open_lock_file(Path(f"{path}.lock"), f"--storage {storage}"))
+    except StoreError as err:
+        raise fail(str(err).partition(": ")[2]) from None
     _check_header(path, fail)
     return path
 

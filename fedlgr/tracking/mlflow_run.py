@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import logging
 import os
@@ -72,12 +73,42 @@ def experiment_id(client, name: str) -> str:
                 client.set_experiment_tag(experiment.experiment_id, key, value)
         return experiment.experiment_id
     try:
-        return client.create_experiment(name, tags=KIND)
+        return _create_experiment(client, name)
     except Exception:
         experiment = client.get_experiment_by_name(name)  # another process created it first
         if experiment is None:
             raise
         return experiment.experiment_id
+
+
+def artifact_root(uri: str) -> Path | None:
+    """Where the artifacts of a local sqlite store's experiments go: ``mlruns/`` next to
+    its database file. (MLflow's own default is ``./mlruns`` of the working folder at the
+    moment the experiment is created, so a store elsewhere had its artifacts scattered
+    over whatever folders its runs were started from.) None for other stores: a server
+    decides for itself."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    database = uri.removeprefix("sqlite:///").split("?", 1)[0]
+    if not database or database == ":memory:":
+        return None
+    return Path(database).expanduser().resolve().parent / "mlruns"
+
+
+def _create_experiment(client, name: str) -> str:
+    """A new experiment; in a local sqlite store its artifacts under
+    :func:`artifact_root` / its id (MLflow's layout, rooted at the database)."""
+    root = artifact_root(client.tracking_uri)
+    if root is None:
+        return client.create_experiment(name, tags=KIND)
+    from mlflow.entities import ExperimentTag
+    from mlflow.tracking._tracking_service.utils import _get_store
+
+    # The store MLflow builds for this URI with ``root`` as its default artifact root
+    # (what ``mlflow server --default-artifact-root`` does): the experiment's id is only
+    # known once created, and its artifact location is derived from it in that step.
+    store = _get_store(client.tracking_uri, root.as_uri())
+    return store.create_experiment(name, tags=[ExperimentTag(k, v) for k, v in KIND.items()])
 
 
 @contextlib.contextmanager
@@ -92,12 +123,24 @@ def store_lock(uri: str):
 
     path = Path(uri.removeprefix("sqlite:///")).expanduser()
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(f"{path}.lock", "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+    fd = open_lock_file(Path(f"{path}.lock"), f"tracking store {uri}")
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def open_lock_file(path: Path, what: str) -> int:
+    """The descriptor of the lock file ``path`` beside a store, created if missing (empty,
+    0644). O_NOFOLLOW: a link planted there is refused, not a way to create or truncate a
+    file elsewhere (``flock`` needs no content, so nothing is written)."""
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise StoreError(f"{what}: its lock file {path} is a symbolic link: refused") from None
+        raise StoreError(f"{what}: cannot open its lock file {path}: {err.strerror}") from None
 
 
 def open_client(uri: str):

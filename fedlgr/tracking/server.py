@@ -41,9 +41,16 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
     nothing answers within ``timeout`` seconds. Any HTTP answer counts as reachable (a
     proxy's 401 or 404 is for MLflow to report). A local sqlite store must be one fedlgr
     can write (:func:`check_sqlite`); MLflow 3's plain file store is refused."""
-    if uri.startswith("sqlite:///"):
+    memory = uri == "sqlite://" or uri.split("?")[0] == "sqlite:///:memory:"
+    if uri.startswith("sqlite:///") and not memory:
         check_sqlite(uri)
         return
+    if uri.startswith("sqlite:"):  # sqlite:// or sqlite:///:memory: - no file
+        raise TrackingUnreachable(
+            f"tracking URI {uri}: an in-memory sqlite store keeps nothing (the run is lost "
+            "when this process ends); name a file: sqlite:///PATH/mlflow.db (the default: "
+            "sqlite:///mlflow.db)"
+        )
     if uri.startswith("file:") or "://" not in uri:
         raise TrackingUnreachable(
             f"tracking URI {uri}: a plain file store, which MLflow 3 keeps in maintenance "

@@ -115,6 +115,9 @@ class SynthSummary:
     seconds: float
 
 
+MAX_SCENES = 1_000_000
+
+
 def _prepare(out: Path, force: bool) -> None:
     csv_path, images = out / "all_data.csv", out / "images"
     if out.exists() and not out.is_dir():
@@ -142,8 +145,13 @@ def synthesize(
 
     ``progress``, if given, is called as ``progress(scenes_written, scenes)``.
     """
-    if scenes < 1:
-        raise ConfigError(f"scenes={scenes}: need at least 1 scene")
+    if not 1 <= scenes <= MAX_SCENES:
+        raise ConfigError(
+            f"scenes={scenes}: 1 to {MAX_SCENES:,} scenes (MANNERS-DB has 1000; each scene is "
+            "an image file)"
+        )
+    if not 0 <= seed < 2**32:
+        raise ConfigError(f"seed={seed}: seeds are 0 to 2**32 - 1, as every fedlgr seed")
     if not MIN_IMAGE_SIZE <= size <= MAX_IMAGE_SIZE:
         raise ConfigError(
             f"size={size}: images are {MIN_IMAGE_SIZE} to {MAX_IMAGE_SIZE} pixels wide (as "
@@ -156,16 +164,22 @@ def synthesize(
         )
     out = Path(out)
     start = time.perf_counter()
+    made = not out.exists()
     _prepare(out, force)
     rows, n_circle, label_sum = [], 0, np.zeros(8)
-    for k, scene in enumerate(generate_scenes(scenes, seed), start=1):
-        # Pillow's PNG writer with fixed settings and no metadata is byte-stable.
-        render(scene.layout, size).save(out / "images" / f"{scene.stamp}.png", compress_level=6)
-        rows.extend(_rows(scene))
-        n_circle += scene.circle
-        label_sum += scene.ratings.mean(axis=0)
-        if progress is not None:
-            progress(k, scenes)
+    try:
+        for k, scene in enumerate(generate_scenes(scenes, seed), start=1):
+            # Pillow's PNG writer with fixed settings and no metadata is byte-stable.
+            image = out / "images" / f"{scene.stamp}.png"
+            render(scene.layout, size).save(image, compress_level=6)
+            rows.extend(_rows(scene))
+            n_circle += scene.circle
+            label_sum += scene.ratings.mean(axis=0)
+            if progress is not None:
+                progress(k, scenes)
+    except BaseException:  # Ctrl-C, SIGTERM, a full disk: no half dataset is left behind
+        shutil.rmtree(out if made else out / "images", ignore_errors=True)
+        raise
     tmp = out / "all_data.csv.tmp"
     with tmp.open("w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")

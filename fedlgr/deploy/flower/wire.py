@@ -17,11 +17,13 @@ exchange per round instead of two.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import torch
 from flwr.app import Array, ArrayRecord, ConfigRecord, RecordDict
 
+from fedlgr.errors import FedlgrError
 from fedlgr.federated.messages import (
     EvaluateIns,
     EvaluateRes,
@@ -141,9 +143,20 @@ def slot(content: RecordDict) -> int | None:
     return int(plan["client"]) if "client" in plan else None
 
 
+RUN_KEY = re.compile(r"[A-Za-z0-9_-]{1,64}")  # an MLflow run id (32 hex digits), a Flower one
+
+
 def run_key(content: RecordDict) -> str:
-    """The run the robot keeps its state under ("": the Flower run's)."""
-    return str(content.config_records["plan"].get("run", ""))
+    """The run the robot keeps its state under ("": the Flower run's). It names a folder
+    on the robot (``<state-dir>/run-<key>``), so anything but a run id is refused: a
+    server must not choose where a robot writes (``../..``, an absolute path)."""
+    key = str(content.config_records["plan"].get("run", ""))
+    if key and not RUN_KEY.fullmatch(key):
+        raise FedlgrError(
+            f"the server's run key {key[:80]!r} is not a run id (1 to 64 letters, digits, - "
+            "or _): refused, nothing written"
+        )
+    return key
 
 
 def stamp_run(content: RecordDict, run: str) -> RecordDict:

@@ -1,0 +1,108 @@
+"""The cases of issue 20's fourth fault sweep that were not clean (273 cases on a4b5fc3):
+a server-chosen run key that named a folder outside the robot's state folder, a store's
+lock file created through a planted link, in-memory stores that kept nothing, ``data
+synth`` with a negative seed, no bound on scenes and a half dataset left by an
+interruption, a text file named as a config echoed into the error, and a credentials
+folder made 0777 under umask 000."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import pytest
+from flwr.app import ConfigRecord, RecordDict
+
+from fedlgr.cli import main
+from fedlgr.config import load_config
+from fedlgr.data.synth import MAX_SCENES, synthesize
+from fedlgr.deploy.credentials import make_node_key
+from fedlgr.deploy.flower import robot, wire
+from fedlgr.errors import ConfigError, FedlgrError
+from fedlgr.sweep.storage import check_storage
+from fedlgr.tracking.mlflow_run import StoreError, store_lock
+from fedlgr.tracking.server import TrackingUnreachable, check_reachable
+
+
+def plan(run_key: str) -> RecordDict:
+    return RecordDict({"plan": ConfigRecord({"round": 1, "run": run_key})})
+
+
+@pytest.mark.parametrize("key", ["../../../escape", "/tmp/abs", "a/b", "..", "x" * 65, "r un"])
+def test_a_robot_refuses_a_run_key_that_is_not_a_run_id_and_writes_nothing(tmp_path, key):
+    state = tmp_path / "robot" / "state"
+    node = {"data-path": str(tmp_path), "state-dir": str(state), "client": 0}
+    with pytest.raises(FedlgrError, match=r"is not a run id .* refused, nothing written"):
+        robot.handle("train", 7, node, plan(key))
+    assert not (tmp_path / "robot").exists() and not (tmp_path / "escape").exists()
+    for good in ("4c1d3ad0f4be4dbe8c5e0a19b8c2f0d1", "18446744073709551615", "run_1-b"):
+        assert wire.run_key(plan(good)) == good
+
+
+def test_a_stores_lock_file_is_never_created_through_a_link(tmp_path):
+    target = tmp_path / "created-through-the-link"
+    (tmp_path / "mlflow.db.lock").symlink_to(target)
+    lock = store_lock(f"sqlite:///{tmp_path}/mlflow.db")
+    with (
+        pytest.raises(StoreError, match=r"its lock file .*mlflow\.db\.lock is a symbolic link"),
+        lock,
+    ):
+        pass
+    (tmp_path / "optuna.db.lock").symlink_to(target)
+    with pytest.raises(FedlgrError, match=r"^--storage .*: its lock file .* symbolic link"):
+        check_storage(f"sqlite:///{tmp_path}/optuna.db")
+    assert not target.exists()
+
+
+@pytest.mark.parametrize("uri", ["sqlite://", "sqlite:///:memory:"])
+def test_in_memory_stores_are_refused_they_keep_nothing(uri):
+    with pytest.raises(TrackingUnreachable, match="in-memory sqlite store keeps nothing"):
+        check_reachable(uri)
+    with pytest.raises(FedlgrError, match="in-memory sqlite database keeps nothing"):
+        check_storage(uri)
+
+
+def test_synth_refuses_a_seed_and_a_count_out_of_range_before_writing(tmp_path):
+    for seed in (-1, 2**32):
+        with pytest.raises(ConfigError, match=f"seed={seed}: seeds are 0 to 2\\*\\*32 - 1"):
+            synthesize(tmp_path / "out", scenes=4, seed=seed, size=32)
+    with pytest.raises(ConfigError, match="scenes=1000001: 1 to 1,000,000 scenes"):
+        synthesize(tmp_path / "out", scenes=MAX_SCENES + 1, size=32)
+    assert not (tmp_path / "out").exists()
+    assert main(["data", "synth", "--out", str(tmp_path / "cli"), "--seed", "-1"]) == 1
+    assert not (tmp_path / "cli").exists()
+
+
+def test_an_interrupted_synth_leaves_no_half_dataset(tmp_path):
+    def interrupt(done, total):
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        synthesize(tmp_path / "new", scenes=8, size=32, progress=interrupt)
+    assert not (tmp_path / "new").exists()  # made by this call: removed
+    kept = tmp_path / "kept"
+    synthesize(kept, scenes=4, size=32)
+    with pytest.raises(KeyboardInterrupt):
+        synthesize(kept, scenes=8, size=32, force=True, progress=interrupt)
+    assert sorted(p.name for p in kept.iterdir()) == ["synth.json"]  # no images, no csv
+
+
+def test_a_text_file_named_as_a_config_is_refused_without_its_text(tmp_path):
+    secret = tmp_path / "notes.yaml"
+    secret.write_text("root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1:the secret line\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(secret, [])
+    assert str(err.value) == (
+        f"{secret}: not a config file: its top level is not `setting: value` lines "
+        "(a setting name is letters, digits, _ and .)"
+    )
+
+
+def test_the_credentials_folder_is_private_under_any_umask(tmp_path):
+    old = os.umask(0)
+    try:
+        make_node_key(tmp_path / "creds", "robot0")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "creds").stat().st_mode) == 0o700
