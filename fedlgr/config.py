@@ -822,8 +822,10 @@ def _merge_message(err: Exception, merged, node) -> str:
     message does not (a list item of the wrong type: "Value '$VALUE' of type ..."): each
     setting of ``node`` is merged alone until one fails."""
     from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+    from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
+    if isinstance(err, ConfigKeyError) and getattr(err, "full_key", None):
+        return _unknown_setting(err.full_key, OmegaConf.to_container(node, resolve=False))
     if getattr(err, "full_key", None) or "$VALUE" not in str(err):
         return _omegaconf_message(err)
     plain = OmegaConf.to_container(node, resolve=False)
@@ -848,6 +850,45 @@ def _merge_message(err: Exception, merged, node) -> str:
             text = _first_line(err).replace("Value '$VALUE' of type '$VALUE_TYPE'", "a value")
             return f"{key}={value!r}: {text}"
     return _omegaconf_message(err)
+
+
+def known_settings() -> list[str]:
+    """Every setting's dotted name (``train.lr_top``, ...)."""
+    from omegaconf import OmegaConf
+
+    def leaves(values: dict, prefix: str = ""):
+        for key, value in values.items():
+            if isinstance(value, dict):
+                yield from leaves(value, f"{prefix}{key}.")
+            else:
+                yield f"{prefix}{key}"
+
+    defaults = OmegaConf.structured(ExperimentConfig)
+    return list(leaves(OmegaConf.to_container(defaults, resolve=False, throw_on_missing=False)))
+
+
+def _unknown_setting(key: str, written: dict) -> str:
+    """``KEY: unknown setting; did you mean NAME?`` - the closest known settings to what was
+    written (the whole dotted name, so ``train.learning_rate`` finds ``train.lr_root``).
+    ``key`` is the first unknown part; a section written under it is matched by its
+    setting when it holds one (``trian: {lr_top: 1}`` is ``trian.lr_top``)."""
+    import difflib
+
+    below = _lookup(written, key)
+    if isinstance(below, dict) and len(below) == 1:
+        inner, value = next(iter(below.items()))
+        if not isinstance(value, dict):
+            key = f"{key}.{inner}"
+    known = known_settings()
+    matcher = difflib.SequenceMatcher(b=key)
+    scores = []
+    for name in known:
+        matcher.set_seq1(name)
+        scores.append((matcher.ratio(), name))
+    close = [(r, n) for r, n in sorted(scores, reverse=True)[:2] if r >= 0.6]
+    close = [n for r, n in close if r >= close[0][0] - 0.05]  # a far second is noise
+    hint = f"; did you mean {' or '.join(close)}?" if close else " (--print-config lists them)"
+    return f"{key}: unknown setting{hint}"
 
 
 def _omegaconf_message(err: Exception) -> str:

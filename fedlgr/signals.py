@@ -112,3 +112,21 @@ def terminate_as_interrupt() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
         signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
+
+
+def quiet_exit(code: int = 130) -> None:
+    """From now on Ctrl-C or SIGTERM ends the process at once with ``code``, silently: for a
+    process that is already exiting after an interrupt. Otherwise a second Ctrl-C (or one
+    redelivered by :func:`_again`) lands in an ``atexit`` hook (torch's, MLflow's), and
+    Python prints its ``KeyboardInterrupt`` traceback after fedlgr's last line."""
+    import os
+    import sys
+
+    def now(signum: int, frame) -> None:
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        os._exit(code)
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, now)
+        signal.signal(signal.SIGTERM, now)

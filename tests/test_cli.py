@@ -256,7 +256,7 @@ def test_run_off_a_terminal_logs_progress_eta_and_threads(synth_dir, tmp_path, m
         "federated.rounds=3",
         "data.modality=image",
         "data.clients=2",
-        "train.epochs=1",
+        "train.epochs=2",
     ]
     assert main(argv) == 0
     captured = capsys.readouterr()
@@ -271,5 +271,29 @@ def test_run_off_a_terminal_logs_progress_eta_and_threads(synth_dir, tmp_path, m
     assert re.search(r"\(\d+\.\d s\)$", rounds[2]), rounds[2]  # nothing left to wait for
     decoding = [line for line in err if line.startswith("decoding images: ")]
     assert decoding[-1].startswith("decoding images: 48/48 img (100%) after")
-    epochs = [line for line in err if line.startswith("round 2/3, client epochs: ")]
-    assert epochs[-1].startswith("round 2/3, client epochs: 2/2 epoch (100%)")
+    # The bar counts each local epoch of each client: 2 clients x 2 epochs.
+    training = "round 2/3, local training (2 clients x 2 epochs): "
+    epochs = [line for line in err if line.startswith(training)]
+    assert epochs[-1].startswith(f"{training}4/4 client-epochs (100%)")
+
+
+def test_a_data_path_that_does_not_exist_is_named_before_torch_is_imported(tmp_path):
+    """One line naming the setting and the folder, at once: not "file not found (expected
+    the MANNERS-DB ratings CSV)" after torch's import (~11 s on 2 cores)."""
+    missing = tmp_path / "no" / "such" / "dir"
+    probe = (
+        "import sys\n"
+        "from fedlgr.cli import main\n"
+        f"code = main(['run', {str(FAST)!r}, 'data.path={missing}', 'tracking.enabled=false'])\n"
+        "print('torch imported' if 'torch' in sys.modules else 'torch not imported')\n"
+        "sys.exit(code)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 1, done.stderr[-3000:]
+    assert done.stderr.strip() == (
+        f"fedlgr: error: data.path={missing}: no such folder (give the dataset folder, the one "
+        "holding the ratings CSV and images/; fedlgr data synth --out FOLDER writes one)"
+    )
+    assert done.stdout.strip() == "torch not imported"

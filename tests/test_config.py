@@ -90,7 +90,8 @@ def test_defaults_and_run_name():
     ("overrides", "message"),
     [
         (["federated.rounds=many"], "command line: federated.rounds: Value 'many'"),
-        (["federated.nope=1"], "command line: federated.nope: Key 'nope' not in 'FederatedConfig'"),
+        (["federated.nope=1"], "command line: federated.nope: unknown setting"),
+        (["zzz=1"], "command line: zzz: unknown setting (--print-config lists them)"),
         (["federated.rounds"], "override 'federated.rounds': expected key=value"),
         (["federated.rounds=0"], "federated.rounds=0: must be >= 1"),
         (["train.precision=fp8"], "train.precision='fp8': must be one of 32-true"),
@@ -183,3 +184,25 @@ def test_bad_continual_settings_name_the_setting(overrides, message):
     with pytest.raises(ConfigError) as err:
         load_config(None, overrides)
     assert message in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("written", "meant"),
+    [
+        ("train.learning_rate", "train.lr_root or train.lr_top"),
+        ("federated.round", "federated.rounds"),
+        ("trian.lr_top", "train.lr_top"),  # an unknown section, matched by its setting
+    ],
+)
+def test_an_unknown_setting_names_the_closest_known_ones(tmp_path, written, meant):
+    """In a config file and on the command line alike (difflib over the dotted names)."""
+    section, key = written.split(".")
+    path = tmp_path / "typo.yaml"
+    path.write_text(f"includes: [debug/tiny]\n{section}:\n  {key}: 1\n")
+    hint = f"{written}: unknown setting; did you mean {meant}?"
+    with pytest.raises(ConfigError) as in_file:
+        load_config(path)
+    assert str(in_file.value) == f"{path.resolve()}: {hint}"
+    with pytest.raises(ConfigError) as on_line:
+        load_config(None, [f"{written}=1"])
+    assert str(on_line.value) == f"command line: {hint}"

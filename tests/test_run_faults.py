@@ -196,6 +196,46 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert not Path(run.data.tags["fedlgr.checkpoints"]).exists()  # a finished run has none
 
 
+SLOW_EXIT = """
+import atexit, time
+
+def slow_exit():  # runs last of the atexit hooks (registered first): a slow exit
+    print("exiting", flush=True)
+    time.sleep(20)
+
+atexit.register(slow_exit)
+"""
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_with_one_line_saying_how_to_resume_and_no_traceback(
+    synth_dir, cache_dir, tmp_path
+):
+    """Ctrl-C mid-run: exit 130 with one last line naming the run and ``--resume``; a second
+    Ctrl-C while the process exits (in an atexit hook: torch's, MLflow's, here a slow one)
+    ends it at once, without a KeyboardInterrupt traceback."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = _args(synth_dir, cache_dir, store, "federated.rounds=12")
+    with Child(args, tmp_path, "interrupted", prelude=SLOW_EXIT) as child:
+        child.wait_for(r"round 1/12:")  # logged and checkpointed
+        os.kill(child.pid, signal.SIGINT)
+        child.wait_for(r"exiting")
+        os.kill(child.pid, signal.SIGINT)
+        sent = time.monotonic()
+        code = child.process.wait(timeout=60)
+        took = time.monotonic() - sent
+        stderr = child.stderr()
+    _, run = _only_run(store)
+    run_id = run.info.run_id
+    assert run.info.status == "KILLED"
+    assert code == 130 and took < 10, (code, took, stderr[-3000:])
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr[-3000:]
+    assert stderr.strip().splitlines()[-1] == (
+        f"fedlgr: interrupted; MLflow run {run_id} ended KILLED; "
+        f"the same command with --resume {run_id} continues it"
+    )
+
+
 SLOW_CURVES = """
 import time
 import fedlgr.tracking.plots as plots

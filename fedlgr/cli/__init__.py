@@ -389,13 +389,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fedlgr: error: {err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as err:
-        from fedlgr.signals import Terminated
+        from fedlgr.signals import Terminated, quiet_exit
 
-        if isinstance(err, Terminated):  # the shell's convention: 128 + the signal
-            print("fedlgr: terminated (SIGTERM)", file=sys.stderr)
-            return 128 + signal.SIGTERM
-        print("fedlgr: interrupted", file=sys.stderr)
-        return 130
+        terminated = isinstance(err, Terminated)
+        code = 128 + (signal.SIGTERM if terminated else signal.SIGINT)  # the shell's convention
+        if argv is None:  # the process is fedlgr and exits now (not a caller's, e.g. a test's)
+            quiet_exit(code)  # a second Ctrl-C would print a traceback from an atexit hook
+        hint = "".join(f"; {note}" for note in getattr(err, "__notes__", ()))
+        print(
+            f"fedlgr: {'terminated (SIGTERM)' if terminated else 'interrupted'}{hint}",
+            file=sys.stderr,
+        )
+        return code
     finally:
         warnings.formatwarning = standard_format
 

@@ -12,6 +12,22 @@ def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]
     return config, [i for i in items if i is not config]
 
 
+def resume_hint(config, run_id: str) -> str:
+    """How to go on with interrupted run ``run_id``: ``--resume`` if it left a checkpoint."""
+    from fedlgr.tracking.checkpoint import checkpoint_root, checkpoints
+    from fedlgr.tracking.mlflow_run import tracking_uri
+
+    if checkpoints(checkpoint_root(config, tracking_uri(config)) / run_id):
+        return (
+            f"MLflow run {run_id} ended KILLED; "
+            f"the same command with --resume {run_id} continues it"
+        )
+    return (
+        f"MLflow run {run_id} ended KILLED before its first checkpoint (tracking.checkpoint): "
+        "nothing to resume, run the command again"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from fedlgr.config import find_config, load_config, to_yaml
 
@@ -22,6 +38,9 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(to_yaml(config), end="")
         return 0
+    from fedlgr.data.config import check_data_path
+
+    check_data_path(config.data.path)  # before torch's import (~12 s), as is the next check
     if config.tracking.enabled:  # before torch's import (~12 s): an unreachable URI fails now
         from fedlgr.tracking.mlflow_run import tracking_uri
         from fedlgr.tracking.server import check_reachable
@@ -31,8 +50,14 @@ def run(args: argparse.Namespace) -> int:
     from fedlgr.federated.experiment import run_experiment
     from fedlgr.signals import terminate_as_interrupt
 
+    started: list[str] = []  # the MLflow run's id, once it exists
     with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C
-        result = run_experiment(config, resume=args.resume)
+        try:
+            result = run_experiment(config, resume=args.resume, on_start=started.append)
+        except KeyboardInterrupt as err:
+            if started:
+                err.add_note(resume_hint(config, started[-1]))  # printed by fedlgr.cli.main
+            raise
     if result is not None and result.run_id:
         print(f"MLflow run {result.run_id} (experiment {config.tracking.experiment!r})")
     return 0

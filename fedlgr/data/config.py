@@ -32,6 +32,19 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fedlgr"
 
 
+def check_data_path(path: Path | str) -> None:
+    """``data.path`` must exist: said at once (a run checks it before importing torch)
+    rather than as a missing ratings CSV inside a folder that is not there."""
+    from fedlgr.errors import DataError
+
+    path = Path(path)
+    if not path.exists():
+        raise DataError(
+            f"data.path={path}: no such folder (give the dataset folder, the one holding "
+            "the ratings CSV and images/; fedlgr data synth --out FOLDER writes one)"
+        )
+
+
 def cache_dir_setting(cache_dir: Path) -> str:
     """The name of the setting that chose ``cache_dir``, for error messages."""
     from_env = os.environ.get("FEDLGR_CACHE_DIR")

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fedlgr.data.config import DataConfig
+from fedlgr.data.config import DataConfig, check_data_path
 from fedlgr.data.images import load_image_store
 from fedlgr.data.ratings import CSV_NAME, SceneTable, read_ratings
 from fedlgr.errors import DataError
@@ -84,7 +84,9 @@ def load_scenes(config: DataConfig, progress: Callable[[int, int], None] | None 
 
 def _dataset_folder(path: Path) -> Path:
     """``path`` itself, refused when it is a file (the CSV would be read and then the
-    images looked for under it, or any other file reported as a CSV without its columns)."""
+    images looked for under it, or any other file reported as a CSV without its columns)
+    and when it does not exist."""
+    check_data_path(path)
     if path.is_file():
         hint = f"; here data.path={path.parent}" if path.name == CSV_NAME else ""
         raise DataError(

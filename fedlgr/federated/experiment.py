@@ -387,7 +387,9 @@ def drive(
             round_, k = step.round, step.task
             show = rank0 and config.runtime.progress and local_clients > 0
             label = f"round {round_}/{total}" + (f" (task {tasks[k]})" if tasks else "")
-            with Progress(f"{label}, client epochs", "epoch", show) as bar:
+            # What the bar counts: each local epoch of each of this process's clients.
+            plan = f"{_count(local_clients, 'client')} x {_count(config.train.epochs, 'epoch')}"
+            with Progress(f"{label}, local training ({plan})", "client-epochs", show) as bar:
                 epochs = local_clients * config.train.epochs
                 log = rounds.run_round(
                     round_, k, step.first_of_task, step.last_of_task, _epoch_counter(bar, epochs)
@@ -461,6 +463,10 @@ class Eta:
             return ""
         mean = (time.perf_counter() - self.start) / self.done
         return f", ETA {duration(mean * left)}"
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _scores(log: RoundLog) -> str:

@@ -107,7 +107,7 @@ def _create_experiment(client, name: str) -> str:
     # The store MLflow builds for this URI with ``root`` as its default artifact root
     # (what ``mlflow server --default-artifact-root`` does): the experiment's id is only
     # known once created, and its artifact location is derived from it in that step.
-    store = _get_store(client.tracking_uri, root.as_uri())
+    store = _get_store(client.tracking_uri, str(root))
     return store.create_experiment(name, tags=[ExperimentTag(k, v) for k, v in KIND.items()])
 
 
