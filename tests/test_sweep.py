@@ -303,8 +303,19 @@ def test_two_workers_share_one_study_and_run_no_point_twice(
     storage = f"sqlite:///{tmp_path}/optuna.db"
     store = f"sqlite:///{tmp_path}/mlflow.db"
     monkeypatch.setenv("PYTHONPATH", str(REPO))
-    result = run_sweep(load_sweep(path), storage=storage, tracking_uri=store, workers=2, echo=print)
+    lines = []
+    spec = load_sweep(path)
+    result = run_sweep(spec, storage=storage, tracking_uri=store, workers=2, echo=lines.append)
     assert result.done
+    # Each worker's lines carry its label (the helper's come through this process); the
+    # sweep's own header and final table do not.
+    text = "\n".join(lines).splitlines()
+    start = text.index(next(t for t in text if t.startswith("trial ")))
+    worker_lines = [t for t in text[1:start] if t.strip()]
+    assert worker_lines and all(t.startswith(("[w0] ", "[w1] ")) for t in worker_lines), text
+    assert any(t.startswith("[w1] sweep parallel: grid, 4 trials") for t in worker_lines)
+    assert any(t.startswith("[w0] === parallel trial ") for t in worker_lines)
+    assert sum(t.startswith("trial ") for t in text) == 1  # one final table
     states = trials_by_state(storage, "parallel")
     complete = states["COMPLETE"]
     assert len(complete) == 4 and len({point(t.params) for t in complete}) == 4

@@ -254,7 +254,7 @@ def test_every_trial_error_is_shown_and_an_all_failed_sweep_exits_1(
     assert main([*argv, store]) == 1
     captured = capsys.readouterr()
     assert "see the log above" not in captured.out
-    table = captured.out[captured.out.index("trial  state") :]
+    table = captured.out[captured.out.index("\ntrial ") :]
     assert "objective.metric=round/missing_clients: this run did not log it" in table
     assert "data.clients=100: more clients than the" in table
     (line,) = captured.err.strip().splitlines()

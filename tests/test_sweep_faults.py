@@ -105,6 +105,8 @@ def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     states = trials_by_state(storage, "stopped")
     (stopped,) = states["FAIL"]
     assert stopped.number == number and stopped.params
+    why = "stopped by Ctrl-C" if signum == signal.SIGINT else "stopped by SIGTERM"
+    assert stopped.user_attrs["interrupted"] == why  # the final table shows it
     (queued,) = states["WAITING"]
     assert queued.params == stopped.params and queued.system_attrs["retry_history"] == [number]
     _, (parent,), (child,) = child_runs(store, "sweep-stopped")

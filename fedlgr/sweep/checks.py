@@ -72,6 +72,13 @@ def _load(spec: SweepSpec, point: dict[str, Any]) -> ExperimentConfig:
         return load_config(base, [*overrides, "data.path=/path/to/manners-db"])
 
 
+def tracking_experiment(spec: SweepSpec) -> str:
+    """The MLflow experiment its trials' configs name: what a ``tracking.experiment=NAME``
+    override (the sweep file's or the command line's) sets, resolved and checked as in a
+    trial's config."""
+    return _load(spec, {p.name: _values(p)[0] for p in spec.params}).tracking.experiment
+
+
 def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) -> None:
     """Every probed trial's config must load and log the objective's metric, so that a
     typo in a key or in the metric's name fails now rather than in every trial."""

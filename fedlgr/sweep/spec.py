@@ -29,7 +29,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -196,7 +196,7 @@ def load_sweep(
     """Read and check a sweep file - every parameter, the configs its trials make and the
     objective's metric, before anything trains; ``overrides`` (``key=value``) apply to
     every trial; ``echo`` says so before a long check (a large grid)."""
-    from fedlgr.sweep.checks import check_trial_configs
+    from fedlgr.sweep.checks import check_trial_configs, tracking_experiment
 
     path = find_sweep(path)
     raw = read_sweep_file(path)
@@ -274,6 +274,9 @@ def load_sweep(
     if spec.heartbeat_s > MAX_HEARTBEAT_S:
         raise fail("heartbeat_s", f"{spec.heartbeat_s} is above {MAX_HEARTBEAT_S} (one day)")
     check_trial_configs(spec, echo)
+    if any(o.split("=", 1)[0].strip() == "tracking.experiment" for o in spec.overrides):
+        # An override names the experiment: it wins over the file's ``experiment``.
+        spec = replace(spec, experiment=tracking_experiment(spec))
     return spec
 
 

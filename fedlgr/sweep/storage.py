@@ -298,8 +298,9 @@ def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = Fals
     """Record the settings with a new study; refuse to go on with a study that was started
     with other ones: its finished trials would be taken for trials of these settings (a
     relaunch with another ``data.path`` would train nothing and report the old table).
-    Settings that change no number (``tracking.*``, ``data.cache_dir``: those a resumed run
-    may change) and how trials run (threads, workers) are not compared. ``changed_ok``
+    Settings that change no number (``tracking.*``: where and how runs are recorded - a
+    relaunched study's trials go on in its parent run's experiment; ``data.cache_dir``) and
+    how trials run (threads, workers) are not compared. ``changed_ok``
     (``fedlgr sweep --settings-changed``): go on, e.g. with a dataset that moved, and
     record the new settings."""
     now = sweep_settings(spec)
@@ -326,9 +327,14 @@ def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = Fals
 
 def _as_dict(overrides: list[str]) -> dict[str, str]:
     """``key=value`` overrides as {key: value}, the last one of a key winning; settings
-    that change no number left out, and how trials run (``--workers`` sets the threads per
-    trial: a relaunch with other workers or on another machine goes on with the study)."""
+    that change no number (``tracking.*``, ``data.cache_dir``) left out, and how trials
+    run (``--workers`` sets the threads per trial: a relaunch with other workers or on
+    another machine goes on with the study)."""
     from fedlgr.tracking.checkpoint import MACHINE_CHOSEN, SAFE_KEYS
 
     pairs = dict(o.split("=", 1) for o in overrides)
-    return {k: v for k, v in pairs.items() if k not in SAFE_KEYS and k not in MACHINE_CHOSEN}
+    return {
+        k: v
+        for k, v in pairs.items()
+        if k not in SAFE_KEYS and k not in MACHINE_CHOSEN and not k.startswith("tracking.")
+    }

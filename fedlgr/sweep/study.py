@@ -26,6 +26,11 @@ elsewhere on the same storage - runs trials one at a time until the study is don
   a trial whose point an earlier trial already covers is skipped (PRUNED, user attr
   ``duplicate_of``) before it trains.
 
+The console: the ``--workers`` helpers' output comes through this process, each worker's
+lines prefixed ``[wK]``; the table at the end is printed once, by this process, with
+interrupted trials as ``INTERRUPTED`` and why; a relaunched study with nothing left to
+run says so in one line.
+
 MLflow: one parent run per sweep (tag ``fedlgr.kind=sweep``: the study's settings and, at
 the end, the best trial and its params - logged once, by the process that started the
 ``--workers``) and one child run per trial - the same run as
@@ -35,8 +40,10 @@ active-run stack is thread-local, so ``nested=True`` is not used).
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -44,7 +51,7 @@ from typing import Any
 from fedlgr.signals import Terminated
 from fedlgr.sweep.checks import check_data
 from fedlgr.sweep.spec import SweepSpec
-from fedlgr.sweep.trials import all_failed, counts, ran, summary
+from fedlgr.sweep.trials import all_failed, counts, nothing_left, ran, summary
 from fedlgr.sweep.worker import DEFAULT_STORAGE, Worker
 
 
@@ -72,13 +79,15 @@ def run_sweep(
     ``fedlgr sweep`` subprocesses on the same storage. Refuses to start (ConfigError)
     when a trial's ``data.path`` is not a folder."""
     check_data(spec)
+    if workers > 1:  # the helpers' lines are echoed from threads: one line at a time
+        echo = serialised(echo)
     worker = Worker(
         spec,
         storage,
         study_name=study_name,
         tracking_uri=tracking_uri,
         worker=worker_id,
-        echo=echo,
+        echo=prefixed(echo, "[w0] ") if workers > 1 else echo,
         settings_changed=settings_changed,
     )
     todo, running, waiting = counts(worker.study, spec)
@@ -87,12 +96,20 @@ def run_sweep(
         f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
         f"study {worker.study.study_name!r} in {storage} "
         f"({ran(worker.study) if spec.sampler == 'tpe' else total - todo} "
-        f"done, {running} running, {waiting} queued); MLflow experiment {spec.experiment!r}, "
+        f"done, {running} running, {waiting} queued); MLflow experiment {worker.experiment!r}, "
         f"parent run {worker.parent_run_id}"
     )
+    if worker.moved and worker_id == 0:
+        echo(worker.moved)
     if spec.sampler == "tpe" and size is not None and size < total:
         echo(f"sweep {spec.name}: its space has {size} distinct points: it stops once each has run")
-    helpers = []
+    if not worker.left_to_run():
+        if worker_id > 0:
+            return SweepResult(worker.study, worker.parent_run_id, True)
+        best = worker.finish_parent()
+        echo(nothing_left(worker.study, spec, best))
+        return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
+    helpers, relays = [], []
     for k in range(1, workers):
         command = [
             sys.executable,
@@ -110,7 +127,17 @@ def run_sweep(
             "--worker-id",
             str(k),
         ]
-        helpers.append(subprocess.Popen(command))
+        # Its output comes through this process, each line prefixed with its worker.
+        process = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            errors="replace",
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},  # lines as they come, not in blocks
+        )
+        helpers.append(process)
+        relays.append(relay(process, f"[w{k}] ", echo))
     try:
         done = worker.run()
     except Terminated:
@@ -125,6 +152,8 @@ def run_sweep(
                 process.wait()
             except KeyboardInterrupt:
                 process.terminate()
+        for thread in relays:
+            thread.join(timeout=5)  # its last lines, before the table
     if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
         return SweepResult(worker.study, worker.parent_run_id, done)
     best = worker.finish_parent() if done else None
@@ -134,3 +163,38 @@ def run_sweep(
     echo(runs_hint(worker.tracking_uri, worker.experiment_id))
     failure = all_failed(worker.study) if done else None
     return SweepResult(worker.study, worker.parent_run_id, done, failure)
+
+
+def serialised(echo: Callable[..., None]) -> Callable[..., None]:
+    """``echo`` that one thread at a time may call, so lines never mix mid-line."""
+    lock = threading.Lock()
+
+    def say(*args: object, **kwargs: Any) -> None:
+        with lock:
+            echo(*args, **kwargs)
+
+    return say
+
+
+def prefixed(echo: Callable[..., None], prefix: str) -> Callable[..., None]:
+    """``echo`` with ``prefix`` before each non-empty line: two workers' lines interleave,
+    and the prefix tells them apart."""
+
+    def say(*args: object, **kwargs: Any) -> None:
+        text = " ".join(map(str, args))
+        echo("\n".join(prefix + line if line else line for line in text.split("\n")), **kwargs)
+
+    return say
+
+
+def relay(process: subprocess.Popen, prefix: str, echo: Callable[..., None]) -> threading.Thread:
+    """A thread that echoes a helper worker's output line by line, each with ``prefix``."""
+
+    def pump() -> None:
+        for line in process.stdout:
+            echo(prefix + line.rstrip("\n") if line.strip() else "")
+        process.stdout.close()
+
+    thread = threading.Thread(target=pump, name=f"relay {prefix.strip()}", daemon=True)
+    thread.start()
+    return thread

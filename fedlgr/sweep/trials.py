@@ -95,6 +95,18 @@ def no_new_point(study, spec: SweepSpec) -> str | None:
     return f"the sampler's last {streak} draws were all points already run ({space})"
 
 
+def nothing_left(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
+    """The one line a relaunched study with nothing left to run says."""
+    done = ran(study)
+    why = no_new_point(study, spec) if spec.sampler != "grid" else None
+    if why and done < spec.n_trials:
+        what = f"{done} of {spec.n_trials} trials ran ({why})"
+    else:
+        what = f"all {done} trials are done"
+    found = f" (best: trial {best['trial']}, {spec.metric} {best['value']:.4f})" if best else ""
+    return f"study {study.study_name!r}: {what}; nothing left to run{found}"
+
+
 def all_failed(study) -> str | None:
     """When every trial that ran failed: how many, and the first one's error."""
     from optuna.trial import TrialState
@@ -132,47 +144,79 @@ def describe_param(p) -> Any:
     return {"low": p.low, "high": p.high, "log": p.log, "step": p.step}
 
 
+def interruption(trial, trials) -> str | None:
+    """Why a FAILED trial was cut off rather than failing on its own, or None: Ctrl-C or
+    SIGTERM (user attr ``interrupted``, set by its worker), or a worker that died (killed,
+    machine lost: no error recorded and a copy queued); with the copy that re-runs it."""
+    from optuna.trial import TrialState
+
+    if trial.state != TrialState.FAIL or trial.user_attrs.get("error"):
+        return None
+    # A copy's history lists the trials it stands for, its own original last.
+    copies = (t for t in trials if t.system_attrs.get("retry_history", [])[-1:] == [trial.number])
+    copy = next(copies, None)
+    reason = trial.user_attrs.get("interrupted")
+    if not reason:
+        if copy is None:
+            return None
+        reason = "its worker died (no heartbeat)"
+    elif reason is True:  # recorded before the reason was
+        reason = "Ctrl-C or SIGTERM"
+    if copy is None:
+        return f"{reason}; not queued again yet"
+    return f"{reason}; retried as trial {copy.number}"
+
+
 def trial_table(study) -> list[dict[str, Any]]:
-    """Every trial: number, state, value, params, error / duplicate / MLflow run."""
+    """Every trial: number, state, value, params, error / interruption / duplicate / MLflow
+    run."""
     rows = []
-    for t in study.get_trials(deepcopy=False):
-        rows.append(
-            {
-                "trial": t.number,
-                "state": t.state.name,
-                "value": t.value,
-                "params": t.params,
-                **{
-                    k: t.user_attrs[k]
-                    for k in ("error", "duplicate_of", "mlflow_run_id")
-                    if k in t.user_attrs
-                },
-            }
-        )
+    trials = study.get_trials(deepcopy=False)
+    for t in trials:
+        row = {
+            "trial": t.number,
+            "state": t.state.name,
+            "value": t.value,
+            "params": t.params,
+            **{
+                k: t.user_attrs[k]
+                for k in ("error", "duplicate_of", "mlflow_run_id")
+                if k in t.user_attrs
+            },
+        }
+        why = interruption(t, trials)
+        if why is not None:
+            row["interrupted"] = why
+        rows.append(row)
     return rows
 
 
 def summary(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
+    """The table a sweep ends with: a row per trial (skipped duplicates left out), the best
+    one marked ``*`` in a column of its own, interrupted trials as ``INTERRUPTED`` with
+    why; errors longer than the column below it."""
     from fedlgr.console import table
 
     rows, errors = [], []
     for row in trial_table(study):
         if "duplicate_of" in row:
             continue
-        note = row.get("error", "")
+        state, note = row["state"], row.get("error", "")
+        if "interrupted" in row:
+            state, note = "INTERRUPTED", row["interrupted"]
         if note and len(note) > 60:  # the whole error below the table
             errors.append(f"trial {row['trial']}: {note}")
-        mark = " *" if best and row["trial"] == best["trial"] else ""
         rows.append(
             [
-                f"{row['trial']}{mark}",
-                row["state"],
+                row["trial"],
+                "*" if best and row["trial"] == best["trial"] else "",
+                state,
                 "-" if row["value"] is None else f"{row['value']:.4f}",
                 " ".join(f"{k}={v}" for k, v in row["params"].items()),
                 note[:60],
             ]
         )
-    text = table(["trial", "state", spec.metric, "params", "error"], rows)
+    text = table(["trial", "", "state", spec.metric, "params", "error"], rows)
     if errors:
         text += "\n\n" + "\n".join(errors)
     if best:

@@ -40,6 +40,12 @@ def _one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
+def _interrupt_reason(err: KeyboardInterrupt) -> str:
+    from fedlgr.signals import Terminated
+
+    return "stopped by SIGTERM" if isinstance(err, Terminated) else "stopped by Ctrl-C"
+
+
 class Worker:
     """Runs trials of one study until it is done (or interrupted)."""
 
@@ -59,6 +65,8 @@ class Worker:
         self.spec, self.storage, self.worker, self.echo = spec, storage, worker, echo
         self.study, self.retry = open_study(spec, storage, study_name, worker, settings_changed)
         self.tracking_uri = tracking_uri
+        self.experiment = spec.experiment  # a study goes on in its parent run's: _mlflow
+        self.moved: str | None = None  # why the trials go to another experiment than asked
         self.client, self.experiment_id = self._mlflow()
         self.retry.client, self.retry.experiment_id = self.client, self.experiment_id
         with store_lock(storage):  # two workers starting at once make one parent run
@@ -69,7 +77,7 @@ class Worker:
     # ------------------------------------------------------------------ MLflow parent run
 
     def _tracking(self) -> list[str]:
-        out = [f"tracking.experiment={self.spec.experiment}"]
+        out = [f"tracking.experiment={self.experiment}"]
         if self.tracking_uri:
             out.append(f"tracking.uri={self.tracking_uri}")
         return out
@@ -89,7 +97,40 @@ class Worker:
         self.tracking_uri = uri
         with store_lock(uri):  # the client creates (migrates) a fresh sqlite store
             client = mlflow.MlflowClient(uri)
-        return client, experiment_id(client, self.spec.experiment)
+        parent = self._parent_run(client)
+        if parent is None:
+            return client, experiment_id(client, self.experiment)
+        # A relaunched study keeps its runs together: its trials go where its parent run is.
+        there = client.get_experiment(parent.info.experiment_id).name
+        if there != self.experiment:
+            self.moved = (
+                f"study {self.study.study_name!r}: its parent run is in MLflow experiment "
+                f"{there!r}, so its trials go there too (not {self.experiment!r}); "
+                "--study NAME starts a new study elsewhere"
+            )
+        self.experiment = there
+        return client, parent.info.experiment_id
+
+    def _parent_run(self, client):
+        """The study's parent run, when the study has one (a relaunch), else None."""
+        run_id = self.study.user_attrs.get(PARENT_ATTR)
+        if not run_id:
+            return None
+        from mlflow.exceptions import MlflowException
+
+        from fedlgr.tracking.server import check_reachable
+
+        check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
+        try:
+            return client.get_run(run_id)
+        except MlflowException as err:
+            if err.error_code != "RESOURCE_DOES_NOT_EXIST":
+                raise
+            raise FedlgrError(
+                f"study {self.study.study_name!r}: its MLflow parent run {run_id} is not in "
+                f"{client.tracking_uri} ({_one_line(err)}); relaunch it with the "
+                "--tracking-uri it ran with, or start a new study with --study NAME"
+            ) from err
 
     def _parent(self) -> str:
         """The sweep's parent run: created by the first worker, found by the others (its id
@@ -189,6 +230,9 @@ class Worker:
             return self._train(trial)
         except optuna.TrialPruned:
             raise
+        except KeyboardInterrupt as err:  # the table shows the trial interrupted, and why
+            trial.set_user_attr("interrupted", _interrupt_reason(err))
+            raise
         except Exception as err:  # recorded where the end-of-sweep table and MLflow show it
             self._record_error(trial, _one_line(err)[:1000])
             raise
@@ -261,9 +305,6 @@ class Worker:
             )
         except PrunedRun as err:
             raise optuna.TrialPruned(str(err)) from None
-        except KeyboardInterrupt:
-            trial.set_user_attr("interrupted", True)
-            raise
         trial.set_user_attr("mlflow_run_id", result.run_id)
         final = result.final_metrics()
         if spec.metric not in final:
@@ -318,14 +359,37 @@ class Worker:
                     self.client.set_terminated(self.parent_run_id, "FAILED")
                 raise problem from err
 
-    def _run(self) -> bool:
+    def left_to_run(self) -> bool:
+        """Whether the study has a trial left to start, running or queued - once the
+        trials of dead or interrupted workers are queued again."""
         import optuna
 
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                self._recover()
+            return counts(self.study, self.spec) != (0, 0, 0)
+        except KeyboardInterrupt:  # no trial of ours yet: the parent run ends KILLED
+            self.client.set_terminated(self.parent_run_id, "KILLED")
+            raise
+        except Exception as err:  # the study's storage failed (full, locked, damaged)
+            problem = storage_error(self.storage, err)
+            if problem is None:
+                raise
+            raise problem from err
+
+    def _recover(self) -> None:
+        """Queue again the trials of workers that died or were interrupted."""
+        import optuna
+
+        optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
+        self._fail_unborn_trials()
+        self._retry_interrupted_trials()
+
+    def _run(self) -> bool:
         spec = self.spec
         while True:
-            optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
-            self._fail_unborn_trials()
-            self._retry_interrupted_trials()
+            self._recover()
             if self._someone_is_drawing():
                 time.sleep(0.5)  # let it take its point first (GridSampler may hand it out twice)
                 continue
