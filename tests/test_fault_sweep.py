@@ -54,7 +54,15 @@ def test_a_stores_lock_file_is_never_created_through_a_link(tmp_path):
     assert not target.exists()
 
 
-@pytest.mark.parametrize("uri", ["sqlite://", "sqlite:///:memory:"])
+@pytest.mark.parametrize(
+    "uri",
+    [
+        "sqlite://",
+        "sqlite:///:memory:",
+        "sqlite:///file::memory:?cache=shared&uri=true",
+        "sqlite:///file:db?mode=memory&uri=true",
+    ],
+)
 def test_in_memory_stores_are_refused_they_keep_nothing(uri):
     with pytest.raises(TrackingUnreachable, match="in-memory sqlite store keeps nothing"):
         check_reachable(uri)
@@ -85,7 +93,7 @@ def test_an_interrupted_synth_leaves_no_half_dataset(tmp_path):
     synthesize(kept, scenes=4, size=32)
     with pytest.raises(KeyboardInterrupt):
         synthesize(kept, scenes=8, size=32, force=True, progress=interrupt)
-    assert sorted(p.name for p in kept.iterdir()) == ["synth.json"]  # no images, no csv
+    assert not any(kept.iterdir())  # the old dataset went with --force; nothing half-made
 
 
 def test_a_text_file_named_as_a_config_is_refused_without_its_text(tmp_path):
@@ -106,3 +114,71 @@ def test_the_credentials_folder_is_private_under_any_umask(tmp_path):
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "creds").stat().st_mode) == 0o700
+
+
+def test_robot_refuses_a_path_as_a_run_id_however_it_is_reached(tmp_path):
+    """The re-test reached robot.robot with a Flower run id that was a path (a string: a
+    Flower run id is an integer, but nothing here may rely on it)."""
+    state = tmp_path / "a" / "state"
+    node = {"data-path": str(tmp_path), "state-dir": str(state), "client": 0}
+    for run in ("../../../escape", "/tmp/abs"):
+        with pytest.raises(FedlgrError, match="not a run id; refused, nothing written"):
+            robot.robot(run, node, "{}", 0)
+        with pytest.raises(FedlgrError, match="not a run id; refused, nothing written"):
+            robot.handle("train", run, node, plan(""))
+    assert not (tmp_path / "a").exists() and not (tmp_path / "escape").exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "missing"),
+    [
+        (RecordDict({}), "KeyError: 'plan'"),
+        (RecordDict({"plan": ConfigRecord({"round": 1, "client": "abc"})}), "ValueError"),
+        (plan("r1"), "KeyError"),  # no config, no tensors
+    ],
+)
+def test_a_malformed_message_is_one_line_to_the_server(tmp_path, content, missing):
+    node = {"data-path": str(tmp_path), "state-dir": str(tmp_path / "state"), "client": 0}
+    with pytest.raises(FedlgrError, match="the server's train message is malformed") as err:
+        robot.handle("train", 7, node, content)
+    assert missing in str(err.value) and len(str(err.value).splitlines()) == 1
+
+
+def test_data_show_refuses_its_bad_arguments_in_one_line(tmp_path, synth_dir, capsys):
+    cases = {
+        "--scenes 0": (["--scenes", "0", "--out", str(tmp_path / "s.png")], "--scenes 0"),
+        "--seed -1": (["--seed", "-1", "--out", str(tmp_path / "s.png")], "--seed -1"),
+        "a folder": (["--out", str(tmp_path)], "name the picture file"),
+        "a .txt": (["--out", str(tmp_path / "s.txt")], "ending in .png or .jpg or .jpeg"),
+    }
+    for case, (args, said) in cases.items():
+        assert main(["data", "show", str(synth_dir), *args]) == 1, case
+        [line] = capsys.readouterr().err.strip().splitlines()
+        assert line.startswith("fedlgr: error: --") and said in line, case
+
+
+def test_a_text_file_named_as_a_sweep_is_refused_without_its_text(tmp_path, capsys):
+    for text in ("API_KEY=sk-live-SECRET123\nDB_PASSWORD=hunter2\n", "_apt:*:20228:0:99999:7:::\n"):
+        sweep = tmp_path / "sweep.yaml"
+        sweep.write_text(text)
+        assert main(["sweep", str(sweep), "--storage", f"sqlite:///{tmp_path}/o.db"]) == 1
+        err = capsys.readouterr().err
+        assert "SECRET" not in err and "hunter2" not in err and "20228" not in err
+        assert f"fedlgr: error: {sweep}: " in err
+
+
+def test_the_robots_config_is_never_written_through_a_link(tmp_path, synth_dir):
+    """A link planted at <state>/run-<id>/config.yaml is replaced, its target untouched."""
+    from fedlgr.config import load_config, to_yaml
+
+    state = tmp_path / "state"
+    (state / "run-r1").mkdir(parents=True)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (state / "run-r1" / "config.yaml").symlink_to(victim)
+    node = {"data-path": str(synth_dir), "state-dir": str(state), "client": 0}
+    config = to_yaml(load_config(None, [f"data.path={synth_dir}"]))
+    robot.robot("r1", node, config, 0)
+    assert victim.read_text() == "precious"
+    written = state / "run-r1" / "config.yaml"
+    assert not written.is_symlink() and "method:" in written.read_text()

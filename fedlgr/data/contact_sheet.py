@@ -10,7 +10,10 @@ from PIL import Image, ImageDraw, ImageFont
 from fedlgr.data.columns import LABEL_SHORT_NAMES, LIKERT_MAX, LIKERT_MIN
 from fedlgr.data.images import Crop, decode, match_images
 from fedlgr.data.ratings import read_ratings
-from fedlgr.errors import DataError
+from fedlgr.errors import ConfigError, DataError
+
+MAX_SCENES = 200  # one sheet: 200 tiles are already a picture of 896 x 18,700 px
+SHEET_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 TILE = 224
 PANEL = 150
@@ -29,6 +32,16 @@ def contact_sheet(
     """Write a PNG of ``n_scenes`` scenes (half circle, half arrow where possible), each
     annotated with its stamp, mode, number of raters and the 8 mean labels."""
     folder, out = Path(folder), Path(out)
+    if not 1 <= n_scenes <= MAX_SCENES:
+        raise ConfigError(f"--scenes {n_scenes}: a sheet shows 1 to {MAX_SCENES} scenes")
+    if not 0 <= seed < 2**32:
+        raise ConfigError(f"--seed {seed}: seeds are 0 to 2**32 - 1, as every fedlgr seed")
+    if out.suffix.lower() not in SHEET_SUFFIXES:
+        raise ConfigError(
+            f"--out {out}: name the picture file, ending in {' or '.join(SHEET_SUFFIXES)}"
+        )
+    if out.is_dir():
+        raise ConfigError(f"--out {out}: a folder; name the picture file ({out / 'sheet.png'})")
     table = read_ratings(folder)
     match = match_images(folder / "images", table.stamps)
     has_image = np.isin(table.stamps, list(match.files))

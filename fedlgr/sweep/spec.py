@@ -221,6 +221,13 @@ def load_sweep(
     }
     unknown = sorted(set(raw) - known)
     if unknown:
+        from fedlgr.config import SETTING_NAME
+
+        if not SETTING_NAME.fullmatch(str(unknown[0])):  # a text file: its text is not echoed
+            raise ConfigError(
+                f"{path}: not a sweep file: its top level is not `setting: value` lines "
+                f"({', '.join(sorted(known))})"
+            )
         raise fail(unknown[0], f"unknown setting; known: {', '.join(sorted(known))}")
     space = raw.get("space")
     if not isinstance(space, dict) or not space:
@@ -291,7 +298,7 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
     try:
         top = yaml.safe_load(path.read_text(encoding="utf-8"))
         if top is not None and not isinstance(top, dict):
-            kind = "list" if isinstance(top, list) else f"{type(top).__name__} {top!r:.40}"
+            kind = "list" if isinstance(top, list) else type(top).__name__  # not its text
             raise ConfigError(
                 f"{path}: a sweep file is a mapping of settings (base, objective, space, ...), "
                 f"not a {kind}"

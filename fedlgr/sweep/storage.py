@@ -117,13 +117,6 @@ def sqlite_path(storage: str) -> Path | None:
     return Path(database).expanduser()
 
 
-def _in_memory(storage: str) -> bool:
-    from sqlalchemy.engine import make_url
-
-    url = make_url(storage)
-    return url.database in (None, "", ":memory:") or url.query.get("mode") == "memory"
-
-
 def check_storage(storage: str, make: bool = True) -> Path | None:
     """Refuse, in one line naming it, a storage that cannot hold a study, before anything
     waits on it: not a database URL; an sqlite path that is a folder, a file that is not
@@ -139,7 +132,9 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         path = sqlite_path(storage)
     except ArgumentError as err:
         raise fail("not a database URL (e.g. sqlite:///optuna.db or postgresql://HOST/DB)") from err
-    if path is None and storage.startswith("sqlite:") and _in_memory(storage):
+    from fedlgr.tracking.server import in_memory_sqlite
+
+    if in_memory_sqlite(storage):
         raise fail(
             "an in-memory sqlite database keeps nothing (the study is lost when the sweep "
             "ends, and no other worker can join it): name a file, e.g. sqlite:///optuna.db"

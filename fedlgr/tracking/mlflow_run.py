@@ -121,7 +121,7 @@ def store_lock(uri: str):
         return
     import fcntl
 
-    path = Path(uri.removeprefix("sqlite:///")).expanduser()
+    path = Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()  # no ?mode=..
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = open_lock_file(Path(f"{path}.lock"), f"tracking store {uri}")
     try:

@@ -36,12 +36,34 @@ class TrackingUnreachable(FedlgrError):
     """Nothing answers at the tracking server's address."""
 
 
+def in_memory_sqlite(uri: str) -> bool:
+    """Whether ``uri`` names an in-memory sqlite database, which keeps nothing once its
+    process ends: ``sqlite://``, ``:memory:``, or SQLite's URI filenames
+    (``file::memory:``, ``mode=memory``)."""
+    if not uri.startswith("sqlite:"):
+        return False
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        url = make_url(uri)
+    except (ArgumentError, ValueError):
+        return False  # not a URL sqlalchemy reads: for the store's own check to refuse
+    database = url.database or ""
+    return (
+        database in ("", ":memory:")
+        or database.startswith("file::memory:")
+        or url.query.get("mode") == "memory"
+        or "mode=memory" in database
+    )
+
+
 def check_reachable(uri: str, timeout: float = 5.0) -> None:
     """Raise :class:`TrackingUnreachable` when ``uri`` is an HTTP(S) address at which
     nothing answers within ``timeout`` seconds. Any HTTP answer counts as reachable (a
     proxy's 401 or 404 is for MLflow to report). A local sqlite store must be one fedlgr
     can write (:func:`check_sqlite`); MLflow 3's plain file store is refused."""
-    memory = uri == "sqlite://" or uri.split("?")[0] == "sqlite:///:memory:"
+    memory = in_memory_sqlite(uri)
     if uri.startswith("sqlite:///") and not memory:
         check_sqlite(uri)
         return

@@ -178,7 +178,12 @@ def synthesize(
             if progress is not None:
                 progress(k, scenes)
     except BaseException:  # Ctrl-C, SIGTERM, a full disk: no half dataset is left behind
-        shutil.rmtree(out if made else out / "images", ignore_errors=True)
+        if made:
+            shutil.rmtree(out, ignore_errors=True)
+        else:  # --force: the old dataset is gone already; so is its description
+            shutil.rmtree(out / "images", ignore_errors=True)
+            for name in ("all_data.csv", "all_data.csv.tmp", "synth.json"):
+                (out / name).unlink(missing_ok=True)
         raise
     tmp = out / "all_data.csv.tmp"
     with tmp.open("w", newline="") as f:

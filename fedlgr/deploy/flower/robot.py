@@ -24,7 +24,9 @@ leave (``ClientSide.upload`` checks them against the scope's keys).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
 from pathlib import Path
 
 import yaml
@@ -166,12 +168,17 @@ def robot(run_id: int | str, node_config: dict, config_yaml: str, slot: int | No
     the client its SuperNode names."""
     # (a slot other than the SuperNode's --client is refused by the ClientApp already)
     client = int(node_setting(node_config, "client")) if slot is None else slot
+    _check_run(run_id)
     key = (run_id, client)
     if key not in _robots:
         config = robot_config(node_config, config_yaml)
         folder = state_dir(node_config) / f"run-{run_id}"
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / "config.yaml").write_text(to_yaml(config))  # what this robot runs
+        # What this robot runs; written beside and renamed over, so a link planted at
+        # config.yaml is replaced, never written through.
+        partial = folder / f".config.yaml.{os.getpid()}"
+        partial.write_text(to_yaml(config))
+        partial.replace(folder / "config.yaml")
         own = str(node_config.get("own-data", "false")).lower() == "true"
         _robots[key] = Robot(config, client, folder, own_data=own)
     return _robots[key]
@@ -228,13 +235,36 @@ def _section(settings: dict, name: str) -> dict:
     return section
 
 
+def _check_run(run_id) -> None:
+    """A run's state lives in ``<state-dir>/run-<id>``: an id that is not one (a path,
+    ``..``) is refused before anything is written."""
+    if not wire.RUN_KEY.fullmatch(str(run_id)):
+        raise FedlgrError(f"run {str(run_id)[:80]!r}: not a run id; refused, nothing written")
+
+
+@contextlib.contextmanager
+def _malformed(kind: str):
+    """A message fedlgr's server never sends (a record or field missing, a value of the
+    wrong type) is one line, not a KeyError from the decoder."""
+    try:
+        yield
+    except (KeyError, ValueError, TypeError, AttributeError) as err:
+        raise FedlgrError(
+            f"the server's {kind} message is malformed ({type(err).__name__}: {err}); is the "
+            "server running the same fedlgr as this robot?"
+        ) from None
+
+
 def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
     """The reply (Flower's encoding of its content) to a ``train`` or ``evaluate``
     message's content. The robot's state is kept under the run the server names (its
     MLflow run: a resumed run is a new Flower run), else under the Flower run."""
-    slot, run = wire.slot(content), wire.run_key(content) or str(run_id)
+    with _malformed(kind):
+        slot, run = wire.slot(content), wire.run_key(content) or str(run_id)
+    _check_run(run)
     if kind == "train":
-        ins, evaluate, config_yaml = wire.decode_train_ins(content)
+        with _malformed(kind):
+            ins, evaluate, config_yaml = wire.decode_train_ins(content)
         client = robot(run, node_config, config_yaml, slot)
         identity = ["train", ins.plan.round, -1 if evaluate is None else evaluate.plan.round]
 
@@ -244,7 +274,8 @@ def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
 
         return client.answer(identity, work)
     if kind == "evaluate":
-        ins, config_yaml = wire.decode_evaluate_ins(content)
+        with _malformed(kind):
+            ins, config_yaml = wire.decode_evaluate_ins(content)
         client = robot(run, node_config, config_yaml, slot)
         identity = ["evaluate", ins.plan.round, ins.plan.round]
         return client.answer(identity, lambda: wire.encode_evaluate_res(client.evaluate(ins)))
