@@ -260,7 +260,8 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
     if not torch.cuda.is_available():
         cases.append(
             (
-                ["run", fast, "runtime.accelerator=gpu"],
+                # a data.path that exists: a missing one is refused first, before torch loads
+                ["run", fast, f"data.path={tmp_path}", "runtime.accelerator=gpu"],
                 "runtime.accelerator=gpu: no CUDA GPU on this machine",
             )
         )

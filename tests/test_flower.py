@@ -307,25 +307,31 @@ def serverapps(federation) -> list[int]:
 def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_process_computes(
     federation, synth_dir, cache_dir, store
 ):
-    """FedRootAvg, 3 rounds: SIGKILL of the ServerApp once round 1 is logged; ``fedlgr
-    deploy run CONFIG --resume`` continues the same MLflow run from its newest checkpoint,
-    the robots from their own state (a robot asked again what it answered last sends the
-    same reply). Every round is logged once, with the in-process run's scores to 1e-5
+    """FedRootAvg, 6 rounds (a round is ~1 s: the kill must land before the end): SIGKILL
+    of the ServerApp once round 1 is logged and checkpointed; ``fedlgr deploy run CONFIG
+    --resume`` continues the same MLflow run from its newest checkpoint, the robots from
+    their own state (a robot asked again what it answered last sends the same reply).
+    Every round is logged once, with the in-process run's scores to 1e-5
     (an uninterrupted Flower run gives them: the test above, for FedLGR), bytes,
     artifacts and params."""
-    method = ["method=FedRootAvg", "federated.rounds=3"]
+    method = ["method=FedRootAvg", "federated.rounds=6"]
     base = [*settings(synth_dir, store, "resumed", federation), *method]
     proc = federation.run(FAST, base)
     client = mlflow.MlflowClient(store)
     deadline = time.monotonic() + 400
     while True:
         assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()[-3000:]
-        experiment = client.get_experiment_by_name("fedlgr-debug")
-        runs = client.search_runs([experiment.experiment_id], "attributes.run_name = 'resumed'")
+        experiment = client.get_experiment_by_name("fedlgr-debug")  # None until created
+        ids = [experiment.experiment_id] if experiment else []
+        runs = client.search_runs(ids, "attributes.run_name = 'resumed'") if ids else []
+        # round 1 logged and checkpointed (a kill between the two leaves nothing to resume:
+        # the resume refuses, rightly, and a round is ~1 s here)
         if runs and history(client, runs[0].info.run_id, "test/loss"):
             run_id = runs[0].info.run_id
-            break
-        time.sleep(0.1)
+            folder = Path(store.removeprefix("sqlite:///")).parent / "checkpoints" / run_id
+            if list(folder.glob("round-*.ckpt")):
+                break
+        time.sleep(0.05)
     [serverapp] = serverapps(federation)
     os.kill(serverapp, signal.SIGKILL)
     proc.kill()  # the log stream (what Ctrl-C stops); the run on the SuperLink is dead
@@ -339,4 +345,4 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
     local = run_experiment(
         fast_config(synth_dir, cache_dir, store, *method, "tracking.run_name=local-resumed")
     )
-    assert_computes_what_one_process_computes(store, run, local, 3)
+    assert_computes_what_one_process_computes(store, run, local, 6)

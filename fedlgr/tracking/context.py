@@ -138,7 +138,12 @@ def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> Non
         InputTag("mlflow.data.context", "training"),
         InputTag("modality", config.data.modality),
     ]
-    client.log_inputs(run_id, datasets=[DatasetInput(entity, tags=tags)])
+    from fedlgr.tracking.mlflow_run import store_lock
+
+    # MLflow's sqlite store looks the dataset up, then inserts it: two runs starting at once
+    # on one store both inserted it, and one died on the UNIQUE constraint. One at a time.
+    with store_lock(client.tracking_uri):
+        client.log_inputs(run_id, datasets=[DatasetInput(entity, tags=tags)])
 
 
 class FirstLine(logging.Filter):
