@@ -107,6 +107,13 @@ class Child:
             if re.match(pattern, line):
                 return line
 
+    def signal_and_wait(self, sig: int) -> tuple[int, float]:
+        """Send ``sig``; the exit code and the seconds from the signal to the exit."""
+        os.kill(self.pid, sig)
+        sent = time.monotonic()
+        code = self.process.wait(timeout=60)
+        return code, time.monotonic() - sent
+
     def stderr(self) -> str:
         self._stderr.flush()
         return self.stderr_path.read_text()
@@ -162,10 +169,7 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
         # Printed once round 1 is logged (step 1 of round/seconds) and checkpointed; the
         # signal goes at once, as later rounds take a fraction of a second each.
         child.wait_for(rf"round 1/{rounds}:")
-        os.kill(child.pid, signal.SIGTERM)
-        sent = time.monotonic()
-        code = child.process.wait(timeout=60)
-        took = time.monotonic() - sent
+        code, took = child.signal_and_wait(signal.SIGTERM)
         stderr = child.stderr()
     assert code == 128 + signal.SIGTERM, stderr[-3000:]
     assert took < 10, f"{took:.1f} s from SIGTERM to exit"
@@ -220,10 +224,7 @@ def test_ctrl_c_ends_with_one_line_saying_how_to_resume_and_no_traceback(
         child.wait_for(r"round 1/12:")  # logged and checkpointed
         os.kill(child.pid, signal.SIGINT)
         child.wait_for(r"exiting")
-        os.kill(child.pid, signal.SIGINT)
-        sent = time.monotonic()
-        code = child.process.wait(timeout=60)
-        took = time.monotonic() - sent
+        code, took = child.signal_and_wait(signal.SIGINT)
         stderr = child.stderr()
     _, run = _only_run(store)
     run_id = run.info.run_id
