@@ -58,7 +58,9 @@ class ReportResult:
 
 def default_out(name: str) -> Path:
     """``reports/<experiment or sweep name>``."""
-    return Path("reports") / name.replace("/", "_").replace("\\", "_")
+    from fedlgr.report.runs import safe_name
+
+    return Path("reports") / safe_name(name)
 
 
 def _check_folder(out: Path) -> None:

@@ -190,16 +190,16 @@ def select_runs(
             "pick one with --dataset and/or --modality"
         )
     # The default folder is the selection's own: filters and the study are part of it.
-    suffix = [_safe(",".join(f"{k}={v}" for k, v in filters.items()))] if filters else []
+    suffix = [safe_name(",".join(f"{k}={v}" for k, v in filters.items()))] if filters else []
     if not sweep:
         source += f" ({shown})" if shown else ""
-        folder = Path("reports", _safe(experiment), *suffix)
+        folder = Path("reports", safe_name(experiment), *suffix)
         return Selection(client, uri, experiment, source, ids, None, records, folder)
     chosen, notes = _one_study(client, ids, sweep, records, study)
     parent = chosen.parent.info.run_id if chosen.parent is not None else None
     source = f"sweep `{sweep}`, study `{chosen.name}`{within}" + (f" ({shown})" if shown else "")
     study_folder = f"{chosen.name}-{parent[:8]}" if parent else chosen.name
-    folder = Path("reports", "sweeps", _safe(sweep), _safe(study_folder), *suffix)
+    folder = Path("reports", "sweeps", safe_name(sweep), safe_name(study_folder), *suffix)
     objective = chosen.parent.data.tags.get("objective", "") if chosen.parent else ""
     return Selection(
         client, uri, sweep, source, ids, sweep, chosen.records, folder, parent, objective, notes
@@ -250,7 +250,7 @@ def _one_study(
     ]
 
 
-def _safe(name: str) -> str:
+def safe_name(name: str) -> str:
     """A name as one folder name."""
     return name.replace("/", "_").replace("\\", "_")
 
