@@ -302,6 +302,11 @@ def test_a_write_cut_short_leaves_the_previous_checkpoint(interrupted):
     result = run_experiment(config, resume=run_id)
     assert [r.round for r in result.rounds] == [1, 2, 3, 4]
     assert mlflow.MlflowClient(config.tracking.uri).get_run(run_id).info.status == "FINISHED"
+    finished = (
+        rf"no unfinished run of this config in MLflow experiment .* \(run {run_id} has finished\)"
+    )
+    with pytest.raises(FedlgrError, match=finished):
+        run_experiment(config, resume=True)
 
 
 def test_a_resume_with_other_settings_is_refused_by_name(interrupted, synth_dir, cache_dir):

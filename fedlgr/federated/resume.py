@@ -228,10 +228,19 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
     )
     runs = client.search_runs([experiment], query, order_by=["attributes.start_time DESC"])
     if not runs:
+        # A run of this config that another launch just finished is named: two launches
+        # resuming at once are told which run the other one finished.
+        finished = client.search_runs(
+            [experiment],
+            f"tags.`fedlgr.config_hash` = '{ckpt.fingerprint(config)}'",
+            order_by=["attributes.start_time DESC"],
+            max_results=1,
+        )
+        newest = f" (run {finished[0].info.run_id} has finished)" if finished else ""
         raise FedlgrError(
             f"--resume: no unfinished run of this config in MLflow experiment "
-            f"{config.tracking.experiment!r}; give a run id (--resume RUN_ID), or start the "
-            "run without --resume"
+            f"{config.tracking.experiment!r}{newest}; give a run id (--resume RUN_ID), or "
+            "start the run without --resume"
         )
     return runs[0]
 
