@@ -315,6 +315,7 @@ def test_drift_figures_are_logged_at_every_round_of_a_later_task(synth_dir, cach
         synth_dir,
         cache_dir,
         store,
+        "tracking.detail_metrics=true",  # per-client metrics in MLflow too
         "continual.rounds_per_task=2",
         "continual.lgr_drift=compensate",
         "continual.lgr_lr_root=0.01",

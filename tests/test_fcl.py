@@ -47,12 +47,12 @@ def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir
             "after_task2/test",
             "after_task2/task/circle",
             "after_task2/forgetting/circle",
-            "task/client1/circle",
         )
         for m in ("loss", "rmse", "pcc")
     ]
     for key in keys:
         assert key in metrics and math.isfinite(metrics[key]), key
+    assert "task/client1/circle/rmse" not in metrics  # per client: results.csv, not MLflow
     history = lambda key: [(m.step, m.value) for m in client.get_metric_history(result.run_id, key)]  # noqa: E731
     assert [s for s, _ in history("task/circle/rmse")] == [1, 2]
     assert [s for s, _ in history("forgetting/circle/rmse")] == [2]
@@ -92,6 +92,7 @@ def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store
         "method=FedLGR",
         "continual.rounds_per_task=2",
         "continual.lgr_epochs=2",
+        "tracking.detail_metrics=true",  # per-client metrics in MLflow too
     )
     result = run_experiment(config)
     root = build_scholar(config).root.state_dict()

@@ -44,6 +44,7 @@ def federation(tmp_path_factory, synth_dir):
 
 def settings(synth_dir, store, name: str, federation=None) -> list[str]:
     out = [f"data.path={synth_dir}", f"tracking.uri={store}", f"tracking.run_name={name}"]
+    out.append("tracking.detail_metrics=true")  # per-client metrics in MLflow: compared here
     return out + ([f"deploy.roster={federation.roster}"] if federation is not None else [])
 
 

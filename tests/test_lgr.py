@@ -564,7 +564,13 @@ def synth96(tmp_path_factory) -> Path:
 
 def tracked_config(synth96, cache, store, *overrides):
     return fedlgr_config(
-        synth96, cache, store, "data.image_size=16", "continual.rounds_per_task=2", *overrides
+        synth96,
+        cache,
+        store,
+        "data.image_size=16",
+        "continual.rounds_per_task=2",
+        "tracking.detail_metrics=true",  # per-client metrics in MLflow too
+        *overrides,
     )
 
 

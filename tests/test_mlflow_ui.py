@@ -19,13 +19,15 @@ import pytest
 from fedlgr.cli import main
 from fedlgr.config import load_config
 from fedlgr.tracking.context import run_name, trial_config
+from fedlgr.tracking.mlflow_run import headline_first
 from fedlgr.tracking.server import runs_hint
 
 from .conftest import FAST
 from .test_server import free_port, mlflow_server  # noqa: F401 (a fixture)
 
 REPO = Path(__file__).resolve().parent.parent
-LINK = re.compile(r"(http://\S+)/#/experiments/(\d+)/runs\?workflowType=machine_learning")
+VIEW = "runs?workflowType=machine_learning&viewStateShareKey=fedlgr"
+LINK = re.compile(rf"(http://\S+)/#/experiments/(\d+)/{re.escape(VIEW)}")
 
 
 def rest(server: str, endpoint: str, body: dict | None = None, **query) -> dict:
@@ -142,19 +144,43 @@ def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
     (link,) = {m.group(0) for m in LINK.finditer(out)}
     experiment_id = LINK.search(out).group(2)
     # What a browser that never saw this server renders at the printed link.
-    page = subprocess.run(
-        [CHROMIUM, *HEADLESS, f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom", link],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert page.returncode == 0, page.stderr[-2000:]
-    dom = page.stdout
+    dom = rendered(link, tmp_path / "profile")
     assert "<strong>2</strong> matching runs" in dom, dom[-3000:]
     runs = rest(mlflow_server, "runs/search", {"experiment_ids": [experiment_id]})["runs"]
     for run in runs:  # each run is a row that links to it, under its name
         row = f'href="#/experiments/{experiment_id}/runs/{run["info"]["run_id"]}"'
         assert row in dom and f">{run['info']['run_name']}</span>" in dom
+    # fedlgr's shared view: the headline figures are columns of the runs table ...
+    assert "shared view" in dom
+    for metric in ("test/rmse", "test/pcc", "mean/cost/cpu_s"):
+        assert f">{metric}<" in dom, metric
+    # ... and the first charts of the chart view, beside a parallel-coordinates plot.
+    charts = rendered(f"{link}&compareRunsMode=CHART", tmp_path / "charts")
+    headline = charts.index(">headline<")
+    for title in ("test/rmse", "test/pcc", "Parallel Coordinates"):
+        assert headline < charts.index(f">{title}<"), title
+    # A run's page opens on its summary table, then its metrics, headline first.
+    run_id = runs[0]["info"]["run_id"]
+    page = rendered(
+        f"{mlflow_server}/#/experiments/{experiment_id}/runs/{run_id}", tmp_path / "run"
+    )
+    summary = page.index("client    loss   RMSE   PCC")
+    assert (
+        summary < page.index(">test/rmse<") < page.index(">test/pcc<") < page.index(">test/loss<")
+    )
+    assert ">test/rmse/vacuum<" not in page and ">test/client0/rmse<" not in page
+
+
+def rendered(link: str, profile: Path) -> str:
+    """The DOM headless Chromium renders at ``link``, with a new browser profile."""
+    page = subprocess.run(
+        [CHROMIUM, *HEADLESS, f"--user-data-dir={profile}", "--dump-dom", link],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert page.returncode == 0, page.stderr[-2000:]
+    return page.stdout
 
 
 def run_name_prefix(synth_dir, cache_dir) -> str:
@@ -185,21 +211,82 @@ def test_sweep_trials_are_named_after_their_swept_values(synth_dir):
     config = load_config(FAST, [f"data.path={synth_dir}", "method=FedLGR", "data.clients=3"])
     swept = {"train.lr_root": 1e-05, "continual.lgr_replay": "stored", "data.augment": True}
     named = trial_config(config, swept)
-    assert run_name(named) == (
-        f"{config.run_name}-{config.data.modality} lr_root=1e-05 lgr_replay=stored augment=True"
-    )
+    assert run_name(named) == "FedLGR lr_root=1e-05 lgr_replay=stored augment=True"
     # Two swept settings with the same last part keep their full names.
     twins = trial_config(config, {"train.lr": 0.1, "federated.lr": 0.2})
-    assert run_name(twins).endswith(" train.lr=0.1 federated.lr=0.2")
+    assert run_name(twins) == "FedLGR train.lr=0.1 federated.lr=0.2"
+    # A swept method is named once, by its paper name.
+    ewc = load_config(FAST, [f"data.path={synth_dir}", "method=FedRoot-EWC"])
+    swept = {"method": "FedRoot-EWC", "continual.ewc_lambda": 100}
+    assert run_name(trial_config(ewc, swept)) == "FedRoot-EWC ewc_lambda=100"
+
+
+def test_mlflow_gets_the_headline_metrics_first_and_the_detail_only_if_asked():
+    metrics = {
+        "round/seconds": 1.0,
+        "test/loss": 2.0,
+        "test/rmse": 3.0,
+        "test/client0/rmse": 3.5,
+        "test/rmse/vacuum": 4.0,
+        "test/pcc": 0.5,
+        "cost/wall_s": 0.2,
+        "cost/cpu_s": 0.1,
+        "lgr/client1/fd_latent": 0.3,
+        "lgr/fd_latent": 0.3,
+        "forgetting/circle/rmse": 0.7,
+    }
+    assert list(headline_first(metrics)) == [
+        "test/rmse",
+        "test/pcc",
+        "test/loss",
+        "forgetting/circle/rmse",
+        "cost/cpu_s",
+        "round/seconds",
+        "cost/wall_s",
+        "lgr/fd_latent",
+    ]
+    everything = headline_first(metrics, detail=True)
+    assert list(everything)[:5] == list(headline_first(metrics))[:5]
+    assert everything == metrics  # the same values, in the headline order
 
 
 def test_a_local_store_hint_gives_the_ui_command_and_the_runs_link(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     hint = runs_hint("sqlite:///mlflow.db", "7")
     assert f"ui --backend-store-uri sqlite:///{tmp_path}/mlflow.db --port 5000" in hint
-    assert hint.endswith("http://127.0.0.1:5000/#/experiments/7/runs?workflowType=machine_learning")
+    assert hint.endswith(f"http://127.0.0.1:5000/#/experiments/7/{VIEW}")
     server = runs_hint("https://mlflow.example.org/", "3")
-    assert server == (
-        "MLflow runs: https://mlflow.example.org/#/experiments/3/runs?workflowType=machine_learning"
-    )
+    assert server == f"MLflow runs: https://mlflow.example.org/#/experiments/3/{VIEW}"
     assert "***" in runs_hint("postgresql://me:secret@db/mlflow", "1")
+
+
+def test_the_shared_view_gathers_every_sweeps_settings_and_trials(tmp_path):
+    import mlflow
+
+    from fedlgr.tracking.mlflow_run import experiment_id
+    from fedlgr.tracking.views import TAG, share_view
+
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
+    eid = experiment_id(client, "views")
+
+    def state() -> dict:
+        return json.loads(client.get_experiment(eid).tags[TAG])
+
+    def axes(view: dict) -> list[str]:
+        (parallel,) = [c for c in view["compareRunCharts"] if c["type"] == "PARALLEL"]
+        return parallel["selectedParams"]
+
+    fresh = state()  # a new experiment has the view at once: its plain runs by method
+    assert axes(fresh) == ["method"] and fresh["runsExpanded"] == {}
+    assert fresh["selectedColumns"][:2] == ["metrics.`test/rmse`", "metrics.`test/pcc`"]
+    assert fresh["orderByKey"] == "metrics.`test/rmse`" and fresh["orderByAsc"] is True
+    share_view(client, eid, ["method", "train.lr_top"], "parent-1")
+    share_view(client, eid, ["continual.ewc_lambda"], "parent-2")
+    both = state()
+    assert axes(both) == ["method", "train.lr_top", "continual.ewc_lambda"]
+    assert both["runsExpanded"] == {"parent-1": True, "parent-2": True}
+    assert "params.`continual.ewc_lambda`" in both["selectedColumns"]
+    assert experiment_id(client, "views") == eid and state() == both  # kept as it is
+    client.set_experiment_tag(eid, TAG, "not json")  # by hand, or another version
+    share_view(client, eid, ["seed"], "parent-3")
+    assert axes(state()) == ["method", "seed"] and state()["runsExpanded"] == {"parent-3": True}

@@ -111,7 +111,7 @@ def test_fcl_demo_compares_fedroot_without_cl_and_fedlgr(tmp_path, cache_dir, ca
     ]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "FedRoot-FT-2c-noaug: 2 tasks (circle, arrow)" in out and "FedLGR-2c-noaug" in out
+    assert "FedRoot-FT-2c-noaug-image: 2 tasks (circle, arrow)" in out and "FedLGR-2c-noaug" in out
     table = out[out.index("Forgetting on") :].splitlines()
     assert table[1].split()[:3] == ["method", "circle", "RMSE"]
     assert table[3].startswith("FedRoot-FT ") and table[4].startswith("FedLGR ")

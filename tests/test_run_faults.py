@@ -244,12 +244,12 @@ import fedlgr.tracking.plots as plots
 draw = plots.curves_png
 drawn = []
 
-def slow_curves(rows):  # the first drawing (at the run's end) takes 10 s
+def slow_curves(rows, title=""):  # the first drawing (at the run's end) takes 10 s
     if not drawn:
         drawn.append(1)
         print("drawing curves.png", flush=True)
         time.sleep(10)
-    return draw(rows)
+    return draw(rows, title)
 
 plots.curves_png = slow_curves
 """

@@ -315,7 +315,7 @@ def drive(
         remove,
         remove_temporaries,
     )
-    from fedlgr.tracking.context import data_digest
+    from fedlgr.tracking.context import data_digest, run_name
     from fedlgr.tracking.mlflow_run import Tracker, tracking_uri
 
     start = time.perf_counter() if start is None else start
@@ -359,7 +359,7 @@ def drive(
         else f"{config.federated.rounds} rounds"
     )
     say(
-        f"{config.run_name}: {plan} x {config.train.epochs} local epochs, "
+        f"{run_name(config)}: {plan} x {config.train.epochs} local epochs, "
         f"{config.data.clients} clients" + (f", {what}" if what else "")
     )
     if resumed is not None:
@@ -420,8 +420,10 @@ def drive(
         if tracker is not None:
             from fedlgr.tracking.plots import curves_png
 
-            tracker.save_results(result.rows(), curves_png(result.rows()))
+            tracker.save_results(result.rows(), curves_png(result.rows(), run_name(config)))
             tracker.log_summary(result.cost_means(), len(result.rounds))
+            heading = f"{run_name(config)} after {total} rounds ({result.seconds:.0f} s)"
+            tracker.describe(heading, result.summary())
             tracker.finish()
     except BaseException as err:
         if tracker is not None:
@@ -439,7 +441,7 @@ def drive(
         owner.release(old)
     if not rank0:
         return None
-    say(f"\n{config.run_name} after {total} rounds ({result.seconds:.0f} s):")
+    say(f"\n{run_name(config)} after {total} rounds ({result.seconds:.0f} s):")
     say(result.summary())
     if tracker is not None and hooks.show_runs:
         from fedlgr.tracking.server import runs_hint
@@ -488,11 +490,13 @@ def _record_failure(tracker, result: ExperimentResult, err: BaseException, say) 
     """Keep what the run had (results.csv, curves, costs) and end it KILLED or FAILED.
     Every step may fail on its own (a diverged run's NaNs, a store gone away): the run is
     still ended, and the original error is what the user sees."""
+    from fedlgr.tracking.context import run_name
     from fedlgr.tracking.plots import curves_png
 
+    name = run_name(tracker.config)
     steps = [
         ("results.csv", lambda: tracker.save_results(result.rows(), None)),
-        ("curves.png", lambda: tracker.save_results([], curves_png(result.rows()))),
+        ("curves.png", lambda: tracker.save_results([], curves_png(result.rows(), name))),
         ("cost summary", lambda: tracker.log_summary(result.cost_means(), len(result.rounds))),
     ]
     if result.rounds:

@@ -138,6 +138,7 @@ class Worker:
         from mlflow.entities import Param
 
         from fedlgr.tracking.context import run_tags
+        from fedlgr.tracking.views import share_view
 
         run_id = self.study.user_attrs.get(PARENT_ATTR)
         if run_id:
@@ -173,6 +174,8 @@ class Worker:
             "space": json.dumps({p.name: describe_param(p) for p in spec.params}),
         }
         self.client.log_batch(run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
+        # The printed link's view shows the trials and their swept settings.
+        share_view(self.client, self.experiment_id, [p.name for p in spec.params], run_id)
         if spec.path is not None:
             self.client.log_artifact(run_id, str(spec.path))
         self.study.set_user_attr(PARENT_ATTR, run_id)

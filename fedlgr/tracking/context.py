@@ -37,23 +37,31 @@ from fedlgr.config import ExperimentConfig, flatten
 
 # Paths that belong to this machine, not to the experiment.
 LOCAL_PATHS = frozenset({"data.path", "data.cache_dir", "tracking.uri", "tracking.checkpoint_dir"})
+# Not params either: the run's name is its name (as a param, it differs between a sweep's
+# trials and pushes a swept setting out of MLflow's compare plot, which draws the first 3
+# params that differ, sorted by name).
+NOT_PARAMS = LOCAL_PATHS | {"tracking.run_name"}
 NAMED_WEIGHTS = ("none", "imagenet")
 
 
 def run_name(config: ExperimentConfig) -> str:
-    """``tracking.run_name``, else e.g. ``FedAvg-2c-noaug-image``."""
+    """The run's one name, in MLflow and on the console: ``tracking.run_name``, else e.g.
+    ``FedAvg-2c-noaug-image``."""
     return config.tracking.run_name or f"{config.run_name}-{config.data.modality}"
 
 
 def trial_config(config: ExperimentConfig, params: Mapping[str, Any]) -> ExperimentConfig:
-    """``config`` named after its swept values: ``FedLGR-2c-noaug-image lr_root=1e-05``
-    (a setting by its last part, unless two swept settings share it)."""
-    last = [name.rsplit(".", 1)[-1] for name in params]
+    """``config`` named after its method and swept values, short enough for MLflow's runs
+    table: ``FedLGR lr_root=1e-05`` (a setting by its last part, unless two swept settings
+    share it; a swept method by its name alone). The trial runs under its sweep's parent
+    run, which holds what all trials share."""
+    swept = {k: v for k, v in params.items() if k != "method"}
+    last = [name.rsplit(".", 1)[-1] for name in swept]
     shown = " ".join(
         f"{short if last.count(short) == 1 else name}={value}"
-        for (name, value), short in zip(params.items(), last, strict=True)
+        for (name, value), short in zip(swept.items(), last, strict=True)
     )
-    name = f"{run_name(config)} {shown}".strip()
+    name = f"{config.method_name} {shown}".strip()
     return dataclasses.replace(config, tracking=dataclasses.replace(config.tracking, run_name=name))
 
 
@@ -80,8 +88,8 @@ def run_tags(tags: Mapping[str, str]) -> dict[str, str]:
 
 
 def run_params(config: ExperimentConfig) -> dict[str, str]:
-    """The flattened config as params, without machine-local paths."""
-    params = {k: v for k, v in flatten(config).items() if k not in LOCAL_PATHS}
+    """The flattened config as params, without machine-local paths and the run's name."""
+    params = {k: v for k, v in flatten(config).items() if k not in NOT_PARAMS}
     weights = config.model.weights
     if weights not in NAMED_WEIGHTS:
         params["model.weights"] = Path(weights).name

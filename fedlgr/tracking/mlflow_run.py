@@ -30,6 +30,7 @@ import errno
 import io
 import logging
 import os
+import re
 import socket
 import tempfile
 import threading
@@ -65,20 +66,26 @@ KIND = {"mlflow.experimentKind": "custom_model_development"}
 def experiment_id(client, name: str) -> str:
     """The id of MLflow experiment ``name``, created if it does not exist yet (by this
     process or, at the same moment, by another one)."""
+    from fedlgr.tracking.views import TAG, share_view
+
     check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
     experiment = client.get_experiment_by_name(name)
-    if experiment is not None:
-        for key, value in KIND.items():
-            if key not in experiment.tags:  # made by an older fedlgr or by hand
-                client.set_experiment_tag(experiment.experiment_id, key, value)
-        return experiment.experiment_id
-    try:
-        return _create_experiment(client, name)
-    except Exception:
-        experiment = client.get_experiment_by_name(name)  # another process created it first
-        if experiment is None:
-            raise
-        return experiment.experiment_id
+    if experiment is None:
+        try:
+            made = _create_experiment(client, name)
+        except Exception:
+            experiment = client.get_experiment_by_name(name)  # another process created it
+            if experiment is None:
+                raise
+        else:
+            share_view(client, made)  # what the printed link opens
+            return made
+    for key, value in KIND.items():
+        if key not in experiment.tags:  # made by an older fedlgr or by hand
+            client.set_experiment_tag(experiment.experiment_id, key, value)
+    if TAG not in experiment.tags:
+        share_view(client, experiment.experiment_id)
+    return experiment.experiment_id
 
 
 def artifact_root(uri: str) -> Path | None:
@@ -208,6 +215,30 @@ def _uncut(method):
 
 
 SENTINEL = "round/seconds"  # logged last in each round: the round is wholly logged
+# What a researcher compares runs by, logged first: MLflow's run page lists a run's metrics
+# in the order they were logged, and its compare view plots the first one by default.
+HEADLINE = ("test/rmse", "test/pcc", "test/loss")
+HEADLINE_COSTS = ("cost/cpu_s", "cost/gpu_util", "cost/bytes_up")
+_CLIENT = re.compile(r"(^|/)client\d+(/|$)")
+
+
+def is_detail(key: str) -> bool:
+    """A per-client (``test/client0/rmse``) or per-action (``test/rmse/vacuum``) metric:
+    logged to MLflow only with ``tracking.detail_metrics`` (results.csv always has them)."""
+    from fedlgr.data.columns import LABEL_SHORT_NAMES
+
+    return bool(_CLIENT.search(key)) or key.rsplit("/", 1)[-1] in LABEL_SHORT_NAMES
+
+
+def headline_first(metrics: dict[str, float], detail: bool = False) -> dict[str, float]:
+    """``metrics`` as MLflow gets them: the headline scores first, then the forgetting of
+    past tasks, the headline costs and the rest; per-client and per-action ones only if
+    ``detail``."""
+    kept = {k: v for k, v in metrics.items() if detail or not is_detail(k)}
+    first = [k for k in HEADLINE if k in kept]
+    first += [k for k in kept if k.startswith("forgetting/")]
+    first += [k for k in HEADLINE_COSTS if k in kept]
+    return {k: kept[k] for k in dict.fromkeys([*first, *kept])}
 
 
 class Tracker:
@@ -339,6 +370,7 @@ class Tracker:
 
         if round_ in self.done:
             return
+        metrics = headline_first(metrics, self.config.tracking.detail_metrics)
         now = int(time.time() * 1000)
         keys = [k for k in metrics if k != SENTINEL] + ([SENTINEL] if SENTINEL in metrics else [])
         if round_ == self.partial and len(keys) > 1000:  # cut between two batches?
@@ -375,6 +407,15 @@ class Tracker:
             self._log_bytes(buffer.getvalue().encode(), "results.csv")
         if curves_png:
             self._log_bytes(curves_png, "curves.png")
+
+    @_uncut
+    def describe(self, heading: str, summary: str) -> None:
+        """The run's description (MLflow's note, at the top of its run page): the summary
+        table the console printed at the end."""
+        from mlflow.utils.mlflow_tags import MLFLOW_RUN_NOTE
+
+        note = f"**{heading}**\n\n```text\n{summary}\n```\n"
+        self.client.set_tag(self.run_id, MLFLOW_RUN_NOTE, note)
 
     def _log_bytes(self, data: bytes, name: str) -> None:
         # Not ``MlflowClient.log_text``: it leaves a folder in the system temp directory.

@@ -6,8 +6,9 @@ import io
 from collections.abc import Sequence
 
 
-def curves_png(rows: Sequence[dict[str, object]]) -> bytes:
-    """RMSE and PCC per round from the per-round/per-client result rows."""
+def curves_png(rows: Sequence[dict[str, object]], title: str = "") -> bytes:
+    """RMSE and PCC per round from the per-round/per-client result rows, under ``title``
+    (the run's name)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -37,6 +38,8 @@ def curves_png(rows: Sequence[dict[str, object]]) -> bytes:
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[1].legend(loc="lower right")
+    if title:
+        fig.suptitle(title)
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)

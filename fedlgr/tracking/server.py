@@ -28,7 +28,10 @@ from pathlib import Path
 from fedlgr.errors import FedlgrError
 
 UI_PORT = 5000  # mlflow ui's default
-RUNS_VIEW = "#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+# The runs table, in fedlgr's shared view of it (fedlgr.tracking.views).
+RUNS_VIEW = (
+    "#/experiments/{experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=fedlgr"
+)
 DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
 
 
