@@ -90,7 +90,7 @@ def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path,
     assert main(args) == 0
     out = capsys.readouterr().out
     assert out.startswith(f"no dataset in {data}: synthesising 24 scenes")
-    assert "FedAvg-2c-aug: 1 rounds" in out and "FedRootAvg-2c-aug: 1 rounds" in out
+    assert "FedAvg-2c-aug-image: 1 rounds" in out and "FedRootAvg-2c-aug-image: 1 rounds" in out
     table = out[out.index("FedAvg vs FedRootAvg") :].splitlines()
     assert table[1].split()[:4] == ["method", "loss", "RMSE", "PCC"]
     assert table[3].startswith("FedAvg ") and table[4].startswith("FedRootAvg ")
@@ -98,8 +98,8 @@ def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path,
 
     client = mlflow.MlflowClient(store)
     runs = client.search_runs([client.get_experiment_by_name("demo").experiment_id])
-    names = [r.info.run_name.removesuffix("-image") for r in runs]  # + modality (issue 13)
-    assert sorted(names) == ["FedAvg-2c-aug", "FedRootAvg-2c-aug"]
+    names = [r.info.run_name for r in runs]  # + modality (issue 13), as on the console
+    assert sorted(names) == ["FedAvg-2c-aug-image", "FedRootAvg-2c-aug-image"]
     assert all(r.info.status == "FINISHED" for r in runs)
     csv_before = (data / "all_data.csv").read_bytes()
     assert main(args) == 0
