@@ -42,9 +42,12 @@ def federation(tmp_path_factory, synth_dir):
     assert not fed.leftovers()  # every process of the federation is gone
 
 
+DETAIL = ["tracking.detail_metrics=true"]  # per-client metrics in MLflow: compared here
+
+
 def settings(synth_dir, store, name: str, federation=None) -> list[str]:
     out = [f"data.path={synth_dir}", f"tracking.uri={store}", f"tracking.run_name={name}"]
-    out.append("tracking.detail_metrics=true")  # per-client metrics in MLflow: compared here
+    out += DETAIL
     return out + ([f"deploy.roster={federation.roster}"] if federation is not None else [])
 
 
@@ -86,7 +89,9 @@ def test_flower_runs_compute_what_one_process_computes(
     assert flower.info.status == "FINISHED"
     assert flower.data.tags["runtime"] == "flower"
     local = run_experiment(
-        fast_config(synth_dir, cache_dir, store, *method, f"tracking.run_name=local-{method[0]}")
+        fast_config(
+            synth_dir, cache_dir, store, *method, *DETAIL, f"tracking.run_name=local-{method[0]}"
+        )
     )
     assert_computes_what_one_process_computes(store, flower, local, 2)
     assert "round 2, evaluate: 2 of 2 replies" in out
@@ -344,6 +349,8 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
     run = client.get_run(run_id)
     assert run.info.status == "FINISHED"
     local = run_experiment(
-        fast_config(synth_dir, cache_dir, store, *method, "tracking.run_name=local-resumed")
+        fast_config(
+            synth_dir, cache_dir, store, *method, *DETAIL, "tracking.run_name=local-resumed"
+        )
     )
     assert_computes_what_one_process_computes(store, run, local, 6)
