@@ -175,6 +175,9 @@ class FederatedConfig:
     server_betas: tuple[float, float] = (0.9, 0.99)
     server_tau: float = 1e-3
     distill_weight: float = 0.5  # FedDistill: weight of the teacher term in the student loss
+    # The server scores the global model on the test scenes every round (and before round
+    # 1): server/test/*. Full scope only: FedRoot keeps the top on the clients.
+    server_eval: bool = False
 
     def __post_init__(self) -> None:
         check_numbers("federated.", self)
@@ -467,6 +470,13 @@ class ExperimentConfig:
         if self.continual.method == "lgr" and self.federated.scope != "root":
             raise ConfigError(
                 "continual.method=lgr (FedLGR) shares the root only: set federated.scope=root"
+            )
+        if self.federated.server_eval and self.federated.scope == "root":
+            raise ConfigError(
+                f"federated.server_eval=true: {self.method_name} shares the root only and "
+                "keeps each top on its client, so the server holds no whole model to "
+                "evaluate; server evaluation is for full-scope methods (FedAvg, FedBN, "
+                "FedProx, FedOpt, FedDistill and their CL variants)"
             )
         if self.method is not None and self.method != self.method_name:
             raise ConfigError(f"method={self.method} disagrees with federated/continual settings")

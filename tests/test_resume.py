@@ -17,7 +17,16 @@ import torch
 from fedlgr.errors import FedlgrError
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.tracking import checkpoint as ckpt
-from tests.conftest import FAST, fast_config, results_csv
+from tests.conftest import FAST, results_csv
+from tests.conftest import fast_config as _fast_config
+
+# Every per-client and per-action metric in MLflow too: all of them are compared bit for bit.
+DETAIL = "tracking.detail_metrics=true"
+
+
+def fast_config(synth_dir, cache_dir, store, *overrides):
+    return _fast_config(synth_dir, cache_dir, store, DETAIL, *overrides)
+
 
 REPO = Path(__file__).resolve().parents[1]
 # Measured, never equal between two runs (system/*: MLflow's machine-wide system metrics).
@@ -33,6 +42,7 @@ def _args(synth_dir, cache_dir, store, *extra) -> list[str]:
         f"data.cache_dir={cache_dir}",
         "runtime.threads=1",
         "runtime.accelerator=cpu",
+        DETAIL,
         *extra,
         f"--tracking-uri={store}",
     ]

@@ -400,6 +400,8 @@ def drive(
                 metrics.update(forgetting.end_of_task(log, k))
                 result.after_tasks = forgetting.after
             if tracker is not None:
+                if log.initial:  # federated.server_eval: the initial model, at step 0
+                    tracker.log_initial(log.initial)
                 tracker.log_round(round_, metrics)
                 if log.missing:  # robots that dropped out (fedlgr deploy)
                     missed.append(f"round {round_}: client {', '.join(map(str, log.missing))}")

@@ -95,6 +95,8 @@ def checkpoint_state(
                 "table": r.table,
                 "seconds": r.seconds,
                 "missing": list(r.missing),
+                "server": r.server,
+                "initial": r.initial,
             }
             for r in rounds
         ],
@@ -121,6 +123,8 @@ def restored_rounds(state: dict[str, Any], fields) -> list[RoundLog]:
             np.asarray(r["table"]),
             r["seconds"],
             tuple(r.get("missing", ())),
+            dict(r.get("server", {})),
+            dict(r.get("initial", {})),
         )
         for r in state["rows"]
     ]

@@ -9,7 +9,7 @@ costs and turns the rows into a :class:`RoundLog`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -80,6 +80,10 @@ class RoundLog:
     table: np.ndarray  # (clients, len(fields))
     seconds: float
     missing: tuple[int, ...] = ()  # clients that did not report (robots that dropped out)
+    # The server's own figures: its cost (cost/server_*), its evaluation (server/test/*).
+    server: dict[str, float] = field(default_factory=dict)
+    # federated.server_eval: the initial model's scores, before round 1 (step 0).
+    initial: dict[str, float] = field(default_factory=dict)
 
     @property
     def column_names(self) -> list[str]:
@@ -109,7 +113,7 @@ class RoundLog:
         """MLflow metrics of this round: means over clients (``test/rmse``) and per-client
         values under the same family (``test/client3/rmse``, ``cost/client3/cpu_s``), so
         that MLflow's charts group a family's mean with its clients."""
-        out: dict[str, float] = {"round/seconds": self.seconds}
+        out: dict[str, float] = {"round/seconds": self.seconds, **self.server}
         if self.missing:
             out["round/missing_clients"] = float(len(self.missing))
         for f, column in zip(self.fields, self.table.T, strict=True):

@@ -380,6 +380,18 @@ class Tracker:
             self.client.log_batch(self.run_id, metrics=items[i : i + 1000])
         self.heartbeat()
 
+    @_uncut
+    def log_initial(self, metrics: dict[str, float]) -> None:
+        """Figures of the model before round 1 (``federated.server_eval``), at ``step=0``;
+        once (a resumed run that had logged them does not again)."""
+        from mlflow.entities import Metric
+
+        if any(self._logged_at(k, 0) for k in metrics):
+            return
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
+        self.client.log_batch(self.run_id, metrics=items)
+
     def _logged_at(self, key: str, step: int) -> bool:
         return any(m.step == step for m in self.client.get_metric_history(self.run_id, key))
 

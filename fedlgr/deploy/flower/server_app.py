@@ -434,7 +434,10 @@ def main(grid: Grid, context: Context) -> None:
     from fedlgr.federated.experiment import Hooks, Resumed, drive
 
     echo = functools.partial(print, flush=True)
+    from fedlgr.deploy import check_deployable
+
     config = config_of(context)
+    check_deployable(config)
     rounds = FlowerRounds(grid, config, echo)
     resumed = None
     resume = str(context.run_config.get("resume", ""))

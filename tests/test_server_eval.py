@@ -1,0 +1,131 @@
+"""Server-side evaluation (``federated.server_eval``) and the server's own cost (issue 23)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import torch
+
+from fedlgr.config import load_config
+from fedlgr.data.dataset import load_scenes
+from fedlgr.data.splits import make_split
+from fedlgr.errors import ConfigError
+from fedlgr.federated.experiment import make_fabric, run_experiment
+from fedlgr.federated.orchestrator import Orchestrator
+from fedlgr.federated.scope import initial_scholar
+from fedlgr.federated.server_eval import ServerEvaluation
+from tests.conftest import FAST, fast_config, read_run
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def by_hand(config, weights, inputs, targets) -> dict[str, float]:
+    """The global model's test scores, computed without fedlgr's metrics: a model with the
+    global weights, its outputs in eval mode, RMSE and PCC per action, then their means."""
+    model = initial_scholar(config)
+    model.load_state_dict(weights, strict=False)
+    model.eval()
+    with torch.no_grad():
+        pred = model(inputs).double()
+    target = targets.double()
+    mse = ((pred - target) ** 2).mean(dim=0)
+    p, t = pred - pred.mean(dim=0), target - target.mean(dim=0)
+    pcc = (p * t).sum(dim=0) / (p.norm(dim=0) * t.norm(dim=0))
+    pcc = torch.where(pred.std(dim=0) < 1e-6, torch.zeros_like(pcc), pcc)  # constant: 0
+    return {"loss": float(mse.mean()), "rmse": float(mse.sqrt().mean()), "pcc": float(pcc.mean())}
+
+
+def test_the_server_scores_the_global_weights_every_round_and_before_the_first(
+    synth_dir, cache_dir
+):
+    config = fast_config(
+        synth_dir, cache_dir, "unused", "federated.server_eval=true", "tracking.enabled=false"
+    )
+    scenes = load_scenes(config.data)
+    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    side = orch.client_side
+    initial = {k: v.clone() for k, v in orch.server.global_weights.items()}
+    for round_ in (1, 2):
+        log = orch.run_round(round_)
+        expected = by_hand(config, orch.server.global_weights, side.test_inputs, side.test_targets)
+        for name, value in expected.items():
+            assert log.server[f"server/test/{name}"] == pytest.approx(value, abs=1e-5), name
+        assert log.metrics()["server/test/rmse"] == log.server["server/test/rmse"]
+        assert log.server["cost/server_cpu_s"] > 0 and log.server["cost/server_wall_s"] > 0
+        if round_ == 1:  # and, in round 1, the initial model
+            before = by_hand(config, initial, side.test_inputs, side.test_targets)
+            for name, value in before.items():
+                assert log.initial[f"server/test/{name}"] == pytest.approx(value, abs=1e-5)
+            assert before["rmse"] != pytest.approx(expected["rmse"], abs=1e-6)
+        else:
+            assert log.initial == {}
+
+
+def test_the_initial_scores_are_logged_at_step_0_and_every_round_after(synth_dir, cache_dir, store):
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        "method=FedAvg-EWC",
+        "continual.rounds_per_task=1",
+        "federated.server_eval=true",
+    )
+    result = run_experiment(config)
+    client, _run, _ = read_run(store, result.run_id)
+
+    def steps(key: str) -> list[int]:
+        return sorted(m.step for m in client.get_metric_history(result.run_id, key))
+
+    assert steps("server/test/rmse") == [0, 1, 2]
+    assert steps("server/task/circle/rmse") == [0, 1, 2]
+    assert steps("cost/server_cpu_s") == [1, 2]
+    first = result.rounds[0]
+    assert first.initial["server/test/rmse"] == pytest.approx(
+        next(
+            m.value
+            for m in client.get_metric_history(result.run_id, "server/test/rmse")
+            if m.step == 0
+        )
+    )
+    # Task 1 is scored on circle's scenes, then on circle's and arrow's.
+    assert first.server["server/test/rmse"] == pytest.approx(
+        first.server["server/task/circle/rmse"]
+    )
+
+
+def test_fedroot_with_server_eval_is_refused_naming_the_setting(synth_dir):
+    for method in ("FedRootAvg", "FedLGR", "FedRoot-EWC"):
+        with pytest.raises(ConfigError) as refused:
+            load_config(
+                FAST, [f"data.path={synth_dir}", f"method={method}", "federated.server_eval=true"]
+            )
+        message = str(refused.value)
+        assert message.startswith("federated.server_eval=true: ") and method in message
+        assert "no whole model" in message
+
+
+def test_the_servers_work_is_billed_to_the_server_not_to_the_clients(
+    synth_dir, cache_dir, store, monkeypatch
+):
+    """A busy loop of 1 CPU second in the server's evaluation stands in for a big test set:
+    it shows in ``cost/server_cpu_s``, in no client's ``cost/cpu_s``."""
+    scores = ServerEvaluation.scores
+
+    def slow(self, weights, task):
+        start = time.process_time()
+        while time.process_time() - start < 1.0:
+            pass
+        return scores(self, weights, task)
+
+    monkeypatch.setattr(ServerEvaluation, "scores", slow)
+    config = fast_config(
+        synth_dir, cache_dir, store, "federated.server_eval=true", "federated.rounds=2"
+    )
+    result = run_experiment(config)
+    for log in result.rounds:
+        assert log.server["cost/server_cpu_s"] >= 0.95 * (2 if log.round == 1 else 1)
+        assert all(cpu < 0.9 for cpu in log.column("cpu_s")), log.column("cpu_s")
+    _client, run, _ = read_run(store, result.run_id)
+    assert run.data.metrics["cost/server_cpu_s"] >= 0.95
+    assert run.data.metrics["cost/cpu_s"] < 0.9
