@@ -187,6 +187,7 @@ def test_two_processes_give_the_same_numbers_as_one(synth_dir, cache_dir, tmp_pa
         "method=FedRootProx",
         "runtime.accelerator=cpu",
         "runtime.threads=1",
+        "tracking.detail_metrics=true",  # every client's scores compared
     ]
     _cli_run([*common, "tracking.run_name=one", f"--tracking-uri={store}"], tmp_path)
     out = _cli_run(
