@@ -162,6 +162,10 @@ class TrainConfig:
         _choice("train.precision", self.precision, PRECISIONS)
 
 
+SERVER_EVAL = ("off", "on", "auto")
+SERVER_EVAL_ALIASES = {"true": "on", "false": "off"}
+
+
 @dataclass(frozen=True)
 class FederatedConfig:
     """What is shared (scope), how it is aggregated (strategy), and the strategies'
@@ -176,8 +180,9 @@ class FederatedConfig:
     server_tau: float = 1e-3
     distill_weight: float = 0.5  # FedDistill: weight of the teacher term in the student loss
     # The server scores the global model on the test scenes every round (and before round
-    # 1): server/test/*. Full scope only: FedRoot keeps the top on the clients.
-    server_eval: bool = False
+    # 1): server/test/*. off | on (full scope only: FedRoot keeps the top on the clients) |
+    # auto (where the server holds a whole model: full-scope methods, as the paper's code).
+    server_eval: str = "off"
 
     def __post_init__(self) -> None:
         check_numbers("federated.", self)
@@ -191,10 +196,19 @@ class FederatedConfig:
         if self.server_tau <= 0 or self.server_lr <= 0:
             raise ConfigError("federated.server_lr and federated.server_tau must be > 0")
         _betas("federated.server_betas", self.server_betas)
+        # true/false as YAML or the command line give them: on/off
+        value = SERVER_EVAL_ALIASES.get(str(self.server_eval).lower(), self.server_eval)
+        object.__setattr__(self, "server_eval", value)
+        _choice("federated.server_eval", self.server_eval, SERVER_EVAL)
 
     @property
     def method(self) -> str:
         return method_name(self.strategy, self.scope)
+
+    @property
+    def server_evaluates(self) -> bool:
+        """Does the server score the global model (``server_eval``)?"""
+        return self.server_eval == "on" or (self.server_eval == "auto" and self.scope == "full")
 
 
 def _betas(name: str, betas) -> None:
@@ -471,12 +485,13 @@ class ExperimentConfig:
             raise ConfigError(
                 "continual.method=lgr (FedLGR) shares the root only: set federated.scope=root"
             )
-        if self.federated.server_eval and self.federated.scope == "root":
+        if self.federated.server_eval == "on" and self.federated.scope == "root":
             raise ConfigError(
-                f"federated.server_eval=true: {self.method_name} shares the root only and "
+                f"federated.server_eval=on: {self.method_name} shares the root only and "
                 "keeps each top on its client, so the server holds no whole model to "
                 "evaluate; server evaluation is for full-scope methods (FedAvg, FedBN, "
-                "FedProx, FedOpt, FedDistill and their CL variants)"
+                "FedProx, FedOpt, FedDistill and their CL variants; 'auto' turns it on "
+                "for those only)"
             )
         if self.method is not None and self.method != self.method_name:
             raise ConfigError(f"method={self.method} disagrees with federated/continual settings")

@@ -101,8 +101,14 @@ def test_fedroot_with_server_eval_is_refused_naming_the_setting(synth_dir):
                 FAST, [f"data.path={synth_dir}", f"method={method}", "federated.server_eval=true"]
             )
         message = str(refused.value)
-        assert message.startswith("federated.server_eval=true: ") and method in message
+        assert message.startswith("federated.server_eval=on: ") and method in message
         assert "no whole model" in message
+    # auto: on where the server holds a whole model, as the authors' code had it
+    for method, on in (("FedAvg", True), ("FedBN", True), ("FedRootAvg", False)):
+        config = load_config(FAST, [f"method={method}", "federated.server_eval=auto"])
+        assert config.federated.server_evaluates is on, method
+    assert load_config(FAST, ["federated.server_eval=true"]).federated.server_eval == "on"
+    assert not load_config(FAST, []).federated.server_evaluates  # off by default
 
 
 def test_the_servers_work_is_billed_to_the_server_not_to_the_clients(
@@ -129,3 +135,42 @@ def test_the_servers_work_is_billed_to_the_server_not_to_the_clients(
     _client, run, _ = read_run(store, result.run_id)
     assert run.data.metrics["cost/server_cpu_s"] >= 0.95
     assert run.data.metrics["cost/cpu_s"] < 0.9
+
+
+def test_the_report_shows_the_papers_cpu_figure_beside_each_clients_own(
+    synth_dir, cache_dir, store, tmp_path
+):
+    """Runs as sweeps/paper_costs.yaml makes them (federated.server_eval=auto: the server
+    scores FedAvg's global model, not FedRootAvg's): Table III has a row with the paper's
+    figure - the server's CPU over clients x rounds - beside the clients' own CPU."""
+    from fedlgr.report import make_report
+    from fedlgr.sweep.spec import load_sweep
+    from tests.test_report import markdown_blocks, parse
+
+    sweep = load_sweep("paper_costs")
+    assert "federated.server_eval=auto" in sweep.overrides
+    results = {}
+    for method in ("FedAvg", "FedRootAvg"):
+        config = fast_config(
+            synth_dir,
+            cache_dir,
+            store,
+            *sweep.overrides,
+            f"method={method}",
+            "federated.rounds=2",
+            f"tracking.experiment={sweep.experiment}",
+        )
+        results[method] = run_experiment(config).cost_means()
+    for figures in results.values():
+        assert figures["mean/cost/paper_cpu_s"] == pytest.approx(
+            figures["mean/cost/server_cpu_s"] / 2  # clients
+        )
+    # The evaluation the full-model method's server ran is in its paper-style figure only.
+    full, root = results["FedAvg"], results["FedRootAvg"]
+    assert full["mean/cost/paper_cpu_s"] > root["mean/cost/paper_cpu_s"]
+    report = make_report(store, experiment=sweep.experiment, out=tmp_path / "report")
+    _, rows = markdown_blocks(report.out / "table3.md")["2 clients, W/O augmentation"]
+    paper = rows["CPU usage, the paper's way (s) ▼"]
+    assert parse(paper[0])[0] == f"{full['mean/cost/paper_cpu_s']:.2f}"
+    assert parse(paper[1])[0] == f"{root['mean/cost/paper_cpu_s']:.2f}"
+    assert parse(rows["CPU usage (s) ▼"][0])[0] == f"{full['mean/cost/cpu_s']:.2f}"

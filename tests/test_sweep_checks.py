@@ -115,6 +115,9 @@ def test_an_objective_no_run_logs_is_refused_before_training(tmp_path, objective
     names = run_metrics(config)
     assert {"test/rmse", "test/client1/pcc", "after_task2/test/rmse", "mean/cost/cpu_s"} <= names
     assert "after_task2/forgetting/circle/rmse" in names and "forgetting/circle/rmse" not in names
+    assert "mean/cost/paper_cpu_s" in names and "server/test/rmse" not in names
+    served = fedlgr.config.load_config(FAST, ["federated.server_eval=on", "data.path=/x"])
+    assert {"server/test/rmse", "cost/server_cpu_s"} <= run_metrics(served)
 
 
 def test_a_large_grid_is_checked_one_value_at_a_time(tmp_path, monkeypatch, capsys):

@@ -6,8 +6,8 @@ def check_deployable(config) -> None:
     """What the Flower runtime does not do yet, refused before a run is submitted."""
     from fedlgr.errors import FedlgrError
 
-    if config.federated.server_eval:
+    if config.federated.server_evaluates:
         raise FedlgrError(
-            "federated.server_eval=true: not in the Flower runtime yet (its ServerApp holds "
-            "no test scenes); use it with fedlgr run, or leave it off here"
+            f"federated.server_eval={config.federated.server_eval}: not in the Flower runtime "
+            "yet (its ServerApp holds no test scenes); use it with fedlgr run, or set it off"
         )

@@ -50,7 +50,7 @@ class Orchestrator:
         # federated.server_eval: rank 0, which logs, scores the global model.
         self.server_eval = (
             ServerEvaluation(config, self.client_side)
-            if config.federated.server_eval and self.rank == 0
+            if config.federated.server_evaluates and self.rank == 0
             else None
         )
 

@@ -128,6 +128,12 @@ def run_metrics(config: ExperimentConfig) -> set[str]:
         *continual_plugins(config.continual, 0, config.seed),
     ]
     names = {"round/seconds", "round/missing_clients"}
+    # The server's own cost (in-process runtimes), and its evaluation where it runs one.
+    server = ("cost/server_cpu_s", "cost/server_wall_s")
+    names.update([*server, *(f"mean/{k}" for k in server), "mean/cost/paper_cpu_s"])
+    if config.federated.server_evaluates:
+        names.update(f"server/test/{m}" for m in METRICS)
+        names.update(f"server/task/{t}/{m}" for t in tasks for m in METRICS)
     for field in make_fields(tasks or [ALL]) + plugin_fields(plugins):
         names.add(field.key)
         names.update(client_key(field.key, c) for c in range(config.data.clients))
