@@ -66,8 +66,8 @@ def view_state(params: Iterable[str], expanded: Iterable[str]) -> dict:
 
 def share_view(client, experiment_id: str, params: Iterable[str] = (), parent: str = "") -> None:
     """Write (or widen) the experiment's view: ``method`` and ``params`` as columns and
-    plot axes, ``parent`` (a sweep's parent run) expanded. Best effort: a view that cannot
-    be written leaves the runs as they are."""
+    plot axes, ``parent`` (a sweep's parent run) expanded; the tag is written only when the
+    view changes. A view that cannot be read (edited by hand) is replaced."""
     experiment = client.get_experiment(experiment_id)
     try:
         old = json.loads(experiment.tags.get(TAG, "{}"))
