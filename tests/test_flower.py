@@ -79,8 +79,11 @@ def root_bytes(config) -> int:
 
 @pytest.mark.parametrize(
     "method",
-    [["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=3"]],
-    ids=["FedLGR"],  # FedRootAvg: the resume test below, killed once and resumed
+    [
+        ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=3"],
+        ["method=FedAvg", "federated.server_eval=on"],  # the server scores the global model
+    ],
+    ids=["FedLGR", "FedAvg-server-eval"],  # FedRootAvg: the resume test below
 )
 def test_flower_runs_compute_what_one_process_computes(
     federation, synth_dir, cache_dir, store, method
@@ -93,8 +96,9 @@ def test_flower_runs_compute_what_one_process_computes(
             synth_dir, cache_dir, store, *method, *DETAIL, f"tracking.run_name=local-{method[0]}"
         )
     )
-    assert_computes_what_one_process_computes(store, flower, local, 2)
-    assert "round 2, evaluate: 2 of 2 replies" in out
+    rounds = len(local.rounds)
+    assert_computes_what_one_process_computes(store, flower, local, rounds)
+    assert f"round {rounds}, evaluate: 2 of 2 replies" in out
 
 
 def assert_computes_what_one_process_computes(store, flower, local, rounds: int) -> None:
@@ -110,6 +114,11 @@ def assert_computes_what_one_process_computes(store, flower, local, rounds: int)
     if local.config.method == "FedLGR":
         assert "task/client1/arrow/rmse" in keys and "lgr/fd_latent" in local_run.data.metrics
         keys += ["lgr/fd_latent", "lgr/client1/recon_mse"]
+    if local.config.federated.server_evaluates:  # before round 1 (step 0), then every round
+        keys += [k for k in local_run.data.metrics if k.startswith("server/")]
+        assert "server/test/rmse" in keys
+        assert history(client, flower.info.run_id, "server/test/rmse")[0][0] == 0
+    assert len(history(client, flower.info.run_id, "cost/server_cpu_s")) == rounds
     for key in keys:
         # every point, unsorted by step: a round logged twice (a resume) would show here
         ours = sorted((m.step, m.value) for m in client.get_metric_history(flower.info.run_id, key))
@@ -122,11 +131,12 @@ def assert_computes_what_one_process_computes(store, flower, local, rounds: int)
     root = root_bytes(local.config)
     for c in (0, 1):
         up = history(client, flower.info.run_id, f"cost/client{c}/bytes_up")
-        assert up == [(r, float(root)) for r in range(1, rounds + 1)]
+        assert up == history(client, local.run_id, f"cost/client{c}/bytes_up")
         down = history(client, flower.info.run_id, f"cost/client{c}/bytes_down")
         assert down == history(client, local.run_id, f"cost/client{c}/bytes_down")
-        # the initial root, then the new one each round
-        assert down == [(1, 2.0 * root)] + [(r, float(root)) for r in range(2, rounds + 1)]
+        if local.config.federated.scope == "root":  # the initial root, then the new one
+            assert up == [(r, float(root)) for r in range(1, rounds + 1)]
+            assert down == [(1, 2.0 * root)] + [(r, float(root)) for r in range(2, rounds + 1)]
     assert "round/missing_clients" not in client.get_run(flower.info.run_id).data.metrics
     artifacts = [
         {a.path for a in client.list_artifacts(r)} for r in (flower.info.run_id, local.run_id)

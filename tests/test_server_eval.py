@@ -174,17 +174,3 @@ def test_the_report_shows_the_papers_cpu_figure_beside_each_clients_own(
     assert parse(paper[0])[0] == f"{full['mean/cost/paper_cpu_s']:.2f}"
     assert parse(paper[1])[0] == f"{root['mean/cost/paper_cpu_s']:.2f}"
     assert parse(rows["CPU usage (s) ▼"][0])[0] == f"{full['mean/cost/cpu_s']:.2f}"
-
-
-def test_the_flower_runtime_refuses_server_eval_in_one_line(synth_dir):
-    from fedlgr.deploy import check_deployable
-    from fedlgr.errors import FedlgrError
-
-    check_deployable(load_config(FAST, [f"data.path={synth_dir}"]))  # off: nothing to refuse
-    for value in ("on", "auto"):
-        config = load_config(FAST, [f"data.path={synth_dir}", f"federated.server_eval={value}"])
-        with pytest.raises(FedlgrError) as refused:
-            check_deployable(config)
-        message = str(refused.value)
-        assert message.startswith(f"federated.server_eval={value}: not in the Flower runtime")
-        assert "\n" not in message

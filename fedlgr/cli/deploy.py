@@ -316,15 +316,12 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if config.is_file():
         from fedlgr.config import load_config
-        from fedlgr.deploy import check_deployable
         from fedlgr.deploy.roster import roster_of
 
         # Here, in a second, rather than on the server after the run was submitted and
         # its ServerApp started (~40 s): a typo is the commonest mistake. The roster too,
         # as the ServerApp will read it (runs are submitted on the SuperLink's machine).
-        loaded = load_config(config, args.overrides)
-        check_deployable(loaded)
-        roster_of(loaded)
+        roster_of(load_config(config, args.overrides))
     else:
         print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
     env = {**_env(flwr), "PYTHONUNBUFFERED": "1"}

@@ -20,13 +20,13 @@ import torch
 from fedlgr.config import ExperimentConfig
 from fedlgr.continual import continual_plugins
 from fedlgr.continual.schedule import ALL
-from fedlgr.data.augment import Augment, SceneBatches, normalize
+from fedlgr.data.augment import Augment, SceneBatches
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
 from fedlgr.errors import FedlgrError
 from fedlgr.federated.client import Client, train_locally
 from fedlgr.federated.concurrency import ClientPool, resolve
-from fedlgr.federated.evaluation import predict, predict_tops
+from fedlgr.federated.evaluation import eval_set, predict, predict_tops
 from fedlgr.federated.messages import (
     EvaluateIns,
     EvaluateRes,
@@ -124,23 +124,12 @@ class ClientSide:
         return torch.amp.GradScaler(self.device.type)
 
     def _prepare_test_set(self) -> None:
-        test = self.split.test
-        inputs = self.scenes.inputs[torch.as_tensor(test)]
-        if self.scenes.images is not None:
-            inputs = normalize(inputs)
-            if self.channels_last:
-                inputs = inputs.contiguous(memory_format=torch.channels_last)
-        self.test_inputs = inputs.to(self.device)
-        self.test_targets = self.scenes.targets[torch.as_tensor(test)]
+        self.test = eval_set(
+            self.scenes, self.split, self.tasks, self.device, self.channels_last, self.autocast
+        )
         # Rows of the test set per task, and of every task seen up to each point.
-        where = {t: np.searchsorted(test, self.split.test_tasks[t]) for t in self.tasks if t != ALL}
-        self.test_rows = {t: torch.as_tensor(r) for t, r in where.items()}
-        self.seen_rows = [
-            torch.as_tensor(np.sort(np.concatenate([where[t] for t in self.tasks[: k + 1]])))
-            if self.tasks != [ALL]
-            else torch.arange(len(test))
-            for k in range(len(self.tasks))
-        ]
+        self.test_inputs, self.test_targets = self.test.test_inputs, self.test.test_targets
+        self.test_rows, self.seen_rows = self.test.test_rows, self.test.seen_rows
 
     def _warm_up(self, model: torch.nn.Module) -> None:
         """One untimed training step on a throwaway copy, so that kernel selection and

@@ -1,13 +1,55 @@
-"""Every client evaluates its own model on the shared test set (SPEC 5)."""
+"""Every client evaluates its own model on the shared test set (SPEC 5); the server scores
+the global model on the same scenes (``federated.server_eval``)."""
 
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
 from fedlgr.tracking.metrics import RegressionScores, regression_scores
+
+
+@dataclass
+class EvalSet:
+    """The shared test scenes, ready for a model: inputs (normalised images or
+    descriptors, on the device), targets, each task's rows (``test_rows``) and, per task,
+    the rows of every task seen up to it (``seen_rows``)."""
+
+    test_inputs: torch.Tensor
+    test_targets: torch.Tensor
+    test_rows: dict[str, torch.Tensor]
+    seen_rows: list[torch.Tensor]
+    autocast: Callable = contextlib.nullcontext
+
+
+def eval_set(
+    scenes, split, tasks: list[str], device, channels_last: bool, autocast=contextlib.nullcontext
+) -> EvalSet:
+    """The test scenes of ``split`` (tasks: ``["all"]`` in plain FL)."""
+    from fedlgr.continual.schedule import ALL
+    from fedlgr.data.augment import normalize
+
+    test = split.test
+    inputs = scenes.inputs[torch.as_tensor(test)]
+    if scenes.images is not None:
+        inputs = normalize(inputs)
+        if channels_last:
+            inputs = inputs.contiguous(memory_format=torch.channels_last)
+    targets = scenes.targets[torch.as_tensor(test)]
+    where = {t: np.searchsorted(test, split.test_tasks[t]) for t in tasks if t != ALL}
+    seen = [
+        torch.as_tensor(np.sort(np.concatenate([where[t] for t in tasks[: k + 1]])))
+        if tasks != [ALL]
+        else torch.arange(len(test))
+        for k in range(len(tasks))
+    ]
+    rows = {t: torch.as_tensor(r) for t, r in where.items()}
+    return EvalSet(inputs.to(device), targets, rows, seen, autocast)
 
 
 def _serial(fn, items):

@@ -30,11 +30,10 @@ from fedlgr.data.splits import FederatedSplit
 from fedlgr.federated.client_side import ClientSide
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainRes, nbytes
 from fedlgr.federated.rounds import RoundLog
-from fedlgr.federated.server_eval import ServerEvaluation
+from fedlgr.federated.server_eval import ServerEvaluation, serve_round
 from fedlgr.federated.server_side import ServerSide
 from fedlgr.runtime import default_threads
 from fedlgr.tracking.checkpoint import to_device
-from fedlgr.tracking.resources import measure
 
 
 class Orchestrator:
@@ -49,7 +48,7 @@ class Orchestrator:
         self.fields = self.server.fields
         # federated.server_eval: rank 0, which logs, scores the global model.
         self.server_eval = (
-            ServerEvaluation(config, self.client_side)
+            ServerEvaluation(config, self.client_side.test)
             if config.federated.server_evaluates and self.rank == 0
             else None
         )
@@ -87,21 +86,12 @@ class Orchestrator:
         plan = RoundPlan(round_, task, first_of_task, last_of_task)
         # Our clients start from the initial model and keep every download: they always
         # hold the global tensors (round 1's initial ones are billed in ``bytes_down``).
-        initial = {}
-        if self.server_eval is not None and round_ == 1:  # the initial model, before round 1
-            with measure(self.device) as before:
-                initial = self.server_eval.scores(self.server.global_weights, task)
         trained = self.client_side.train(self.server.train_ins(plan), progress)
         # The server's work - aggregation, its update, its evaluation - is its own cost,
         # never a client's.
-        with measure(self.device) as usage:
-            self.aggregate(trained)
-            scores = {}
-            if self.server_eval is not None:
-                scores = self.server_eval.scores(self.server.global_weights, task)
-        if initial:
-            usage = usage + before
-        server = {"cost/server_cpu_s": usage.cpu_s, "cost/server_wall_s": usage.wall_s, **scores}
+        server, initial = serve_round(
+            self.server, self.server_eval, round_, task, lambda: self.aggregate(trained)
+        )
         evaluated = self.client_side.evaluate(EvaluateIns(plan, self.server.global_weights))
         down = self.server.bytes_down(round_)
         rows = {

@@ -11,19 +11,19 @@ batch-norm layers on the clients) is scored with the initial model's other tenso
 
 from __future__ import annotations
 
-from fedlgr.federated.evaluation import predict
+from collections.abc import Callable
+
+from fedlgr.federated.evaluation import EvalSet, predict
 from fedlgr.federated.messages import Weights
 from fedlgr.federated.scope import initial_scholar
 from fedlgr.tracking.metrics import regression_scores
+from fedlgr.tracking.resources import Usage, measure
 
 
 class ServerEvaluation:
-    """Scores the global weights on ``test``'s scenes: an object with ``test_inputs``,
-    ``test_targets``, ``seen_rows`` (per task: the rows of every task seen so far),
-    ``test_rows`` (each task's rows) and ``autocast`` - the in-process clients' test set,
-    the same scenes the clients score on."""
+    """Scores the global weights on ``test``, the scenes the clients score on."""
 
-    def __init__(self, config, test):
+    def __init__(self, config, test: EvalSet):
         self.config, self.test = config, test
         self.model = initial_scholar(config).to(test.test_inputs.device)
 
@@ -46,3 +46,41 @@ def _named(prefix: str, scores) -> dict[str, float]:
         f"{prefix}/rmse": scores.mean_rmse,
         f"{prefix}/pcc": scores.mean_pcc,
     }
+
+
+def serve_round(
+    server, evaluation: ServerEvaluation | None, round_: int, task: int, aggregate: Callable
+) -> tuple[dict[str, float], dict[str, float]]:
+    """The server's part of a round: ``aggregate()`` (aggregation and the server update of
+    ``server``, a :class:`ServerSide`), then its evaluation - and, in round 1, that of
+    the initial model first. Returns the round's server figures (``cost/server_cpu_s``,
+    ``cost/server_wall_s``, ``server/...``) and the initial model's scores (or {})."""
+    device = next(iter(server.global_weights.values())).device
+    before, initial = Usage(), {}
+    if evaluation is not None and round_ == 1:
+        with measure(device) as before:
+            initial = evaluation.scores(server.global_weights, task)
+    with measure(device) as usage:
+        aggregate()
+        scores = evaluation.scores(server.global_weights, task) if evaluation else {}
+    usage = usage + before
+    return {"cost/server_cpu_s": usage.cpu_s, "cost/server_wall_s": usage.wall_s, **scores}, initial
+
+
+def server_evaluation(config) -> ServerEvaluation:
+    """For a server whose clients are elsewhere (a Flower ServerApp): its own copy of the
+    test scenes, read from ``data.path`` on the server's machine, split as the clients
+    split them."""
+    import torch
+
+    from fedlgr.continual.schedule import ALL
+    from fedlgr.data.dataset import load_scenes
+    from fedlgr.data.splits import make_split
+    from fedlgr.federated.evaluation import eval_set
+
+    scenes = load_scenes(config.data)
+    split = make_split(scenes.table, config.data)
+    tasks = list(config.continual.tasks) or [ALL]
+    channels_last = config.model.channels_last and scenes.images is not None
+    cpu = torch.device("cpu")
+    return ServerEvaluation(config, eval_set(scenes, split, tasks, cpu, channels_last))

@@ -46,6 +46,7 @@ from fedlgr.deploy.roster import roster_of
 from fedlgr.errors import FedlgrError
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainRes
 from fedlgr.federated.rounds import RoundLog
+from fedlgr.federated.server_eval import serve_round, server_evaluation
 from fedlgr.federated.server_side import ServerSide
 
 app = ServerApp()
@@ -68,6 +69,9 @@ class FlowerRounds:
         self.roster = roster_of(config)
         self.server = ServerSide(config)
         self.fields = self.server.fields
+        # federated.server_eval: the server scores the global model on its own copy of the
+        # test scenes (data.path on the SuperLink's machine).
+        self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
         self.config_yaml = to_yaml(config)
         self.holders: set[int] = set()  # nodes that hold the current global tensors
         self.min_clients = config.deploy.min_clients or quorum(config.data.clients)
@@ -234,7 +238,13 @@ class FlowerRounds:
                 f" (deploy.min_clients={self.min_clients}){causes}"
             )
         # In client order, as in one process: the same sums to the last bit.
-        self.server.aggregate(trained[c][1] for c in sorted(trained))
+        server, initial = serve_round(
+            self.server,
+            self.server_eval,
+            round_,
+            task,
+            lambda: self.server.aggregate(trained[c][1] for c in sorted(trained)),
+        )
         evaluate = EvaluateIns(plan, self.server.global_weights)
         after = self.next_plan(round_)
         contents, received = {}, {}
@@ -287,7 +297,9 @@ class FlowerRounds:
             )
             self.tag("fedlgr.missing_robots", "; ".join(self.missed))
         seconds = time.perf_counter() - start
-        return self.server.round_log(plan, self.server.table(rows), seconds, missing)
+        log = self.server.round_log(plan, self.server.table(rows), seconds, missing)
+        log.server, log.initial = server, initial
+        return log
 
     def next_plan(self, round_: int) -> tuple[int, int, bool, bool] | None:
         """The plan of the round after ``round_`` where its training goes with this
@@ -434,10 +446,7 @@ def main(grid: Grid, context: Context) -> None:
     from fedlgr.federated.experiment import Hooks, Resumed, drive
 
     echo = functools.partial(print, flush=True)
-    from fedlgr.deploy import check_deployable
-
     config = config_of(context)
-    check_deployable(config)
     rounds = FlowerRounds(grid, config, echo)
     resumed = None
     resume = str(context.run_config.get("resume", ""))
