@@ -29,7 +29,7 @@ def setup(tmp: str, overrides: list[str]):
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
     from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.orchestrator import Orchestrator
+    from fedlgr.federated.in_process import Orchestrator
 
     config = load_config(
         CONF_DIR / "experiment" / "demo.yaml",
@@ -65,7 +65,8 @@ def main() -> int:
     import torch
 
     from fedlgr.data.synth import synthesize
-    from fedlgr.federated.orchestrator import torch_threads
+    from fedlgr.federated.messages import RoundPlan
+    from fedlgr.runtime import torch_threads
 
     figures: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -74,7 +75,7 @@ def main() -> int:
         torch.set_num_threads(torch_threads(orchestrator.config, 1))
         rounds, saves, size = [], [], 0.0
         for repeat in range(args.repeats):
-            log = orchestrator.run_round(repeat + 1)
+            log = orchestrator.run_round(RoundPlan(repeat + 1))
             rounds.append(log.seconds)
             seconds, size = timed_checkpoint(fabric, orchestrator, log, Path(tmp) / "demo")
             saves.append(seconds)
@@ -86,7 +87,7 @@ def main() -> int:
             fabric, orchestrator = setup(
                 tmp, ["model.width=1.0", f"data.clients={clients}", "train.max_batches=1"]
             )
-            log = orchestrator.run_round(1)
+            log = orchestrator.run_round(RoundPlan(1))
             best = min(
                 timed_checkpoint(fabric, orchestrator, log, Path(tmp) / f"full{clients}")
                 for _ in range(args.repeats)

@@ -75,7 +75,8 @@ def main() -> int:
     from fedlgr.data.splits import make_split
     from fedlgr.data.synth import synthesize
     from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.orchestrator import Orchestrator, torch_threads
+    from fedlgr.federated.in_process import Orchestrator
+    from fedlgr.runtime import torch_threads
 
     with tempfile.TemporaryDirectory() as tmp:
         synthesize(Path(tmp) / "synth", args.scenes, seed=0, size=args.size)

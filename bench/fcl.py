@@ -50,15 +50,15 @@ OTHERS = [
 # latents replayed instead of the generator's), "<label> (stored)".
 LGR_VARIANTS = {
     "FedLGR": [],
-    "FedLGR-paper": ["continual.lgr_drift=none", "continual.lgr_train_blocks=null"],
-    "FedLGR-compensate": ["continual.lgr_drift=compensate", "continual.lgr_train_blocks=null"],
-    "FedLGR-distill": ["continual.lgr_drift=distill", "continual.lgr_train_blocks=null"],
-    "FedLGR-blocks": ["continual.lgr_drift=none", "continual.lgr_train_blocks=1"],
+    "FedLGR-paper": ["continual.lgr.drift=none", "continual.lgr.train_blocks=null"],
+    "FedLGR-compensate": ["continual.lgr.drift=compensate", "continual.lgr.train_blocks=null"],
+    "FedLGR-distill": ["continual.lgr.drift=distill", "continual.lgr.train_blocks=null"],
+    "FedLGR-blocks": ["continual.lgr.drift=none", "continual.lgr.train_blocks=1"],
     "FedLGR-freeze": [  # replay at the freeze point, below the last two blocks
-        "continual.lgr_drift=none",
-        "continual.lgr_train_blocks=2",
-        "continual.lgr_replay_layer=freeze",
-        "continual.lgr_schedule=joint",
+        "continual.lgr.drift=none",
+        "continual.lgr.train_blocks=2",
+        "continual.lgr.replay_layer=freeze",
+        "continual.lgr.schedule=joint",
     ],
 }
 STORED = " (stored)"
@@ -73,7 +73,7 @@ def variant(label: str) -> tuple[str, list[str]]:
         return "FedLGR", LGR_VARIANTS[label]
     base = label.removesuffix(STORED)
     if base in LGR_VARIANTS:
-        extra = LGR_VARIANTS[base] + (["continual.lgr_replay=stored"] if label != base else [])
+        extra = LGR_VARIANTS[base] + (["continual.lgr.replay=stored"] if label != base else [])
         return "FedLGR", extra
     return label, []
 

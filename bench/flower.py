@@ -1,8 +1,8 @@
 """A Flower round's wall time, today's protocol against the one before issue 21.
 
 Real federations on localhost, each a SuperLink with TLS and SuperNode authentication
-and two SuperNodes started with ``fedlgr deploy`` as the README says
-(``tests/flower_federation``): one runs this checkout, one this checkout with
+and two SuperNodes started with ``fedlgr deploy`` as docs/deployment.md says
+(``tests/support/flower.py``): one runs this checkout, one this checkout with
 ``--cold-apps`` (Flower's own SuperExec; ``--no-cold`` leaves it out), one the commit ``--before``
 (default fa15ccd, the last before issue 21: a train and an evaluate exchange per round,
 one Flower ``Array`` per tensor, no gateway), from a git worktree put first on
@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fedlgr.data.synth import synthesize  # noqa: E402
-from tests.flower_federation import Federation  # noqa: E402
+from tests.support.flower import Federation  # noqa: E402
 
 CONFIG = ROOT / "conf" / "debug" / "tiny.yaml"
 EXCHANGE = re.compile(r"round (\d+), [^:]*(train|evaluate): (\d+) of (\d+) replies \(([\d.]+) s\)")

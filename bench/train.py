@@ -117,7 +117,7 @@ def build(overrides: list[str], clients: list[int]):
     from fedlgr.config import load_config
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
-    from fedlgr.federated.client_side import ClientSide
+    from fedlgr.federated.client.side import ClientSide
 
     config = load_config(None, overrides)
     scenes = load_scenes(config.data)

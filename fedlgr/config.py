@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,11 @@ from fedlgr.data.config import (
     format_bytes,
     machine_memory,
 )
+from fedlgr.data.config import betas as _betas
+from fedlgr.data.config import choice as _choice
+from fedlgr.data.config import positive as _positive
 from fedlgr.errors import ConfigError
+from fedlgr.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
 
 
 def _shipped(folder: str) -> Path:
@@ -54,8 +59,6 @@ def find_config(name: str | Path) -> Path:
     return path
 
 
-STRATEGIES = {"avg": "Avg", "bn": "BN", "prox": "Prox", "opt": "Opt", "distill": "Distill"}
-SCOPES = {"full": "Fed", "root": "FedRoot"}
 ROOTS = ("auto", "mobilenet_v2", "mlp")
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
 
@@ -69,37 +72,6 @@ _ROUNDS_BOUND = (
 MAX_EXPERIMENT_NAME = 500  # MLflow's mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH
 MAX_INTERVAL_S = 86_400  # heartbeat and system-metrics intervals (threading.Event.wait)
 MOBILENET_V2_NUMBERS = 2_258_036  # parameters and buffers of torchvision's features, width 1
-
-CONTINUAL = {
-    "none": "FT",
-    "ewc": "EWC",
-    "ewc_online": "EWCOnline",
-    "si": "SI",
-    "mas": "MAS",
-    "nr": "NR",
-    "lgr": "LGR",
-}
-
-
-def method_name(strategy: str, scope: str, continual: str | None = None) -> str:
-    """The paper's name: ``("avg", "full")`` -> ``FedAvg``, ``("bn", "root")`` ->
-    ``FedRootBN``; with a task schedule, Table II's ``FedAvg-EWC``, ``FedRoot-NR``,
-    ``FedLGR`` (FedRoot + latent generative replay), and ``FedRoot-FT`` for training on the
-    tasks in sequence with no continual-learning method (the forgetting baseline)."""
-    base = SCOPES[scope] + STRATEGIES[strategy]
-    if continual is None:
-        return base
-    if continual == "lgr" and (strategy, scope) == ("avg", "root"):
-        return "FedLGR"
-    return f"{'FedRoot' if base == 'FedRootAvg' else base}-{CONTINUAL[continual]}"
-
-
-# Paper name -> (strategy, scope, continual method or None for FL).
-METHODS = {method_name(st, sc): (st, sc, None) for sc in SCOPES for st in STRATEGIES}
-FCL_METHODS = {
-    method_name("avg", sc, cl): ("avg", sc, cl) for sc in SCOPES for cl in CONTINUAL if cl != "lgr"
-}
-FCL_METHODS["FedLGR"] = ("avg", "root", "lgr")
 
 
 @dataclass(frozen=True)
@@ -166,19 +138,31 @@ SERVER_EVAL = ("off", "on", "auto")
 SERVER_EVAL_ALIASES = {"true": "on", "false": "off"}
 
 
+def _with_sections(base: type, family: str, registry: dict) -> type:
+    """``base`` plus one field per registered method with settings (``federated.prox``,
+    ``continual.lgr``), each that method's settings dataclass. Built from the registry
+    (``fedlgr.methods``) so that a new method's settings need no edit here."""
+    sections = [
+        (m.key, m.settings, field(default_factory=m.settings))
+        for m in registry.values()
+        if m.settings is not None
+    ]
+    made = dataclasses.make_dataclass(
+        base.__name__.lstrip("_"), sections, bases=(base,), frozen=True
+    )
+    made.__module__, made.__doc__ = __name__, base.__doc__
+    made.__qualname__ = made.__name__
+    return made
+
+
 @dataclass(frozen=True)
-class FederatedConfig:
-    """What is shared (scope), how it is aggregated (strategy), and the strategies'
-    settings (SPEC 4.1)."""
+class _FederatedConfig:
+    """What is shared (scope), how it is aggregated (strategy, with each strategy's
+    settings under ``federated.<strategy>``: ``federated.prox.mu``), SPEC 4.1."""
 
     strategy: str = "avg"
     scope: str = "full"
     rounds: int = 10
-    prox_mu: float = 0.01  # FedProx: client loss + mu/2 ||w - w_global||^2
-    server_lr: float = 0.01  # FedOpt (FedAdam, Reddi et al. 2021): eta
-    server_betas: tuple[float, float] = (0.9, 0.99)
-    server_tau: float = 1e-3
-    distill_weight: float = 0.5  # FedDistill: weight of the teacher term in the student loss
     # The server scores the global model on the test scenes every round (and before round
     # 1): server/test/*. off | on (full scope only: FedRoot keeps the top on the clients) |
     # auto (where the server holds a whole model: full-scope methods, as the paper's code).
@@ -189,13 +173,6 @@ class FederatedConfig:
         _choice("federated.strategy", self.strategy, tuple(STRATEGIES))
         _choice("federated.scope", self.scope, tuple(SCOPES))
         _rounds("federated.rounds", self.rounds)
-        if self.prox_mu < 0:
-            raise ConfigError(f"federated.prox_mu={self.prox_mu}: must be >= 0")
-        if not 0.0 <= self.distill_weight <= 1.0:
-            raise ConfigError(f"federated.distill_weight={self.distill_weight}: must be in 0..1")
-        if self.server_tau <= 0 or self.server_lr <= 0:
-            raise ConfigError("federated.server_lr and federated.server_tau must be > 0")
-        _betas("federated.server_betas", self.server_betas)
         # true/false as YAML or the command line give them: on/off
         value = SERVER_EVAL_ALIASES.get(str(self.server_eval).lower(), self.server_eval)
         object.__setattr__(self, "server_eval", value)
@@ -210,12 +187,13 @@ class FederatedConfig:
         """Does the server score the global model (``server_eval``)?"""
         return self.server_eval == "on" or (self.server_eval == "auto" and self.scope == "full")
 
+    @property
+    def settings(self):
+        """The strategy's settings (``federated.<strategy>``), None where it has none."""
+        return getattr(self, STRATEGIES[self.strategy].section, None)
 
-def _betas(name: str, betas) -> None:
-    """Adam's two decay rates, each in [0, 1) as torch.optim.Adam requires (found by the
-    fifth fault sweep: train.betas=[1.5,0.9] failed in torch after 13 s)."""
-    if len(betas) != 2 or not all(0.0 <= b < 1.0 for b in betas):
-        raise ConfigError(f"{name}={list(betas)}: two decay rates, each in [0, 1)")
+
+FederatedConfig = _with_sections(_FederatedConfig, "federated", STRATEGIES)
 
 
 CONCURRENCY = ("auto", "sequential", "threads", "batched")
@@ -233,7 +211,7 @@ class RuntimeConfig:
     num_nodes: int = 1
     launcher: str = "ddp"  # ddp (re-runs the command per process) | ddp_spawn
     threads: int | None = None  # torch threads per process (default: cores / processes)
-    # How a process's clients train (README "Concurrent clients"): one after another
+    # How a process's clients train (docs/runtimes.md): one after another
     # (sequential), side by side in threads that split the process's torch threads
     # (threads), or stacked into one model (batched, for a GPU); auto: threads on CPU
     # where a process has several clients and threads, else sequential.
@@ -275,7 +253,7 @@ EVALUATE_MODES = ("with_next_round", "separate")  # deploy.evaluate
 
 @dataclass(frozen=True)
 class DeployConfig:
-    """Real robots behind a Flower SuperLink (``fedlgr deploy``; README "Deployment")."""
+    """Real robots behind a Flower SuperLink (``fedlgr deploy``; docs/deployment.md)."""
 
     min_clients: int | None = None  # replies a round needs to go on (default: half, >= 1)
     join_timeout_s: float = 300.0  # how long round 1 waits for data.clients robots to join
@@ -341,8 +319,9 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
-class ContinualConfig:
-    """Federated continual learning (SPEC 4.2): a task schedule and a CL method.
+class _ContinualConfig:
+    """Federated continual learning (SPEC 4.2): a task schedule and a CL method, with each
+    method's settings under ``continual.<method>`` (``continual.ewc.lambda_``).
 
     ``tasks`` lists task names of ``data.tasks`` in training order; empty means plain FL
     (all training scenes at once, ``federated.rounds`` rounds). With tasks, each task is
@@ -351,113 +330,31 @@ class ContinualConfig:
 
     tasks: tuple[str, ...] = ()
     rounds_per_task: int = 5
-    method: str = "none"  # none | ewc | ewc_online | si | mas | nr | lgr
+    method: str = "none"  # a key of fedlgr.methods.CONTINUAL: none | ewc | ... | lgr
     importance_batches: int | None = None  # batches for Fisher / MAS importance (None: all)
-    ewc_lambda: float = 100.0  # EWC and EWC-Online: lambda * sum F (theta - theta*)^2
-    ewc_fisher: str = "empirical"  # empirical: gradients of the MSE to the labels | model
-    ewc_gamma: float = 0.9  # EWC-Online: decay of the running Fisher
-    si_c: float = 1.0  # SI: penalty coefficient
-    si_xi: float = 0.1  # SI: damping
-    mas_lambda: float = 1.0  # MAS: penalty coefficient
-    nr_memory: int = 100  # NR: scenes kept per client (all past tasks together)
-    nr_replay_ratio: float = 0.5  # NR: memory samples added per current sample in a batch
-    freeze_root_bn: bool = False  # EWC/SI/MAS/NR/FT: root BatchNorm statistics frozen from task 2
-    lgr_schedule: str = "two_phase"  # FedLGR: two_phase (top, then root) | joint (one pass)
-    lgr_replay: str = "generator"  # generator | stored (the oracle: real past latents kept)
-    lgr_freeze_root_bn: bool = True  # FedLGR: root BatchNorm statistics frozen from task 2
-    lgr_hidden: int = 512  # FedLGR's VAE: hidden width
-    lgr_latent: int = 16  # FedLGR's VAE: latent size
-    lgr_epochs: int = 300  # FedLGR's VAE: most epochs at the end of each task
-    lgr_patience: int = 20  # ... stop after this many epochs without held-out gain (0: never)
-    lgr_holdout: float = 0.2  # ... share of a task's latents held out (none under 10 latents)
-    lgr_batch_size: int = 32
-    lgr_lr: float = 1e-3  # the generator's learning rate
-    lgr_beta: float = 4.0  # weight of the VAE's KL term
-    lgr_sampler: str = "posterior"  # VAE codes from a Gaussian fitted to the training codes | prior
-    lgr_lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
-    lgr_root_epochs: int | None = 1  # two_phase: root epochs per round (None: train.epochs)
-    lgr_replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
-    # Keeping replayed latents valid while the root learns (issue 19; README "How FedLGR
-    # works here"): none | compensate | distill | compensate+distill. The defaults (distill
-    # at weight 10, the last root block trained) are sweeps/fedlgr_drift_image.yaml's and
-    # sweeps/fedlgr_distill_image.yaml's best point; none + train_blocks null is the paper's.
-    lgr_drift: str = "distill"
-    lgr_compensate_ridge: float = 1.0  # compensate: ridge of the drift map (x mean eigenvalue)
-    lgr_distill_weight: float = 10.0  # distill: weight of the root's latent distillation term
-    lgr_train_blocks: int | None = 1  # from task 2 only the root's last k blocks train (null: all)
-    lgr_replay_layer: str = "latent"  # latent (the root's output) | freeze (the k blocks' input)
+    freeze_root_bn: bool = False  # root BatchNorm statistics frozen from task 2 (not FedLGR:
+    # continual.lgr.freeze_root_bn)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
         check_numbers("continual.", self)
         _choice("continual.method", self.method, tuple(CONTINUAL))
-        _choice("continual.ewc_fisher", self.ewc_fisher, ("empirical", "model"))
-        _choice("continual.lgr_schedule", self.lgr_schedule, ("two_phase", "joint"))
-        _choice("continual.lgr_replay", self.lgr_replay, ("generator", "stored"))
-        _choice("continual.lgr_sampler", self.lgr_sampler, ("posterior", "prior"))
-        _choice(
-            "continual.lgr_drift",
-            self.lgr_drift,
-            ("none", "compensate", "distill", "compensate+distill"),
-        )
-        if not 0.0 <= self.lgr_holdout < 1.0:
-            raise ConfigError(f"continual.lgr_holdout={self.lgr_holdout}: must be in [0, 1)")
-        _choice("continual.lgr_replay_layer", self.lgr_replay_layer, ("latent", "freeze"))
-        if self.lgr_replay_layer == "freeze":
-            wrong = [
-                f"{name}={value}"
-                for name, value, ok in (
-                    ("lgr_train_blocks", self.lgr_train_blocks, bool(self.lgr_train_blocks)),
-                    ("lgr_schedule", self.lgr_schedule, self.lgr_schedule == "joint"),
-                    ("lgr_drift", self.lgr_drift, "compensate" not in self.lgr_drift),
-                )
-                if not ok
-            ]
-            if wrong:
-                raise ConfigError(
-                    "continual.lgr_replay_layer=freeze replays the activations entering the "
-                    "root's last lgr_train_blocks blocks, which train with the top on real and "
-                    "replayed ones together (no drift to compensate there): it needs "
-                    "lgr_train_blocks >= 1, lgr_schedule=joint and no compensation, not "
-                    + ", ".join(f"continual.{w}" for w in wrong)
-                )
-        for name in ("lgr_patience", "lgr_root_epochs", "lgr_train_blocks"):
-            value = getattr(self, name)
-            if value is not None and value < 0:
-                raise ConfigError(f"continual.{name}={value}: must be >= 0")
         _rounds("continual.rounds_per_task", self.rounds_per_task)
-        for name in ("lgr_hidden", "lgr_latent", "lgr_epochs", "lgr_batch_size"):
-            _positive(f"continual.{name}", getattr(self, name))
         if self.importance_batches is not None:
             _positive("continual.importance_batches", self.importance_batches)
-        if self.nr_memory < 0:
-            raise ConfigError(f"continual.nr_memory={self.nr_memory}: must be >= 0")
-        for name in (
-            "ewc_lambda",
-            "si_c",
-            "si_xi",
-            "mas_lambda",
-            "nr_replay_ratio",
-            "lgr_replay_ratio",
-            "lgr_lr",
-            "lgr_lr_root",
-            "lgr_beta",
-            "lgr_distill_weight",
-        ):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"continual.{name}={getattr(self, name)}: must be >= 0")
-        if self.lgr_compensate_ridge <= 0:  # clients hold fewer scenes than latent features
-            raise ConfigError(
-                f"continual.lgr_compensate_ridge={self.lgr_compensate_ridge}: must be > 0 "
-                "(the drift map is fitted on a client's scenes, fewer than the root's features)"
-            )
-        if not 0.0 <= self.ewc_gamma <= 1.0:
-            raise ConfigError(f"continual.ewc_gamma={self.ewc_gamma}: must be in 0..1")
         if self.method != "none" and not self.tasks:
             raise ConfigError(
                 f"continual.method={self.method} needs a task schedule: set continual.tasks "
                 "(e.g. [circle, arrow]) or use a Table II method name (method=FedRoot-EWC)"
             )
+
+    @property
+    def settings(self):
+        """The method's settings (``continual.<method>``), None where it has none."""
+        return getattr(self, CONTINUAL[self.method].section, None)
+
+
+ContinualConfig = _with_sections(_ContinualConfig, "continual", CONTINUAL)
 
 
 @dataclass(frozen=True)
@@ -481,9 +378,12 @@ class ExperimentConfig:
                 f"continual.rounds_per_task={self.continual.rounds_per_task} x "
                 f"{len(self.continual.tasks)} tasks = {self.total_rounds} rounds: {_ROUNDS_BOUND}"
             )
-        if self.continual.method == "lgr" and self.federated.scope != "root":
+        cl = CONTINUAL[self.continual.method]
+        if self.federated.scope not in cl.scopes:
             raise ConfigError(
-                "continual.method=lgr (FedLGR) shares the root only: set federated.scope=root"
+                f"continual.method={cl.key} ({method_name('avg', cl.scopes[0], cl.key)}) works "
+                f"with federated.scope={' or '.join(cl.scopes)} only: set "
+                f"federated.scope={cl.scopes[0]}"
             )
         if self.federated.server_eval == "on" and self.federated.scope == "root":
             raise ConfigError(
@@ -570,16 +470,6 @@ class ExperimentConfig:
         return f"{self.method_name}-{self.data.clients}c-{aug}"
 
 
-def _choice(setting: str, value: str, options: tuple[str, ...]) -> None:
-    if value not in options:
-        raise ConfigError(f"{setting}={value!r}: must be one of {', '.join(options)}")
-
-
-def _positive(setting: str, value: int) -> None:
-    if value < 1:
-        raise ConfigError(f"{setting}={value}: must be >= 1")
-
-
 def _rounds(setting: str, value: int) -> None:
     _positive(setting, value)
     if value > MAX_ROUNDS:
@@ -588,7 +478,7 @@ def _rounds(setting: str, value: int) -> None:
 
 # --------------------------------------------------------------------------- loading
 
-# The ``${...}`` a config file or override may hold (README "Running experiments"): a
+# The ``${...}`` a config file or override may hold (docs/methods.md, "Running experiments"): a
 # reference to another setting, or an environment variable whose name starts with
 # FEDLGR_ (optionally with a default). Everything else - other variables, oc.decode,
 # oc.create, oc.select, oc.dict.*, nested interpolations - is refused before anything
@@ -598,7 +488,8 @@ _FEDLGR_ENV = r"oc\.env:FEDLGR_\w+(?:,[\w ./:@+-]*)?"
 _ALLOWED = rf"\$\{{(?:{_REFERENCE}|{_FEDLGR_ENV})\}}"
 _POLICY = (
     "a config's ${...} may name another setting (${data.clients}) or an environment "
-    "variable FEDLGR_* (${oc.env:FEDLGR_DATA}), nothing else (README 'Running experiments')"
+    "variable FEDLGR_* (${oc.env:FEDLGR_DATA}), nothing else (docs/methods.md, "
+    "'Running experiments')"
 )
 
 
@@ -652,6 +543,7 @@ def load_config(
     if bad:
         raise ConfigError(f"override {bad[0]!r}: expected key=value (e.g. federated.rounds=5)")
     layers = [*layers, ("command line", _dotlist(overrides))]
+    layers = [(source, _renamed(source, node)) for source, node in layers]
     interpolated: dict[str, tuple[Any, str]] = {}
     for source, node in layers:
         interpolated.update(check_interpolations(source, node))
@@ -685,6 +577,53 @@ def check_data(data: Any, source: str) -> None:
                 f"{source}: {key}: holds ${{...}}, which a config sent as data may not "
                 "(it is resolved where it was written)"
             )
+
+
+def _deprecated_names() -> dict[tuple[str, str], str]:
+    """``(section, old flat name) -> new name`` for the method settings that lived in
+    ``federated``/``continual`` as prefixed fields up to fedlgr 0.x (``continual.lgr_hidden``
+    is ``continual.lgr.hidden``, ``federated.server_lr`` is ``federated.opt.lr``). They are
+    read, with a deprecation line, for one more release."""
+    old = {("federated", f"server_{f}"): f"opt.{f}" for f in ("lr", "betas", "tau")}
+    for section, registry, keys in (
+        ("federated", STRATEGIES, ("prox", "distill")),
+        ("continual", CONTINUAL, ("ewc", "si", "mas", "nr", "lgr")),
+    ):
+        for key in keys:
+            for f in dataclasses.fields(registry[key].settings):
+                old[(section, f"{key}_{f.name.rstrip('_')}")] = f"{key}.{f.name}"
+    return old
+
+
+DEPRECATED = _deprecated_names()
+
+
+def _renamed(source: Any, node):
+    """The layer with the deprecated flat method settings moved to their sections."""
+    from omegaconf import OmegaConf
+
+    values = _plain(node)
+    moved = []
+    for section in ("federated", "continual"):
+        here = values.get(section) if isinstance(values, dict) else None
+        if not isinstance(here, dict):
+            continue
+        for name in [n for n in here if (section, n) in DEPRECATED]:
+            new = DEPRECATED[(section, name)]
+            group, _, leaf = new.partition(".")
+            target = here.setdefault(group, {})
+            if not isinstance(target, dict):
+                continue  # e.g. continual.lgr=5: the merge names the bad value
+            target[leaf] = here.pop(name)
+            moved.append(f"{section}.{name} is now {section}.{new}")
+    if not moved:
+        return node
+    print(
+        f"fedlgr: {source}: deprecated setting names, read for one more release: "
+        + "; ".join(moved),
+        file=sys.stderr,
+    )
+    return OmegaConf.create(values)
 
 
 SETTING_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]{0,99}")
@@ -887,6 +826,13 @@ def _merge_message(err: Exception, merged, node) -> str:
             text = _first_line(err).replace("Value '$VALUE' of type '$VALUE_TYPE'", "a value")
             return f"{key}={value!r}: {text}"
     return _omegaconf_message(err)
+
+
+def short_setting(name: str) -> str:
+    """A setting without its section, for names of trials and cells: ``train.lr_root`` ->
+    ``lr_root``, ``continual.lgr.replay`` -> ``lgr.replay`` (a method's setting keeps the
+    method's name)."""
+    return name.split(".", 1)[-1]
 
 
 def known_settings() -> list[str]:

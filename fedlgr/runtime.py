@@ -8,6 +8,10 @@ import os
 import platform
 import threading
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from fedlgr.config import ExperimentConfig
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
 _MMAP_THRESHOLD = 32 * 1024 * 1024  # glibc's largest allowed value on 64-bit
@@ -105,3 +109,11 @@ def tune_allocator() -> bool:
             (_M_ARENA_MAX, 1),
         )
     )
+
+
+def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:
+    """Threads per process: the setting, else this machine's idle cores over its processes
+    (:func:`default_threads`: all cores would oversubscribe a busy one)."""
+    if config.runtime.threads is not None:
+        return config.runtime.threads
+    return default_threads(local_world_size)

@@ -1,71 +1,21 @@
-"""Shared fixtures: small synthetic datasets written through the real generator."""
+"""Shared fixtures (small synthetic datasets written through the real generator, stores,
+servers) and nothing else: what the tests share besides fixtures is in tests/support."""
 
 from __future__ import annotations
 
-import contextlib
-import csv
-import os
 import shutil
 import subprocess
+import sys
+import time
+import urllib.request
 from pathlib import Path
 
-import mlflow
 import pytest
 import torch
 
-from fedlgr.config import CONF_DIR, load_config
-from fedlgr.data.columns import ALL_COLUMNS
 from fedlgr.data.synth import synthesize
-
-FAST = CONF_DIR / "debug" / "tiny.yaml"  # the cheapest run through the image path
-REPO = Path(__file__).resolve().parents[1]
-# Written by Python, pytest and the linters wherever they run: not the suite's doing.
-CACHES = frozenset({".git", ".venv", "__pycache__", ".pytest_cache", ".ruff_cache", ".mypy_cache"})
-
-
-def untracked_files(root: Path, skip: Path | None = None) -> dict[str, tuple[int, int]] | None:
-    """``{path: (size, mtime_ns)}`` of every file in git checkout ``root`` that git does not
-    track (untracked and ignored ones: ``mlruns/``, ``mlflow.db``, its lock ...), caches and
-    ``skip`` left out; None when ``root`` is not the top of a git checkout."""
-    try:
-        top = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "--show-toplevel"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-        listed = subprocess.run(
-            ["git", "-C", str(root), "ls-files", "-z"], capture_output=True, check=True
-        ).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    if Path(top).resolve() != root.resolve():
-        return None
-    tracked = set(os.fsdecode(listed).split("\0"))
-    found = {}
-    for folder, dirs, files in os.walk(root):
-        here = Path(folder)
-        dirs[:] = [d for d in dirs if d not in CACHES and (skip is None or here / d != skip)]
-        for name in files:
-            path = here / name
-            relative = path.relative_to(root).as_posix()
-            if relative not in tracked:
-                with contextlib.suppress(OSError):  # removed meanwhile
-                    stat = path.lstat()
-                    found[relative] = (stat.st_size, stat.st_mtime_ns)
-    return found
-
-
-def _ignored(root: Path, paths: list[str]) -> list[str]:
-    """Those of ``paths`` (relative to git checkout ``root``) that git ignores, sorted."""
-    if not paths:
-        return []
-    found = subprocess.run(
-        ["git", "-C", str(root), "check-ignore", "-z", "--stdin"],
-        input="\0".join(paths).encode(),
-        capture_output=True,
-    ).stdout
-    return sorted(p for p in os.fsdecode(found).split("\0") if p)
+from tests.support.checkout import REPO, ignored, untracked_files
+from tests.support.ports import free_port
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -84,7 +34,7 @@ def checkout_unchanged(tmp_path_factory):
     new = sorted(set(after) - set(before))
     # A changed file counts where git ignores it (a store, an artifact): an untracked source
     # file may be one a person is editing meanwhile.
-    changed = _ignored(REPO, [p for p in set(after) & set(before) if after[p] != before[p]])
+    changed = ignored(REPO, [p for p in set(after) & set(before) if after[p] != before[p]])
     if new or changed:
         listing = [f"new: {p}" for p in new] + [f"changed: {p}" for p in changed]
         more = f" (and {len(listing) - 20} more)" if len(listing) > 20 else ""
@@ -126,27 +76,6 @@ def cache_dir(tmp_path, monkeypatch) -> Path:
     return path
 
 
-def read_rows(csv_path: Path) -> list[list[str]]:
-    with csv_path.open(newline="") as f:
-        return list(csv.reader(f))
-
-
-def write_rows(csv_path: Path, rows: list[list[str]]) -> Path:
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    with csv_path.open("w", newline="") as f:
-        csv.writer(f, lineterminator="\n").writerows(rows)
-    return csv_path
-
-
-def rating_row(stamp: int, circle: bool, labels: list[float], descriptor: float = 0.5) -> list[str]:
-    """One CSV row: the given stamp, mode and 8 labels, every descriptor = ``descriptor``."""
-    flags = ["1", "0"] if circle else ["0", "1"]
-    return [str(stamp), *flags, *[str(descriptor)] * 27, *(f"{v:g}" for v in labels)]
-
-
-HEADER = list(ALL_COLUMNS)
-
-
 # --------------------------------------------------------------------------- training runs
 
 
@@ -155,26 +84,55 @@ def store(tmp_path_factory) -> str:
     return f"sqlite:///{tmp_path_factory.mktemp('mlflow')}/mlflow.db"
 
 
-def fast_config(synth_dir, cache_dir, store, *overrides):
-    return load_config(
-        FAST,
+# --------------------------------------------------------------------------- servers
+
+
+@pytest.fixture(scope="module")
+def mlflow_server(tmp_path_factory):
+    """A real ``mlflow server`` on a free localhost port, shared by a test module's tests
+    (it takes ~18 s to start); each test logs to its own experiment."""
+    tmp_path = tmp_path_factory.mktemp("mlflow-server")
+    port = free_port()
+    process = subprocess.Popen(
         [
-            f"data.path={synth_dir}",
-            f"data.cache_dir={cache_dir}",
-            f"tracking.uri={store}",
-            *overrides,
+            sys.executable,
+            "-m",
+            "mlflow",
+            "server",
+            "--backend-store-uri",
+            f"sqlite:///{tmp_path}/server.db",
+            "--artifacts-destination",
+            str(tmp_path / "artifacts"),
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
         ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
-
-
-def read_run(store: str, run_id: str):
-    client = mlflow.MlflowClient(store)
-    run = client.get_run(run_id)
-    artifacts = {a.path for a in client.list_artifacts(run_id)}
-    return client, run, artifacts
-
-
-def results_csv(client, run_id) -> list[dict[str, str]]:
-    path = client.download_artifacts(run_id, "results.csv")
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 120  # ~18 s here (LIBRARY-NOTES)
+    try:
+        while True:
+            if process.poll() is not None:
+                pytest.fail(f"mlflow server exited: {process.stderr.read()[-2000:]}")
+            try:
+                with urllib.request.urlopen(f"{url}/health", timeout=2) as answer:
+                    if answer.status == 200:
+                        break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail("mlflow server did not answer /health within 120 s")
+            time.sleep(0.5)
+        yield url
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()

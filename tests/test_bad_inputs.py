@@ -21,7 +21,7 @@ from fedlgr.data.config import DataConfig
 from fedlgr.data.dataset import load_scenes
 from fedlgr.data.ratings import read_ratings
 from fedlgr.errors import ConfigError, DataError
-from tests.conftest import HEADER, rating_row, write_rows
+from tests.support.data import HEADER, rating_row, write_rows
 
 
 def refused(overrides: list[str], error=ConfigError) -> str:
@@ -50,12 +50,12 @@ def test_the_largest_32_bit_seed_is_accepted():
 @pytest.mark.parametrize(
     ("override", "shown"),
     [
-        ("federated.server_lr=inf", "federated.server_lr=inf"),
-        ("federated.server_tau=nan", "federated.server_tau=nan"),
+        ("federated.opt.lr=inf", "federated.opt.lr=inf"),
+        ("federated.opt.tau=nan", "federated.opt.tau=nan"),
         ("train.lr_root=-inf", "train.lr_root=-inf"),
         ("train.betas=[0.9,.nan]", "train.betas=[0.9, nan]"),
         ("model.width=nan", "model.width=nan"),
-        ("continual.ewc_lambda=.inf", "continual.ewc_lambda=inf"),
+        ("continual.ewc.lambda_=.inf", "continual.ewc.lambda_=inf"),
         ("deploy.join_timeout_s=.inf", "deploy.join_timeout_s=inf"),
         ("data.dirichlet_alpha=inf", "data.dirichlet_alpha=inf"),
     ],
@@ -245,7 +245,7 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
     import torch
 
     from fedlgr.config import SWEEPS_DIR
-    from tests.conftest import FAST
+    from tests.support.runs import FAST
 
     fast, sweep = str(FAST), str(SWEEPS_DIR / "fedlgr.yaml")
     assert "runtime.threads=1000000: at most 1024" in refused(["runtime.threads=1000000"])
@@ -278,7 +278,7 @@ def test_found_by_the_third_sweep_are_one_line_before_any_work(
     same path: a traceback from the owner's lock and a FAILED run), is refused before the
     MLflow run exists; `fedlgr data synth --size 100000` drew for minutes and ignored
     SIGTERM; `fedlgr report --out ''` filled the current folder with the report."""
-    from tests.conftest import FAST
+    from tests.support.runs import FAST
 
     store = tmp_path / "mlflow.db"
     afile = tmp_path / "ckfile"

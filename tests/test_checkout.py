@@ -11,7 +11,8 @@ from pathlib import Path
 import mlflow
 
 from fedlgr.tracking.mlflow_run import Tracker
-from tests.conftest import _ignored, fast_config, untracked_files
+from tests.support.checkout import ignored, untracked_files
+from tests.support.runs import fast_config
 
 
 def test_a_sqlite_store_keeps_its_artifacts_next_to_its_database(
@@ -64,7 +65,7 @@ def test_the_checkout_check_sees_new_and_changed_files_not_a_developers_own(tmp_
     after = untracked_files(repo, tmp_path / "basetemp")
     changed = [p for p in before if after[p] != before[p]]
     assert sorted(changed) == ["mlflow.db", "notes.md"]
-    assert _ignored(repo, changed) == ["mlflow.db"]  # what the session check reports
+    assert ignored(repo, changed) == ["mlflow.db"]  # what the session check reports
 
 
 def test_the_checkout_check_is_skipped_outside_a_git_checkout(tmp_path):

@@ -16,8 +16,7 @@ from PIL import Image
 from fedlgr.cli import build_parser, main, shipped_sweeps
 from fedlgr.config import CONF_DIR, SWEEPS_DIR, load_config, to_plain
 from fedlgr.console import Progress, duration
-
-from .conftest import FAST
+from tests.support.runs import FAST
 
 
 def test_help_does_not_import_heavy_modules():
@@ -75,6 +74,7 @@ def test_impossible_split_names_the_setting(synth_dir, cache_dir, capsys):
     assert err.startswith("fedlgr: error: data.clients=40: more clients than the 36 training")
 
 
+@pytest.mark.slow
 def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path, cache_dir, capsys):
     data = tmp_path / "synth"
     store = f"sqlite:///{tmp_path}/mlflow.db"

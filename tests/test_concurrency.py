@@ -11,10 +11,10 @@ import torch
 
 from fedlgr.config import ConfigError
 from fedlgr.errors import FedlgrError
-from fedlgr.federated import concurrency
+from fedlgr.federated.client import pool as concurrency
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.tracking.resources import Usage, share_process_cpu
-from tests.conftest import fast_config, read_run, results_csv
+from tests.support.runs import fast_config, read_run, results_csv
 
 CPU = torch.device("cpu")
 
@@ -24,12 +24,15 @@ MEASURED = {"cpu_s", "wall_s", "gpu_util", "gpu_mem_mb", "end_cpu_s", "end_wall_
 METHODS = {
     "FedAvg": ["federated.rounds=2"],
     "FedRootAvg": ["federated.rounds=2"],
-    "FedLGR": ["continual.rounds_per_task=1", "continual.lgr_epochs=2"],
+    "FedLGR": ["continual.rounds_per_task=1", "continual.lgr.epochs=2"],
     "FedRoot-NR": ["continual.rounds_per_task=1"],
 }
 
 
-@pytest.mark.parametrize("method", METHODS)
+# FedRootAvg in the fast tier; the other methods (seconds each) in the full suite.
+@pytest.mark.parametrize(
+    "method", [m if m == "FedRootAvg" else pytest.param(m, marks=pytest.mark.slow) for m in METHODS]
+)
 def test_threads_give_the_results_of_sequential_training(method, synth_dir, cache_dir, store):
     """Sequential with one thread vs 2 threads split over 2 clients (one each): the same
     per-client thread count, so results.csv is identical apart from measured costs."""
@@ -123,15 +126,16 @@ def test_process_cpu_is_shared_in_proportion_to_each_thread():
     assert [u.cpu_s for u in usages] == [2.0, 6.0]
 
 
+@pytest.mark.slow
 def test_batched_client_side_trains_what_sequential_training_trains(synth_dir, cache_dir, store):
     """``ClientSide.train`` with runtime.concurrency=batched (CPU here: not yet measured on
     a GPU) against sequential, in float64 (see tests/test_batched.py for why float32
     cannot be compared over many steps on the fast config)."""
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
-    from fedlgr.federated.client_side import ClientSide
+    from fedlgr.federated.client.side import ClientSide
     from fedlgr.federated.messages import RoundPlan, TrainIns
-    from tests.test_batched import Float64Batches, assert_close_f64
+    from tests.support.float64 import Float64Batches, assert_close_f64
 
     class Float64Data(Float64Batches):  # and the rest of SceneBatches (positions, ...)
         def __getattr__(self, name):

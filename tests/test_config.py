@@ -17,7 +17,7 @@ from fedlgr.config import (
 )
 from fedlgr.errors import ConfigError
 from fedlgr.federated.scope import shared_keys
-from fedlgr.federated.strategies import STRATEGIES
+from fedlgr.federated.strategies import build_strategy
 from fedlgr.models.scholar import build_scholar
 
 CONFIGS = sorted(CONF_DIR.rglob("*.yaml"))
@@ -32,9 +32,7 @@ def test_every_config_loads_and_builds(path, synth_dir):
     # Build what the run builds (no weight download here: random init).
     built = load_config(path, [*overrides, "model.weights=none", "model.width=0.1"])
     model = build_scholar(built)
-    keys = shared_keys(
-        model, built.federated.scope, STRATEGIES[built.federated.strategy](built.federated)
-    )
+    keys = shared_keys(model, built.federated.scope, build_strategy(built.federated))
     assert keys and all(k in model.state_dict() for k in keys)
     assert yaml_round_trip(config) == config
 
@@ -174,10 +172,10 @@ def test_table2_names_set_strategy_scope_method_and_schedule():
         (["continual.tasks=[circle, square]"], "continual.tasks: unknown task(s) ['square']"),
         (
             ["method=FedLGR", "federated.scope=full"],
-            "FedLGR) shares the root only: set federated.scope=root",
+            "(FedLGR) works with federated.scope=root only: set federated.scope=root",
         ),
-        (["method=FedAvg-SI", "continual.ewc_gamma=2"], "continual.ewc_gamma=2.0: must be in 0..1"),
-        (["method=FedAvg-NR", "continual.nr_memory=-1"], "continual.nr_memory=-1: must be >= 0"),
+        (["method=FedAvg-SI", "continual.ewc.gamma=2"], "continual.ewc.gamma=2.0: must be in 0..1"),
+        (["method=FedAvg-NR", "continual.nr.memory=-1"], "continual.nr.memory=-1: must be >= 0"),
     ],
 )
 def test_bad_continual_settings_name_the_setting(overrides, message):
@@ -206,3 +204,26 @@ def test_an_unknown_setting_names_the_closest_known_ones(tmp_path, written, mean
     with pytest.raises(ConfigError) as on_line:
         load_config(None, [f"{written}=1"])
     assert str(on_line.value) == f"command line: {hint}"
+
+
+def test_the_old_flat_method_settings_are_read_for_one_more_release(tmp_path, capsys):
+    """``continual.lgr_hidden`` (before the settings moved into their method's section)
+    still sets ``continual.lgr.hidden``, in a file and on the command line, with one line
+    on stderr naming the old and the new name."""
+    old = tmp_path / "old.yaml"
+    old.write_text("federated:\n  strategy: opt\n  server_lr: 0.5\n  prox_mu: 0.25\n")
+    config = load_config(old, ["method=FedRootOpt", "continual.ewc_lambda=7"])
+    assert (config.federated.opt.lr, config.federated.prox.mu) == (0.5, 0.25)
+    assert config.continual.ewc.lambda_ == 7.0
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        f"fedlgr: {old.resolve()}: deprecated setting names, read for one more release: "
+        "federated.server_lr is now federated.opt.lr; federated.prox_mu is now federated.prox.mu",
+        "fedlgr: command line: deprecated setting names, read for one more release: "
+        "continual.ewc_lambda is now continual.ewc.lambda_",
+    ]
+    # The new names say nothing; an unknown flat name is still an unknown setting.
+    load_config(None, ["continual.lgr.hidden=8"])
+    assert capsys.readouterr().err == ""
+    with pytest.raises(ConfigError, match=r"continual\.lgr_hiden: unknown setting"):
+        load_config(None, ["continual.lgr_hiden=8"])

@@ -7,15 +7,17 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.continual import EWC, MAS, SI, EWCOnline, LatentReplay, NaiveRehearsal
-from fedlgr.continual.ewc import fisher
-from fedlgr.continual.mas import output_norm_importance
+from fedlgr.continual.ewc import EWC, EWCOnline, fisher
+from fedlgr.continual.lgr import LatentReplay
+from fedlgr.continual.mas import MAS, output_norm_importance
+from fedlgr.continual.rehearsal import NaiveRehearsal
+from fedlgr.continual.si import SI
 from fedlgr.data.augment import SceneBatches
-from fedlgr.federated.client import Client, train_locally
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.client.plugins import LocalContext
+from fedlgr.federated.client.training import Client, train_locally
 from fedlgr.models.generator import LatentVAE
 from fedlgr.models.scholar import MLPRoot, Scholar, Top
-from tests.test_lgr import context as lgr_context
+from tests.support.lgr import context as lgr_context
 
 
 @pytest.fixture(autouse=True)

@@ -12,15 +12,15 @@ import torch
 from torch import nn
 
 from fedlgr.config import load_config
-from fedlgr.continual import LatentReplay, continual_plugins
+from fedlgr.continual import continual_plugins
 from fedlgr.continual.drift import drift_distance, fit_drift_map
-from fedlgr.continual.lgr import latents_of
+from fedlgr.continual.lgr import LatentReplay, latents_of
 from fedlgr.errors import ConfigError
-from fedlgr.federated.client import Client, train_locally
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.client.plugins import LocalContext
+from fedlgr.federated.client.training import Client, train_locally
+from fedlgr.federated.messages import RoundPlan
 from fedlgr.models.scholar import Scholar, Top
-from tests.conftest import read_run, results_csv
-from tests.test_lgr import (
+from tests.support.lgr import (
     BN_BUFFERS,
     after_task_one,
     fedlgr_config,
@@ -28,6 +28,7 @@ from tests.test_lgr import (
     small_lgr,
     state,
 )
+from tests.support.runs import read_run, results_csv
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -223,13 +224,13 @@ def test_compensation_maps_the_replayed_latents_but_labels_the_old_ones():
     [
         (
             "features",
-            ["model.mlp_hidden=[16,16]", "continual.lgr_train_blocks=1"],
+            ["model.mlp_hidden=[16,16]", "continual.lgr.train_blocks=1"],
             ["net.0.", "net.1."],
             ["net.3."],
         ),
         (
             "image",
-            ["continual.lgr_train_blocks=2"],
+            ["continual.lgr.train_blocks=2"],
             [f"features.{i}." for i in range(17)],
             ["features.17.", "features.18."],
         ),
@@ -252,14 +253,14 @@ def test_frozen_blocks_are_bit_identical_after_a_task_two_round(
         store,
         "tracking.enabled=false",
         f"data.modality={modality}",
-        "continual.lgr_lr_root=0.01",  # far beyond rounding
-        "continual.lgr_freeze_root_bn=false",  # the trained blocks' statistics move too
+        "continual.lgr.lr_root=0.01",  # far beyond rounding
+        "continual.lgr.freeze_root_bn=false",  # the trained blocks' statistics move too
         *overrides,
     )
     orch = orchestrator(config)
-    orch.run_round(1, 0, first_of_task=True, last_of_task=True)
+    orch.run_round(RoundPlan(1, 0, first_of_task=True, last_of_task=True))
     before = [state(c.model.root) for c in orch.clients]
-    orch.run_round(2, 1, first_of_task=True, last_of_task=False)
+    orch.run_round(RoundPlan(2, 1, first_of_task=True, last_of_task=False))
     after = [state(c.model.root) for c in orch.clients]
 
     for b, a in zip(before, after, strict=True):
@@ -280,11 +281,11 @@ def test_frozen_blocks_are_bit_identical_after_a_task_two_round(
 @pytest.mark.parametrize(
     ("override", "setting"),
     [
-        ("continual.lgr_drift=bogus", "continual.lgr_drift"),
-        ("continual.lgr_train_blocks=-1", "continual.lgr_train_blocks"),
-        ("continual.lgr_distill_weight=-1", "continual.lgr_distill_weight"),
-        ("continual.lgr_compensate_ridge=-1", "continual.lgr_compensate_ridge"),
-        ("continual.lgr_compensate_ridge=0", "continual.lgr_compensate_ridge=0.0: must be > 0"),
+        ("continual.lgr.drift=bogus", "continual.lgr.drift"),
+        ("continual.lgr.train_blocks=-1", "continual.lgr.train_blocks"),
+        ("continual.lgr.distill_weight=-1", "continual.lgr.distill_weight"),
+        ("continual.lgr.compensate_ridge=-1", "continual.lgr.compensate_ridge"),
+        ("continual.lgr.compensate_ridge=0", "continual.lgr.compensate_ridge=0.0: must be > 0"),
     ],
 )
 def test_bad_drift_settings_are_refused_by_name(override, setting):
@@ -297,10 +298,10 @@ def test_drift_settings_reach_the_plugin():
         None,
         [
             "method=FedLGR",
-            "continual.lgr_drift=compensate+distill",
-            "continual.lgr_compensate_ridge=0.25",
-            "continual.lgr_distill_weight=7",
-            "continual.lgr_train_blocks=3",
+            "continual.lgr.drift=compensate+distill",
+            "continual.lgr.compensate_ridge=0.25",
+            "continual.lgr.distill_weight=7",
+            "continual.lgr.train_blocks=3",
         ],
     )
     (lgr,) = [p for p in continual_plugins(config.continual, 1, 0) if isinstance(p, LatentReplay)]
@@ -308,6 +309,7 @@ def test_drift_settings_reach_the_plugin():
     assert (lgr.compensate_ridge, lgr.distill_weight, lgr.train_blocks) == (0.25, 7.0, 3)
 
 
+@pytest.mark.slow
 def test_drift_figures_are_logged_at_every_round_of_a_later_task(synth_dir, cache_dir, store):
     from fedlgr.federated.experiment import run_experiment
 
@@ -317,8 +319,8 @@ def test_drift_figures_are_logged_at_every_round_of_a_later_task(synth_dir, cach
         store,
         "tracking.detail_metrics=true",  # per-client metrics in MLflow too
         "continual.rounds_per_task=2",
-        "continual.lgr_drift=compensate",
-        "continual.lgr_lr_root=0.01",
+        "continual.lgr.drift=compensate",
+        "continual.lgr.lr_root=0.01",
     )
     result = run_experiment(config, echo=lambda *a, **k: None)
     client, run, _ = read_run(store, result.run_id)
@@ -371,32 +373,32 @@ def test_replay_at_the_freeze_point_keeps_the_activations_entering_the_trained_b
 
 
 def test_replay_at_the_freeze_point_needs_trained_blocks_and_the_joint_schedule():
-    message = "continual.lgr_replay_layer=freeze .* not continual.lgr_train_blocks=None"
+    message = "continual.lgr.replay_layer=freeze .* not continual.lgr.train_blocks=None"
     with pytest.raises(ConfigError, match=message):
         load_config(
             None,
             [
                 "method=FedLGR",
-                "continual.lgr_replay_layer=freeze",
-                "continual.lgr_train_blocks=null",
-                "continual.lgr_schedule=joint",
+                "continual.lgr.replay_layer=freeze",
+                "continual.lgr.train_blocks=null",
+                "continual.lgr.schedule=joint",
             ],
         )
     with pytest.raises(
         ConfigError,
-        match=r"lgr_schedule=joint and no compensation, not continual\.lgr_schedule=two_phase$",
+        match=r"schedule=joint and no compensation, not continual\.lgr\.schedule=two_phase$",
     ):
         load_config(
             None,
-            ["method=FedLGR", "continual.lgr_replay_layer=freeze", "continual.lgr_train_blocks=2"],
+            ["method=FedLGR", "continual.lgr.replay_layer=freeze", "continual.lgr.train_blocks=2"],
         )
     config = load_config(
         None,
         [
             "method=FedLGR",
-            "continual.lgr_replay_layer=freeze",
-            "continual.lgr_train_blocks=2",
-            "continual.lgr_schedule=joint",
+            "continual.lgr.replay_layer=freeze",
+            "continual.lgr.train_blocks=2",
+            "continual.lgr.schedule=joint",
         ],
     )
     (lgr,) = [p for p in continual_plugins(config.continual, 1, 0) if isinstance(p, LatentReplay)]

@@ -184,7 +184,7 @@ def test_the_robots_config_is_never_written_through_a_link(tmp_path, synth_dir):
     assert not written.is_symlink() and "method:" in written.read_text()
 
 
-@pytest.mark.parametrize("setting", ["train.betas=[1.5,0.9]", "federated.server_betas=[0.9,1.0]"])
+@pytest.mark.parametrize("setting", ["train.betas=[1.5,0.9]", "federated.opt.betas=[0.9,1.0]"])
 def test_adams_decay_rates_are_checked_with_the_config(setting):
     """The fifth sweep: train.betas=[1.5,0.9] failed inside torch's Adam after 13 s."""
     with pytest.raises(ConfigError, match=r"betas=\[.*\]: two decay rates, each in \[0, 1\)"):

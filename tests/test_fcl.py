@@ -10,7 +10,7 @@ from fedlgr.config import FCL_METHODS
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.federated.messages import nbytes
 from fedlgr.models.scholar import build_scholar
-from tests.conftest import fast_config, read_run, results_csv
+from tests.support.runs import fast_config, read_run, results_csv
 
 TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT")]
 
@@ -19,7 +19,10 @@ def test_table2_has_eleven_methods():
     assert len(TABLE2) == 11 and "FedLGR" in TABLE2 and "FedRoot-EWCOnline" in TABLE2
 
 
-@pytest.mark.parametrize("method", TABLE2)
+# FedLGR's run (seconds) is in the full suite; test_lgr.py runs it in the fast tier.
+@pytest.mark.parametrize(
+    "method", [pytest.param(m, marks=pytest.mark.slow) if m == "FedLGR" else m for m in TABLE2]
+)
 def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir, store):
     config = fast_config(
         synth_dir,
@@ -27,7 +30,7 @@ def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir
         store,
         f"method={method}",
         "continual.rounds_per_task=1",
-        "continual.lgr_epochs=2",
+        "continual.lgr.epochs=2",
     )
     assert config.continual.tasks == ("circle", "arrow") and config.total_rounds == 2
     result = run_experiment(config)
@@ -84,6 +87,7 @@ def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir
     assert "results.csv" in artifacts and "curves.png" in artifacts
 
 
+@pytest.mark.slow
 def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store):
     config = fast_config(
         synth_dir,
@@ -91,7 +95,7 @@ def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store
         store,
         "method=FedLGR",
         "continual.rounds_per_task=2",
-        "continual.lgr_epochs=2",
+        "continual.lgr.epochs=2",
         "tracking.detail_metrics=true",  # per-client metrics in MLflow too
     )
     result = run_experiment(config)
@@ -105,6 +109,7 @@ def test_fedlgr_uploads_exactly_the_root_every_round(synth_dir, cache_dir, store
         assert ups == [root_bytes] * 4
 
 
+@pytest.mark.slow
 def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, store, monkeypatch):
     """FedLGR's generator training happens at the end of a task: its CPU time must appear in
     that round's cost of the client (a busy loop of 2 CPU s stands in for it here; the
@@ -128,7 +133,7 @@ def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, s
         store,
         "method=FedLGR",
         "continual.rounds_per_task=2",
-        "continual.lgr_epochs=1",
+        "continual.lgr.epochs=1",
         "runtime.threads=1",  # no OpenMP spin-waiting to inflate the other rounds' CPU time
     )
     result = run_experiment(config)
@@ -143,13 +148,13 @@ def test_schedule_steps_mark_task_boundaries():
     from fedlgr.continual.schedule import schedule
 
     fl = schedule(load_config(None, ["federated.rounds=3"]))
-    assert [(s.round, s.task_name, s.first_of_task, s.last_of_task) for s in fl] == [
+    assert [(s.round, fl.tasks[s.task], s.first_of_task, s.last_of_task) for s in fl] == [
         (1, "all", True, False),
         (2, "all", False, False),
         (3, "all", False, False),
     ]
     fcl = schedule(load_config(None, ["method=FedRoot-SI", "continual.rounds_per_task=2"]))
-    assert [(s.round, s.task_name, s.first_of_task, s.last_of_task) for s in fcl] == [
+    assert [(s.round, fcl.tasks[s.task], s.first_of_task, s.last_of_task) for s in fcl] == [
         (1, "circle", True, False),
         (2, "circle", False, True),
         (3, "arrow", True, False),

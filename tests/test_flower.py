@@ -1,4 +1,4 @@
-"""fedlgr on a real Flower federation on localhost, started with the README's commands
+"""fedlgr on a real Flower federation on localhost, started with the commands of docs/deployment.md
 (``fedlgr deploy``: a SuperLink with TLS and SuperNode authentication, two SuperNodes):
 the same numbers as the in-process orchestrator, bytes measured on Flower's messages, an
 unauthorised robot refused, a robot killed mid-round and back with its private state."""
@@ -20,8 +20,8 @@ import pytest
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.federated.messages import nbytes
 from fedlgr.federated.scope import initial_scholar
-from tests.conftest import FAST, fast_config, results_csv
-from tests.flower_federation import Federation
+from tests.support.flower import Federation
+from tests.support.runs import FAST, fast_config, results_csv
 
 pytestmark = pytest.mark.slow
 
@@ -80,7 +80,7 @@ def root_bytes(config) -> int:
 @pytest.mark.parametrize(
     "method",
     [
-        ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=3"],
+        ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr.epochs=3"],
         ["method=FedAvg", "federated.server_eval=on"],  # the server scores the global model
     ],
     ids=["FedLGR", "FedAvg-server-eval"],  # FedRootAvg: the resume test below

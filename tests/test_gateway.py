@@ -19,7 +19,7 @@ import pytest
 
 from fedlgr.cli import main
 from fedlgr.deploy.gateway import refusal
-from tests.flower_federation import BIN, Federation
+from tests.support.flower import BIN, Federation
 
 pytestmark = pytest.mark.slow
 

@@ -14,79 +14,33 @@ import torch
 from torch import nn
 
 from fedlgr.config import load_config
-from fedlgr.continual import FrozenRootStatistics, LatentReplay, continual_plugins
+from fedlgr.continual import continual_plugins
+from fedlgr.continual.batchnorm import FrozenRootStatistics
 from fedlgr.continual.fidelity import frechet_distance, replay_fidelity
-from fedlgr.continual.lgr import latents_of
-from fedlgr.data.augment import SceneBatches
+from fedlgr.continual.lgr import LatentReplay, latents_of
 from fedlgr.errors import ConfigError
-from fedlgr.federated.client import Client, train_locally
-from fedlgr.federated.messages import nbytes
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.training import Client, train_locally
+from fedlgr.federated.messages import RoundPlan, nbytes
 from fedlgr.models.generator import LatentVAE
-from fedlgr.models.scholar import MLPRoot, Scholar, Top, build_scholar
-from tests.conftest import fast_config, read_run, results_csv
-
-BN_BUFFERS = ("running_mean", "running_var", "num_batches_tracked")
-
+from fedlgr.models.scholar import build_scholar
+from tests.support.lgr import (
+    BN_BUFFERS,
+    after_task_one,
+    context,
+    fedlgr_config,
+    make_client,
+    orchestrator,
+    small_lgr,
+    state,
+    tiny_scholar,
+)
+from tests.support.runs import read_run, results_csv
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # --------------------------------------------------------------------------- tiny clients
-
-
-def tiny_scholar() -> Scholar:
-    torch.manual_seed(0)
-    root = MLPRoot(in_dim=4, hidden=(6,))
-    return Scholar(root, Top(root.out_dim, hidden=5))
-
-
-def make_client(lgr: LatentReplay, batch_size: int = 6, n: int = 12, **plugins) -> Client:
-    """Task "a": scenes 0..n-1, task "b": scenes n..2n-1, over random inputs (in order)."""
-    model = tiny_scholar()
-    torch.manual_seed(1)
-    inputs, targets = torch.randn(2 * n, 4), torch.rand(2 * n, 8) * 4 + 1
-    data = {
-        name: SceneBatches(inputs, targets, positions, batch_size, shuffle=False)
-        for name, positions in (("a", np.arange(n)), ("b", np.arange(n, 2 * n)))
-    }
-    extra = list(plugins.values())
-    return Client(0, model, model.configure_optimizers(), data, [lgr, *extra])
-
-
-def context(client: Client, task: int, epochs: int = 1) -> LocalContext:
-    client.task = "ab"[task]
-    return LocalContext(
-        0,
-        task + 1,
-        client.model,
-        {},
-        torch.device("cpu"),
-        task=task,
-        epochs=epochs,
-        task_name=client.task,
-        batches=client.batches,
-        optimizer=client.optimizer,
-        seen=[client.data[t] for t in "ab"[: task + 1]],
-    )
-
-
-def after_task_one(lgr: LatentReplay, **kwargs) -> tuple[Client, LocalContext]:
-    """A client that trained task "a" for one round and ended it; the context of "b"."""
-    client = make_client(lgr, **kwargs)
-    ctx = context(client, 0)
-    lgr.on_task_start(ctx)
-    train_locally(client, ctx, 1)
-    lgr.on_task_end(ctx)
-    assert lgr.replaying
-    ctx = context(client, 1)
-    lgr.on_task_start(ctx)
-    return client, ctx
-
-
-def small_lgr(**kwargs) -> LatentReplay:
-    settings = dict(hidden=16, latent=3, epochs=5, batch_size=8, lr=1e-3, seed=3)
-    return LatentReplay(**(settings | kwargs))
 
 
 class BatchNormSpy:
@@ -124,10 +78,6 @@ def check_running_statistics(call: dict, batch: torch.Tensor, momentum: float = 
     assert torch.allclose(call["mean_after"], expected_mean, atol=1e-6)
     assert torch.allclose(call["var_after"], expected_var, atol=1e-5)
     assert call["count_after"] == call["count"] + 1
-
-
-def state(module: nn.Module) -> dict[str, torch.Tensor]:
-    return {k: v.detach().clone() for k, v in module.state_dict().items()}
 
 
 def identical(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
@@ -289,30 +239,6 @@ def test_client_state_round_trip_in_the_middle_of_a_task_keeps_the_labeller():
 # --------------------------------------------------------------------------- 3. orchestrator
 
 
-def fedlgr_config(synth_dir, cache_dir, store, *overrides):
-    return fast_config(
-        synth_dir,
-        cache_dir,
-        store,
-        "method=FedLGR",
-        "data.modality=features",
-        "continual.rounds_per_task=1",
-        "continual.lgr_epochs=3",
-        "runtime.threads=1",
-        *overrides,
-    )
-
-
-def orchestrator(config):
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.orchestrator import Orchestrator
-
-    scenes = load_scenes(config.data)
-    return Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
-
-
 def root_batchnorm_buffers(client: Client) -> dict[str, torch.Tensor]:
     return {
         k: v.clone()
@@ -328,7 +254,7 @@ def test_root_batchnorm_statistics_frozen_from_task_two(freeze, synth_dir, cache
         cache_dir,
         store,
         "tracking.enabled=false",
-        f"continual.lgr_freeze_root_bn={str(freeze).lower()}",
+        f"continual.lgr.freeze_root_bn={str(freeze).lower()}",
     )
     assert config.continual.tasks == ("circle", "arrow")
     orch = orchestrator(config)
@@ -336,12 +262,12 @@ def test_root_batchnorm_statistics_frozen_from_task_two(freeze, synth_dir, cache
     assert len(kinds) == 2
     assert all((FrozenRootStatistics in k) == freeze and LatentReplay in k for k in kinds)
 
-    orch.run_round(1, 0, first_of_task=True, last_of_task=True)
+    orch.run_round(RoundPlan(1, 0, first_of_task=True, last_of_task=True))
     before = [root_batchnorm_buffers(c) for c in orch.clients]
     weights = [c.model.root.net[0].weight.detach().clone() for c in orch.clients]
     assert len(before[0]) == 3 * len(config.model.mlp_hidden)  # one BatchNorm per layer
     assert int(before[0]["net.1.num_batches_tracked"]) > 0  # task 1 updated them
-    orch.run_round(2, 1, first_of_task=True, last_of_task=True)
+    orch.run_round(RoundPlan(2, 1, first_of_task=True, last_of_task=True))
     after = [root_batchnorm_buffers(c) for c in orch.clients]
 
     for c, client in enumerate(orch.clients):
@@ -358,7 +284,7 @@ def test_continual_plugins_freeze_root_statistics_per_method():
         return [type(p).__name__ for p in continual_plugins(config.continual, 0, 0)]
 
     assert kinds("method=FedLGR") == ["FrozenRootStatistics", "LatentReplay"]
-    assert kinds("method=FedLGR", "continual.lgr_freeze_root_bn=false") == ["LatentReplay"]
+    assert kinds("method=FedLGR", "continual.lgr.freeze_root_bn=false") == ["LatentReplay"]
     assert kinds("method=FedRoot-EWC") == ["EWC"]
     assert kinds("method=FedRoot-EWC", "continual.freeze_root_bn=true") == [
         "FrozenRootStatistics",
@@ -366,7 +292,7 @@ def test_continual_plugins_freeze_root_statistics_per_method():
     ]
     # FedLGR answers to its own setting only.
     assert kinds(
-        "method=FedLGR", "continual.freeze_root_bn=true", "continual.lgr_freeze_root_bn=false"
+        "method=FedLGR", "continual.freeze_root_bn=true", "continual.lgr.freeze_root_bn=false"
     ) == ["LatentReplay"]
 
 
@@ -514,13 +440,13 @@ def test_posterior_sampler_draws_codes_like_the_training_codes():
 @pytest.mark.parametrize(
     "override, setting",
     [
-        ("continual.lgr_schedule=bogus", "continual.lgr_schedule"),
-        ("continual.lgr_replay=bogus", "continual.lgr_replay"),
-        ("continual.lgr_holdout=1.0", "continual.lgr_holdout"),
-        ("continual.lgr_holdout=-0.1", "continual.lgr_holdout"),
-        ("continual.lgr_patience=-1", "continual.lgr_patience"),
-        ("continual.lgr_root_epochs=-1", "continual.lgr_root_epochs"),
-        ("continual.lgr_beta=-1", "continual.lgr_beta"),
+        ("continual.lgr.schedule=bogus", "continual.lgr.schedule"),
+        ("continual.lgr.replay=bogus", "continual.lgr.replay"),
+        ("continual.lgr.holdout=1.0", "continual.lgr.holdout"),
+        ("continual.lgr.holdout=-0.1", "continual.lgr.holdout"),
+        ("continual.lgr.patience=-1", "continual.lgr.patience"),
+        ("continual.lgr.root_epochs=-1", "continual.lgr.root_epochs"),
+        ("continual.lgr.beta=-1", "continual.lgr.beta"),
     ],
 )
 def test_bad_lgr_settings_are_refused_by_name(override, setting):
@@ -533,19 +459,21 @@ def test_lgr_settings_reach_the_plugin():
         None,
         [
             "method=FedLGR",
-            "continual.lgr_schedule=joint",
-            "continual.lgr_replay=stored",
-            "continual.lgr_beta=0.5",
-            "continual.lgr_patience=7",
-            "continual.lgr_holdout=0.0",
-            "continual.lgr_root_epochs=2",
-            "continual.lgr_epochs=11",
+            "continual.lgr.schedule=joint",
+            "continual.lgr.replay=stored",
+            "continual.lgr.beta=0.5",
+            "continual.lgr.patience=7",
+            "continual.lgr.holdout=0.0",
+            "continual.lgr.root_epochs=2",
+            "continual.lgr.epochs=11",
         ],
     )
     (lgr,) = [p for p in continual_plugins(config.continual, 1, 0) if isinstance(p, LatentReplay)]
     assert (lgr.schedule, lgr.replay, lgr.beta, lgr.patience) == ("joint", "stored", 0.5, 7)
     assert (lgr.holdout, lgr.root_epochs, lgr.vae_epochs) == (0.0, 2, 11)
-    with pytest.raises(ValueError, match="bogus"):
+    with pytest.raises(
+        ConfigError, match=r"continual\.lgr\.schedule=.bogus.: must be one of two_phase, joint"
+    ):
         LatentReplay(schedule="bogus")
 
 
@@ -607,7 +535,7 @@ def test_stored_replay_uploads_the_root_only_and_keeps_past_latents(
 
     monkeypatch.setattr(Client, "upload", upload)
     monkeypatch.setattr(LatentReplay, "on_task_end", on_task_end)
-    config = tracked_config(synth96, cache_dir, store, "continual.lgr_replay=stored")
+    config = tracked_config(synth96, cache_dir, store, "continual.lgr.replay=stored")
     result = run_experiment(config, echo=lambda *a, **k: None)
 
     root = build_scholar(config).root.state_dict()
@@ -635,7 +563,7 @@ def test_stored_replay_uploads_the_root_only_and_keeps_past_latents(
     assert np.all(np.abs(after1.column("lgr_fd_labels")) < 1e-6)
     assert np.isnan(after1.column("lgr_recon_mse")).all()  # no generator: nothing to rebuild
     assert np.isnan(after1.column("lgr_vae_epochs")).all()
-    assert run.data.params["continual.lgr_replay"] == "stored"
+    assert run.data.params["continual.lgr.replay"] == "stored"
 
 
 def test_fidelity_is_logged_at_task_ends_only(generator_run, store):
@@ -647,7 +575,7 @@ def test_fidelity_is_logged_at_task_ends_only(generator_run, store):
         assert [m.step for m in history] == [2, 4], key  # rounds 2 and 4 end a task
         assert all(math.isfinite(m.value) and m.value >= 0 for m in history), key
     vae_epochs = [m.value for m in client.get_metric_history(result.run_id, "lgr/vae_epochs")]
-    assert all(1 <= v <= config.continual.lgr_epochs for v in vae_epochs)
+    assert all(1 <= v <= config.continual.lgr.epochs for v in vae_epochs)
 
     rows = results_csv(client, result.run_id)
     assert "lgr_fd_latent" in rows[0] and "lgr_recon_mse" in rows[0]

@@ -21,9 +21,10 @@ from fedlgr.federated.messages import (
     check_shared,
     nbytes,
 )
-from fedlgr.federated.server_side import ServerSide
+from fedlgr.federated.records import COST_FIELDS
+from fedlgr.federated.server.side import ServerSide
 from fedlgr.tracking.resources import Usage
-from tests.conftest import FAST
+from tests.support.runs import FAST
 
 
 @pytest.fixture
@@ -36,7 +37,7 @@ def config(synth_dir, cache_dir):
 def test_nothing_but_the_shared_tensors_may_cross(config, synth_dir):
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
-    from fedlgr.federated.client_side import ClientSide
+    from fedlgr.federated.client.side import ClientSide
 
     scenes = load_scenes(config.data)
     side = ClientSide(
@@ -62,7 +63,7 @@ def test_nothing_but_the_shared_tensors_may_cross(config, synth_dir):
 
 def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):
     server = ServerSide(config)
-    scores = [0.5] * (len(server.fields) - 8)  # every field but the 8 costs
+    scores = [0.5] * (len(server.fields) - len(COST_FIELDS))  # every field but the costs
     trained = TrainRes(0, {}, 12, 24, 0.25, Usage(1.5, 2.0, None, None))
     row = server.row(trained, EvaluateRes(0, scores), bytes_up=100, bytes_down=300)
     log = server.round_log(RoundPlan(2), server.table({0: row}), 3.0, missing=(1,))
@@ -81,7 +82,7 @@ def test_the_summary_averages_a_robot_s_costs_over_the_rounds_it_took_part_in(co
     from fedlgr.federated.result import ExperimentResult
 
     server = ServerSide(config)
-    scores = [0.5] * (len(server.fields) - 8)
+    scores = [0.5] * (len(server.fields) - len(COST_FIELDS))
     result = ExperimentResult(config)
     for round_, present in ((1, (0, 1)), (2, (0,)), (3, (0, 1))):
         rows = {}

@@ -21,9 +21,8 @@ from fedlgr.config import load_config
 from fedlgr.tracking.context import run_name, trial_config
 from fedlgr.tracking.mlflow_run import headline_first
 from fedlgr.tracking.server import runs_hint
-
-from .conftest import FAST
-from .test_server import free_port, mlflow_server  # noqa: F401 (a fixture)
+from tests.support.ports import free_port
+from tests.support.runs import FAST
 
 REPO = Path(__file__).resolve().parent.parent
 VIEW = "runs?workflowType=machine_learning&viewStateShareKey=fedlgr"
@@ -47,8 +46,9 @@ def fast_run_on(server: str, synth_dir, cache_dir, *overrides: str) -> None:
     assert main(["run", str(FAST), *data, *overrides, "--tracking-uri", server]) == 0
 
 
+@pytest.mark.slow
 def test_runs_on_a_server_are_told_apart_and_the_printed_link_opens_their_experiment(
-    mlflow_server,  # noqa: F811
+    mlflow_server,
     synth_dir,
     cache_dir,
     tmp_path_factory,
@@ -123,8 +123,9 @@ HEADLESS = [  # as the machine notes start it: no sandbox as root, no calls to G
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (.ci/run installs Debian's)")
+@pytest.mark.slow
 def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
-    mlflow_server,  # noqa: F811
+    mlflow_server,
     synth_dir,
     cache_dir,
     tmp_path,
@@ -217,16 +218,16 @@ def test_an_unreachable_tracking_server_fails_at_once_in_one_line(synth_dir, tmp
 
 def test_sweep_trials_are_named_after_their_swept_values(synth_dir):
     config = load_config(FAST, [f"data.path={synth_dir}", "method=FedLGR", "data.clients=3"])
-    swept = {"train.lr_root": 1e-05, "continual.lgr_replay": "stored", "data.augment": True}
+    swept = {"train.lr_root": 1e-05, "continual.lgr.replay": "stored", "data.augment": True}
     named = trial_config(config, swept)
-    assert run_name(named) == "FedLGR lr_root=1e-05 lgr_replay=stored augment=True"
+    assert run_name(named) == "FedLGR lr_root=1e-05 lgr.replay=stored augment=True"
     # Two swept settings with the same last part keep their full names.
     twins = trial_config(config, {"train.lr": 0.1, "federated.lr": 0.2})
     assert run_name(twins) == "FedLGR train.lr=0.1 federated.lr=0.2"
     # A swept method is named once, by its paper name.
     ewc = load_config(FAST, [f"data.path={synth_dir}", "method=FedRoot-EWC"])
-    swept = {"method": "FedRoot-EWC", "continual.ewc_lambda": 100}
-    assert run_name(trial_config(ewc, swept)) == "FedRoot-EWC ewc_lambda=100"
+    swept = {"method": "FedRoot-EWC", "continual.ewc.lambda_": 100}
+    assert run_name(trial_config(ewc, swept)) == "FedRoot-EWC ewc.lambda_=100"
 
 
 def test_mlflow_gets_the_headline_metrics_first_and_the_detail_only_if_asked():
@@ -289,11 +290,11 @@ def test_the_shared_view_gathers_every_sweeps_settings_and_trials(tmp_path):
     assert fresh["selectedColumns"][:2] == ["metrics.`test/rmse`", "metrics.`test/pcc`"]
     assert fresh["orderByKey"] == "metrics.`test/rmse`" and fresh["orderByAsc"] is True
     share_view(client, eid, ["method", "train.lr_top"], "parent-1")
-    share_view(client, eid, ["continual.ewc_lambda"], "parent-2")
+    share_view(client, eid, ["continual.ewc.lambda_"], "parent-2")
     both = state()
-    assert axes(both) == ["method", "train.lr_top", "continual.ewc_lambda"]
+    assert axes(both) == ["method", "train.lr_top", "continual.ewc.lambda_"]
     assert both["runsExpanded"] == {"parent-1": True, "parent-2": True}
-    assert "params.`continual.ewc_lambda`" in both["selectedColumns"]
+    assert "params.`continual.ewc.lambda_`" in both["selectedColumns"]
     assert experiment_id(client, "views") == eid and state() == both  # kept as it is
     client.set_experiment_tag(eid, TAG, "not json")  # by hand, or another version
     share_view(client, eid, ["seed"], "parent-3")

@@ -28,22 +28,17 @@ from fedlgr.report.runs import select_runs
 from fedlgr.tracking import checkpoint as ckpt
 from fedlgr.tracking.mlflow_run import SENTINEL, StoreError, dead_reason
 from fedlgr.tracking.server import TrackingUnreachable, check_sqlite_usable
-from tests.conftest import fast_config
-from tests.test_resume import _args
-from tests.test_run_faults import Child, _env, _only_run, _steps
+from tests.support.ports import free_port
+from tests.support.processes import Child, child_env, metric_steps, only_run, run_args
+from tests.support.runs import fast_config
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # --------------------------------------------------------------------------- 1 and 4
 
 
+@pytest.mark.slow
 def test_a_run_has_one_owner_and_resumes_only_on_its_own_data(
     synth_dir, cache_dir, tmp_path, monkeypatch, capsys
 ):
@@ -56,14 +51,14 @@ def test_a_run_has_one_owner_and_resumes_only_on_its_own_data(
     shutil.copytree(synth_dir, data)
     store = f"sqlite:///{tmp_path}/mlflow.db"
     rounds = 10
-    args = _args(data, cache_dir, store, f"federated.rounds={rounds}", "tracking.heartbeat_s=1")
+    args = run_args(data, cache_dir, store, f"federated.rounds={rounds}", "tracking.heartbeat_s=1")
     monkeypatch.chdir(tmp_path)
     with Child(args, tmp_path, "first") as child:
         child.wait_for(rf"round 2/{rounds}:")
         os.kill(child.pid, signal.SIGSTOP)
         try:
             time.sleep(4)  # more than 3 heartbeats of 1 s
-            client, run = _only_run(store)
+            client, run = only_run(store)
             run_id = run.info.run_id
             assert time.time() - float(run.data.tags["fedlgr.heartbeat"]) > 3
             assert dead_reason(run) is None  # its process is alive on this machine
@@ -102,10 +97,10 @@ def test_a_run_has_one_owner_and_resumes_only_on_its_own_data(
     assert sorted(codes) == [0, 1], errors
     refused = errors[codes.index(1)].strip().splitlines()[-1]
     assert re.search(rf"run {run_id} (is owned by process \d+|has finished)", refused), refused
-    client, run = _only_run(store)
+    client, run = only_run(store)
     assert run.info.status == "FINISHED"
     for key in (SENTINEL, "test/rmse", "cost/cpu_s"):
-        assert _steps(client, run_id, key) == list(range(1, rounds + 1)), key  # each once
+        assert metric_steps(client, run_id, key) == list(range(1, rounds + 1)), key  # each once
     assert not old_folder.exists()  # moved, then finished: neither folder is left
     assert not (moved / run_id).exists()
 
@@ -113,6 +108,7 @@ def test_a_run_has_one_owner_and_resumes_only_on_its_own_data(
 # --------------------------------------------------------------------------- 7
 
 
+@pytest.mark.slow
 def test_a_finished_runs_leftover_checkpoints_are_removed_by_resume_and_report(
     synth_dir, cache_dir, tmp_path, capsys
 ):
@@ -206,6 +202,7 @@ def test_a_checkpoint_without_its_run_is_refused_in_one_line(tmp_path):
 # --------------------------------------------------------------------------- 5
 
 
+@pytest.mark.slow
 def test_a_rendezvous_without_its_peers_ends_on_sigterm_and_on_its_timeout(
     synth_dir, cache_dir, tmp_path
 ):
@@ -215,11 +212,11 @@ def test_a_rendezvous_without_its_peers_ends_on_sigterm_and_on_its_timeout(
     store = f"sqlite:///{tmp_path}/mlflow.db"
 
     def start(timeout: float, name: str) -> tuple[subprocess.Popen, Path]:
-        args = _args(
+        args = run_args(
             synth_dir, cache_dir, store, "runtime.num_nodes=2", f"runtime.timeout_s={timeout}"
         )
         err = tmp_path / f"{name}.stderr"
-        env = _env(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(_free_port()), NODE_RANK="0")
+        env = child_env(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(free_port()), NODE_RANK="0")
         process = subprocess.Popen(
             [sys.executable, "-m", "fedlgr", "run", *args],
             cwd=tmp_path,
@@ -288,7 +285,7 @@ def test_stores_that_cannot_be_used_are_one_line_before_any_work(
     }
     for uri, why in cases.items():
         # A run through the CLI: refused before the data is loaded or a run is created.
-        args = _args(synth_dir, cache_dir, uri, "federated.rounds=1")
+        args = run_args(synth_dir, cache_dir, uri, "federated.rounds=1")
         assert main(["run", *args]) == 1, uri
         said = capsys.readouterr().err.strip()
         assert len(said.splitlines()) == 1 and why in said and uri in said, said
@@ -307,6 +304,7 @@ def test_stores_that_cannot_be_used_are_one_line_before_any_work(
     check_sqlite_usable(locked, wait=0.5)  # free again
 
 
+@pytest.mark.slow
 def test_a_full_store_is_one_line_and_the_run_ends_failed_once_it_has_room(tmp_path, capfd):
     from fedlgr.config import load_config
     from fedlgr.tracking.mlflow_run import Tracker

@@ -6,6 +6,7 @@ import contextlib
 import os
 
 import mlflow
+import pytest
 import torch
 
 from fedlgr.cli import main
@@ -80,6 +81,7 @@ def test_pretrain_command(synth_dir, tmp_path, cache_dir, capsys):
     )
 
 
+@pytest.mark.slow
 def test_fcl_demo_compares_fedroot_without_cl_and_fedlgr(tmp_path, cache_dir, capsys):
     store = f"sqlite:///{tmp_path}/mlflow.db"
     fast = [
@@ -88,7 +90,7 @@ def test_fcl_demo_compares_fedroot_without_cl_and_fedlgr(tmp_path, cache_dir, ca
         "train.epochs=1",
         "data.image_size=32",
         "model.width=0.1",
-        "continual.lgr_epochs=2",
+        "continual.lgr.epochs=2",
         f"data.cache_dir={cache_dir}",
         "runtime.progress=false",
     ]
@@ -123,11 +125,12 @@ def test_fcl_demo_compares_fedroot_without_cl_and_fedlgr(tmp_path, cache_dir, ca
         assert "after_task2/forgetting/circle/rmse" in r.data.metrics
 
 
+@pytest.mark.slow
 def test_fcl_demo_on_the_descriptors_needs_no_pretrained_root(tmp_path, capsys):
     store = f"sqlite:///{tmp_path}/mlflow.db"
     data = tmp_path / "synth"
     args = ["demo", "--fcl", "--data", str(data), "--scenes", "48", "--tracking-uri", store]
-    fast = ["continual.rounds_per_task=2", "train.epochs=1", "continual.lgr_epochs=3"]
+    fast = ["continual.rounds_per_task=2", "train.epochs=1", "continual.lgr.epochs=3"]
     assert main([*args, *fast, "runtime.progress=false"]) == 0
     out = capsys.readouterr().out
     assert f"Forgetting on {data} (features)" in out and "pretraining" not in out

@@ -12,7 +12,7 @@ from fedlgr.cli import main
 from fedlgr.data.columns import DESCRIPTOR_COLUMNS, FEATURE_COLUMNS, LABEL_COLUMNS
 from fedlgr.data.ratings import read_ratings
 from fedlgr.errors import DataError
-from tests.conftest import HEADER, rating_row, write_rows
+from tests.support.data import HEADER, rating_row, write_rows
 
 L1 = [1, 2, 3, 4, 5, 1, 2, 3]
 
@@ -192,6 +192,7 @@ def test_missing_or_empty_file(tmp_path, content, expected):
     assert str(path) in str(err.value)
 
 
+@pytest.mark.slow
 def test_command_line_error_is_one_line_without_traceback(tmp_path):
     """A real process: exit status and stderr as a user sees them."""
     write_rows(tmp_path / "all_data.csv", BAD_INPUTS["likert above 5"][0](_good_rows()))

@@ -15,14 +15,17 @@ import pytest
 from fedlgr.cli import main
 from fedlgr.config import FCL_METHODS, METHODS, load_config
 from fedlgr.federated.experiment import run_experiment
+from fedlgr.methods import in_paper
 from fedlgr.report import ReportError, make_report
 from fedlgr.report.tables import mark_best, mark_lower_of_pair, reduction_percent
 from fedlgr.tracking.checkpoint import fingerprint
 from fedlgr.tracking.context import run_params
-from tests.conftest import fast_config
+from tests.support.report import markdown_blocks, parse
+from tests.support.runs import fast_config
 
 EXPERIMENT = "report-test"
-TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT")]
+TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT") and in_paper(m)]
+TABLE1 = [m for m in METHODS if in_paper(m)]
 SCORES = ("loss", "rmse", "pcc")
 
 
@@ -81,7 +84,7 @@ def runs(synth_dir, store, tmp_path_factory) -> dict[str, list[str]]:
         "FedRootAvg": [["method=FedRootAvg"]],
         "FedAvg-aug": [["method=FedAvg", "data.augment=true"]],
         "FedLGR": [
-            ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr_epochs=2"],
+            ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr.epochs=2"],
         ],
     }
     ids = {}
@@ -118,40 +121,14 @@ def metrics_of(store, run_ids: list[str]) -> dict[str, float]:
     return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0] if all(k in r for r in runs)}
 
 
-def markdown_blocks(path) -> dict[str, tuple[list[str], dict[str, list[str]]]]:
-    """``{block title: (header, {row label: cells})}`` from a report's Markdown file."""
-    blocks, title = {}, None
-    for line in path.read_text(encoding="utf-8").splitlines():
-        if line.startswith("**") and line.endswith("**"):
-            title = line.strip("*")
-        elif line.startswith("| ") and title is not None and not line.startswith("| ---"):
-            cells = line[2:-2].split(" | ")
-            if title not in blocks:
-                blocks[title] = (cells, {})
-            else:
-                blocks[title][1][cells[0]] = cells[1:]
-    return blocks
-
-
-def parse(cell: str) -> tuple[str | None, str]:
-    """(number as shown or None, mark) of a Markdown cell."""
-    number = cell.split(" (")[0]
-    if number == "—":
-        return None, ""
-    if number.startswith("**"):
-        return number.strip("*"), "best"
-    if number.startswith("["):
-        return number.strip("[]"), "second"
-    return number, ""
-
-
 def test_table1_rows_columns_values_and_bold_best(report, runs, store):
     blocks = markdown_blocks(report.out / "table1.md")
     assert list(blocks) == ["W/O augmentation", "W/ augmentation"]
     header, rows = blocks["W/O augmentation"]
     arrows = {"loss": "Loss ▼", "rmse": "RMSE ▼", "pcc": "PCC ▲"}
     assert header == ["Method"] + [f"{c} clients · {arrows[m]}" for c in (2, 10) for m in SCORES]
-    assert list(rows) == list(METHODS)  # the paper's ten, in order, with or without runs
+    assert list(rows) == TABLE1  # the paper's ten, in order, with or without runs
+    assert len(TABLE1) == 10 and len(TABLE2) == 11
 
     values = {m: metrics_of(store, runs[m]) for m in ("FedAvg", "FedRootAvg")}
     for j, m in enumerate(SCORES):
@@ -163,7 +140,7 @@ def test_table1_rows_columns_values_and_bold_best(report, runs, store):
                 text,
                 "best" if text == best else "second",
             ), (method, m)
-    for method in METHODS:
+    for method in TABLE1:
         if method not in values:  # FedBN: only a FAILED run; the others: none
             assert rows[method] == ["—"] * 6, method
         assert rows[method][3:] == ["—"] * 3  # no run with ten clients
@@ -326,7 +303,7 @@ def test_sweep_report_shows_the_best_trial_per_cell_and_goes_into_the_parent_run
         {"after_task1/test/loss": 0.2},
     )
     for trial, (loss, cpu) in enumerate([(0.2, 10.0), (0.4, 30.0)]):
-        swept = json.dumps({"method": "FedAvg-EWC", "continual.ewc_lambda": 10**trial})
+        swept = json.dumps({"method": "FedAvg-EWC", "continual.ewc.lambda_": 10**trial})
         trial_tags = {
             **tags,
             "sweep": "s1",
@@ -347,9 +324,9 @@ def test_sweep_report_shows_the_best_trial_per_cell_and_goes_into_the_parent_run
     assert result.runs == 1 and [n for n, _ in result.tables] == ["table2", "table4"]
     _, rows = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
     # ... and the value it won with (the method places it in the cell: not repeated).
-    assert rows["FedAvg-EWC"][0] == "**0.200** (ewc_lambda=1)" and rows["FedAvg-EWC"][1] == "—"
+    assert rows["FedAvg-EWC"][0] == "**0.200** (ewc.lambda_=1)" and rows["FedAvg-EWC"][1] == "—"
     _, rows = markdown_blocks(tmp_path / "out" / "table4.md")["2 clients, W/O augmentation"]
-    assert rows["CPU usage (s) ▼"][0] == "10.00 (ewc_lambda=1)"
+    assert rows["CPU usage (s) ▼"][0] == "10.00 (ewc.lambda_=1)"
     assert result.logged_to == parent
     logged = {a.path for a in client.list_artifacts(parent, "report")}
     assert {"report/table2.md", "report/table4.csv"} <= logged

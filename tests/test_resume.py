@@ -17,11 +17,9 @@ import torch
 from fedlgr.errors import FedlgrError
 from fedlgr.federated.experiment import run_experiment
 from fedlgr.tracking import checkpoint as ckpt
-from tests.conftest import FAST, results_csv
-from tests.conftest import fast_config as _fast_config
-
-# Every per-client and per-action metric in MLflow too: all of them are compared bit for bit.
-DETAIL = "tracking.detail_metrics=true"
+from tests.support.processes import DETAIL, run_args
+from tests.support.runs import Interrupt, results_csv
+from tests.support.runs import fast_config as _fast_config
 
 
 def fast_config(synth_dir, cache_dir, store, *overrides):
@@ -31,21 +29,8 @@ def fast_config(synth_dir, cache_dir, store, *overrides):
 REPO = Path(__file__).resolve().parents[1]
 # Measured, never equal between two runs (system/*: MLflow's machine-wide system metrics).
 TIMING = ("cpu_s", "wall_s", "seconds", "gpu_", "system/")
-FEDLGR = ["method=FedLGR", "continual.rounds_per_task=2", "continual.lgr_epochs=5"]
-NR = ["method=FedRoot-NR", "continual.rounds_per_task=2", "continual.nr_memory=6"]
-
-
-def _args(synth_dir, cache_dir, store, *extra) -> list[str]:
-    return [
-        str(FAST),
-        f"data.path={synth_dir}",
-        f"data.cache_dir={cache_dir}",
-        "runtime.threads=1",
-        "runtime.accelerator=cpu",
-        DETAIL,
-        *extra,
-        f"--tracking-uri={store}",
-    ]
+FEDLGR = ["method=FedLGR", "continual.rounds_per_task=2", "continual.lgr.epochs=5"]
+NR = ["method=FedRoot-NR", "continual.rounds_per_task=2", "continual.nr.memory=6"]
 
 
 def _start(args, cwd) -> subprocess.Popen:
@@ -167,7 +152,7 @@ def test_a_killed_fcl_run_resumes_bit_for_bit_in_the_same_mlflow_run(
     reference = f"sqlite:///{tmp_path}/reference.db"
     result = run_experiment(fast_config(synth_dir, cache_dir, reference, *extra))
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, *extra)
+    args = run_args(synth_dir, cache_dir, store, *extra)
     folder = _killed_after_checkpoint(args, tmp_path)
     client, run = _only_run(store)
     assert run.info.status == "RUNNING"  # killed: nobody ended it
@@ -194,7 +179,7 @@ def test_a_run_killed_after_logging_a_round_it_had_not_checkpointed_logs_it_once
         fast_config(synth_dir, cache_dir, reference, *extra, "runtime.threads=1")
     )
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, *extra)
+    args = run_args(synth_dir, cache_dir, store, *extra)
     process = _start(args, tmp_path)
     _kill_when(process, _logged(store, 3), "round 3 logged")
     client, run = _only_run(store)
@@ -204,10 +189,6 @@ def test_a_run_killed_after_logging_a_round_it_had_not_checkpointed_logs_it_once
     done = _finish([*args, "--resume", run.info.run_id], tmp_path)
     assert "after round 2 of 4" in done.stdout
     _same_as_reference(client, run.info.run_id, reference, result.run_id)
-
-
-class Interrupt(KeyboardInterrupt):
-    """Ctrl-C after a given round (the run ends KILLED, its checkpoints stay)."""
 
 
 @pytest.mark.slow
@@ -252,10 +233,10 @@ def test_a_killed_two_process_run_resumes_bit_for_bit(synth_dir, cache_dir, tmp_
     """Fabric DDP on CPU (gloo): every process's clients and RNGs come back."""
     extra = [*FEDLGR, "runtime.devices=2"]
     reference = f"sqlite:///{tmp_path}/reference.db"
-    _finish([*_args(synth_dir, cache_dir, reference, *extra)], tmp_path)
+    _finish([*run_args(synth_dir, cache_dir, reference, *extra)], tmp_path)
     _, expected = _only_run(reference)
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, *extra)
+    args = run_args(synth_dir, cache_dir, store, *extra)
     folder = _killed_after_checkpoint(args, tmp_path)
     client, run = _only_run(store)
     assert folder.name == run.info.run_id
@@ -288,6 +269,7 @@ def interrupted(synth_dir, cache_dir, tmp_path):
     return config, run.info.run_id, folder
 
 
+@pytest.mark.slow
 def test_a_truncated_checkpoint_is_named_with_the_way_out(interrupted):
     config, run_id, folder = interrupted
     latest = folder / "round-0003.ckpt"
@@ -303,6 +285,7 @@ def test_a_truncated_checkpoint_is_named_with_the_way_out(interrupted):
     assert [r.round for r in result.rounds] == [1, 2, 3, 4]
 
 
+@pytest.mark.slow
 def test_a_write_cut_short_leaves_the_previous_checkpoint(interrupted):
     """A kill during a write leaves only the temporary file: never a checkpoint."""
     config, run_id, folder = interrupted
@@ -364,6 +347,7 @@ def test_a_live_run_is_not_resumed_and_an_unknown_one_is_named(interrupted):
     assert run.data.tags["fedlgr.ended"].startswith(f"marked KILLED: its process {gone.pid}")
 
 
+@pytest.mark.slow
 def test_checkpoint_files_hold_only_tensors_and_plain_values(interrupted):
     _config, run_id, folder = interrupted
     state = torch.load(folder / "round-0002.ckpt", weights_only=True)  # no pickled code
@@ -398,6 +382,7 @@ def test_a_report_marks_a_dead_run_killed(tmp_path):
     assert client.get_run(live).info.status == "RUNNING"
 
 
+@pytest.mark.slow
 def test_the_effective_thread_count_is_a_param_and_part_of_the_config(
     synth_dir, cache_dir, tmp_path
 ):

@@ -11,11 +11,13 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from fedlgr.config import load_config
 from fedlgr.deploy.flower import service
 
 
+@pytest.mark.slow
 def test_sigterm_leaves_no_pid_file_or_socket_and_a_probe_is_not_an_error(tmp_path):
     folder = tmp_path / "robot"
     folder.mkdir()
@@ -50,7 +52,7 @@ def test_a_robot_with_its_own_data_trains_and_scores_on_its_own_scenes(synth_dir
     from fedlgr.data.dataset import load_scenes
     from fedlgr.data.splits import make_split
     from fedlgr.deploy.flower.robot import Robot
-    from tests.conftest import FAST
+    from tests.support.runs import FAST
 
     config = load_config(FAST, [f"data.path={synth_dir}", "method=FedRootAvg"])
     scenes = load_scenes(config.data)

@@ -6,9 +6,7 @@ opening a fresh store at once: the defects fixed by 8f986c9, and those its tests
 
 from __future__ import annotations
 
-import contextlib
 import os
-import queue
 import re
 import shutil
 import signal
@@ -17,7 +15,6 @@ import sqlite3
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from urllib.parse import urlparse
@@ -28,13 +25,17 @@ import pytest
 from fedlgr.cli import main, parse
 from fedlgr.errors import FedlgrError
 from fedlgr.federated.experiment import run_experiment
-from fedlgr.tracking.mlflow_run import SENTINEL, dead_reason, end_dead_runs
-from tests.conftest import FAST, fast_config, results_csv
-from tests.test_resume import _args
-
-REPO = Path(__file__).resolve().parents[1]
-TELEMETRY = "MLFLOW_DISABLE_TELEMETRY"
-EXPERIMENT = "fedlgr-debug"  # conf/debug/fast.yaml's
+from fedlgr.tracking.mlflow_run import dead_reason, end_dead_runs
+from tests.support.processes import (
+    TELEMETRY,
+    Child,
+    child_env,
+    experiment_runs,
+    metric_steps,
+    only_run,
+    run_args,
+)
+from tests.support.runs import FAST, fast_config, results_csv
 
 
 @pytest.fixture(autouse=True)
@@ -46,103 +47,6 @@ def _telemetry_setting_restored():
         os.environ.pop(TELEMETRY, None)
     else:
         os.environ[TELEMETRY] = before
-
-
-AS_MAIN = """
-import runpy, sys
-sys.argv = ["fedlgr", *sys.argv[1:]]
-runpy.run_module("fedlgr", run_name="__main__", alter_sys=True)
-"""
-
-
-def _env(**changes) -> dict[str, str]:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    env.pop(TELEMETRY, None)  # what a user's shell has: the CLI's default applies
-    env.pop("PYTEST_CURRENT_TEST", None)  # MLflow checks more under pytest: not a user's run
-    env.update(changes)
-    return env
-
-
-class Child:
-    """``python -m fedlgr run ARGS`` in its own session; stdout read line by line as it
-    comes (the run prints each round once it is logged and checkpointed), stderr kept in
-    a file. As a context manager, a child still alive at the end is killed. ``prelude``:
-    Python run first in the child (``-c``), before ``fedlgr`` runs as ``-m`` would."""
-
-    def __init__(self, args: list[str], cwd: Path, name: str = "child", prelude: str = ""):
-        self.stderr_path = cwd / f"{name}.stderr"
-        self._stderr = self.stderr_path.open("w")
-        start = ["-c", prelude + AS_MAIN] if prelude else ["-m", "fedlgr"]
-        self.process = subprocess.Popen(
-            [sys.executable, *start, "run", *args],
-            cwd=cwd,
-            env=_env(),
-            stdout=subprocess.PIPE,
-            stderr=self._stderr,
-            text=True,
-            start_new_session=True,
-        )
-        self.pid = self.process.pid
-        self.out: list[str] = []
-        self._lines: queue.Queue[str | None] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self._lines.put(line)
-        self._lines.put(None)
-
-    def wait_for(self, pattern: str, limit: float = 240) -> str:
-        """The first stdout line matching ``pattern`` (without reaping the process)."""
-        deadline = time.monotonic() + limit
-        while True:
-            left = deadline - time.monotonic()
-            assert left > 0, f"no line {pattern!r} in {limit} s: {self.out}"
-            try:
-                line = self._lines.get(timeout=left)
-            except queue.Empty:
-                continue
-            assert line is not None, f"the run ended before {pattern!r}: {self.stderr()[-3000:]}"
-            self.out.append(line)
-            if re.match(pattern, line):
-                return line
-
-    def signal_and_wait(self, sig: int) -> tuple[int, float]:
-        """Send ``sig``; the exit code and the seconds from the signal to the exit."""
-        os.kill(self.pid, sig)
-        sent = time.monotonic()
-        code = self.process.wait(timeout=60)
-        return code, time.monotonic() - sent
-
-    def stderr(self) -> str:
-        self._stderr.flush()
-        return self.stderr_path.read_text()
-
-    def __enter__(self) -> Child:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.process.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.pid, signal.SIGKILL)
-            self.process.wait()
-        self._stderr.close()
-
-
-def _runs(store: str, experiment: str = EXPERIMENT) -> tuple[mlflow.MlflowClient, list]:
-    client = mlflow.MlflowClient(store)
-    found = client.get_experiment_by_name(experiment)
-    return client, (client.search_runs([found.experiment_id]) if found else [])
-
-
-def _only_run(store: str, experiment: str = EXPERIMENT):
-    client, runs = _runs(store, experiment)
-    assert len(runs) == 1, [(r.info.run_id, r.info.status) for r in runs]
-    return client, runs[0]
-
-
-def _steps(client, run_id: str, key: str = SENTINEL) -> list[int]:
-    return sorted(m.step for m in client.get_metric_history(run_id, key))
 
 
 def _csv_rounds(rows: list[dict[str, str]]) -> dict[int, list[str]]:
@@ -164,7 +68,7 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     ``fedlgr run --resume`` then finishes that same run, every round logged once."""
     store = f"sqlite:///{tmp_path}/mlflow.db"
     rounds = 12
-    args = _args(synth_dir, cache_dir, store, f"federated.rounds={rounds}")
+    args = run_args(synth_dir, cache_dir, store, f"federated.rounds={rounds}")
     with Child(args, tmp_path, "terminated") as child:
         # Printed once round 1 is logged (step 1 of round/seconds) and checkpointed; the
         # signal goes at once, as later rounds take a fraction of a second each.
@@ -176,11 +80,11 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert "fedlgr: terminated (SIGTERM)" in stderr, stderr[-3000:]
     assert "Traceback" not in stderr, stderr[-3000:]
 
-    client, run = _only_run(store)
+    client, run = only_run(store)
     run_id = run.info.run_id
     assert run.data.tags["fedlgr.pid"] == str(child.pid)
     assert run.info.status == "KILLED"
-    logged = _steps(client, run_id)
+    logged = metric_steps(client, run_id)
     assert logged == list(range(1, len(logged) + 1)) and 1 <= len(logged) < rounds
     kept = _csv_rounds(results_csv(client, run_id))
     assert sorted(kept) == list(range(1, len(kept) + 1))
@@ -191,9 +95,9 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert main(["run", *args, "--resume"]) == 0
     said = capsys.readouterr().out
     assert re.search(rf"resuming run {run_id} after round \d+ of {rounds}", said), said
-    client, run = _only_run(store)
+    client, run = only_run(store)
     assert run.info.run_id == run_id and run.info.status == "FINISHED"
-    assert _steps(client, run_id) == list(range(1, rounds + 1))  # each round once
+    assert metric_steps(client, run_id) == list(range(1, rounds + 1))  # each round once
     done = _csv_rounds(results_csv(client, run_id))
     assert sorted(done) == list(range(1, rounds + 1))
     assert all(clients == ["0", "1"] for clients in done.values())
@@ -219,14 +123,14 @@ def test_ctrl_c_ends_with_one_line_saying_how_to_resume_and_no_traceback(
     Ctrl-C while the process exits (in an atexit hook: torch's, MLflow's, here a slow one)
     ends it at once, without a KeyboardInterrupt traceback."""
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, "federated.rounds=12")
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=12")
     with Child(args, tmp_path, "interrupted", prelude=SLOW_EXIT) as child:
         child.wait_for(r"round 1/12:")  # logged and checkpointed
         os.kill(child.pid, signal.SIGINT)
         child.wait_for(r"exiting")
         code, took = child.signal_and_wait(signal.SIGINT)
         stderr = child.stderr()
-    _, run = _only_run(store)
+    _, run = only_run(store)
     run_id = run.info.run_id
     assert run.info.status == "KILLED"
     assert code == 130 and took < 10, (code, took, stderr[-3000:])
@@ -261,7 +165,7 @@ def test_sigterm_while_a_run_is_being_ended_ends_it_killed(synth_dir, cache_dir,
     curves.png, the cost summary, the status): the run must not be left RUNNING. To hit
     that moment every time, the child's curves.png drawing is held up for 10 s."""
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, "federated.rounds=2")
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=2")
     with Child(args, tmp_path, "late", prelude=SLOW_CURVES) as child:
         child.wait_for(r"round 2/2:")
         child.wait_for(r"drawing curves\.png")
@@ -270,9 +174,9 @@ def test_sigterm_while_a_run_is_being_ended_ends_it_killed(synth_dir, cache_dir,
         stderr = child.stderr()
     assert code == 128 + signal.SIGTERM, stderr[-3000:]
     assert "fedlgr: terminated (SIGTERM)" in stderr and "Traceback" not in stderr, stderr
-    client, run = _only_run(store)
+    client, run = only_run(store)
     assert run.info.status == "KILLED"
-    assert _steps(client, run.info.run_id) == [1, 2]
+    assert metric_steps(client, run.info.run_id) == [1, 2]
     assert _csv_rounds(results_csv(client, run.info.run_id)) == {1: ["0", "1"], 2: ["0", "1"]}
 
 
@@ -282,7 +186,7 @@ def test_sigterm_while_the_store_is_busy_ends_the_run_killed(synth_dir, cache_di
     wants to log round 2; the signal comes while it waits. Once the store is free again
     the run must end KILLED within seconds."""
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, "federated.rounds=12")
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=12")
     with Child(args, tmp_path, "busy") as child:
         child.wait_for(r"round 1/12:")
         db = sqlite3.connect(tmp_path / "mlflow.db", timeout=30, isolation_level=None)
@@ -299,7 +203,7 @@ def test_sigterm_while_the_store_is_busy_ends_the_run_killed(synth_dir, cache_di
         except subprocess.TimeoutExpired:
             code = None
         stderr = child.stderr()
-    _, run = _only_run(store)
+    _, run = only_run(store)
     ended = "did not exit within 15 s" if code is None else f"exit {code}"
     assert (code, run.info.status) == (128 + signal.SIGTERM, "KILLED"), f"{ended}: {stderr}"
 
@@ -367,10 +271,10 @@ def test_a_sigkilled_run_stays_running_until_it_is_found_dead(synth_dir, cache_d
     ``dead_reason`` sees it gone (already while it is an unreaped zombie) and
     ``end_dead_runs`` marks it KILLED."""
     store = f"sqlite:///{tmp_path}/mlflow.db"
-    args = _args(synth_dir, cache_dir, store, "federated.rounds=500")  # killed long before
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=500")  # killed long before
     with Child(args, tmp_path, "sigkilled") as child:
         child.wait_for(r"round 1/500:")
-        client, run = _only_run(store)
+        client, run = only_run(store)
         tags = run.data.tags
         assert tags["fedlgr.pid"] == str(child.pid)
         assert tags["fedlgr.host"] == socket.gethostname()
@@ -402,7 +306,7 @@ def test_a_non_finite_training_loss_is_one_error_line_and_a_failed_run(
 ):
     store = f"sqlite:///{tmp_path}/mlflow.db"
     monkeypatch.chdir(tmp_path)
-    code = main(["run", *_args(synth_dir, cache_dir, store, "federated.rounds=2", *rates)])
+    code = main(["run", *run_args(synth_dir, cache_dir, store, "federated.rounds=2", *rates)])
     err = capfd.readouterr().err
     assert code == 1, err
     assert "Traceback" not in err
@@ -413,7 +317,7 @@ def test_a_non_finite_training_loss_is_one_error_line_and_a_failed_run(
         r"\(not a finite number\); lower the learning rates .*",
         errors[0],
     ), errors[0]
-    _, run = _only_run(store)
+    _, run = only_run(store)
     assert run.info.status == "FAILED"
 
 
@@ -426,6 +330,7 @@ DIVERGES_IN_ROUND_2 = [  # round 1 trains one finite step, then predicts NaN; ro
 ]
 
 
+@pytest.mark.slow
 def test_a_run_failing_after_rounds_with_nan_scores_fails_with_its_own_error(
     synth_dir, cache_dir, tmp_path, monkeypatch
 ):
@@ -441,15 +346,16 @@ def test_a_run_failing_after_rounds_with_nan_scores_fails_with_its_own_error(
     with pytest.raises(FedlgrError, match=r"^round 2, client \d+: the training loss is "):
         run_experiment(config, echo=said.append)
     assert any(line.startswith("round 1/3: loss -  RMSE -") for line in said), said
-    client, run = _only_run(store)
+    client, run = only_run(store)
     assert run.info.status == "FAILED"
     rows = results_csv(client, run.info.run_id)
     assert _csv_rounds(rows) == {1: ["0", "1"]}
     assert all(row["test_rmse"] == "" for row in rows)  # NaN: not a number, kept as empty
-    assert _steps(client, run.info.run_id) == [1]
+    assert metric_steps(client, run.info.run_id) == [1]
     assert "curves.png" in {a.path for a in client.list_artifacts(run.info.run_id)}  # gaps
 
 
+@pytest.mark.slow
 def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error(
     synth_dir, cache_dir, tmp_path, monkeypatch
 ):
@@ -478,11 +384,11 @@ def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error
             config, echo=said.append, on_start=started.append, on_round=break_artifacts_and_stop
         )
     assert any(s.startswith("(while failing: could not record results.csv: ") for s in said), said
-    client, run = _only_run(store)
+    client, run = only_run(store)
     assert run.info.run_id == started[0]
     assert run.info.status == "FAILED"
     assert "mean/cost/cpu_s" in run.data.metrics  # the step after the failed ones ran
-    assert _steps(client, run.info.run_id) == [1]
+    assert metric_steps(client, run.info.run_id) == [1]
 
 
 def test_a_run_whose_last_round_has_nan_scores_is_not_left_running(
@@ -498,7 +404,7 @@ def test_a_run_whose_last_round_has_nan_scores_is_not_left_running(
     try:
         run_experiment(config, echo=lambda *a, **k: None)
     finally:
-        client, run = _only_run(store)
+        client, run = only_run(store)
         assert run.info.status != "RUNNING"
     assert run.info.status == "FINISHED"
     assert _csv_rounds(results_csv(client, run.info.run_id)) == {1: ["0", "1"]}
@@ -508,6 +414,7 @@ def test_a_run_whose_last_round_has_nan_scores_is_not_left_running(
 # --------------------------------------------------------------------------- 5. temp folders
 
 
+@pytest.mark.slow
 def test_runs_leave_nothing_in_the_temp_folder(synth_dir, cache_dir, tmp_path, monkeypatch):
     """A finished run and a failed one (each writes config.yaml, results.csv, curves.png
     through temporary files) leave no entry in ``tempfile.gettempdir()``."""
@@ -531,7 +438,7 @@ def test_runs_leave_nothing_in_the_temp_folder(synth_dir, cache_dir, tmp_path, m
         run_experiment(config, echo=quiet, on_round=fail)
     assert seen == [str(temp)] * 3  # the runs used this folder
     assert sorted(os.listdir(temp)) == []
-    client, runs = _runs(store)
+    client, runs = experiment_runs(store)
     assert sorted(r.info.status for r in runs) == ["FAILED", "FINISHED", "FINISHED"]
     for run in runs:  # what went through the temp folder arrived
         names = {a.path for a in client.list_artifacts(run.info.run_id)}
@@ -541,6 +448,7 @@ def test_runs_leave_nothing_in_the_temp_folder(synth_dir, cache_dir, tmp_path, m
 # --------------------------------------------------------------------------- 6. overrides
 
 
+@pytest.mark.slow
 def test_overrides_may_follow_options_and_stray_arguments_are_refused(
     synth_dir, cache_dir, tmp_path, monkeypatch, capsys
 ):
@@ -557,14 +465,14 @@ def test_overrides_may_follow_options_and_stray_arguments_are_refused(
         "runtime.threads=1",
     ]
     assert main(args) == 0, capsys.readouterr().err
-    client, run = _only_run(store)
+    client, run = only_run(store)
     params = run.data.params
     assert params["federated.rounds"] == "2" and params["runtime.threads"] == "1"
     # Machine-local paths are not params (issue 13): the config artifact keeps them.
     assert "data.path" not in params and "tracking.uri" not in params
     config = client.download_artifacts(run.info.run_id, "config.yaml")
     assert f"path: {synth_dir}" in Path(config).read_text()
-    assert _steps(client, run.info.run_id) == [1, 2]
+    assert metric_steps(client, run.info.run_id) == [1, 2]
     capsys.readouterr()
 
     for stray in ("--bogus", "stray"):
@@ -573,7 +481,7 @@ def test_overrides_may_follow_options_and_stray_arguments_are_refused(
         assert exit_.value.code == 2
         err = capsys.readouterr().err
         assert re.search(rf"^fedlgr: error: unrecognized arguments: .*{stray}$", err, re.M), err
-    assert len(_runs(store)[1]) == 1  # nothing ran
+    assert len(experiment_runs(store)[1]) == 1  # nothing ran
 
 
 def test_an_override_after_a_bare_resume_is_an_override():
@@ -614,7 +522,7 @@ runpy.run_module("fedlgr", run_name="__main__", alter_sys=True)
 def test_a_fedlgr_process_runs_mlflow_without_telemetry_by_default(tmp_path, given, seen):
     """``python -m fedlgr report`` (it opens the store, then stops: no experiment) with
     the environment variable unset, and with a user's explicit ``false``."""
-    env = _env(**({TELEMETRY: given} if given else {}))
+    env = child_env(**({TELEMETRY: given} if given else {}))
     store = f"sqlite:///{tmp_path}/empty.db"
     mlflow.MlflowClient(store).search_experiments()  # a store without fedlgr's experiment
     command = ["report", "--tracking-uri", store, "--no-log", "--out", str(tmp_path / "out")]
@@ -644,7 +552,7 @@ def test_two_runs_opening_a_fresh_store_at_once_both_finish(synth_dir, cache_dir
         folder = tmp_path / f"race{attempt}"
         folder.mkdir()
         store = f"sqlite:///{folder}/fresh.db"
-        args = _args(synth_dir, cache_dir, store)
+        args = run_args(synth_dir, cache_dir, store)
         children = [Child(args, folder, f"run{i}") for i in range(2)]
         try:
             codes = [c.process.wait(timeout=500) for c in children]
@@ -653,5 +561,5 @@ def test_two_runs_opening_a_fresh_store_at_once_both_finish(synth_dir, cache_dir
             for child in children:
                 child.__exit__()
         assert not failures, f"attempt {attempt + 1}: {failures}"
-        _, runs = _runs(store)
+        _, runs = experiment_runs(store)
         assert sorted(r.info.status for r in runs) == ["FINISHED", "FINISHED"], attempt

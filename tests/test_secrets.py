@@ -18,8 +18,7 @@ from fedlgr.config import load_config, to_plain, to_yaml
 from fedlgr.deploy.flower import robot as robot_module
 from fedlgr.deploy.flower.service import reply_error
 from fedlgr.errors import ConfigError, FedlgrError
-
-from .conftest import FAST
+from tests.support.runs import FAST
 
 # ---------------------------------------------------------------------- private keys
 

@@ -12,10 +12,11 @@ from fedlgr.data.dataset import load_scenes
 from fedlgr.data.splits import make_split
 from fedlgr.errors import ConfigError
 from fedlgr.federated.experiment import make_fabric, run_experiment
-from fedlgr.federated.orchestrator import Orchestrator
+from fedlgr.federated.in_process import Orchestrator
+from fedlgr.federated.messages import RoundPlan
 from fedlgr.federated.scope import initial_scholar
-from fedlgr.federated.server_eval import ServerEvaluation
-from tests.conftest import FAST, fast_config, read_run
+from fedlgr.federated.server.evaluate import ServerEvaluation
+from tests.support.runs import FAST, fast_config, read_run
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -47,7 +48,7 @@ def test_the_server_scores_the_global_weights_every_round_and_before_the_first(
     side = orch.client_side
     initial = {k: v.clone() for k, v in orch.server.global_weights.items()}
     for round_ in (1, 2):
-        log = orch.run_round(round_)
+        log = orch.run_round(RoundPlan(round_))
         expected = by_hand(config, orch.server.global_weights, side.test_inputs, side.test_targets)
         for name, value in expected.items():
             assert log.server[f"server/test/{name}"] == pytest.approx(value, abs=1e-5), name
@@ -62,6 +63,7 @@ def test_the_server_scores_the_global_weights_every_round_and_before_the_first(
             assert log.initial == {}
 
 
+@pytest.mark.slow
 def test_the_initial_scores_are_logged_at_step_0_and_every_round_after(synth_dir, cache_dir, store):
     config = fast_config(
         synth_dir,
@@ -145,7 +147,7 @@ def test_the_report_shows_the_papers_cpu_figure_beside_each_clients_own(
     figure - the server's CPU over clients x rounds - beside the clients' own CPU."""
     from fedlgr.report import make_report
     from fedlgr.sweep.spec import load_sweep
-    from tests.test_report import markdown_blocks, parse
+    from tests.support.report import markdown_blocks, parse
 
     sweep = load_sweep("paper_costs")
     assert "federated.server_eval=auto" in sweep.overrides

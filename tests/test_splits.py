@@ -24,7 +24,7 @@ from fedlgr.data.splits import (
     train_test_split,
 )
 from fedlgr.errors import ConfigError, DataError
-from tests.conftest import HEADER, rating_row, write_rows
+from tests.support.data import HEADER, rating_row, write_rows
 
 MUSIC = "Music playing?"
 

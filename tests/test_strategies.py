@@ -9,12 +9,15 @@ import torch
 from torch import nn
 
 from fedlgr.config import FederatedConfig, method_name
-from fedlgr.federated.aggregate import weighted_mean
+from fedlgr.federated.client.plugins import LocalContext
 from fedlgr.federated.messages import nbytes
-from fedlgr.federated.plugins import LocalContext
 from fedlgr.federated.scope import batchnorm_keys, shared_keys
-from fedlgr.federated.strategies import STRATEGIES, FedAvg, FedBN, FedOpt, FedProx
-from fedlgr.federated.strategies.fedprox import ProximalTerm
+from fedlgr.federated.server.aggregate import weighted_mean
+from fedlgr.federated.strategies import FedAvg, Strategy, build_strategy
+from fedlgr.federated.strategies.fedbn import FedBN
+from fedlgr.federated.strategies.fedopt import FedOpt
+from fedlgr.federated.strategies.fedprox import FedProx, ProximalTerm
+from fedlgr.methods import STRATEGIES, OptSettings
 
 
 class Tiny(nn.Module):
@@ -107,11 +110,10 @@ def test_fedprox_adds_the_proximal_gradient():
 
 
 def test_fedopt_takes_a_server_adam_step():
-    config = FederatedConfig(
-        strategy="opt", server_lr=0.1, server_betas=(0.9, 0.99), server_tau=0.01
-    )
+    config = FederatedConfig(strategy="opt", opt=OptSettings(lr=0.1, betas=(0.9, 0.99), tau=0.01))
     strategy = FedOpt(config)
-    strategy.trainable = {"w"}
+    strategy.bind(["w", "stat"], parameters={"w", "other"})
+    assert strategy.trainable == {"w"}
     x = {"w": torch.tensor([1.0, 1.0]), "stat": torch.tensor([3.0])}
     mean = {"w": torch.tensor([1.5, 0.0]), "stat": torch.tensor([5.0])}
     new = strategy.server_update(x, mean)
@@ -145,7 +147,7 @@ def test_fedopt_takes_a_server_adam_step():
 def test_method_names_follow_the_paper(strategy, scope, name):
     assert method_name(strategy, scope) == name
     assert FederatedConfig(strategy=strategy, scope=scope).method == name
-    assert STRATEGIES[strategy].name in name
+    assert STRATEGIES[strategy].suffix in name
 
 
 def test_weighted_mean_needs_samples():
@@ -154,10 +156,14 @@ def test_weighted_mean_needs_samples():
     assert math.isclose(float(weighted_mean([(2, {"w": torch.ones(1)})], ["w"])["w"]), 1.0)
 
 
-def test_config_and_registry_name_the_same_strategies():
-    """A new strategy is registered in both places: fedlgr.config.STRATEGIES (its paper
-    suffix) and fedlgr.federated.strategies.STRATEGIES (its class)."""
-    from fedlgr.config import STRATEGIES as NAMES
-
-    assert set(NAMES) == set(STRATEGIES)
-    assert all(NAMES[key] == cls.name for key, cls in STRATEGIES.items())
+def test_every_registered_strategy_builds_with_its_settings_and_names_its_plugins():
+    """The registry (fedlgr.methods) is the one list: each entry's class loads, takes the
+    config with its settings section, and declares the types of the plugins it adds."""
+    for key, method in STRATEGIES.items():
+        strategy = build_strategy(FederatedConfig(strategy=key))
+        assert isinstance(strategy, Strategy) and type(strategy) is method.load()
+        assert strategy.settings == (
+            None if method.settings is None else getattr(FederatedConfig(), key)
+        )
+        plugins = strategy.client_plugins(0)
+        assert [type(p) for p in plugins] == list(strategy.client_plugin_types)

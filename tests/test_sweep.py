@@ -3,17 +3,13 @@ MLflow child run per trial under a parent; a killed sweep resumes; two workers s
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import signal
-import sqlite3
 import subprocess
-import sys
 import time
 from pathlib import Path
 
-import mlflow
 import optuna
 import pytest
 from optuna.distributions import CategoricalDistribution, FloatDistribution
@@ -21,8 +17,15 @@ from optuna.distributions import CategoricalDistribution, FloatDistribution
 from fedlgr.errors import ConfigError
 from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.spec import SWEEPS_DIR
-
-from .conftest import FAST
+from tests.support.runs import FAST
+from tests.support.sweeps import (
+    child_runs,
+    point,
+    read_only_rows,
+    sweep_command,
+    trials_by_state,
+    write_sweep,
+)
 
 SWEEPS = sorted(SWEEPS_DIR.glob("*.yaml"))
 REPO = Path(__file__).resolve().parents[1]
@@ -44,17 +47,18 @@ def test_every_shipped_sweep_loads_and_builds_its_search_space(path):
 
 def test_a_grid_null_reaches_the_trial_as_an_unset_setting():
     spec = load_sweep("fedlgr_drift_image")
-    assert None in spec.grid["continual.lgr_train_blocks"]
-    _, overrides = spec.trial_config_args({"continual.lgr_train_blocks": None})
-    assert overrides[-1] == "continual.lgr_train_blocks=null"  # not the string "None"
+    assert None in spec.grid["continual.lgr.train_blocks"]
+    _, overrides = spec.trial_config_args({"continual.lgr.train_blocks": None})
+    assert overrides[-1] == "continual.lgr.train_blocks=null"  # not the string "None"
 
 
 def test_the_paper_grids_cover_every_method_and_setting():
     from fedlgr.config import FCL_METHODS, METHODS
+    from fedlgr.methods import in_paper
 
     fl, fcl = load_sweep("paper_fl"), load_sweep("paper_fcl")
-    assert fl.n_trials == 10 * 4 and set(fl.grid["method"]) == set(METHODS)
-    table2 = {m for m in FCL_METHODS if not m.endswith("-FT")}
+    assert fl.n_trials == 10 * 4 and set(fl.grid["method"]) == set(filter(in_paper, METHODS))
+    table2 = {m for m in FCL_METHODS if not m.endswith("-FT") and in_paper(m)}
     assert fcl.n_trials == 11 * 4 and set(fcl.grid["method"]) == table2
     assert {Path(c).name for c in fl.grid["config"]} == {
         "clients2_noaug.yaml",
@@ -63,8 +67,8 @@ def test_the_paper_grids_cover_every_method_and_setting():
         "clients10_aug.yaml",
     }
     tpe = load_sweep("fedlgr_tpe").search_space()
-    assert isinstance(tpe["continual.lgr_lr_root"], FloatDistribution)
-    assert tpe["continual.lgr_lr_root"].log
+    assert isinstance(tpe["continual.lgr.lr_root"], FloatDistribution)
+    assert tpe["continual.lgr.lr_root"].log
 
 
 @pytest.mark.parametrize(
@@ -89,54 +93,6 @@ def test_bad_sweep_files_name_the_file_and_key(tmp_path, body, message):
 
 
 # --------------------------------------------------------------------------- real studies
-
-
-def write_sweep(tmp_path: Path, synth_dir: Path, cache_dir: Path, name: str = "grid4") -> Path:
-    """A 4-point grid on the fast-dev-run config: 2 methods x 2 top learning rates."""
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(
-        f"base: {FAST}\n"
-        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1]\n"
-        "objective: {metric: test/rmse, direction: minimize}\n"
-        "space:\n"
-        "  method: [FedAvg, FedRootAvg]\n"
-        "  train.lr_top: [0.001, 0.01]\n"
-    )
-    return path
-
-
-def trials_by_state(storage: str, name: str) -> dict[str, list[optuna.trial.FrozenTrial]]:
-    study = optuna.load_study(study_name=name, storage=storage)
-    out: dict[str, list] = {}
-    for t in study.get_trials():
-        out.setdefault(t.state.name, []).append(t)
-    return out
-
-
-def read_only_rows(db: Path, sql: str) -> list[tuple]:
-    """Rows of ``sql`` on a sqlite file opened read-only, [] while it has no tables: a test
-    watching a running sweep must not create the tables the sweep is creating (opening the
-    file with Optuna would, racing the sweep's own first use)."""
-    if not db.is_file():
-        return []
-    try:
-        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as con:
-            return con.execute(sql).fetchall()
-    except sqlite3.OperationalError:  # no tables yet
-        return []
-
-
-def child_runs(store: str, experiment: str):
-    client = mlflow.MlflowClient(store)
-    exp = client.get_experiment_by_name(experiment)
-    runs = client.search_runs([exp.experiment_id])
-    parents = [r for r in runs if r.data.tags.get("fedlgr.kind") == "sweep"]
-    children = [r for r in runs if r.data.tags.get("fedlgr.kind") == "trial"]
-    return client, parents, children
-
-
-def point(params: dict) -> tuple:
-    return tuple(sorted(params.items()))
 
 
 def test_a_grid_sweep_runs_every_point_once_under_one_parent_run(
@@ -203,6 +159,7 @@ def test_a_failing_trial_is_recorded_failed_and_the_sweep_goes_on(tmp_path, synt
     assert "100" in failed.user_attrs["error"] and "client" in failed.user_attrs["error"]
 
 
+@pytest.mark.slow
 def test_pruned_trials_end_killed_in_mlflow(tmp_path, synth_dir, cache_dir):
     """A TPE sweep with the median pruner and a prune-everything warm-up of 0: trials after
     the startup ones that are worse than the median at a round stop there."""
@@ -235,30 +192,14 @@ def test_pruned_trials_end_killed_in_mlflow(tmp_path, synth_dir, cache_dir):
             assert status[t.number] == "FINISHED"
 
 
-def _sweep_command(path: Path, storage: str, store: str, *extra: str) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "fedlgr",
-        "sweep",
-        str(path),
-        "--storage",
-        storage,
-        "--tracking-uri",
-        store,
-        "--heartbeat",
-        "1",
-        *extra,
-    ]
-
-
+@pytest.mark.slow
 def test_a_killed_sweep_resumes_without_redoing_finished_trials(tmp_path, synth_dir, cache_dir):
     path = write_sweep(tmp_path, synth_dir, cache_dir, name="resume")
     storage = f"sqlite:///{tmp_path}/optuna.db"
     store = f"sqlite:///{tmp_path}/mlflow.db"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     process = subprocess.Popen(
-        _sweep_command(path, storage, store),
+        sweep_command(path, storage, store),
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -279,7 +220,7 @@ def test_a_killed_sweep_resumes_without_redoing_finished_trials(tmp_path, synth_
     assert 1 <= len(done_before) < 4
 
     finished = subprocess.run(
-        _sweep_command(path, storage, store), env=env, capture_output=True, text=True
+        sweep_command(path, storage, store), env=env, capture_output=True, text=True
     )
     assert finished.returncode == 0, finished.stderr[-2000:]
     states = trials_by_state(storage, "resume")
@@ -296,6 +237,7 @@ def test_a_killed_sweep_resumes_without_redoing_finished_trials(tmp_path, synth_
     assert all(c.info.status in ("FINISHED", "KILLED") for c in children)
 
 
+@pytest.mark.slow
 def test_two_workers_share_one_study_and_run_no_point_twice(
     tmp_path, synth_dir, cache_dir, monkeypatch
 ):

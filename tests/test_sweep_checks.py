@@ -28,8 +28,7 @@ from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.checks import run_metrics
 from fedlgr.sweep.spec import Param
 from fedlgr.sweep.trials import DUPLICATES_IN_A_ROW, counts, no_new_point
-
-from .conftest import FAST
+from tests.support.runs import FAST
 
 BASE = f"base: {FAST}\n"
 

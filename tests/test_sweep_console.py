@@ -1,6 +1,6 @@
 """What a sweep prints (issue 22, point 5): one final table with the best trial marked in
 a column of its own, interrupted trials marked as such with their reason, one line for a
-relaunched study that has nothing left to run, and ``tracking.experiment`` as the README
+relaunched study that has nothing left to run, and ``tracking.experiment`` as docs/sweeps.md
 says (it chooses the experiment; a relaunch does not compare ``tracking.*``)."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import optuna
+import pytest
 from optuna.trial import TrialState
 
 from fedlgr.cli import main
@@ -15,9 +16,8 @@ from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed
 from fedlgr.sweep.trials import summary
 from fedlgr.sweep.worker import Worker
-
-from .conftest import FAST
-from .test_sweep import child_runs, trials_by_state
+from tests.support.runs import FAST
+from tests.support.sweeps import child_runs, trials_by_state
 
 
 def write_grid(tmp_path: Path, synth_dir: Path, cache_dir: Path, name: str, lrs: str) -> Path:
@@ -40,6 +40,7 @@ def table_rows(out: str) -> tuple[str, list[str]]:
     return lines[start], lines[start + 2 : end]
 
 
+@pytest.mark.slow
 def test_one_table_with_an_aligned_best_mark_then_one_line_when_nothing_is_left(
     tmp_path, synth_dir, cache_dir, capsys
 ):
@@ -116,7 +117,7 @@ def test_interrupted_trials_show_as_interrupted_with_their_reason(tmp_path, synt
 def test_tracking_experiment_chooses_the_experiment_and_is_not_compared_on_relaunch(
     tmp_path, synth_dir, cache_dir
 ):
-    """The README: ``tracking.*`` is not compared. ``tracking.experiment=NAME`` puts the
+    """docs/sweeps.md: ``tracking.*`` is not compared. ``tracking.experiment=NAME`` puts the
     parent and its trials in NAME; a relaunch without it (or with another) goes on, in the
     experiment of the study's parent run, and says so."""
     path = write_grid(tmp_path, synth_dir, cache_dir, "exp", "0.001")

@@ -17,14 +17,13 @@ from optuna.trial import TrialState
 
 from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.sweep.storage import open_study
-
-from .conftest import FAST
-from .test_sweep import (
-    REPO,
-    _sweep_command,
+from tests.support.checkout import REPO
+from tests.support.runs import FAST
+from tests.support.sweeps import (
     child_runs,
     point,
     read_only_rows,
+    sweep_command,
     trials_by_state,
     write_sweep,
 )
@@ -87,7 +86,7 @@ def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     log = (tmp_path / "first.log").open("w")
     # Long trials at first, so that the signal surely lands in the middle of one.
     process = subprocess.Popen(
-        _sweep_command(path, storage, store, "federated.rounds=100"),
+        sweep_command(path, storage, store, "federated.rounds=100"),
         env=ENV,
         stdout=log,
         stderr=subprocess.STDOUT,
@@ -164,6 +163,7 @@ def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, mess
 
 
 @pytest.mark.parametrize("missing", ["folder", "file"])
+@pytest.mark.slow
 def test_a_sweep_whose_data_path_is_not_a_folder_refuses_to_start(
     tmp_path, synth_dir, cache_dir, missing
 ):
@@ -231,7 +231,7 @@ def test_a_trial_killed_in_its_third_round_is_retried_from_its_checkpoint(
     store = f"sqlite:///{tmp_path}/mlflow.db"
     log = (tmp_path / "first.log").open("w")
     process = subprocess.Popen(
-        _sweep_command(path, storage, store),
+        sweep_command(path, storage, store),
         env=ENV,
         stdout=log,
         stderr=subprocess.STDOUT,

@@ -10,6 +10,7 @@ from fedlgr.sweep.storage import SETTINGS_ATTR, open_study
 from fedlgr.sweep.study import run_sweep
 
 
+@pytest.mark.slow
 def test_a_sweep_relaunched_with_other_overrides_is_refused(synth_dir, synth_copy, tmp_path):
     storage = f"sqlite:///{tmp_path}/optuna.db"
     first = load_sweep("ewc", [f"data.path={synth_dir}", "train.epochs=1"])

@@ -15,7 +15,7 @@ from fedlgr.data.synth import generate_scenes, synthesize
 from fedlgr.data.synth.appropriateness import true_appropriateness
 from fedlgr.data.synth.layout import Layout, Person, descriptors
 from fedlgr.errors import DataError
-from tests.conftest import read_rows
+from tests.support.data import read_rows
 
 
 def _files(folder):

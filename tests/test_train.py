@@ -14,14 +14,14 @@ import torch
 from fedlgr.config import METHODS, load_config
 from fedlgr.data.dataset import load_scenes
 from fedlgr.data.splits import make_split
-from fedlgr.federated.client_side import ClientSide
+from fedlgr.federated.client.side import ClientSide
 from fedlgr.federated.experiment import make_fabric, run_experiment
+from fedlgr.federated.in_process import Orchestrator
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainIns, nbytes
-from fedlgr.federated.orchestrator import Orchestrator
-from tests.conftest import FAST, fast_config, read_run, results_csv
+from fedlgr.methods import STRATEGIES
+from tests.support.runs import FAST, fast_config, read_run, results_csv
 
 ACTIONS = ("vacuum", "conversation")
-STRATEGY = {"Avg": "avg", "BN": "bn", "Prox": "prox", "Opt": "opt", "Distill": "distill"}
 
 
 @pytest.mark.parametrize("method", list(METHODS))
@@ -32,7 +32,8 @@ def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, st
     assert run.info.status == "FINISHED" and run.info.run_name == f"{method}-2c-noaug-image"
     tags = run.data.tags
     scope = "root" if method.startswith("FedRoot") else "full"
-    strategy = STRATEGY[method.removeprefix("FedRoot").removeprefix("Fed")]
+    strategy = METHODS[method][0]  # the registry's (fedlgr.methods): e.g. FedRootAvgM -> avgm
+    assert method.endswith(STRATEGIES[strategy].suffix)
     assert (tags["method"], tags["scope"], tags["strategy"]) == (method, scope, strategy)
     assert (tags["dataset"], tags["clients"], tags["augmentation"]) == ("synthetic", "2", "false")
     params = run.data.params
@@ -229,7 +230,7 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
     )
     scenes = load_scenes(config.data)
     orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
-    orch.run_round(1)
+    orch.run_round(RoundPlan(1))
     side, received = orch.client_side, orch.server.global_weights
     assert side.root_keys and all(side.holds_root(c, received) for c in side.clients)
     passes = [0] * 3
@@ -250,6 +251,7 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
     assert passes == [batches, batches, batches]
 
 
+@pytest.mark.slow
 def test_the_fast_config_shows_learning_in_its_default_run(tmp_path):
     """conf/debug/fast.yaml is the smoke test a user runs first: as shipped (no override
     but the data), it must learn something measurable, not print PCC 0.000."""

@@ -1,5 +1,5 @@
 """``fedlgr deploy certs | node-key | app | connect | superlink | supernode | run``: fedlgr on
-Flower's Deployment Runtime (README "Deployment on robots (Flower)").
+Flower's Deployment Runtime (docs/deployment.md).
 
 ``certs`` and ``node-key`` write the credentials, ``connect`` tells the ``flwr`` command
 where the SuperLink is, ``superlink`` and ``supernode`` replace themselves with Flower's

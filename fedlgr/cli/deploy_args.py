@@ -15,7 +15,7 @@ def add_parser(verbs) -> None:
         "deploy",
         help="run on real robots with Flower: credentials, SuperLink, SuperNodes, runs",
         description="fedlgr on Flower's Deployment Runtime: a SuperLink on a server, a "
-        "SuperNode on each robot, runs submitted with flwr run (README 'Deployment on robots').",
+        "SuperNode on each robot, runs submitted with flwr run (docs/deployment.md).",
     )
     subs = deploy.add_subparsers(dest="deploy_verb", metavar="VERB", required=True)
 

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 
 from torch import nn
 
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
 
 
 def batchnorm_layers(module: nn.Module) -> list[nn.Module]:
@@ -47,7 +47,7 @@ def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
 class FrozenRootStatistics(ClientPlugin):
     """From the second task of the schedule on, the root's BatchNorm statistics stay as
     they were at the end of the first (``continual.freeze_root_bn``; FedLGR:
-    ``continual.lgr_freeze_root_bn``)."""
+    ``continual.lgr.freeze_root_bn``)."""
 
     name = "freeze_root_bn"
 

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from fedlgr.continual.penalty import QuadraticPenalty, gradient_importance, snapshot
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.client.plugins import LocalContext
 
 
 def fisher(
@@ -52,6 +52,10 @@ class EWC(QuadraticPenalty):
         self.kind, self.max_batches = kind, max_batches
         self.generator = torch.Generator().manual_seed(seed)
 
+    @classmethod
+    def from_settings(cls, settings, continual, seed: int) -> EWC:
+        return cls(settings.lambda_, settings.fisher, continual.importance_batches, seed)
+
     def estimate(self, ctx: LocalContext) -> dict[str, torch.Tensor]:
         return fisher(ctx.model, ctx.plain_batches(), self.kind, self.max_batches, self.generator)
 
@@ -80,6 +84,11 @@ class EWCOnline(EWC):
     ):
         super().__init__(lam, kind, max_batches, seed)
         self.gamma = gamma
+
+    @classmethod
+    def from_settings(cls, settings, continual, seed: int) -> EWCOnline:
+        s = settings  # continual.ewc: EWC-Online shares EWC's settings
+        return cls(s.lambda_, s.gamma, s.fisher, continual.importance_batches, seed)
 
     def on_task_end(self, ctx: LocalContext) -> None:
         new = self.estimate(ctx)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fedlgr.federated.rounds import RoundLog
+from fedlgr.federated.records import RoundLog
 
 METRICS = ("loss", "rmse", "pcc")
 

@@ -49,12 +49,13 @@ sense; it never leaves the client either.
 
 The generator, the labeller, the stored latents and the top never leave the client: with
 scope ``root`` the upload is the root alone. Deviations from Algorithm 1 and from the
-authors' code are listed in the README ("How FedLGR works here").
+authors' code are listed in docs/fedlgr.md ("How FedLGR works here").
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import torch
 from torch import nn
@@ -62,15 +63,11 @@ from torch import nn
 from fedlgr.continual.batchnorm import eval_mode, freeze_batchnorm_statistics
 from fedlgr.continual.drift import DriftMap, drift_distance, fit_drift_map
 from fedlgr.continual.fidelity import replay_fidelity
-from fedlgr.federated.client import backward, optimizer_step
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.training import backward, optimizer_step
+from fedlgr.methods import LGRSettings
 from fedlgr.models.generator import LatentVAE
 from fedlgr.runtime import seeded_global_rng
-
-SCHEDULES = ("two_phase", "joint")
-REPLAYS = ("generator", "stored")
-DRIFTS = ("none", "compensate", "distill", "compensate+distill")
-LAYERS = ("latent", "freeze")
 
 
 @torch.no_grad()
@@ -130,17 +127,28 @@ class LatentReplay(ClientPlugin):
         replay_layer: str = "latent",
         seed: int = 0,
     ):
-        if schedule not in SCHEDULES or replay not in REPLAYS or drift not in DRIFTS:
-            raise ValueError(f"schedule {schedule!r} / replay {replay!r} / drift {drift!r}")
-        if replay_layer not in LAYERS:
-            raise ValueError(f"replay layer {replay_layer!r}")
-        if replay_layer == "freeze" and (
-            not train_blocks or schedule != "joint" or "compensate" in drift
-        ):
-            raise ValueError(
-                "replay at the freeze point needs train_blocks >= 1, the joint schedule and "
-                "no compensation"
-            )
+        # The same checks as the config's (continual.lgr.*), for a plugin built directly.
+        LGRSettings(
+            schedule=schedule,
+            replay=replay,
+            hidden=hidden,
+            latent=latent,
+            epochs=epochs,
+            patience=patience,
+            holdout=holdout,
+            batch_size=batch_size,
+            lr=lr,
+            beta=beta,
+            sampler=sampler,
+            lr_root=lr_root,
+            root_epochs=root_epochs,
+            replay_ratio=replay_ratio,
+            drift=drift,
+            compensate_ridge=compensate_ridge,
+            distill_weight=distill_weight,
+            train_blocks=train_blocks,
+            replay_layer=replay_layer,
+        )
         self.replay_layer = replay_layer
         self.schedule, self.replay = schedule, replay
         self.compensate, self.distill = "compensate" in drift, "distill" in drift
@@ -171,6 +179,12 @@ class LatentReplay(ClientPlugin):
         self._frozen: list[nn.Module] = []  # blocks kept as they are this round
         self._latents: torch.Tensor | None = None  # the root's latents of the batch (distill)
         self._shape: tuple[int, ...] | None = None  # freeze: one scene's replayed activations
+
+    @classmethod
+    def from_settings(cls, settings: LGRSettings, continual, seed: int) -> LatentReplay:
+        kept = {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)}
+        del kept["freeze_root_bn"]  # FrozenRootStatistics' (fedlgr.continual)
+        return cls(**kept, seed=seed)
 
     @property
     def replaying(self) -> bool:

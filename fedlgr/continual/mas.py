@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from fedlgr.continual.penalty import QuadraticPenalty, gradient_importance, snapshot
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.client.plugins import LocalContext
 
 
 def output_norm_importance(
@@ -28,6 +28,10 @@ class MAS(QuadraticPenalty):
     def __init__(self, lam: float, max_batches: int | None = None):
         super().__init__(lam)
         self.max_batches = max_batches
+
+    @classmethod
+    def from_settings(cls, settings, continual, seed: int) -> MAS:
+        return cls(settings.lambda_, continual.importance_batches)
 
     def on_task_end(self, ctx: LocalContext) -> None:
         new = output_norm_importance(ctx.model, ctx.plain_batches(), self.max_batches)

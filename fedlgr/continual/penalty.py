@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable
 import torch
 from torch import nn
 
-from fedlgr.federated.plugins import ClientPlugin
+from fedlgr.federated.client.plugins import ClientPlugin
 
 Tensors = dict[str, torch.Tensor]
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
 
 
 class NaiveRehearsal(ClientPlugin):
@@ -23,6 +23,10 @@ class NaiveRehearsal(ClientPlugin):
         self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)
         self.by_task: dict[int, np.ndarray] = {}  # task position in the schedule -> scenes
+
+    @classmethod
+    def from_settings(cls, settings, continual, seed: int) -> NaiveRehearsal:
+        return cls(settings.memory, settings.replay_ratio, seed)
 
     @property
     def memory(self) -> np.ndarray:

@@ -1,34 +1,27 @@
 """The training schedule: which task each round trains, and where tasks begin and end.
 
 Plain FL is one task, "all", of ``federated.rounds`` rounds; FCL trains the tasks of
-``continual.tasks`` in order, ``continual.rounds_per_task`` rounds each. The round loop
-walks these steps: task boundaries are read from the schedule, never worked out from
-round numbers.
+``continual.tasks`` in order, ``continual.rounds_per_task`` rounds each. Each step is the
+round's :class:`~fedlgr.federated.messages.RoundPlan`, the plan the server sends the
+clients; the round loop walks these steps: task boundaries are read from the schedule,
+never worked out from round numbers.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from typing import overload
 
 from fedlgr.config import ExperimentConfig
+from fedlgr.federated.messages import RoundPlan
 
 ALL = "all"  # the single task of plain FL
 
 
-@dataclass(frozen=True)
-class Step:
-    round: int  # 1-based, over the whole run
-    task: int  # position of the task in the schedule
-    task_name: str
-    first_of_task: bool
-    last_of_task: bool
-
-
-class Schedule(Sequence[Step]):
+class Schedule(Sequence[RoundPlan]):
     """The run's steps, made on demand: a run of a billion rounds holds no billion
-    ``Step`` objects (``len`` and indexing are arithmetic)."""
+    ``RoundPlan`` objects (``len`` and indexing are arithmetic). ``tasks[plan.task]`` is
+    a step's task name."""
 
     def __init__(self, tasks: list[str], rounds_per_task: int, task_ends: bool = True):
         self.tasks, self.per_task, self.task_ends = tasks, rounds_per_task, task_ends
@@ -36,14 +29,14 @@ class Schedule(Sequence[Step]):
     def __len__(self) -> int:
         return len(self.tasks) * self.per_task
 
-    def after(self, done: int) -> Iterator[Step]:
+    def after(self, done: int) -> Iterator[RoundPlan]:
         """The steps after the first ``done``, one at a time."""
         return (self[i] for i in range(done, len(self)))
 
     @overload
-    def __getitem__(self, index: int) -> Step: ...
+    def __getitem__(self, index: int) -> RoundPlan: ...
     @overload
-    def __getitem__(self, index: slice) -> list[Step]: ...
+    def __getitem__(self, index: slice) -> list[RoundPlan]: ...
     def __getitem__(self, index):
         if isinstance(index, slice):
             return [self[i] for i in range(*index.indices(len(self)))]
@@ -53,7 +46,7 @@ class Schedule(Sequence[Step]):
             raise IndexError(index)
         k, i = divmod(index, self.per_task)
         last = self.task_ends and i == self.per_task - 1  # plain FL has no task end
-        return Step(index + 1, k, self.tasks[k], i == 0, last)
+        return RoundPlan(index + 1, k, i == 0, last)
 
 
 def schedule(config: ExperimentConfig) -> Schedule:

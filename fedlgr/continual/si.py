@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from fedlgr.continual.penalty import QuadraticPenalty, snapshot
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.client.plugins import LocalContext
 
 
 class SI(QuadraticPenalty):
@@ -25,6 +25,10 @@ class SI(QuadraticPenalty):
         self.start: dict[str, torch.Tensor] = {}
         self._before: dict[str, torch.Tensor] = {}
         self._grads: dict[str, torch.Tensor] = {}
+
+    @classmethod
+    def from_settings(cls, settings, continual, seed: int) -> SI:
+        return cls(settings.c, settings.xi)
 
     def on_task_start(self, ctx: LocalContext) -> None:
         self.start = snapshot(ctx.model)

@@ -11,8 +11,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from fedlgr.tracking.metrics import RegressionScores, regression_scores
-
 
 @dataclass
 class EvalSet:
@@ -112,14 +110,3 @@ def predict_tops(
 
 def _split(inputs: torch.Tensor, batch_size: int) -> list[torch.Tensor]:
     return [inputs[i : i + batch_size] for i in range(0, len(inputs), batch_size)]
-
-
-def evaluate(
-    model: nn.Module,
-    inputs: torch.Tensor,
-    targets: torch.Tensor,
-    batch_size: int,
-    autocast=contextlib.nullcontext,
-    batch_compat: bool = False,
-) -> RegressionScores:
-    return regression_scores(predict(model, inputs, batch_size, autocast), targets, batch_compat)

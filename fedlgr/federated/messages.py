@@ -7,7 +7,7 @@ its shared tensors, its sample count and what the training cost. **Evaluate**: t
 sends the new global tensors; each client takes them, ends the task at a task's last
 round (importance, memories, generators) and reports its scores on its test scenes.
 
-In one process (``fedlgr.federated.orchestrator``) these objects are passed by
+In one process (``fedlgr.federated.in_process``) these objects are passed by
 reference; in Fabric's multi-process mode the same objects are built in every process
 and the server's sums travel as one ``all_reduce``; on Flower
 (``fedlgr.deploy.flower``) they are encoded into Flower messages.
@@ -27,9 +27,10 @@ Weights = dict[str, torch.Tensor]
 
 @dataclass(frozen=True)
 class RoundPlan:
-    """The server's instructions for one round."""
+    """The server's instructions for one round: one step of the run's schedule
+    (:func:`fedlgr.continual.schedule.schedule`)."""
 
-    round: int
+    round: int  # 1-based, over the whole run
     task: int = 0  # position of the task in the schedule
     first_of_task: bool = False
     last_of_task: bool = False

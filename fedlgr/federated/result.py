@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 from fedlgr.config import ExperimentConfig
 from fedlgr.console import table
-from fedlgr.federated.rounds import RoundLog
+from fedlgr.federated.records import RoundLog
 
 
 @dataclass
@@ -65,7 +65,8 @@ class ExperimentResult:
             # The paper's "CPU per client per round" (Tables III/IV): the CPU of the process
             # that ran the server - its aggregation and, for full-model methods, its
             # evaluation of the global model - divided by clients x rounds; the clients'
-            # own training was not in it (README, "Table III and IV: what the paper measured").
+            # own training was not in it (docs/methods.md, "Table III and IV: what the
+            # paper measured").
             out["mean/cost/paper_cpu_s"] = cpu / (len(self.rounds[0].table) * len(server))
         return out
 
@@ -103,7 +104,7 @@ class ExperimentResult:
 
     def latent_drift(self) -> str:
         """FedLGR: the root's latent drift after each round of a later task, mean over
-        clients (README, "How FedLGR works here")."""
+        clients (docs/fedlgr.md, "How FedLGR works here")."""
         names = {
             "drift": "current scenes",
             "drift_residual": "after the map",
@@ -128,7 +129,7 @@ class ExperimentResult:
         return "latent drift since the task's start (FD, 0 = none):\n" + table(headers, rows)
 
     def replay_fidelity(self) -> str:
-        """FedLGR: the replay's fidelity at each task end, mean over clients (README)."""
+        """FedLGR: the replay's fidelity at each task end, mean over clients (docs/fedlgr.md)."""
         names = {"fd_latent": "FD latents", "recon_mse": "recon MSE (held-out)"}
         names |= {"fd_labels": "FD labeller outputs", "vae_epochs": "VAE epochs kept"}
         present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]

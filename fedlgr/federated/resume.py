@@ -21,8 +21,8 @@ import torch
 from fedlgr import __version__
 from fedlgr.config import ExperimentConfig, flatten
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.orchestrator import Orchestrator
-from fedlgr.federated.rounds import RoundLog
+from fedlgr.federated.in_process import Orchestrator
+from fedlgr.federated.records import RoundLog
 from fedlgr.tracking import checkpoint as ckpt
 from fedlgr.tracking.checkpoint import to_device
 

@@ -6,7 +6,7 @@
 * ``Top``: BatchNorm1d -> Linear(., 32) -> BatchNorm1d(32) -> Linear(32, 8), linear
   activations, one output per action.
 * ``Scholar``: root + top, with separate parameter groups (root and top learning rates);
-  it is trained on the MSE averaged over the 8 actions (``fedlgr.federated.client``).
+  it is trained on the MSE averaged over the 8 actions (``fedlgr.federated.client.training``).
 
 Parameter names start with ``root.`` or ``top.``: that prefix is what FedRoot shares.
 """

@@ -24,14 +24,15 @@ import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from fedlgr.config import FCL_METHODS, METHODS
+from fedlgr.config import FCL_METHODS, METHODS, short_setting
+from fedlgr.methods import in_paper
 from fedlgr.report.runs import RunRecord
 
 PAPER_CLIENTS = (2, 10)
 BLOCKS = ((False, "W/O augmentation"), (True, "W/ augmentation"))
 SCORES = (("loss", "Loss", True), ("rmse", "RMSE", True), ("pcc", "PCC", False))
 # The server process's CPU over clients x rounds: what the paper's Tables III/IV measured
-# (README, "Table III and IV: what the paper measured"); a row only where runs have it.
+# (docs/methods.md, "Table III and IV: what the paper measured"); a row only where runs have it.
 PAPER_CPU = "mean/cost/paper_cpu_s"
 # Row label, run-level metric (per client per round, mean over rounds), scale, decimals.
 COSTS = (
@@ -61,7 +62,7 @@ class Cell:
     mark: str = ""  # "best", "second" or ""
     reduction: float | None = None  # % saved against the full-model counterpart
     std: float | None = None  # sample standard deviation over the runs (2 runs or more)
-    won: str = ""  # a sweep's cell: the swept values of the best trial, e.g. "ewc_lambda=1000"
+    won: str = ""  # a sweep's cell: the swept values of the best trial, e.g. "ewc.lambda_=1000"
 
     def shown(self) -> str:
         return "" if self.value is None else f"{self.value:.{self.decimals}f}"
@@ -139,10 +140,11 @@ def reduction_percent(full: float | None, root: float | None) -> float | None:
 
 
 def method_order(benchmark: str, records: Sequence[RunRecord]) -> list[str]:
-    """The table's rows: the paper's methods in ``fedlgr.config`` order (Table II without
-    the -FT baselines), then -FT baselines and unknown methods that have runs."""
+    """The table's rows: the paper's methods in ``fedlgr.methods`` order (Table II without
+    the -FT baselines), then -FT baselines, methods the paper has not (``in_paper``) and
+    unknown methods that have runs."""
     known = list(METHODS if benchmark == "FL" else FCL_METHODS)
-    paper = [m for m in known if not m.endswith("-FT")]
+    paper = [m for m in known if not m.endswith("-FT") and in_paper(m)]
     with_runs = {r.method for r in records if r.benchmark == benchmark}
     extra = [m for m in known if m not in paper and m in with_runs]
     return [*paper, *extra, *sorted(with_runs - set(known))]
@@ -192,7 +194,7 @@ def mean_cell(runs: Sequence[RunRecord], metric: str, decimals: int, scale: floa
     mean = sum(values) / len(values) if values else None
     std = statistics.stdev(values) if len(values) > 1 else None
     swept = runs[0].swept if runs and all(r.swept == runs[0].swept for r in runs) else {}
-    won = " ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in swept.items())
+    won = " ".join(f"{short_setting(k)}={v}" for k, v in swept.items())
     return Cell(mean, decimals, len(values), std=std, won=won)
 
 

@@ -112,21 +112,15 @@ def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) ->
 def run_metrics(config: ExperimentConfig) -> set[str]:
     """The metric names a run of ``config`` can end with - the names a sweep's objective
     reads from :meth:`ExperimentResult.final_metrics`: the last round's fields (the
-    round's record schema, :func:`fedlgr.federated.rounds.make_fields`, the plugins'
+    round's record schema, :func:`fedlgr.federated.records.make_fields`, the plugins'
     fields too) as means and per client, the FCL "after task k" figures
     (:class:`fedlgr.continual.forgetting.ForgettingTracker`) and the cost means. Built
     from the config alone: nothing trains."""
-    from fedlgr.continual import continual_plugins
     from fedlgr.continual.forgetting import METRICS
     from fedlgr.continual.schedule import ALL
-    from fedlgr.federated.rounds import COST_FIELDS, client_key, make_fields, plugin_fields
-    from fedlgr.federated.strategies import STRATEGIES
+    from fedlgr.federated.records import COST_FIELDS, client_key, make_fields, method_fields
 
     tasks = list(config.continual.tasks)
-    plugins = [
-        *STRATEGIES[config.federated.strategy](config.federated).client_plugins(0),
-        *continual_plugins(config.continual, 0, config.seed),
-    ]
     names = {"round/seconds", "round/missing_clients"}
     # The server's own cost (in-process runtimes), and its evaluation where it runs one.
     server = ("cost/server_cpu_s", "cost/server_wall_s")
@@ -134,7 +128,7 @@ def run_metrics(config: ExperimentConfig) -> set[str]:
     if config.federated.server_evaluates:
         names.update(f"server/test/{m}" for m in METRICS)
         names.update(f"server/task/{t}/{m}" for t in tasks for m in METRICS)
-    for field in make_fields(tasks or [ALL]) + plugin_fields(plugins):
+    for field in make_fields(tasks or [ALL]) + method_fields(config):
         names.add(field.key)
         names.update(client_key(field.key, c) for c in range(config.data.clients))
     for k in range(len(tasks)):

@@ -8,7 +8,7 @@ A sweep file (``sweeps/NAME.yaml``)::
     objective: {metric: test/rmse, direction: minimize}
     space:
       method: [FedAvg-EWC, FedRoot-EWC]           # a list: a grid of values
-      continual.ewc_lambda: [1, 10, 100, 1000]
+      continual.ewc.lambda_: [1, 10, 100, 1000]
 
 Each key of ``space`` is a config key (``key=value`` as on the command line); the special
 key ``config`` chooses the base config file itself (for grids over the paper's presets). A

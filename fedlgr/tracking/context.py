@@ -33,7 +33,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from fedlgr.config import ExperimentConfig, flatten
+from fedlgr.config import ExperimentConfig, flatten, short_setting
 
 # Paths that belong to this machine, not to the experiment.
 LOCAL_PATHS = frozenset({"data.path", "data.cache_dir", "tracking.uri", "tracking.checkpoint_dir"})
@@ -52,11 +52,11 @@ def run_name(config: ExperimentConfig) -> str:
 
 def trial_config(config: ExperimentConfig, params: Mapping[str, Any]) -> ExperimentConfig:
     """``config`` named after its method and swept values, short enough for MLflow's runs
-    table: ``FedLGR lr_root=1e-05`` (a setting by its last part, unless two swept settings
-    share it; a swept method by its name alone). The trial runs under its sweep's parent
-    run, which holds what all trials share."""
+    table: ``FedLGR lr_root=1e-05 lgr.replay=stored`` (a setting without its section,
+    unless two swept settings share that; a swept method by its name alone). The trial
+    runs under its sweep's parent run, which holds what all trials share."""
     swept = {k: v for k, v in params.items() if k != "method"}
-    last = [name.rsplit(".", 1)[-1] for name in swept]
+    last = [short_setting(name) for name in swept]
     shown = " ".join(
         f"{short if last.count(short) == 1 else name}={value}"
         for (name, value), short in zip(swept.items(), last, strict=True)

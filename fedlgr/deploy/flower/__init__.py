@@ -7,7 +7,7 @@ robot, and ``flwr run`` of the app in ``APP_DIR``.
   SuperNode's machine.
 * ``wire.py`` - the round messages as Flower records.
 
-README "Deployment on robots" has the commands.
+docs/deployment.md has the commands.
 """
 
 from pathlib import Path

@@ -1,7 +1,7 @@
 """A robot's client between Flower messages: its data, model and private state.
 
 :func:`handle` answers one message (``train`` or ``evaluate``) with
-:class:`fedlgr.federated.client_side.ClientSide`, the very code the in-process
+:class:`fedlgr.federated.client.side.ClientSide`, the very code the in-process
 orchestrator runs. It runs inside the robot service (:mod:`.service`), a long-lived
 process per robot, so torch, the data and the models are loaded once, not per message.
 
@@ -61,9 +61,9 @@ class Robot:
 
         from fedlgr.data.dataset import load_scenes
         from fedlgr.data.splits import make_split
-        from fedlgr.federated.client_side import ClientSide
+        from fedlgr.federated.client.side import ClientSide
         from fedlgr.federated.experiment import make_fabric
-        from fedlgr.federated.orchestrator import torch_threads
+        from fedlgr.runtime import torch_threads
 
         if not 0 <= client < config.data.clients:
             raise FedlgrError(

@@ -2,12 +2,12 @@
 
 ``flwr run`` starts it on the SuperLink's machine with the app's run config: ``config``
 (a fedlgr config file on that machine; empty: the defaults) and ``overrides``
-(``key=value`` separated by spaces). It runs the schedule with the same round loop as
-``fedlgr run`` (:func:`fedlgr.federated.experiment.drive`) - the same MLflow keys,
-artifacts and summary, plus the tag ``runtime=flower`` - around :class:`FlowerRounds`,
-which speaks to the robots with :mod:`fedlgr.deploy.flower.wire` messages and aggregates
-with :class:`fedlgr.federated.server_side.ServerSide`, the very code of the in-process
-runs.
+(``key=value`` separated by spaces). It runs the schedule with the same round loop and
+recorder as ``fedlgr run`` (:func:`fedlgr.federated.loop.run_rounds`) - the same MLflow
+keys, artifacts and summary, plus the tag ``runtime=flower`` - over :class:`FlowerRounds`
+(a :class:`fedlgr.federated.loop.Rounds`), which speaks to the robots with
+:mod:`fedlgr.deploy.flower.wire` messages and aggregates with
+:class:`fedlgr.federated.server.side.ServerSide`, the very code of the in-process runs.
 
 Exchanges: with ``deploy.evaluate=with_next_round`` (the default) a round costs one
 exchange - each robot evaluates the new global tensors at the start of the next round's
@@ -35,6 +35,7 @@ import functools
 import math
 import shlex
 import time
+from pathlib import Path
 
 from flwr.app import Context, Message, RecordDict
 from flwr.serverapp import Grid, ServerApp
@@ -44,10 +45,11 @@ from fedlgr.continual.schedule import schedule
 from fedlgr.deploy.flower import wire
 from fedlgr.deploy.roster import roster_of
 from fedlgr.errors import FedlgrError
+from fedlgr.federated.loop import EpochProgress
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainRes
-from fedlgr.federated.rounds import RoundLog
-from fedlgr.federated.server_eval import serve_round, server_evaluation
-from fedlgr.federated.server_side import ServerSide
+from fedlgr.federated.records import RoundLog
+from fedlgr.federated.server.evaluate import serve_round, server_evaluation
+from fedlgr.federated.server.side import ServerSide
 
 app = ServerApp()
 POLL_S = 0.2  # how often the server asks the SuperLink for replies
@@ -60,9 +62,8 @@ def quorum(clients: int) -> int:
 
 
 class FlowerRounds:
-    """``run_round`` for :func:`drive`, with the clients on the robots."""
-
-    clients = ()  # no client lives in this process
+    """The rounds of :func:`fedlgr.federated.loop.run_rounds`, with the clients on the
+    robots."""
 
     def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
         self.grid, self.config, self.echo = grid, config, echo
@@ -122,7 +123,8 @@ class FlowerRounds:
         self.tag("fedlgr.refused", "; ".join(f"node {n}: {w}" for n, w in self.refused.items()))
 
     def started(self, run_id: str) -> None:
-        """:class:`Hooks` ``on_start``: the MLflow run exists; tags said before go to it."""
+        """``on_start`` (:class:`fedlgr.tracking.recorder.Hooks`): the MLflow run exists;
+        tags said before go to it."""
         self.run_id = run_id
         for key, value in self.tags.items():
             self.tag(key, value)
@@ -209,21 +211,20 @@ class FlowerRounds:
         )
         return out
 
-    def run_round(
-        self,
-        round_: int,
-        task: int = 0,
-        first_of_task: bool = False,
-        last_of_task: bool = False,
-        progress=None,
-    ) -> RoundLog:
+    @property
+    def local_clients(self) -> int:
+        """No client trains in this process: they are on the robots."""
+        return 0
+
+    def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
         """One round: its training (or the uploads the previous round's exchange brought
         back), aggregation, and its evaluation - with ``deploy.evaluate=with_next_round``
-        in the same exchange as the next round's training."""
+        in the same exchange as the next round's training. ``progress`` is never called
+        (no client trains here)."""
         if not self.joined:
             self.wait_for_robots()
         start = time.perf_counter()
-        plan = RoundPlan(round_, task, first_of_task, last_of_task)
+        round_, task = plan.round, plan.task
         if self.pending is not None and self.pending[0] == plan:
             _, trained, down, failures = self.pending
         else:
@@ -246,10 +247,10 @@ class FlowerRounds:
             lambda: self.server.aggregate(trained[c][1] for c in sorted(trained)),
         )
         evaluate = EvaluateIns(plan, self.server.global_weights)
-        after = self.next_plan(round_)
+        following_plan = self.next_plan(round_)
         contents, received = {}, {}
         serving = {node: client for client, (node, _, _) in trained.items()}
-        if after is None:
+        if following_plan is None:
             kind = "evaluate"
             for node in serving:
                 contents[node] = wire.encode_evaluate_ins(
@@ -257,7 +258,6 @@ class FlowerRounds:
                 )
         else:
             kind = "train"
-            following_plan = RoundPlan(*after)
             for node in sorted({*self.online(), *(n for n in serving if n in self.slots)}):
                 slot = self.slots.get(node)
                 if node in serving:  # evaluates this round's tensors, then trains on them
@@ -270,7 +270,7 @@ class FlowerRounds:
             received[node] = wire.payload_bytes(content)
         rows, following = {}, {}
         self.holders = set()
-        label = kind if after is None else f"evaluate + round {round_ + 1} train"
+        label = kind if following_plan is None else f"evaluate + round {round_ + 1} train"
         for node, reply in self.exchange(kind, contents, round_, label).items():
             if kind == "evaluate":
                 res = wire.decode_evaluate_res(reply.content)
@@ -281,7 +281,7 @@ class FlowerRounds:
                 self.holders.add(node)
                 _, upload, up = trained[res.client]
                 rows[res.client] = self.server.row(upload, res, up, down[node] + received[node])
-        if after is not None:
+        if following_plan is not None:
             # what the next round's rows count as downloaded: nothing more for a robot that
             # evaluated here (the tensors served both), the tensors for one that missed it
             following_down = {
@@ -301,13 +301,12 @@ class FlowerRounds:
         log.server, log.initial = server, initial
         return log
 
-    def next_plan(self, round_: int) -> tuple[int, int, bool, bool] | None:
+    def next_plan(self, round_: int) -> RoundPlan | None:
         """The plan of the round after ``round_`` where its training goes with this
         round's evaluation (``deploy.evaluate=with_next_round``), else None."""
         if self.config.deploy.evaluate != "with_next_round" or round_ >= len(self.steps):
             return None
-        step = self.steps[round_]  # steps are 1-based rounds: this is round_ + 1
-        return step.round, step.task, step.first_of_task, step.last_of_task
+        return self.steps[round_]  # steps are 1-based rounds: this is round_ + 1
 
     def train(self, plan: RoundPlan):
         """A training exchange of its own (round 1, ``deploy.evaluate=separate``): the
@@ -374,8 +373,16 @@ class FlowerRounds:
             plan = RoundPlan(*pending["plan"])
             self.pending = (plan, trained, dict(pending["down"]), dict(pending["failures"]))
 
-    def save(self, folder, rounds: list[RoundLog], run_id, elapsed, keep, digest=""):
-        """``drive``'s checkpoint: what ``fedlgr run`` writes, with this server's state and
+    def save(
+        self,
+        folder: Path | None,
+        rounds: list[RoundLog],
+        run_id: str | None,
+        elapsed: float,
+        keep: int,
+        digest: str = "",
+    ) -> Path | None:
+        """The run's checkpoint: what ``fedlgr run`` writes, with this server's state and
         no clients (they are on the robots)."""
         from fedlgr.federated.resume import checkpoint_state
         from fedlgr.tracking import checkpoint as ckpt
@@ -441,9 +448,8 @@ def config_of(context: Context) -> ExperimentConfig:
 
 @app.main()
 def main(grid: Grid, context: Context) -> None:
-    from pathlib import Path
-
-    from fedlgr.federated.experiment import Hooks, Resumed, drive
+    from fedlgr.federated.loop import run_rounds
+    from fedlgr.tracking.recorder import Hooks, Recorder, Resumed
 
     echo = functools.partial(print, flush=True)
     config = config_of(context)
@@ -469,13 +475,11 @@ def main(grid: Grid, context: Context) -> None:
             run_id, rounds.restore(state), state["elapsed"], folder, state["data_digest"]
         )
     tags = {"runtime": "flower", "flower.run_id": str(context.run_id)}
-    hooks = Hooks(echo, on_start=rounds.started)
-    drive(
-        rounds,
+    recorder = Recorder(
         config,
-        hooks,
+        Hooks(echo, on_start=rounds.started),
         tags=tags,
         what="robots behind a Flower SuperLink",
         resumed=resumed,
-        save=rounds.save,
     )
+    run_rounds(rounds, config, recorder)

@@ -1,17 +1,22 @@
-"""Aggregation strategies by config name (``federated.strategy``)."""
+"""Aggregation strategies (``federated.strategy``), one module each, registered in
+:data:`fedlgr.methods.STRATEGIES`. A strategy has a server half (which tensors are
+exchanged, the server update) and a client half (plugins in local training, e.g.
+FedProx's proximal term), so this package sits beside ``client/`` and ``server/``."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 from fedlgr.federated.strategies.base import FedAvg, Strategy
-from fedlgr.federated.strategies.fedbn import FedBN
-from fedlgr.federated.strategies.feddistill import FedDistill
-from fedlgr.federated.strategies.fedopt import FedOpt
-from fedlgr.federated.strategies.fedprox import FedProx
+from fedlgr.methods import STRATEGIES
 
-STRATEGIES: dict[str, type[Strategy]] = {
-    "avg": FedAvg,
-    "bn": FedBN,
-    "prox": FedProx,
-    "opt": FedOpt,
-    "distill": FedDistill,
-}
+if TYPE_CHECKING:
+    from fedlgr.config import FederatedConfig
 
-__all__ = ["STRATEGIES", "FedAvg", "FedBN", "FedDistill", "FedOpt", "FedProx", "Strategy"]
+
+def build_strategy(config: FederatedConfig) -> Strategy:
+    """The strategy ``federated.strategy`` names, with its settings."""
+    return STRATEGIES[config.strategy].load()(config)
+
+
+__all__ = ["FedAvg", "Strategy", "build_strategy"]

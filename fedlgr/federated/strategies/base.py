@@ -4,32 +4,36 @@ A strategy says which of the scope's tensors are exchanged (``shares``), what ea
 adds to its local training (``client_plugins``) and how the server turns the clients'
 sample-weighted mean into the next global weights (``server_update``). What is shared at
 all - the whole model or the root only - is the orthogonal *scope*
-(``fedlgr.federated.scope``): FedRoot x {Avg, BN, Prox, Opt, Distill} are combinations,
-not ten classes. Subclasses override only what differs (Flower's ``Strategy``).
+(``fedlgr.federated.scope``): FedRoot x every strategy are combinations, not a class
+each. Subclasses override only what differs (Flower's ``Strategy``).
 """
 
 from __future__ import annotations
 
-import torch
-
 from fedlgr.config import FederatedConfig
-from fedlgr.federated.plugins import ClientPlugin
-
-Weights = dict[str, torch.Tensor]
+from fedlgr.federated.client.plugins import ClientPlugin
+from fedlgr.federated.messages import Weights
 
 
 class Strategy:
     """FedAvg: every tensor in scope is shared; the new global is the mean of the
     clients' tensors weighted by their number of training samples."""
 
-    name = "Avg"
-
     def __init__(self, config: FederatedConfig):
         self.config = config
+        self.settings = config.settings  # federated.<strategy>: FedProx's mu, FedOpt's lr, ...
+
+    def bind(self, shared: list[str], parameters: set[str]) -> None:
+        """Called once by the server with the model's shared tensors' names and those that
+        are trainable parameters (not BatchNorm statistics): a server optimiser steps the
+        parameters only (FedOpt)."""
 
     def shares(self, key: str, batchnorm: bool) -> bool:
         """Is this in-scope tensor exchanged? ``batchnorm``: it belongs to a BatchNorm layer."""
         return True
+
+    # The classes of what ``client_plugins`` returns (the server reads what they measure).
+    client_plugin_types: tuple[type[ClientPlugin], ...] = ()
 
     def client_plugins(self, client: int) -> list[ClientPlugin]:
         """What this strategy adds to a client's local training (one list per client)."""

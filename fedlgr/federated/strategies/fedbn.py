@@ -6,7 +6,5 @@ from fedlgr.federated.strategies.base import Strategy
 
 
 class FedBN(Strategy):
-    name = "BN"
-
     def shares(self, key: str, batchnorm: bool) -> bool:
         return not batchnorm

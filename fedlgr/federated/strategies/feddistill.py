@@ -4,7 +4,7 @@ Each client keeps a teacher - a model of the same architecture trained only on t
 client's own shard and never sent anywhere - and trains it alongside the student, batch
 by batch. The student, which is what gets aggregated, learns from the labels and from the
 teacher's outputs: loss = (1 - a) MSE(student, y) + a MSE(student, teacher), a =
-``federated.distill_weight``. (The paper's reference code trains the teacher centrally;
+``federated.distill.weight``. (The paper's reference code trains the teacher centrally;
 here each client's teacher sees its own data only.)
 """
 
@@ -15,7 +15,7 @@ import copy
 import torch
 from torch import nn
 
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
 from fedlgr.federated.strategies.base import Strategy
 
 
@@ -66,7 +66,7 @@ class Teacher(ClientPlugin):
 
 
 class FedDistill(Strategy):
-    name = "Distill"
+    client_plugin_types = (Teacher,)
 
     def client_plugins(self, client: int) -> list[ClientPlugin]:
-        return [Teacher(self.config.distill_weight)]
+        return [Teacher(self.settings.weight)]

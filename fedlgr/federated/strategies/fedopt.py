@@ -15,17 +15,18 @@ from fedlgr.federated.strategies.base import Strategy, Weights
 
 
 class FedOpt(Strategy):
-    name = "Opt"
-
     def __init__(self, config):
         super().__init__(config)
         self.m: Weights = {}
         self.v: Weights = {}
-        self.trainable: set[str] = set()  # keys the orchestrator marks as parameters
+        self.trainable: set[str] = set()  # the shared parameters (bind)
+
+    def bind(self, shared: list[str], parameters: set[str]) -> None:
+        self.trainable = parameters & set(shared)
 
     def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
-        b1, b2 = self.config.server_betas
-        eta, tau = self.config.server_lr, self.config.server_tau
+        b1, b2 = self.settings.betas
+        eta, tau = self.settings.lr, self.settings.tau
         out = {}
         for key, avg in mean.items():
             if key not in self.trainable:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
 from fedlgr.federated.strategies.base import Strategy
 
 
@@ -37,7 +37,7 @@ class ProximalTerm(ClientPlugin):
 
 
 class FedProx(Strategy):
-    name = "Prox"
+    client_plugin_types = (ProximalTerm,)
 
     def client_plugins(self, client: int) -> list[ClientPlugin]:
-        return [ProximalTerm(self.config.prox_mu)]
+        return [ProximalTerm(self.settings.mu)]

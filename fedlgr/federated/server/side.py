@@ -17,9 +17,7 @@ import numpy as np
 import torch
 
 from fedlgr.config import ExperimentConfig
-from fedlgr.continual import continual_plugins
 from fedlgr.continual.schedule import ALL
-from fedlgr.federated.aggregate import finish_mean, weighted_sum
 from fedlgr.federated.messages import (
     EvaluateRes,
     RoundPlan,
@@ -29,9 +27,10 @@ from fedlgr.federated.messages import (
     check_shared,
     nbytes,
 )
-from fedlgr.federated.rounds import RoundLog, make_fields, plugin_fields
+from fedlgr.federated.records import RoundLog, make_fields, method_fields
 from fedlgr.federated.scope import SCOPE_PREFIX, initial_scholar, parameter_keys, shared_keys
-from fedlgr.federated.strategies import STRATEGIES, FedOpt
+from fedlgr.federated.server.aggregate import finish_mean, weighted_sum
+from fedlgr.federated.strategies import build_strategy
 from fedlgr.tracking.checkpoint import to_device
 
 
@@ -40,21 +39,15 @@ class ServerSide:
         cfg = config
         self.config = config
         self.tasks = list(cfg.continual.tasks) or [ALL]
-        self.strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)
+        self.strategy = build_strategy(cfg.federated)
         initial = initial_scholar(cfg)
         self.keys = shared_keys(initial, cfg.federated.scope, self.strategy)
         self.prefix = SCOPE_PREFIX[cfg.federated.scope]
-        if isinstance(self.strategy, FedOpt):
-            self.strategy.trainable = parameter_keys(initial) & set(self.keys)
+        self.strategy.bind(self.keys, parameter_keys(initial))
         state = initial.state_dict()
         self.global_weights: Weights = {k: state[k].detach().clone() for k in self.keys}
         self.initial_bytes = nbytes(self.global_weights)
-        # Every client has the same kinds of plugin: client 0's name the plugin fields.
-        plugins = [
-            *self.strategy.client_plugins(0),
-            *continual_plugins(cfg.continual, 0, cfg.seed),
-        ]
-        self.plugin_fields = plugin_fields(plugins)
+        self.plugin_fields = method_fields(cfg)
         self.fields = make_fields(self.tasks) + self.plugin_fields
 
     def to(self, device: torch.device) -> ServerSide:

@@ -12,13 +12,12 @@ import math
 import threading
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 from torch import nn
 
 from fedlgr.data.augment import SceneBatches
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
 
 
 @dataclass
@@ -39,10 +38,6 @@ class Client:
     @property
     def batches(self) -> SceneBatches:
         return self.data[self.task]
-
-    @property
-    def positions(self) -> np.ndarray:
-        return self.batches.positions.numpy()
 
     @property
     def n_samples(self) -> int:

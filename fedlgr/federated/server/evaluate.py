@@ -3,7 +3,7 @@ model scored on the test scenes by the server, every round and once before round
 
 The standard FL feature (Flower's ``evaluate_fn``) that the paper's full-model baselines
 had and its FedRoot variants did not (there is no global top): the authors' Table III/IV
-CPU figures include it (README, "Table III and IV: what the paper measured"). Scores are
+CPU figures include it (docs/methods.md, "Table III and IV: what the paper measured"). Scores are
 logged as ``server/test/{loss,rmse,pcc}`` - over every task seen so far - and, with
 tasks, ``server/task/<name>/...`` per task. A shared subset of the model (FedBN keeps its
 batch-norm layers on the clients) is scored with the initial model's other tensors.

@@ -24,8 +24,9 @@ from fedlgr.data.augment import Augment, SceneBatches
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.client import Client, train_locally
-from fedlgr.federated.concurrency import ClientPool, resolve
+from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
+from fedlgr.federated.client.pool import ClientPool, resolve
+from fedlgr.federated.client.training import Client, train_locally
 from fedlgr.federated.evaluation import eval_set, predict, predict_tops
 from fedlgr.federated.messages import (
     EvaluateIns,
@@ -35,9 +36,8 @@ from fedlgr.federated.messages import (
     Weights,
     check_shared,
 )
-from fedlgr.federated.plugins import ClientPlugin, LocalContext
 from fedlgr.federated.scope import SCOPE_PREFIX, initial_scholar, shared_keys
-from fedlgr.federated.strategies import STRATEGIES
+from fedlgr.federated.strategies import build_strategy
 from fedlgr.tracking.metrics import regression_scores
 from fedlgr.tracking.resources import Usage, measure, process_cpu_seconds, share_process_cpu
 
@@ -61,7 +61,7 @@ class ClientSide:
         self.pool = ClientPool(cfg.runtime.workers, torch.get_num_threads(), device)
         self.device, self.autocast = device, autocast
         self.tasks = list(cfg.continual.tasks) or [ALL]
-        strategy = STRATEGIES[cfg.federated.strategy](cfg.federated)  # its client part
+        strategy = build_strategy(cfg.federated)  # its client part
         initial = initial_scholar(cfg).to(device)
         self.keys = shared_keys(initial, cfg.federated.scope, strategy)
         float_keys = {k for k, v in initial.state_dict().items() if torch.is_floating_point(v)}
@@ -103,7 +103,7 @@ class ClientSide:
                 Client(shard.client, model, optimizer, data, plugins, scaler=self._scaler())
             )
         if cfg.runtime.concurrency == "batched":
-            from fedlgr.federated.batched import refuse_plugins  # torch.func: when asked
+            from fedlgr.federated.client.stacked import refuse_plugins  # torch.func: when asked
 
             refuse_plugins(self.clients)  # before any run is started, not at round 1
             if any(c.scaler is not None for c in self.clients):
@@ -219,7 +219,7 @@ class ClientSide:
     def _train_batched(self, plan, progress) -> list[TrainRes]:
         """All clients as one stacked model (``runtime.concurrency=batched``). The one
         measured cost is shared out in proportion to the samples each client trained."""
-        from fedlgr.federated.batched import train_batched
+        from fedlgr.federated.client.stacked import train_batched
 
         cfg = self.config
         ctxs = [self.context(c, plan.round, plan.task) for c in self.clients]

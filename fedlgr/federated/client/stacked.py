@@ -33,12 +33,7 @@ Every client stays its own, and ends as if trained alone by :func:`train_locally
 Only clients without plugins are supported (FedAvg, FedRootAvg, FedBN, FedOpt and the
 FedRoot variants without a continual-learning method): plugin hooks act on one client's
 loop, so a client with plugins is refused with an error that names the setting.
-
-Status: verified on CPU only, by ``tests/test_batched.py`` (same parameters, buffers,
-optimiser state, generator state and losses as sequential training, to float tolerance,
-for image and feature clients, ragged shards included). Its speed has NOT been measured
-on GPU hardware: no device was lent to the task that wrote it, so whether stacking beats
-sequential or threaded clients on a GPU is still open.
+(What has been measured, and on which devices: docs/runtimes.md.)
 """
 
 from __future__ import annotations
@@ -52,8 +47,8 @@ from torch import nn
 from torch.func import functional_call, vmap
 
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.client import Client, LocalStats, round_stats
-from fedlgr.federated.plugins import LocalContext
+from fedlgr.federated.client.plugins import LocalContext
+from fedlgr.federated.client.training import Client, LocalStats, round_stats
 
 
 def train_batched(

@@ -11,7 +11,7 @@ from collections.abc import Iterable
 
 import torch
 
-Weights = dict[str, torch.Tensor]
+from fedlgr.federated.messages import Weights
 
 
 def weighted_sum(uploads: Iterable[tuple[int, Weights]], keys: list[str]) -> tuple[Weights, float]:

@@ -7,34 +7,18 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from .ports import free_port, wait_port
+
 BIN = Path(sys.executable).parent  # flower-superlink starts flower-superexec from PATH
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_port(port: int, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                return
-        except OSError:
-            time.sleep(0.2)
-    raise TimeoutError(f"nothing listens on port {port} after {timeout} s")
-
-
 class Federation:
-    """Started with the commands the README gives (``fedlgr deploy ...``)."""
+    """Started with the commands docs/deployment.md gives (``fedlgr deploy ...``)."""
 
     def __init__(self, folder: Path):
         self.folder = folder

@@ -10,11 +10,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fedlgr.continual.schedule import ALL
 from fedlgr.data.columns import LABEL_SHORT_NAMES
+
+if TYPE_CHECKING:
+    from fedlgr.config import ExperimentConfig
 
 
 @dataclass(frozen=True)
@@ -49,8 +53,19 @@ COST_FIELDS = [
 
 
 def plugin_fields(plugins) -> list[Field]:
-    """What the plugins measure at task ends: ``<plugin>_<name>``, MLflow ``<plugin>/<name>``."""
+    """What the plugins (or their classes) measure: ``<plugin>_<name>``, MLflow
+    ``<plugin>/<name>``."""
     return [Field(f"{p.name}_{m}", f"{p.name}/{m}") for p in plugins for m in p.metric_names]
+
+
+def method_fields(config: ExperimentConfig) -> list[Field]:
+    """What the method's client plugins measure, from their classes (every client has the
+    same kinds): the strategy's and the continual-learning method's."""
+    from fedlgr.continual import continual_plugin_types
+    from fedlgr.methods import STRATEGIES
+
+    strategy = STRATEGIES[config.federated.strategy].load()
+    return plugin_fields([*strategy.client_plugin_types, *continual_plugin_types(config.continual)])
 
 
 def make_fields(tasks: list[str]) -> list[Field]:

@@ -1,8 +1,9 @@
 """The Fabric-based federated round orchestrator (SPEC 4.3): both sides in our processes.
 
-``setup`` -> ``fabric.launch(main)`` -> an explicit round loop. In each round every client
-trains its local model for E epochs on its shard of the current task, uploads the tensors
-its strategy and scope share, the server aggregates (sample-weighted mean, then the
+:class:`Orchestrator` runs the round loop's rounds (a :class:`fedlgr.federated.loop.Rounds`;
+Fabric's set-up and launch: :mod:`fedlgr.federated.experiment`). In each round every
+client trains its local model for E epochs on its shard of the current task, uploads the
+tensors its strategy and scope share, the server aggregates (sample-weighted mean, then the
 strategy's server update), every client downloads the new global tensors, at a task's last
 round ends the task (importance, memories, generators: plugins' ``on_task_end``), and
 evaluates its own model on the shared test set - the scenes of every task seen so far, and
@@ -21,18 +22,19 @@ are per client, so both modes compute the same numbers.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import torch
 
 from fedlgr.config import ExperimentConfig
 from fedlgr.data.dataset import Scenes
 from fedlgr.data.splits import FederatedSplit
-from fedlgr.federated.client_side import ClientSide
+from fedlgr.federated.client.side import ClientSide
+from fedlgr.federated.loop import EpochProgress
 from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainRes, nbytes
-from fedlgr.federated.rounds import RoundLog
-from fedlgr.federated.server_eval import ServerEvaluation, serve_round
-from fedlgr.federated.server_side import ServerSide
-from fedlgr.runtime import default_threads
+from fedlgr.federated.records import RoundLog
+from fedlgr.federated.server.evaluate import ServerEvaluation, serve_round
+from fedlgr.federated.server.side import ServerSide
 from fedlgr.tracking.checkpoint import to_device
 
 
@@ -74,16 +76,17 @@ class Orchestrator:
                 offset += size
         self.server.update(sums, total)
 
-    def run_round(
-        self,
-        round_: int,
-        task: int = 0,
-        first_of_task: bool = False,
-        last_of_task: bool = False,
-        progress=None,
-    ) -> RoundLog:
+    @property
+    def local_clients(self) -> int:
+        """The clients that train in this process (with ``runtime.devices=N``, its share)."""
+        return len(self.clients)
+
+    def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
+        """One round of ``plan``: every client trains, the server aggregates, every client
+        evaluates the new global tensors. ``progress(client, epoch)`` after each local epoch
+        of this process's clients."""
         start = time.perf_counter()
-        plan = RoundPlan(round_, task, first_of_task, last_of_task)
+        round_, task = plan.round, plan.task
         # Our clients start from the initial model and keep every download: they always
         # hold the global tensors (round 1's initial ones are billed in ``bytes_down``).
         trained = self.client_side.train(self.server.train_ins(plan), progress)
@@ -108,6 +111,21 @@ class Orchestrator:
 
     # ------------------------------------------------------------------ checkpoints
 
+    def save(
+        self,
+        folder: Path | None,
+        rounds: list[RoundLog],
+        run_id: str | None,
+        elapsed: float,
+        keep: int,
+        digest: str = "",
+    ) -> Path | None:
+        """Checkpoint the run after its last round in ``rounds``: every process's clients,
+        gathered to rank 0, which writes (:func:`fedlgr.federated.resume.save_checkpoint`)."""
+        from fedlgr.federated.resume import save_checkpoint
+
+        return save_checkpoint(self.fabric, folder, self, rounds, run_id, elapsed, keep, digest)
+
     def state_dict(self) -> dict:
         """This process's part of the run's state: the server's (global tensors, strategy
         state; the same in every process) and its own clients'."""
@@ -118,11 +136,3 @@ class Orchestrator:
         every client of every process)."""
         self.server.load_state_dict(state["server"], self.device)
         self.client_side.load_state_dict(to_device(state["clients"], self.device))
-
-
-def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:
-    """Threads per process: the setting, else this machine's idle cores over its processes
-    (:func:`fedlgr.runtime.default_threads`: all cores would oversubscribe a busy one)."""
-    if config.runtime.threads is not None:
-        return config.runtime.threads
-    return default_threads(local_world_size)

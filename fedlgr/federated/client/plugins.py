@@ -44,7 +44,6 @@ class LocalContext:
     task_name: str = "all"
     batches: SceneBatches | None = None  # the current task's training batches
     optimizer: torch.optim.Optimizer | None = None
-    extra: dict = field(default_factory=dict)
     seen: list[SceneBatches] = field(default_factory=list)  # every task's batches so far
     trained_samples: int = 0  # samples a plugin trained on outside the batch loop
     trained_loss: float = 0.0  # their summed task loss
@@ -70,6 +69,13 @@ class ClientPlugin:
     """No-op hooks; subclasses override what they need."""
 
     name = "plugin"
+
+    @classmethod
+    def from_settings(cls, settings, continual, seed: int) -> ClientPlugin:
+        """A continual-learning method's plugin for one client: ``settings`` is its section
+        (``continual.<method>``, None where it has none), ``continual`` the whole
+        ``continual`` section (``importance_batches``, ...), ``seed`` the client's own."""
+        return cls()
 
     def on_task_start(self, ctx: LocalContext) -> None:
         """Before the first round of a task."""

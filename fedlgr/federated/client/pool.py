@@ -16,8 +16,8 @@ are recorded in the run's config, as for ``runtime.threads`` alone.)
 
 On a GPU each worker issues its work on its own CUDA stream, which first waits for the
 work queued before the pool; ``batched`` stacks the clients into one model instead
-(:mod:`fedlgr.federated.batched`). Neither is the default there: neither has been
-measured on GPU hardware yet (README "Concurrent clients").
+(:mod:`fedlgr.federated.client.stacked`); docs/runtimes.md says which is the default
+where, and what has been measured.
 """
 
 from __future__ import annotations

@@ -1,0 +1,28 @@
+"""Rating CSV files written and read row by row."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from fedlgr.data.columns import ALL_COLUMNS
+
+HEADER = list(ALL_COLUMNS)
+
+
+def read_rows(csv_path: Path) -> list[list[str]]:
+    with csv_path.open(newline="") as f:
+        return list(csv.reader(f))
+
+
+def write_rows(csv_path: Path, rows: list[list[str]]) -> Path:
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    with csv_path.open("w", newline="") as f:
+        csv.writer(f, lineterminator="\n").writerows(rows)
+    return csv_path
+
+
+def rating_row(stamp: int, circle: bool, labels: list[float], descriptor: float = 0.5) -> list[str]:
+    """One CSV row: the given stamp, mode and 8 labels, every descriptor = ``descriptor``."""
+    flags = ["1", "0"] if circle else ["0", "1"]
+    return [str(stamp), *flags, *[str(descriptor)] * 27, *(f"{v:g}" for v in labels)]

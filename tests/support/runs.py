@@ -1,0 +1,41 @@
+"""Training runs: the fast-dev-run config on the test data, a run read back from MLflow,
+and a Ctrl-C raised inside a run."""
+
+from __future__ import annotations
+
+import csv
+
+import mlflow
+
+from fedlgr.config import CONF_DIR, load_config
+
+FAST = CONF_DIR / "debug" / "tiny.yaml"  # the cheapest run through the image path
+
+
+def fast_config(synth_dir, cache_dir, store, *overrides):
+    return load_config(
+        FAST,
+        [
+            f"data.path={synth_dir}",
+            f"data.cache_dir={cache_dir}",
+            f"tracking.uri={store}",
+            *overrides,
+        ],
+    )
+
+
+def read_run(store: str, run_id: str):
+    client = mlflow.MlflowClient(store)
+    run = client.get_run(run_id)
+    artifacts = {a.path for a in client.list_artifacts(run_id)}
+    return client, run, artifacts
+
+
+def results_csv(client, run_id) -> list[dict[str, str]]:
+    path = client.download_artifacts(run_id, "results.csv")
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+class Interrupt(KeyboardInterrupt):
+    """Ctrl-C after a given round (the run ends KILLED, its checkpoints stay)."""
