@@ -44,6 +44,8 @@ OTHERS = [
     "FedRoot-EWCOnline",
     "FedRoot-SI",
     "FedRoot-MAS",
+    "FedAvg-LwF",  # not in the paper (Li & Hoiem 2016, fedlgr/continual/lwf.py)
+    "FedRoot-LwF",
 ]
 # FedLGR's variants (issue 19): "FedLGR" is the method at its defaults (conf/continual/
 # lgr.yaml); the others pin the drift controls; each has its stored-latent oracle (real past

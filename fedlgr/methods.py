@@ -108,6 +108,20 @@ class DistillSettings(Settings):
             raise ConfigError(f"{at}weight={self.weight}: must be in 0..1")
 
 
+@dataclass(frozen=True)
+class AvgMSettings(Settings):
+    """Server momentum on the mean update: v <- momentum v + Delta; x <- x + lr v."""
+
+    momentum: float = 0.9
+    lr: float = 1.0
+
+    def check(self, at: str) -> None:
+        if not 0.0 <= self.momentum < 1.0:
+            raise ConfigError(f"{at}momentum={self.momentum}: must be in [0, 1)")
+        if self.lr <= 0:
+            raise ConfigError(f"{at}lr={self.lr}: must be > 0")
+
+
 STRATEGY = "fedlgr.federated.strategies"
 STRATEGIES = _register(
     "federated",
@@ -116,6 +130,14 @@ STRATEGIES = _register(
     Method("prox", "Prox", f"{STRATEGY}.fedprox:FedProx", "Li et al. 2020", ProxSettings),
     Method("opt", "Opt", f"{STRATEGY}.fedopt:FedOpt", "Reddi et al. 2021", OptSettings),
     Method("distill", "Distill", f"{STRATEGY}.feddistill:FedDistill", "", DistillSettings),
+    Method(
+        "avgm",
+        "AvgM",
+        f"{STRATEGY}.fedavgm:FedAvgM",
+        "Hsu et al. 2019",
+        AvgMSettings,
+        in_paper=False,
+    ),
 )
 
 
@@ -163,6 +185,16 @@ class NRSettings(Settings):
     def check(self, at: str) -> None:
         nonnegative(f"{at}memory", self.memory)
         nonnegative(f"{at}replay_ratio", self.replay_ratio)
+
+
+@dataclass(frozen=True)
+class LwFSettings(Settings):
+    """LwF for regression: loss + alpha * mean (f(x) - f_start(x))^2 from the second task."""
+
+    alpha: float = 1.0
+
+    def check(self, at: str) -> None:
+        nonnegative(f"{at}alpha", self.alpha)
 
 
 @dataclass(frozen=True)
@@ -243,6 +275,7 @@ CONTINUAL = _register(
     Method("si", "SI", f"{CL}.si:SI", "Zenke et al. 2017", SISettings),
     Method("mas", "MAS", f"{CL}.mas:MAS", "Aljundi et al. 2018", MASSettings),
     Method("nr", "NR", f"{CL}.rehearsal:NaiveRehearsal", "Hsu et al. 2018", NRSettings),
+    Method("lwf", "LwF", f"{CL}.lwf:LwF", "Li & Hoiem 2016", LwFSettings, in_paper=False),
     Method(
         "lgr",
         "LGR",

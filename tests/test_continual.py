@@ -7,8 +7,11 @@ import pytest
 import torch
 from torch import nn
 
+from fedlgr.config import load_config
+from fedlgr.continual import continual_plugins
 from fedlgr.continual.ewc import EWC, EWCOnline, fisher
 from fedlgr.continual.lgr import LatentReplay
+from fedlgr.continual.lwf import LwF
 from fedlgr.continual.mas import MAS, output_norm_importance
 from fedlgr.continual.rehearsal import NaiveRehearsal
 from fedlgr.continual.si import SI
@@ -185,6 +188,34 @@ def test_naive_rehearsal_memory_is_bounded_and_holds_only_past_tasks():
         assert len(memory) <= 8 and len(set(memory.tolist())) == len(memory)
         assert set(memory.tolist()) <= set(np.concatenate(tasks[: t + 1]).tolist())
         assert all(len(p) == 8 // (t + 1) for p in nr.by_task.values())  # an equal share each
+
+
+def test_lwf_distils_the_task_start_outputs_by_hand():
+    """Li & Hoiem 2016 for regression: nothing in task 1; from task 2, loss + alpha * MSE of
+    the outputs to those of the model as it was when the task started."""
+    model = linear([0.5, -1.0])
+    lwf = LwF(alpha=3.0)
+    lwf.on_task_start(context(model, X, Y, task=0))
+    assert lwf.previous is None
+    assert lwf.loss(None, X, Y, model(X), torch.tensor(1.0)).item() == 1.0
+    lwf.on_task_start(context(model, X, Y, task=1))  # task 2 starts: f_start(X) = (-1.5, 4)
+    with torch.no_grad():
+        model.weight += torch.tensor([[1.0, 0.0]])  # f(X) = (-0.5, 7): differences (1, 3)
+    ctx = context(model, X, Y, task=1)
+    loss = lwf.loss(ctx, X, Y, model(X), torch.tensor(1.0))
+    assert loss.item() == pytest.approx(1.0 + 3.0 * (1 + 9) / 2)
+    loss.backward()  # the gradient flows into the model, not into the frozen copy
+    assert model.weight.grad is not None
+    assert all(p.grad is None and not p.requires_grad for p in lwf.previous.parameters())
+    # A checkpoint mid-task restores the copy: the same loss after a resume.
+    resumed = LwF(alpha=3.0)
+    resumed.load_state_dict(lwf.state_dict())
+    resumed.on_round_start(context(linear([9.0, 9.0]), X, Y, task=1))
+    again = resumed.loss(ctx, X, Y, model(X), torch.tensor(1.0))
+    assert again.item() == pytest.approx(loss.item())
+    config = load_config(None, ["method=FedRoot-LwF", "continual.lwf.alpha=0.25"])
+    (plugin,) = continual_plugins(config.continual, 0, 0)
+    assert isinstance(plugin, LwF) and plugin.alpha == 0.25
 
 
 def test_vae_loss_decreases_on_a_fixed_latent_set():

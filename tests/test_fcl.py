@@ -15,8 +15,9 @@ from tests.support.runs import fast_config, read_run, results_csv
 TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT")]
 
 
-def test_table2_has_eleven_methods():
-    assert len(TABLE2) == 11 and "FedLGR" in TABLE2 and "FedRoot-EWCOnline" in TABLE2
+def test_table2_has_thirteen_methods():
+    assert len(TABLE2) == 13 and "FedLGR" in TABLE2 and "FedRoot-EWCOnline" in TABLE2
+    assert "FedAvg-LwF" in TABLE2 and "FedRoot-LwF" in TABLE2
 
 
 # FedLGR's run (seconds) is in the full suite; test_lgr.py runs it in the fast tier.

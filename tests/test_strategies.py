@@ -14,10 +14,11 @@ from fedlgr.federated.messages import nbytes
 from fedlgr.federated.scope import batchnorm_keys, shared_keys
 from fedlgr.federated.server.aggregate import weighted_mean
 from fedlgr.federated.strategies import FedAvg, Strategy, build_strategy
+from fedlgr.federated.strategies.fedavgm import FedAvgM
 from fedlgr.federated.strategies.fedbn import FedBN
 from fedlgr.federated.strategies.fedopt import FedOpt
 from fedlgr.federated.strategies.fedprox import FedProx, ProximalTerm
-from fedlgr.methods import STRATEGIES, OptSettings
+from fedlgr.methods import STRATEGIES, AvgMSettings, OptSettings
 
 
 class Tiny(nn.Module):
@@ -129,6 +130,35 @@ def test_fedopt_takes_a_server_adam_step():
     assert set(strategy.state_dict()["m"]) == {"w"}
 
 
+def test_fedavgm_adds_server_momentum_to_the_mean_update():
+    """Hsu et al. 2019: v <- beta v + Delta, x <- x + lr v, on parameters only."""
+    config = FederatedConfig(strategy="avgm", avgm=AvgMSettings(momentum=0.5, lr=2.0))
+    strategy = FedAvgM(config)
+    strategy.bind(["w", "stat"], parameters={"w"})
+    x = {"w": torch.tensor([1.0, 2.0]), "stat": torch.tensor([3.0])}
+    mean = {"w": torch.tensor([1.5, 1.0]), "stat": torch.tensor([5.0])}
+    new = strategy.server_update(x, mean)
+    # Delta = (0.5, -1); v = Delta; x + 2 v = (2, 0)
+    assert torch.equal(new["w"], torch.tensor([2.0, 0.0]))
+    assert torch.equal(new["stat"], torch.tensor([5.0]))  # statistics: the plain mean
+    # Round 2: mean = x + (1, 1): v = 0.5 (0.5, -1) + (1, 1) = (1.25, 0.5); x + 2 v
+    new2 = strategy.server_update(new, {"w": new["w"] + 1.0, "stat": torch.tensor([4.0])})
+    assert torch.equal(new2["w"], torch.tensor([4.5, 1.0]))
+    # A checkpoint's state restores the velocity: the next step is the same.
+    again = FedAvgM(config)
+    again.bind(["w", "stat"], parameters={"w"})
+    step = {"w": torch.tensor([0.0, 0.0]), "stat": torch.tensor([1.0])}
+    clone = {k: {n: t.clone() for n, t in v.items()} for k, v in strategy.state_dict().items()}
+    again.load_state_dict(clone)
+    assert torch.equal(
+        again.server_update(new2, step)["w"], strategy.server_update(new2, step)["w"]
+    )
+    # momentum 0, lr 1: FedAvg's mean
+    plain = FedAvgM(FederatedConfig(strategy="avgm", avgm=AvgMSettings(momentum=0.0, lr=1.0)))
+    plain.bind(["w"], parameters={"w"})
+    assert torch.equal(plain.server_update(x, mean)["w"], mean["w"])
+
+
 @pytest.mark.parametrize(
     ("strategy", "scope", "name"),
     [
@@ -142,6 +172,8 @@ def test_fedopt_takes_a_server_adam_step():
         ("prox", "root", "FedRootProx"),
         ("opt", "root", "FedRootOpt"),
         ("distill", "root", "FedRootDistill"),
+        ("avgm", "full", "FedAvgM"),
+        ("avgm", "root", "FedRootAvgM"),
     ],
 )
 def test_method_names_follow_the_paper(strategy, scope, name):
