@@ -47,6 +47,7 @@ COST_FIELDS = [
     Field("wall_s", "cost/wall_s"),
     Field("gpu_util", "cost/gpu_util"),
     Field("gpu_mem_mb", "cost/gpu_mem_mb"),
+    Field("gpu_s", "cost/gpu_s"),
     Field("bytes_up", "cost/bytes_up"),
     Field("bytes_down", "cost/bytes_down"),
 ]

@@ -49,6 +49,7 @@ class ExperimentResult:
             ("wall_s", "wall_s"),
             ("gpu_util", "gpu_util"),
             ("gpu_mem_mb", "gpu_mem_mb"),
+            ("gpu_s", "gpu_s"),
             ("bytes_up", "bytes_up"),
             ("bytes_down", "bytes_down"),
         ):

@@ -1,4 +1,5 @@
-"""What a client's training costs (SPEC 5): CPU and wall seconds, GPU utilisation and memory.
+"""What a client's training costs (SPEC 5): CPU and wall seconds, GPU seconds, utilisation
+and memory.
 
 CPU seconds are the process's user + system time (all its threads, plus any child
 processes) across the client's training when a process's clients run one after another,
@@ -8,7 +9,12 @@ process's CPU seconds over the concurrent section are then shared out in proport
 (:func:`share_process_cpu`). GPU utilisation is NVML's
 device-wide figure sampled every 50 ms while the client trains (NVML reports no
 per-process utilisation); peak memory is torch's allocator peak on the client's device.
-Without an NVIDIA GPU both are absent (``None``), not errors.
+GPU seconds are the client's own: the time between two CUDA events recorded on the stream
+the client's work is queued on (its own stream with ``runtime.concurrency=threads``), at
+the start and the end of its work (:class:`StreamTimer`): the span of its GPU work on that
+stream, gaps where the stream waited for the host included. Clients stacked into one model
+(``batched``) share one span, given out in proportion to their samples. Without an NVIDIA
+GPU the GPU figures are absent (``None``), not errors.
 """
 
 from __future__ import annotations
@@ -29,8 +35,9 @@ SAMPLE_SECONDS = 0.05
 class Usage:
     cpu_s: float = 0.0
     wall_s: float = 0.0
-    gpu_util: float | None = None  # mean %, while training
+    gpu_util: float | None = None  # mean %, while training (device-wide, NVML)
     gpu_mem_mb: float | None = None  # peak allocated
+    gpu_s: float | None = None  # the span of the client's work on its CUDA stream
 
     def __add__(self, other: Usage) -> Usage:
         """The cost of two consecutive pieces of work."""
@@ -39,7 +46,36 @@ class Usage:
             seconds = max(self.wall_s + other.wall_s, 1e-9)
             gpu = (self.gpu_util * self.wall_s + other.gpu_util * other.wall_s) / seconds
         mem = max((m for m in (self.gpu_mem_mb, other.gpu_mem_mb) if m is not None), default=None)
-        return Usage(self.cpu_s + other.cpu_s, self.wall_s + other.wall_s, gpu, mem)
+        spans = [s for s in (self.gpu_s, other.gpu_s) if s is not None]
+        gpu_s = sum(spans) if spans else None
+        return Usage(self.cpu_s + other.cpu_s, self.wall_s + other.wall_s, gpu, mem, gpu_s)
+
+    def share(self, fraction: float) -> Usage:
+        """A client's part of work done for several at once (stacked clients): its
+        fraction of the CPU and GPU seconds; the wall time and the device-wide figures are
+        everyone's."""
+        gpu_s = None if self.gpu_s is None else self.gpu_s * fraction
+        return Usage(self.cpu_s * fraction, self.wall_s, self.gpu_util, self.gpu_mem_mb, gpu_s)
+
+
+class StreamTimer:
+    """GPU seconds of the work queued on the current CUDA stream of ``device`` between
+    :meth:`start` and :meth:`stop`: two CUDA events with timing, recorded on that stream;
+    :meth:`stop` waits for the second one (not for other streams' work)."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self._start: torch.cuda.Event | None = None
+
+    def start(self) -> None:
+        self._start = torch.cuda.Event(enable_timing=True)
+        self._start.record(torch.cuda.current_stream(self.device))
+
+    def stop(self) -> float:
+        end = torch.cuda.Event(enable_timing=True)
+        end.record(torch.cuda.current_stream(self.device))
+        end.synchronize()
+        return self._start.elapsed_time(end) / 1000.0  # milliseconds
 
 
 def _cpu_seconds(process: psutil.Process) -> float:
@@ -123,27 +159,37 @@ def process_cpu_seconds() -> float:
 
 
 @contextmanager
-def measure(device: torch.device, per_thread: bool = False) -> Iterator[Usage]:
+def measure(device: torch.device, per_thread: bool = False, timer=None) -> Iterator[Usage]:
     """Measure the block's cost; the yielded ``Usage`` is filled in when it ends.
-    ``per_thread``: CPU seconds of the calling thread only (see the module docstring)."""
+    ``per_thread``: CPU seconds of the calling thread only (see the module docstring).
+    ``timer``: what measures the GPU seconds (``start()``, ``stop() -> seconds``); by
+    default a :class:`StreamTimer` on a CUDA device, none elsewhere."""
     usage = Usage()
     process = psutil.Process()
 
     def cpu() -> float:
         return time.thread_time() if per_thread else _cpu_seconds(process)
 
-    gpu = device.type == "cuda" and nvml_available()
+    cuda = device.type == "cuda"
+    if timer is None and cuda:
+        timer = StreamTimer(device)
     sampler = None
-    if gpu:
-        torch.cuda.synchronize(device)
-        torch.cuda.reset_peak_memory_stats(device)
-        sampler = _NvmlSampler(device).__enter__()
+    if cuda:
+        # This stream's earlier work is not the block's (other clients' streams run on)
+        torch.cuda.current_stream(device).synchronize()
+        if nvml_available():
+            torch.cuda.reset_peak_memory_stats(device)
+            sampler = _NvmlSampler(device).__enter__()
+    if timer is not None:
+        timer.start()
     cpu0, wall0 = cpu(), time.perf_counter()
     try:
         yield usage
     finally:
-        if gpu:
-            torch.cuda.synchronize(device)
+        if timer is not None:
+            usage.gpu_s = timer.stop()  # waits for the block's last GPU work on the stream
+        if cuda:
+            torch.cuda.current_stream(device).synchronize()
         usage.wall_s = time.perf_counter() - wall0
         usage.cpu_s = cpu() - cpu0
         if sampler is not None:

@@ -411,7 +411,7 @@ def _upload_state(res: TrainRes) -> dict:
         "n_samples": res.n_samples,
         "samples": res.samples,
         "loss": res.loss,
-        "usage": [u.cpu_s, u.wall_s, u.gpu_util, u.gpu_mem_mb],
+        "usage": [u.cpu_s, u.wall_s, u.gpu_util, u.gpu_mem_mb, u.gpu_s],
     }
 
 

@@ -117,6 +117,7 @@ def _usage_record(usage: Usage | None) -> ConfigRecord:
             "wall_s": usage.wall_s,
             "gpu_util": math.nan if usage.gpu_util is None else float(usage.gpu_util),
             "gpu_mem_mb": math.nan if usage.gpu_mem_mb is None else float(usage.gpu_mem_mb),
+            "gpu_s": math.nan if usage.gpu_s is None else float(usage.gpu_s),
         }
     )
 
@@ -124,12 +125,13 @@ def _usage_record(usage: Usage | None) -> ConfigRecord:
 def _usage(record: ConfigRecord) -> Usage | None:
     if not record["present"]:
         return None
-    gpu, mem = float(record["gpu_util"]), float(record["gpu_mem_mb"])
+    gpu, mem, span = (float(record[k]) for k in ("gpu_util", "gpu_mem_mb", "gpu_s"))
     return Usage(
         float(record["cpu_s"]),
         float(record["wall_s"]),
         None if math.isnan(gpu) else gpu,
         None if math.isnan(mem) else mem,
+        None if math.isnan(span) else span,
     )
 
 

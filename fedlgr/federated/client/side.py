@@ -240,7 +240,7 @@ class ClientSide:
         out = []
         for client, s in zip(self.clients, stats, strict=True):
             share = s.samples / total
-            mine = Usage(usage.cpu_s * share, usage.wall_s, usage.gpu_util, usage.gpu_mem_mb)
+            mine = usage.share(share)
             upload = self.upload(client)
             out.append(TrainRes(client.index, upload, client.n_samples, s.samples, s.loss, mine))
         return out

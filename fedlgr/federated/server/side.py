@@ -95,6 +95,7 @@ class ServerSide:
             usage.wall_s,
             math.nan if usage.gpu_util is None else usage.gpu_util,
             math.nan if usage.gpu_mem_mb is None else usage.gpu_mem_mb,
+            math.nan if usage.gpu_s is None else usage.gpu_s,
             bytes_up,
             bytes_down,
         ]
