@@ -32,5 +32,7 @@ def report(args: argparse.Namespace) -> int:
         where=where,
         log=not args.no_log,
     )
-    print(result.summary())
+    from fedlgr.tracking.server import masked_text
+
+    print(masked_text(result.summary(), uri))  # a database's password is not printed
     return 0

@@ -17,7 +17,7 @@ def sweep(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from fedlgr.tracking.server import check_tracking
+    from fedlgr.tracking.server import check_tracking, masked_echo
 
     overrides = list(args.overrides)
     cores = os.cpu_count() or 1
@@ -54,7 +54,14 @@ def _sweep(args: argparse.Namespace) -> int:
         cli_overrides=overrides,
         worker_id=args.worker_id,
         settings_changed=args.settings_changed,
+        # A database's password is not printed (a helper worker's lines come through here).
+        echo=masked_echo(print, args.storage, args.tracking_uri, *_tracking_uris(overrides)),
     )
     if result.failure:  # the table above shows each trial's error
         raise FedlgrError(f"sweep {spec.name}: {result.failure}")
     return 0 if result.done else 1
+
+
+def _tracking_uris(overrides: list[str]) -> list[str]:
+    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
+    return [*given, os.environ.get("MLFLOW_TRACKING_URI", "")]

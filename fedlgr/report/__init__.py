@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedlgr.report.runs import ReportError, RunRecord
+from fedlgr.tracking.server import mask_password
 
 __all__ = ["ReportError", "ReportResult", "RunRecord", "default_out", "make_report"]
 
@@ -39,7 +40,8 @@ class ReportResult:
     def summary(self) -> str:
         s = "s" if self.runs != 1 else ""
         lines = [*self.notes]
-        lines.append(f"Report on {self.runs} finished run{s} of {self.source} ({self.uri}):")
+        uri = mask_password(self.uri)
+        lines.append(f"Report on {self.runs} finished run{s} of {self.source} ({uri}):")
         for name, runs in self.tables:
             s = "s" if runs != 1 else ""
             title = f"{name} ({TITLES[name]})"

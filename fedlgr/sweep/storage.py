@@ -90,9 +90,11 @@ def open_study(
     The first use of a fresh sqlite file creates Optuna's tables, its schema version and
     the study; two processes doing that at once make one fail (``table ... already
     exists``, a UNIQUE constraint on the version or the study name), so it happens under
-    the file lock MLflow's sqlite stores are opened under (``<file>.lock``). A server
-    database (PostgreSQL, MySQL) is not locked. A storage that cannot hold the study is
-    one :class:`FedlgrError` line naming it (:func:`check_storage`)."""
+    the file lock MLflow's sqlite stores are opened under (``<file>.lock``) - on
+    PostgreSQL, under an advisory lock of the database (workers on several machines;
+    :func:`fedlgr.tracking.server.database_lock`). A storage that cannot hold the study
+    is one :class:`FedlgrError` line naming it, its password masked
+    (:func:`check_storage`)."""
     from fedlgr.tracking.mlflow_run import store_lock
 
     path = check_storage(storage)
@@ -118,15 +120,24 @@ def sqlite_path(storage: str) -> Path | None:
 
 
 def check_storage(storage: str, make: bool = True) -> Path | None:
-    """Refuse, in one line naming it, a storage that cannot hold a study, before anything
-    waits on it: not a database URL; an sqlite path that is a folder, a file that is not
-    an sqlite database, a folder that cannot be made or written in, a file another
-    process keeps locked. ``make``: create the sqlite file's folder and lock file (else
-    only look). The sqlite file, for sqlite."""
+    """Refuse, in one line naming it (its password masked), a storage that cannot hold a
+    study, before anything waits on it: not a database URL; an sqlite path that is a
+    folder, a file that is not an sqlite database, a folder that cannot be made or
+    written in, a file another process keeps locked; a database server's driver that is
+    not installed, a server that does not answer, a wrong user or password, a database
+    that does not exist (:func:`fedlgr.tracking.server.check_database`). ``make``:
+    create the sqlite file's folder and lock file (else only look). The sqlite file, for
+    sqlite."""
     from sqlalchemy.exc import ArgumentError
 
+    from fedlgr.tracking.server import check_database, mask_password, server_database
+
     def fail(problem: str) -> FedlgrError:
-        return FedlgrError(f"--storage {storage}: {problem}")
+        return FedlgrError(f"--storage {mask_password(storage)}: {problem}")
+
+    if server_database(storage):
+        check_database(storage, "--storage")
+        return None
 
     try:
         path = sqlite_path(storage)
@@ -203,12 +214,14 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
     import optuna
     from sqlalchemy.exc import SQLAlchemyError
 
+    from fedlgr.tracking.server import mask_password, masked_text
+
     internal = optuna.exceptions.StorageInternalError
     if not isinstance(err, internal | SQLAlchemyError | sqlite3.Error):
         return None
     cause = err.__cause__ if isinstance(err, internal) else err
     cause = getattr(cause, "orig", None) or cause  # SQLAlchemy wraps the driver's error
-    text = (str(cause).strip().splitlines() or [type(cause).__name__])[0]
+    text = masked_text((str(cause).strip().splitlines() or [type(cause).__name__])[0], storage)
     known = {
         "database is locked": "the sqlite file is locked by another process (one that "
         "holds it for long: another program, or a sweep stopped with Ctrl-Z?)",
@@ -221,7 +234,7 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
         "database or disk is full": "the disk is full",
     }
     problem = next((v for k, v in known.items() if k in text), text)
-    return FedlgrError(f"--storage {storage}: {problem}")
+    return FedlgrError(f"--storage {mask_password(storage)}: {problem}")
 
 
 def _open_study(
@@ -229,6 +242,8 @@ def _open_study(
 ):
     import optuna
     from optuna.storages import RDBStorage
+
+    from fedlgr.tracking.server import mask_password, masked_text
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # no INFO line per study/trial
     try:
@@ -241,15 +256,15 @@ def _open_study(
                 heartbeat_interval=spec.heartbeat_s,
                 grace_period=2 * spec.heartbeat_s,
                 heartbeat_stale_trial_callback=retry,
-                engine_kwargs=(
-                    {"connect_args": {"timeout": 60}} if storage.startswith("sqlite") else {}
-                ),
+                engine_kwargs=_engine_kwargs(storage),
             )
     except Exception as err:
         problem = storage_error(storage, err)
         if problem is None:
-            text = (str(err).strip().splitlines() or [type(err).__name__])[0]
-            problem = FedlgrError(f"--storage {storage}: cannot open the study storage: {text}")
+            text = masked_text((str(err).strip().splitlines() or [type(err).__name__])[0], storage)
+            problem = FedlgrError(
+                f"--storage {mask_password(storage)}: cannot open the study storage: {text}"
+            )
         raise problem from err
     if spec.sampler == "grid":
         sampler = optuna.samplers.GridSampler(spec.grid, seed=spec.seed)
@@ -277,6 +292,19 @@ def _open_study(
             raise
         raise problem from err
     return study, retry
+
+
+def _engine_kwargs(storage: str) -> dict[str, Any]:
+    """SQLAlchemy's settings for the storage's engine: sqlite waits up to a minute for
+    another worker's write; a database server is given up on when it does not answer
+    (a lost server would otherwise hang the worker on the network's own timeout)."""
+    from fedlgr.tracking.server import CONNECT_TIMEOUT_S
+
+    if storage.startswith("sqlite"):
+        return {"connect_args": {"timeout": 60}}
+    if storage.lower().startswith(("postgresql:", "postgresql+")):
+        return {"connect_args": {"connect_timeout": CONNECT_TIMEOUT_S}}
+    return {}
 
 
 SETTINGS_ATTR = "fedlgr.settings"
@@ -313,8 +341,10 @@ def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = Fals
                 f"{key} (study: {before.get(key, 'not set')}, now: {after.get(key, 'not set')})"
             )
     if differences:
+        from fedlgr.tracking.server import mask_password
+
         raise FedlgrError(
-            f"study {study.study_name!r} in {storage} was run with other settings: "
+            f"study {study.study_name!r} in {mask_password(storage)} was run with other settings: "
             f"{'; '.join(differences)}. Its trials would count as trials of these settings: "
             "start a new study with --study NAME, or relaunch with the study's own settings"
         )

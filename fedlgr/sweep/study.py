@@ -53,6 +53,7 @@ from fedlgr.sweep.checks import check_data
 from fedlgr.sweep.spec import SweepSpec
 from fedlgr.sweep.trials import all_failed, counts, nothing_left, ran, summary
 from fedlgr.sweep.worker import DEFAULT_STORAGE, Worker
+from fedlgr.tracking.server import mask_password
 
 
 @dataclass
@@ -94,7 +95,7 @@ def run_sweep(
     total, size = spec.n_trials, spec.space_size()
     echo(
         f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
-        f"study {worker.study.study_name!r} in {storage} "
+        f"study {worker.study.study_name!r} in {mask_password(storage)} "
         f"({ran(worker.study) if spec.sampler == 'tpe' else total - todo} "
         f"done, {running} running, {waiting} queued); MLflow experiment {worker.experiment!r}, "
         f"parent run {worker.parent_run_id}"

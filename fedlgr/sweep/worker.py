@@ -23,6 +23,7 @@ from fedlgr.sweep.trials import (
     ran,
     trial_table,
 )
+from fedlgr.tracking.server import mask_password
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
 PARENT_ATTR = "mlflow_parent_run_id"
@@ -128,7 +129,7 @@ class Worker:
                 raise
             raise FedlgrError(
                 f"study {self.study.study_name!r}: its MLflow parent run {run_id} is not in "
-                f"{client.tracking_uri} ({_one_line(err)}); relaunch it with the "
+                f"{mask_password(client.tracking_uri)} ({_one_line(err)}); relaunch it with the "
                 "--tracking-uri it ran with, or start a new study with --study NAME"
             ) from err
 
@@ -156,7 +157,8 @@ class Worker:
                     "study": self.study.study_name,
                     "sampler": spec.sampler,
                     "objective": f"{spec.direction} {spec.metric}",
-                    "storage": self.storage,  # a machine-local path for sqlite: not a param
+                    # a machine-local path for sqlite: not a param; a server's password masked
+                    "storage": mask_password(self.storage),
                 }
             ),
         )

@@ -66,7 +66,7 @@ KIND = {"mlflow.experimentKind": "custom_model_development"}
 def experiment_id(client, name: str) -> str:
     """The id of MLflow experiment ``name``, created if it does not exist yet (by this
     process or, at the same moment, by another one)."""
-    from fedlgr.tracking.views import TAG, share_view
+    from fedlgr.tracking.views import TAG
 
     check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
     experiment = client.get_experiment_by_name(name)
@@ -78,14 +78,27 @@ def experiment_id(client, name: str) -> str:
             if experiment is None:
                 raise
         else:
-            share_view(client, made)  # what the printed link opens
+            _share_view(client, made)  # what the printed link opens
             return made
     for key, value in KIND.items():
         if key not in experiment.tags:  # made by an older fedlgr or by hand
             client.set_experiment_tag(experiment.experiment_id, key, value)
     if TAG not in experiment.tags:
-        share_view(client, experiment.experiment_id)
+        _share_view(client, experiment.experiment_id)
     return experiment.experiment_id
+
+
+def _share_view(client, experiment_id: str) -> None:
+    """:func:`~fedlgr.tracking.views.share_view`, again if it fails: a process that opened
+    the new experiment at the same moment (a sweep's worker on another machine, through an
+    MLflow server on PostgreSQL) may have written the tag in between, and MLflow's SQL
+    store then inserts a tag that is there (a duplicate key); the second write updates it."""
+    from fedlgr.tracking.views import share_view
+
+    try:
+        share_view(client, experiment_id)
+    except Exception:
+        share_view(client, experiment_id)
 
 
 def artifact_root(uri: str) -> Path | None:
@@ -122,9 +135,14 @@ def _create_experiment(client, name: str) -> str:
 def store_lock(uri: str):
     """Held while a process opens a local sqlite store: the first use of a fresh store
     runs MLflow's schema migrations, which two processes must not run at once (one would
-    die on ``duplicate column name``). Other stores need no lock."""
+    die on ``duplicate column name``). A PostgreSQL database (a store or a sweep's
+    storage shared by several machines) takes an advisory lock of its own
+    (:func:`fedlgr.tracking.server.database_lock`); other stores need no lock."""
     if not uri.startswith("sqlite:///"):
-        yield
+        from fedlgr.tracking.server import database_lock
+
+        with database_lock(uri):
+            yield
         return
     import fcntl
 
@@ -194,7 +212,10 @@ def store_errors(uri: str, what: str):
     except FedlgrError:
         raise
     except Exception as err:
-        raise StoreError(f"MLflow store {uri}: could not {what}: {_cause(err)}") from err
+        from fedlgr.tracking.server import mask_password, masked_text
+
+        problem = masked_text(_cause(err), uri)
+        raise StoreError(f"MLflow store {mask_password(uri)}: could not {what}: {problem}") from err
 
 
 def _uncut(method):

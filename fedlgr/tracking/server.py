@@ -2,8 +2,11 @@
 
 ``check_reachable(uri)`` refuses an ``http(s)://`` tracking URI that nothing answers in a
 few seconds, with one line that names it (MLflow's own client would retry for minutes,
-then raise a long stack trace). ``runs_hint(uri, experiment_id)`` is what ``fedlgr run``,
-``demo`` and ``sweep`` print at the end: the link that opens the experiment's runs table
+then raise a long stack trace); a database server's URL (``postgresql://...``) is
+connected to first (:func:`check_database`: driver, address, password, database), and
+fedlgr's messages show its password masked (:func:`mask_password`).
+``runs_hint(uri, experiment_id)`` is what ``fedlgr run``, ``demo`` and ``sweep`` print at
+the end: the link that opens the experiment's runs table
 and, for a local store, the ``mlflow ui`` command that serves it first.
 
 MLflow 3 opens a browser that has not been there before on its GenAI pages (Traces,
@@ -17,7 +20,9 @@ Light on purpose (no MLflow import): the CLI calls it before loading torch.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import shutil
 import sys
 import urllib.error
@@ -82,6 +87,9 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
             "mode and fedlgr does not use; give sqlite:///PATH/mlflow.db (the default: "
             "sqlite:///mlflow.db) or an mlflow server's http://HOST:PORT"
         )
+    if server_database(uri):
+        check_database(uri, "tracking URI", TrackingUnreachable)
+        return
     if not uri.startswith(("http://", "https://")):
         return
     probe = uri.rstrip("/") + "/health"
@@ -192,7 +200,7 @@ def runs_hint(uri: str, experiment_id: str) -> str:
         return f"MLflow runs: {runs_link(uri, experiment_id)}"
     if scheme not in DATABASES:
         return ""
-    store = _absolute_sqlite(uri) if scheme == "sqlite" else _hide_password(uri)
+    store = _absolute_sqlite(uri) if scheme == "sqlite" else mask_password(uri)
     link = runs_link(f"http://127.0.0.1:{UI_PORT}", experiment_id)
     return (
         f"MLflow runs: start the UI with\n  {_mlflow()} ui --backend-store-uri {store} "
@@ -209,14 +217,6 @@ def _absolute_sqlite(uri: str) -> str:
     return uri
 
 
-def _hide_password(uri: str) -> str:
-    parts = urllib.parse.urlsplit(uri)
-    if parts.password is None:
-        return uri
-    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
-    return urllib.parse.urlunsplit(parts._replace(netloc=netloc))
-
-
 def _mlflow() -> str:
     """How to call MLflow's command here: through uv when fedlgr runs under ``uv run``,
     else the ``mlflow`` on PATH, else this interpreter's module."""
@@ -225,3 +225,189 @@ def _mlflow() -> str:
     if shutil.which("mlflow"):
         return "mlflow"
     return f"{sys.executable} -m mlflow"
+
+
+# --------------------------------------------------------------------------- database servers
+
+
+def mask_password(uri: str) -> str:
+    """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
+    holds ``/`` or ``@``, or in a URL no parser reads): what fedlgr prints of a URI."""
+    scheme, sep, rest = uri.partition("://")
+    if not sep:
+        return uri
+    end = min((i for i in (rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
+    at = rest.rfind("@", 0, end)
+    user, colon, _ = rest[: max(at, 0)].partition(":")
+    if at < 0 or not colon or "/" in user:
+        return uri
+    return f"{scheme}://{user}:***{rest[at:]}"
+
+
+def server_database(uri: str) -> bool:
+    """Whether ``uri`` names a database server's database (``postgresql://``,
+    ``postgresql+psycopg://``, ``mysql+pymysql://``, ...) rather than a file or an
+    HTTP server; also a misspelt one (``postgres://``), for :func:`check_database` to name."""
+    scheme = uri.partition("://")[0].split("+", 1)[0].lower() if "://" in uri else ""
+    return scheme in (*DATABASES[1:], "postgres", "mariadb")
+
+
+DRIVER_HINTS = {
+    "psycopg": "the PostgreSQL driver psycopg is not installed: `uv sync --extra postgres` "
+    "(pip: fedlgr[postgres])",
+    "psycopg2": "its driver psycopg2 is not installed: install it, or use postgresql:// "
+    "(psycopg 3: `uv sync --extra postgres`)",
+}
+
+
+CONNECT_TIMEOUT_S = 10  # for a database server to answer
+
+
+def check_database(uri: str, what: str, error: type[FedlgrError] = FedlgrError) -> None:
+    """Connect to the server database ``uri`` (:data:`CONNECT_TIMEOUT_S`) and leave: a URL
+    SQLAlchemy cannot read, an unknown kind or driver, a driver that is not installed, a
+    server that does not answer, a wrong user or password, a missing database are one
+    ``error`` line ``{what} {uri}: {problem}``, the password masked (MLflow would retry
+    for minutes; Optuna and SQLAlchemy end in stack traces)."""
+    with _database_connection(uri, what, error):
+        pass
+
+
+@contextlib.contextmanager
+def _database_connection(uri: str, what: str, error: type[FedlgrError]):
+    """An open SQLAlchemy connection to ``uri`` (no pool: closed for good at the end);
+    failing to open it is one ``error`` line (:func:`database_problem`)."""
+    from sqlalchemy import create_engine
+    from sqlalchemy.pool import NullPool
+
+    def fail(problem: str) -> FedlgrError:
+        return error(f"{what} {mask_password(uri)}: {masked_text(problem, uri)}")
+
+    engine = None
+    try:
+        from sqlalchemy.engine import make_url
+
+        url = make_url(uri)
+        backend = url.get_backend_name()
+        args = {"connect_timeout": CONNECT_TIMEOUT_S} if backend in ("postgresql", "mysql") else {}
+        engine = create_engine(url, poolclass=NullPool, connect_args=args)
+        connection = engine.connect()
+    except Exception as err:
+        if engine is not None:
+            engine.dispose()
+        raise fail(database_problem(uri, err)) from None
+    try:
+        yield connection
+    finally:
+        with contextlib.suppress(Exception):
+            connection.close()
+        engine.dispose()
+
+
+def database_problem(uri: str, err: BaseException) -> str:
+    """What an error of opening a connection to ``uri`` means, in a few words."""
+    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
+
+    scheme = uri.partition("://")[0]
+    if isinstance(err, NoSuchModuleError):
+        if scheme.split("+", 1)[0] == "postgres":
+            return f"unknown database kind {scheme!r}: PostgreSQL's URLs begin postgresql://"
+        return (
+            f"unknown database kind or driver {scheme!r} (e.g. postgresql://, "
+            "postgresql+psycopg://, mysql+pymysql://)"
+        )
+    if isinstance(err, ArgumentError | ValueError):
+        return f"not a database URL ({_first_line(err)}); e.g. postgresql://USER@HOST:5432/DATABASE"
+    if isinstance(err, ImportError):
+        name = (getattr(err, "name", None) or "").split(".")[0]
+        return DRIVER_HINTS.get(name) or f"its driver {name or err} is not installed"
+    text = _first_line(getattr(err, "orig", None) or err)
+    for prefix in ("connection failed: ", "connection is bad: "):
+        text = text.removeprefix(prefix)
+    # psycopg: 'connection to server at "HOST", port PORT failed: FATAL:  WHY'
+    text = re.sub(r"^connection to server (at|on) .*? failed: ", "", text)
+    text = re.sub(r"^(FATAL|ERROR):\s+", "", text).strip()
+    address = _address(uri)
+    if "Connection refused" in text or "No such file or directory" in text:
+        return (
+            f"no database server answers at {address} ({text.lower()}): is it running, "
+            "and are the host and port right?"
+        )
+    if "timeout expired" in text or "timed out" in text.lower():
+        return f"no answer from {address} within {CONNECT_TIMEOUT_S} s ({text})"
+    if "password authentication failed" in text or "no password supplied" in text:
+        return (
+            f"{text}: a wrong user or password (it can come from ~/.pgpass or "
+            "$PGPASSWORD instead of the URL)"
+        )
+    if "does not exist" in text and "database" in text:
+        return f"{text} on {address} (create it first: createdb, or CREATE DATABASE)"
+    return f"cannot connect: {text}"
+
+
+def _address(uri: str) -> str:
+    from sqlalchemy.engine import make_url
+
+    try:
+        url = make_url(uri)
+        return f"{url.host or 'localhost'}:{url.port or 'default port'}"
+    except Exception:
+        return "its address"
+
+
+def _first_line(err: BaseException) -> str:
+    return (str(err).strip().splitlines() or [type(err).__name__])[0].strip()
+
+
+def masked_text(text: str, uri: str) -> str:
+    """``text`` without the URI's password: the URI as :func:`mask_password` writes it, and
+    the password elsewhere (three characters or more), as written or decoded."""
+    text = text.replace(uri, mask_password(uri))
+    _, sep, rest = uri.partition("://")
+    at = rest.rfind("@")
+    secret = rest[:at].partition(":")[2] if sep and at > 0 else ""
+    for form in {secret, urllib.parse.unquote(secret)} - {""}:
+        if len(form) >= 3:
+            text = text.replace(form, "***")
+    return text
+
+
+# An advisory lock's key (any 64-bit number): held while a process opens a study or an
+# MLflow store on a PostgreSQL database, as the lock file is beside an sqlite file.
+LOCK_KEY = 0x666564_6C6772  # "fedlgr"
+
+
+@contextlib.contextmanager
+def database_lock(uri: str, what: str = "database"):
+    """Held while a process creates tables, a study or a parent run in the PostgreSQL
+    database ``uri``: an advisory lock of the database (``pg_advisory_lock``), which the
+    server releases when the holder's connection ends - a killed process included. Two
+    processes that create Optuna's or MLflow's tables in a fresh database at once would
+    make one fail (a duplicate key in ``pg_type``). Other databases are not locked."""
+    if not uri.lower().startswith(("postgresql:", "postgresql+")):
+        yield
+        return
+    from sqlalchemy import text
+
+    with _database_connection(uri, what, FedlgrError) as connection:
+        connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": LOCK_KEY})
+        connection.commit()  # a session lock: no transaction left open while it is held
+        try:
+            yield
+        finally:
+            with contextlib.suppress(Exception):
+                connection.execute(text("SELECT pg_advisory_unlock(:key)"), {"key": LOCK_KEY})
+
+
+def masked_echo(echo, *uris: str | None):
+    """``echo`` (e.g. ``print``) that writes the passwords of ``uris`` as ``***``: what a
+    command prints of its URIs (the study's storage, the tracking store)."""
+    given = [u for u in uris if u]
+
+    def say(*args: object, **kwargs) -> None:
+        text = " ".join(map(str, args))
+        for uri in given:
+            text = masked_text(text, uri)
+        echo(text, **kwargs)
+
+    return say
