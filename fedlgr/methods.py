@@ -110,10 +110,12 @@ class DistillSettings(Settings):
 
 @dataclass(frozen=True)
 class AvgMSettings(Settings):
-    """Server momentum on the mean update: v <- momentum v + Delta; x <- x + lr v."""
+    """Server momentum on the mean update: v <- momentum v + Delta; x <- x + lr v. The
+    default keeps Hsu et al.'s effective learning rate lr / (1 - momentum) at 1: lr 1 with
+    momentum 0.9 diverged on the demo (docs/methods.md)."""
 
     momentum: float = 0.9
-    lr: float = 1.0
+    lr: float = 0.1
 
     def check(self, at: str) -> None:
         if not 0.0 <= self.momentum < 1.0:
