@@ -33,24 +33,15 @@ import time
 from datetime import date
 from pathlib import Path
 
+from train import settings as train_settings  # bench/train.py, beside this script
+
 ROOT = Path(__file__).resolve().parent.parent
 MODES = ("sequential", "threads", "batched")
 
 
 def settings(tmp: str, args, clients: int, *extra: str) -> list[str]:
-    return [
-        f"data.path={tmp}/synth",
-        f"data.cache_dir={tmp}/cache",
-        f"data.image_size={args.size}",
-        f"data.clients={clients}",
-        f"train.epochs={args.epochs}",
-        "train.batch_size=16",
-        "federated.rounds=1",
-        "model.weights=none",
-        "tracking.enabled=false",
-        "runtime.progress=false",
-        *extra,
-    ]
+    """bench/train.py's one-round settings, without progress bars."""
+    return train_settings(tmp, args, clients, "runtime.progress=false", *extra)
 
 
 def environment() -> dict:

@@ -10,6 +10,8 @@ each. Subclasses override only what differs (Flower's ``Strategy``).
 
 from __future__ import annotations
 
+import torch
+
 from fedlgr.config import FederatedConfig
 from fedlgr.federated.client.plugins import ClientPlugin
 from fedlgr.federated.messages import Weights
@@ -26,7 +28,7 @@ class Strategy:
     def bind(self, shared: list[str], parameters: set[str]) -> None:
         """Called once by the server with the model's shared tensors' names and those that
         are trainable parameters (not BatchNorm statistics): a server optimiser steps the
-        parameters only (FedOpt)."""
+        parameters only (:class:`ServerOptimizer`)."""
 
     def shares(self, key: str, batchnorm: bool) -> bool:
         """Is this in-scope tensor exchanged? ``batchnorm``: it belongs to a BatchNorm layer."""
@@ -52,3 +54,28 @@ class Strategy:
 
 
 FedAvg = Strategy
+
+
+class ServerOptimizer(Strategy):
+    """A strategy whose server update is an optimiser step on the shared parameters, from
+    the clients' mean update Delta = mean - global (FedOpt, FedAvgM); tensors that are not
+    parameters (BatchNorm running statistics) take the plain mean, as in FedAvg."""
+
+    def __init__(self, config: FederatedConfig):
+        super().__init__(config)
+        self.trainable: set[str] = set()  # the shared parameters (bind)
+
+    def bind(self, shared: list[str], parameters: set[str]) -> None:
+        self.trainable = parameters & set(shared)
+
+    def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
+        return {
+            key: self.step(key, global_weights[key], avg - global_weights[key])
+            if key in self.trainable
+            else avg
+            for key, avg in mean.items()
+        }
+
+    def step(self, key: str, weight: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        """The next global value of parameter ``key`` from its value and its mean update."""
+        raise NotImplementedError

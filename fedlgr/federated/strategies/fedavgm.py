@@ -12,30 +12,18 @@ from __future__ import annotations
 import torch
 
 from fedlgr.federated.messages import Weights
-from fedlgr.federated.strategies.base import Strategy
+from fedlgr.federated.strategies.base import ServerOptimizer
 
 
-class FedAvgM(Strategy):
+class FedAvgM(ServerOptimizer):
     def __init__(self, config):
         super().__init__(config)
         self.velocity: Weights = {}
-        self.trainable: set[str] = set()  # the shared parameters (bind)
 
-    def bind(self, shared: list[str], parameters: set[str]) -> None:
-        self.trainable = parameters & set(shared)
-
-    def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
-        beta, lr = self.settings.momentum, self.settings.lr
-        out = {}
-        for key, avg in mean.items():
-            if key not in self.trainable:
-                out[key] = avg
-                continue
-            delta = avg - global_weights[key]
-            v = self.velocity.get(key, torch.zeros_like(delta)).mul_(beta).add_(delta)
-            self.velocity[key] = v
-            out[key] = global_weights[key] + lr * v
-        return out
+    def step(self, key: str, weight: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        v = self.velocity.get(key, torch.zeros_like(delta)).mul_(self.settings.momentum)
+        self.velocity[key] = v.add_(delta)
+        return weight + self.settings.lr * v
 
     def state_dict(self) -> dict:
         return {"velocity": dict(self.velocity)}

@@ -11,37 +11,21 @@ from __future__ import annotations
 
 import torch
 
-from fedlgr.federated.strategies.base import Strategy, Weights
+from fedlgr.federated.strategies.base import ServerOptimizer, Weights
 
 
-class FedOpt(Strategy):
+class FedOpt(ServerOptimizer):
     def __init__(self, config):
         super().__init__(config)
         self.m: Weights = {}
         self.v: Weights = {}
-        self.trainable: set[str] = set()  # the shared parameters (bind)
 
-    def bind(self, shared: list[str], parameters: set[str]) -> None:
-        self.trainable = parameters & set(shared)
-
-    def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
-        b1, b2 = self.settings.betas
-        eta, tau = self.settings.lr, self.settings.tau
-        out = {}
-        for key, avg in mean.items():
-            if key not in self.trainable:
-                out[key] = avg
-                continue
-            delta = avg - global_weights[key]
-            m = self.m.get(key, torch.zeros_like(delta)).mul_(b1).add_(delta, alpha=1 - b1)
-            v = (
-                self.v.get(key, torch.zeros_like(delta))
-                .mul_(b2)
-                .addcmul_(delta, delta, value=1 - b2)
-            )
-            self.m[key], self.v[key] = m, v
-            out[key] = global_weights[key] + eta * m / (v.sqrt() + tau)
-        return out
+    def step(self, key: str, weight: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        (b1, b2), eta, tau = self.settings.betas, self.settings.lr, self.settings.tau
+        m = self.m.get(key, torch.zeros_like(delta)).mul_(b1).add_(delta, alpha=1 - b1)
+        v = self.v.get(key, torch.zeros_like(delta)).mul_(b2).addcmul_(delta, delta, value=1 - b2)
+        self.m[key], self.v[key] = m, v
+        return weight + eta * m / (v.sqrt() + tau)
 
     def state_dict(self) -> dict:
         return {"m": dict(self.m), "v": dict(self.v)}
