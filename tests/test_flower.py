@@ -9,7 +9,6 @@ import contextlib
 import math
 import os
 import signal
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -150,26 +149,43 @@ def count(path, text: str) -> int:
 
 
 def wait_online(federation, name: str, timeout: float = 120) -> None:
-    """Until the SuperNode ``name`` is connected (Flower logs its node id)."""
+    """Until the latest start of SuperNode ``name`` is connected (Flower logs its node id)."""
     deadline = time.monotonic() + timeout
     while "SuperNode ID" not in federation.log(name):
+        assert federation.procs[name].poll() is None, federation.log(name)[-2000:]
         assert time.monotonic() < deadline, federation.log(name)[-2000:]
         time.sleep(0.2)
 
 
-def start_until_online(federation, name: str, synth_dir, timeout: float = 180) -> None:
-    """Start ``name``'s SuperNode again until the SuperLink takes it (a key whose last
-    connection has not yet timed out is refused for up to ~1 min)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        node = federation.start_supernode(name, federation.keys[name], None, synth_dir, QUICK)
-        try:
-            node.wait(timeout=15)  # refused: try again
-        except subprocess.TimeoutExpired:
-            wait_online(federation, name)
-            return
+QUICK = ["--max-retries", "1", "--max-wait-time", "5"]  # a refused SuperNode exits in ~5 s
+
+
+def start_until_online(federation, name: str, synth_dir, going=lambda: True) -> bool:
+    """Start ``name``'s SuperNode (its roster slot) again and again until the SuperLink
+    takes it - a key whose last connection has not yet timed out is refused for up to ~1
+    min, and the SuperNode exits 1 - as a supervisor (systemd, Restart=on-failure) would.
+    True once it is online (its log names its node id: a positive sign, not a guess from
+    how long it has lived, which a loaded machine stretches); False if ``going()`` turns
+    false first."""
+    deadline = time.monotonic() + 300
+    while going():
         assert time.monotonic() < deadline, federation.log(name)[-2000:]
-        time.sleep(2)
+        node = federation.start_supernode(name, federation.keys[name], None, synth_dir, QUICK)
+        while node.poll() is None:
+            if "SuperNode ID" in federation.log(name):
+                return True
+            if not going():
+                return False
+            time.sleep(0.2)
+        time.sleep(1)  # refused: try again
+    return False
+
+
+def ensure_online(federation, synth_dir, *names: str) -> None:
+    """Robots a test needs: any whose SuperNode an earlier test left stopped is started."""
+    for name in names:
+        if federation.procs[name].poll() is not None:
+            assert start_until_online(federation, name, synth_dir), name
 
 
 def stop(federation, name: str) -> None:
@@ -225,20 +241,6 @@ def test_roster_keeps_strangers_unrostered_keys_and_claimed_slots_out_of_a_run(
     assert rows[("1", "2")]["test_loss"] == ""
 
 
-QUICK = ["--max-retries", "1", "--max-wait-time", "5"]  # a refused SuperNode exits in ~5 s
-
-
-def keep_starting(federation, run: subprocess.Popen, synth_dir) -> None:
-    while run.poll() is None:
-        key = federation.keys["robot1"]
-        node = federation.start_supernode("robot1", key, None, synth_dir, QUICK)
-        try:
-            node.wait(timeout=15)  # refused: try again
-        except subprocess.TimeoutExpired:
-            return  # it is in
-        time.sleep(1)
-
-
 def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state(
     federation, synth_dir, store
 ):
@@ -253,7 +255,8 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     log = robot / "robot.log"
     trained = count(log, "train received")
     restored = count(log, "private state restored")
-    start_until_online(federation, "robot2", synth_dir)
+    ensure_online(federation, synth_dir, "robot0", "robot1")
+    assert start_until_online(federation, "robot2", synth_dir)
     rounds = 20
     overrides = ["method=FedRootAvg", f"federated.rounds={rounds}", "data.clients=3"]
     overrides += ["deploy.round_timeout_s=120"]
@@ -265,10 +268,14 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     os.kill(int((robot / "robot.pid").read_text()), signal.SIGKILL)
     federation.procs["robot1"].kill()
     federation.procs["robot1"].wait()
-    # Started again at once, as a supervisor (systemd, Restart=on-failure) would: the
-    # SuperLink refuses the key until it has noticed the old connection is gone (two
-    # missed heartbeats, ~1 min), so the SuperNode exits 1 until then.
-    restart = threading.Thread(target=keep_starting, args=(federation, proc, synth_dir))
+    # Started again at once: the SuperLink refuses the key until it has noticed the old
+    # connection is gone (two missed heartbeats, ~1 min), so the SuperNode exits 1 until then.
+    back = []
+    restart = threading.Thread(
+        target=lambda: back.append(
+            start_until_online(federation, "robot1", synth_dir, lambda: proc.poll() is None)
+        )
+    )
     restart.start()
     try:
         out, _ = proc.communicate(timeout=600)
@@ -276,6 +283,7 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
         restart.join()
         stop(federation, "robot2")
     assert proc.returncode == 0, out[-3000:]
+    assert back == [True], "robot1 was not back online before the run ended"
     run = the_run(store, "dropout", out)
     client = mlflow.MlflowClient(store)
     assert run.info.status == "FINISHED"
@@ -330,6 +338,7 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
     Every round is logged once, with the in-process run's scores to 1e-5
     (an uninterrupted Flower run gives them: the test above, for FedLGR), bytes,
     artifacts and params."""
+    ensure_online(federation, synth_dir, "robot0", "robot1")
     method = ["method=FedRootAvg", "federated.rounds=6"]
     base = [*settings(synth_dir, store, "resumed", federation), *method]
     proc = federation.run(FAST, base)

@@ -36,6 +36,7 @@ class Federation:
             "FLWR_SUPEREXEC_TASK_POLL_INTERVAL": "0.2",  # Flower's default: 1 s
         }
         self.procs: dict[str, subprocess.Popen] = {}
+        self.starts: dict[str, int] = {}  # where each log's latest start begins
         self.fedlgr("certs", str(self.creds))
         ca = str(self.creds / "ca.pem")
         self.fedlgr("connect", "local", "--superlink", f"127.0.0.1:{self.port}", "--ca", ca)
@@ -54,6 +55,7 @@ class Federation:
 
     def spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         log = (self.logs / f"{name}.log").open("ab")
+        self.starts[name] = log.tell()
         proc = subprocess.Popen(
             cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, cwd=self.folder
         )
@@ -61,7 +63,10 @@ class Federation:
         return proc
 
     def log(self, name: str) -> str:
-        return (self.logs / f"{name}.log").read_text(errors="replace")
+        """What the latest start of ``name`` has logged (a restarted SuperNode appends to
+        the same file: an earlier start's lines are not this one's)."""
+        whole = (self.logs / f"{name}.log").read_bytes()
+        return whole[self.starts.get(name, 0) :].decode(errors="replace")
 
     def start_superlink(self, extra: list[str] = ()) -> None:
         """``fedlgr deploy superlink``: SuperNodes use the gateway on ``self.port``, ``flwr``
