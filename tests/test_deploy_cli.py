@@ -195,6 +195,7 @@ def test_supernode_node_config(tmp_path, certs, synth_dir, capsys):
     cmd = printed(capsys)
     # flower-supernode through fedlgr's launcher, its idle poll shortened
     assert cmd[:5] == [sys.executable, "-m", "fedlgr.deploy.flower.supernode", "--poll-s", "0.5"]
+    assert option(cmd, "--heartbeat-s") == "30"  # Flower's own interval
     assert option(cmd, "--superlink") == "robots.lab:9092"
     assert option(cmd, "--root-certificates") == str(certs / "ca.pem")
     assert option(cmd, "--auth-supernode-private-key") == str(key)
@@ -370,4 +371,40 @@ def test_supernode_refuses_a_poll_outside_its_range(tmp_path, synth_dir, poll, c
     args = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(data)]
     assert main([*args, "--insecure", "--poll-s", poll, "--print-command"]) == 1
     [line] = capsys.readouterr().err.strip().splitlines()[-1:]
-    assert line == (f"fedlgr: error: --poll-s {float(poll)}: must be between 0.05 and 3.0 seconds")
+    assert line == (f"fedlgr: error: --poll-s {float(poll)}: must be between 0.05 and 3 seconds")
+
+
+@pytest.mark.parametrize("beat", ["9.9", "1801", "nan", "-10"])
+def test_supernode_refuses_a_heartbeat_outside_flowers_range(tmp_path, synth_dir, beat, capsys):
+    data = Path(shutil.copytree(synth_dir, tmp_path / "robot"))
+    args = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(data)]
+    assert main([*args, "--insecure", "--heartbeat-s", beat, "--print-command"]) == 1
+    [line] = capsys.readouterr().err.strip().splitlines()[-1:]
+    expected = f"--heartbeat-s {float(beat)}: must be between 10 and 1800 seconds"
+    assert line == f"fedlgr: error: {expected}"
+
+
+def test_the_supernode_launcher_sets_the_heartbeat_flower_declares_and_beats_at(monkeypatch):
+    """flwr 1.41's SuperNode declares HEARTBEAT_DEFAULT_INTERVAL when it activates and with
+    every beat (its REST connection), and its sender waits by it; --heartbeat-s sets that
+    name in both modules. If a flwr upgrade stops reading it there, this fails."""
+    import inspect
+
+    from flwr.common import constant
+    from flwr.supercore import heartbeat
+    from flwr.supernode import fleet_http_connection
+
+    from fedlgr.deploy.flower import supernode
+
+    connection = inspect.getsource(fleet_http_connection)
+    assert connection.count("heartbeat_interval=HEARTBEAT_DEFAULT_INTERVAL") == 2
+    assert "HEARTBEAT_DEFAULT_INTERVAL - HEARTBEAT_CALL_TIMEOUT" in inspect.getsource(heartbeat)
+    assert supernode.HEARTBEAT_RANGE == (
+        constant.HEARTBEAT_MIN_INTERVAL,
+        constant.HEARTBEAT_MAX_INTERVAL,
+    )
+    for module in (fleet_http_connection, heartbeat):
+        monkeypatch.setattr(module, "HEARTBEAT_DEFAULT_INTERVAL", 30)
+    supernode.set_heartbeat(10.0)
+    assert fleet_http_connection.HEARTBEAT_DEFAULT_INTERVAL == 10.0
+    assert heartbeat.HEARTBEAT_DEFAULT_INTERVAL == 10.0

@@ -162,8 +162,9 @@ QUICK = ["--max-retries", "1", "--max-wait-time", "5"]  # a refused SuperNode ex
 
 def start_until_online(federation, name: str, synth_dir, going=lambda: True) -> bool:
     """Start ``name``'s SuperNode (its roster slot) again and again until the SuperLink
-    takes it - a key whose last connection has not yet timed out is refused for up to ~1
-    min, and the SuperNode exits 1 - as a supervisor (systemd, Restart=on-failure) would.
+    takes it - a key whose last connection has not yet timed out is refused for two
+    heartbeats (~1 min with Flower's, ~20 s with the tests' --heartbeat-s 10) and the
+    SuperNode exits 1 - as a supervisor (systemd, Restart=on-failure) would.
     True once it is online (its log names its node id: a positive sign, not a guess from
     how long it has lived, which a loaded machine stretches); False if ``going()`` turns
     false first."""
@@ -247,17 +248,18 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     """Three robots, default settings (quorum: 2 of 3). SIGKILL robot 1's SuperNode and
     robot service while it answers its second message - round 1's evaluation and round
     2's training: rounds 1 and 2 go on without its row and name it; robot 1 is started
-    again at once (same key, same state folder; refused for about a minute, until the
-    SuperLink has missed its heartbeats) and takes part in the last round with its private
+    again at once (same key, same state folder; refused for ~20 s, until the SuperLink
+    has missed two of its 10-s heartbeats) and takes part in the last round with its private
     state, read back from disk by its new service. Rounds take ~1 s once robot 1 is
-    declared lost: 20 of them leave it the time to come back."""
+    declared lost: 24 of them leave it the time to come back (it was back by round 8 of 20
+    on a quiet machine, by round 5 before the 10-s heartbeat)."""
     robot = federation.robot_dir("robot1")
     log = robot / "robot.log"
     trained = count(log, "train received")
     restored = count(log, "private state restored")
     ensure_online(federation, synth_dir, "robot0", "robot1")
     assert start_until_online(federation, "robot2", synth_dir)
-    rounds = 20
+    rounds = 24
     overrides = ["method=FedRootAvg", f"federated.rounds={rounds}", "data.clients=3"]
     overrides += ["deploy.round_timeout_s=120"]
     proc = federation.run(FAST, [*settings(synth_dir, store, "dropout", federation), *overrides])
@@ -269,7 +271,7 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     federation.procs["robot1"].kill()
     federation.procs["robot1"].wait()
     # Started again at once: the SuperLink refuses the key until it has noticed the old
-    # connection is gone (two missed heartbeats, ~1 min), so the SuperNode exits 1 until then.
+    # connection is gone (two missed heartbeats, ~20 s), so the SuperNode exits 1 until then.
     back = []
     restart = threading.Thread(
         target=lambda: back.append(

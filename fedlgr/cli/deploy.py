@@ -227,7 +227,7 @@ def _gateway(
 
 
 def supernode(args: argparse.Namespace) -> int:
-    from fedlgr.deploy.flower.supernode import POLL_RANGE
+    from fedlgr.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
 
     _flower("flower-supernode")  # Flower is installed here
     _address(args.superlink)
@@ -238,12 +238,16 @@ def supernode(args: argparse.Namespace) -> int:
     data = _absolute(args.data)
     if not data.is_dir():
         raise FedlgrError(f"--data {data}: no such folder (the robot's dataset, MANNERS-DB layout)")
-    low, high = POLL_RANGE
-    if not low <= args.poll_s <= high:  # NaN too
-        raise FedlgrError(f"--poll-s {args.poll_s}: must be between {low} and {high} seconds")
-    # flower-supernode, its idle poll shortened and its ClientApps forked from a warm
-    # process (fedlgr/deploy/flower/supernode.py and executor.py say why)
+    for option, value, (low, high) in (
+        ("--poll-s", args.poll_s, POLL_RANGE),
+        ("--heartbeat-s", args.heartbeat_s, HEARTBEAT_RANGE),
+    ):
+        if not low <= value <= high:  # NaN too
+            raise FedlgrError(f"{option} {value}: must be between {low:g} and {high:g} seconds")
+    # flower-supernode, its idle poll shortened, its heartbeat as chosen and its ClientApps
+    # forked from a warm process (fedlgr/deploy/flower/supernode.py and executor.py say why)
     cmd = [sys.executable, "-m", "fedlgr.deploy.flower.supernode", "--poll-s", str(args.poll_s)]
+    cmd += ["--heartbeat-s", f"{args.heartbeat_s:g}"]
     if not args.cold_apps:
         cmd += ["--warm-apps", f"127.0.0.1:{args.port}"]
     cmd += ["--superlink", args.superlink]

@@ -202,6 +202,15 @@ def add_parser(verbs) -> None:
         "%(default)s; Flower's own is 3, which every round waited out)",
     )
     node.add_argument(
+        "--heartbeat-s",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="the heartbeat interval this robot declares, 10 to 1800 (default %(default)g, "
+        "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
+        "restarted SuperNode, after two intervals",
+    )
+    node.add_argument(
         "--cold-apps",
         action="store_true",
         help="start each ClientApp as Flower does, a new process per message (~3 s each); by "

@@ -13,8 +13,14 @@ the module's ``time`` is replaced by :class:`_Clock`, whose ``sleep`` shortens t
 waits - the idle poll to ``--poll-s`` seconds (each poll is one small
 authenticated request to the SuperLink), the reply wait (a look at the SuperNode's own
 memory) to 0.1 s - and passes every other use of ``time`` through.
-``tests/test_deploy_cli.py`` checks that flwr's loop still sleeps as described, so a flwr
-upgrade that changes it is noticed.
+
+The same goes for the node's heartbeat: flwr 1.41's SuperNode tells the SuperLink it beats
+every 30 s (``HEARTBEAT_DEFAULT_INTERVAL``, read by its REST connection and its heartbeat
+sender; no option), and the SuperLink declares a node lost - and refuses its key to a
+restarted SuperNode - after two missed intervals, about a minute. ``--heartbeat-s S``
+(10 to 1800 s, the range the SuperLink accepts) sets that interval, so a robot that died is
+declared lost, and may come back, after ~2 S. ``tests/test_deploy_cli.py`` checks that
+flwr still reads these names, so a flwr upgrade that changes them is noticed.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import time
 FLOWER_IDLE_S = 3.0  # flwr's sleep when the SuperLink had no message
 REPLY_WAIT_S = 0.1  # our wait between looks for the ClientApp's reply (flwr: 0.5 s)
 POLL_RANGE = (0.05, 3.0)
+HEARTBEAT_RANGE = (10.0, 1800.0)  # what flwr's SuperLink accepts (HEARTBEAT_MIN/MAX_INTERVAL)
 
 
 class _Clock:
@@ -41,9 +48,19 @@ class _Clock:
         return getattr(time, name)
 
 
+def set_heartbeat(seconds: float) -> None:
+    """The heartbeat interval this SuperNode declares to the SuperLink and beats at."""
+    from flwr.supercore import heartbeat
+    from flwr.supernode import fleet_http_connection
+
+    for module in (fleet_http_connection, heartbeat):
+        module.HEARTBEAT_DEFAULT_INTERVAL = seconds
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``[--poll-s S] [--warm-apps HOST:PORT] FLOWER_ARGS``: flower-supernode FLOWER_ARGS,
-    its idle poll S seconds (Flower's own waits without ``--poll-s``), and with
+    """``[--poll-s S] [--heartbeat-s S] [--warm-apps HOST:PORT] FLOWER_ARGS``:
+    flower-supernode FLOWER_ARGS, its idle poll S seconds (Flower's own waits without
+    ``--poll-s``), its heartbeat every S seconds (Flower's 30 without ``--heartbeat-s``), and with
     ``--warm-apps`` its ClientApps forked by :mod:`.executor` from a process that has
     imported them (the SuperNode in Flower's ``process`` isolation, the executor on its
     Runtime API at HOST:PORT). ``fedlgr deploy supernode`` builds and checks the line."""
@@ -55,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if args[:1] == ["--poll-s"]:
         internal.time = _Clock(float(args[1]))
+        del args[:2]
+    if args[:1] == ["--heartbeat-s"]:
+        set_heartbeat(float(args[1]))
         del args[:2]
     if args[:1] == ["--warm-apps"]:
         executor = [sys.executable, "-m", "fedlgr.deploy.flower.executor", "--preload"]
