@@ -901,9 +901,19 @@ def to_plain(value: Any) -> Any:
 
 
 def to_yaml(config: ExperimentConfig) -> str:
+    """The resolved config as YAML - what ``--print-config`` shows, the run's
+    ``config.yaml`` artifact and what a Flower server sends its robots - with the
+    password of ``tracking.uri`` masked (a database URI may hold one; the UI shows the
+    artifact to whoever opens the run)."""
     import yaml
 
-    return yaml.safe_dump(to_plain(config), sort_keys=False)
+    from fedlgr.tracking.server import mask_password
+
+    plain = to_plain(config)
+    tracking = plain.get("tracking")
+    if isinstance(tracking, dict) and tracking.get("uri"):
+        tracking["uri"] = mask_password(str(tracking["uri"]))
+    return yaml.safe_dump(plain, sort_keys=False)
 
 
 def flatten(config: ExperimentConfig) -> dict[str, str]:

@@ -25,8 +25,9 @@ import optuna
 import pytest
 
 from fedlgr.cli import main
+from fedlgr.config import to_yaml
 from fedlgr.sweep import load_sweep, run_sweep
-from fedlgr.tracking.server import mask_password
+from fedlgr.tracking.server import mask_password, masked_text
 from tests.support.data import read_rows
 from tests.support.ports import free_port
 from tests.support.postgres import USER, PostgresServer, missing, postgres_server
@@ -66,10 +67,31 @@ def test_a_password_is_masked_wherever_it_stands():
         "postgresql://me:pw@[::1/db": "postgresql://me:***@[::1/db",  # no parser reads it
         "postgresql://me@h/db": "postgresql://me@h/db",
         "postgresql://h/db?user=me": "postgresql://h/db?user=me",
+        "postgresql://h/db?user=me&password=s3cret&sslmode=require": (
+            "postgresql://h/db?user=me&password=***&sslmode=require"
+        ),
+        "postgresql://me:pw@h/db?PASSWORD=x": "postgresql://me:***@h/db?PASSWORD=***",
         "sqlite:////tmp/a:b@c/optuna.db": "sqlite:////tmp/a:b@c/optuna.db",
         "http://127.0.0.1:5000": "http://127.0.0.1:5000",
     }
     assert {uri: mask_password(uri) for uri in cases} == cases
+    # elsewhere in a text: as written, decoded, and the tail a parser took for a host
+    text = "could not translate host name 'ssTail@h' (p@ssTail, QueryPw, p%40ssTail)"
+    uri = "postgresql://me:p@ssTail@h/db?password=QueryPw"
+    assert masked_text(text, uri) == "could not translate host name '***@h' (***, ***, p%40***)"
+    encoded = "postgresql://me:p%40ssTail@h/db"
+    assert masked_text(text, encoded) == "could not translate host name '***@h' (***, QueryPw, ***)"
+
+
+def test_the_config_a_run_shows_logs_and_sends_holds_no_password(synth_dir, tmp_path):
+    """``config.yaml`` (the run's artifact, ``--print-config``, what a Flower server sends
+    its robots) names the tracking URI with its password masked."""
+    uri = "postgresql://me:Artifact5ecret@db.lab:5432/mlflow"
+    config = fast_config(synth_dir, tmp_path, uri)
+    text = to_yaml(config)
+    assert "Artifact5ecret" not in text
+    assert "uri: postgresql://me:***@db.lab:5432/mlflow" in text
+    assert config.tracking.uri == uri  # the run itself still connects with it
 
 
 def _one_line(capsys, code: int, *secrets: str) -> str:
@@ -139,14 +161,23 @@ def test_a_wrong_password_a_stopped_server_and_bad_uris_are_one_line_each(
         good.replace("postgresql:", "postgresql+psycopg2:"): "its driver psycopg2 is not installed",
         good.replace(f":{postgres.port}/", ":port/"): "not a database URL (",
         postgres.uri("nosuchdb"): 'database "nosuchdb" does not exist',
+        # libpq splits at the first @, SQLAlchemy at the last: the tail is no host name
+        postgres.uri("errors", password="p@ssTail9"): "its user or password holds an '@': "
+        "write it percent-encoded, %40",
+        # libpq reads a password in the query too
+        f"postgresql://127.0.0.1:{postgres.port}/errors?user=fedlgr&password=QueryWr0ng77": (
+            'password authentication failed for user "fedlgr"'
+        ),
+        good + "?connect_timeout=abc": "connect_timeout",  # at once, not after 2 min
     }
+    secrets = (postgres.password, "ssTail9", "QueryWr0ng77")
     for uri, problem in bad.items():
         code = main(["sweep", sweep, "--storage", uri, "--tracking-uri", store])
-        line = _one_line(capsys, code, postgres.password)
+        line = _one_line(capsys, code, *secrets)
         assert line.startswith(f"fedlgr: error: --storage {mask_password(uri)}: "), line
         assert problem in line, line
         code = main(["run", *run, uri])
-        line = _one_line(capsys, code, postgres.password)
+        line = _one_line(capsys, code, *secrets)
         assert line.startswith(f"fedlgr: error: tracking URI {mask_password(uri)}: "), line
         assert problem in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["errors.yaml"]  # nothing created

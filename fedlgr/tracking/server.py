@@ -232,16 +232,56 @@ def _mlflow() -> str:
 
 def mask_password(uri: str) -> str:
     """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
-    holds ``/`` or ``@``, or in a URL no parser reads): what fedlgr prints of a URI."""
+    holds ``/`` or ``@``, or in a URL no parser reads), and the value of a ``password=``
+    query parameter (libpq takes it there too): what fedlgr prints of a URI."""
     scheme, sep, rest = uri.partition("://")
     if not sep:
         return uri
-    end = min((i for i in (rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
+    end = _authority_end(rest)
     at = rest.rfind("@", 0, end)
     user, colon, _ = rest[: max(at, 0)].partition(":")
-    if at < 0 or not colon or "/" in user:
-        return uri
-    return f"{scheme}://{user}:***{rest[at:]}"
+    if at >= 0 and colon and "/" not in user:
+        rest = f"{user}:***{rest[at:]}"
+    return f"{scheme}://" + _QUERY_PASSWORD.sub(r"\1***", rest)
+
+
+# password=VALUE in a URL's query (or fragment): libpq reads a password there as well
+_QUERY_PASSWORD = re.compile(r"([?&#;]password=)[^&#;]*", re.IGNORECASE)
+
+
+def _authority_end(rest: str) -> int:
+    """Where the query or fragment of a URL (after its ``scheme://``) begins."""
+    return min((i for i in (rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
+
+
+def _secrets(uri: str) -> set[str]:
+    """The passwords ``uri`` holds (in its ``user:password@`` part and its query), as
+    written and decoded, and each part of one that holds ``@`` (a parser that splits the
+    URL at its first ``@`` shows the rest as a host name)."""
+    _, sep, rest = uri.partition("://")
+    if not sep:
+        return set()
+    end = _authority_end(rest)
+    at = rest.rfind("@", 0, end)
+    found = {rest[:at].partition(":")[2]} if at > 0 else set()
+    found |= {m.group(0).partition("=")[2] for m in _QUERY_PASSWORD.finditer(rest)}
+    forms = found | {urllib.parse.unquote(f) for f in found}
+    forms |= {part for f in forms for part in f.split("@")}
+    return {f for f in forms if len(f) >= 3}
+
+
+def check_userinfo(uri: str, what: str, error: type[FedlgrError] = FedlgrError) -> None:
+    """A ``user:password@`` part that holds an unescaped ``@``: URL parsers disagree on
+    where it ends (libpq splits at the first ``@``, SQLAlchemy at the last), so one of them
+    would take the tail of the password for a host name - and print it. One line asking for
+    ``%40``."""
+    _, sep, rest = uri.partition("://")
+    authority = rest[: _authority_end(rest)].split("/", 1)[0]
+    if sep and authority.count("@") > 1:
+        raise error(
+            f"{what} {mask_password(uri)}: its user or password holds an '@': write it "
+            "percent-encoded, %40 (and ':' as %3A, '/' as %2F)"
+        )
 
 
 def server_database(uri: str) -> bool:
@@ -283,13 +323,17 @@ def _database_connection(uri: str, what: str, error: type[FedlgrError]):
     def fail(problem: str) -> FedlgrError:
         return error(f"{what} {mask_password(uri)}: {masked_text(problem, uri)}")
 
+    check_userinfo(uri, what, error)
     engine = None
     try:
         from sqlalchemy.engine import make_url
 
         url = make_url(uri)
         backend = url.get_backend_name()
-        args = {"connect_timeout": CONNECT_TIMEOUT_S} if backend in ("postgresql", "mysql") else {}
+        # The URI's own connect_timeout, if it names one, is tried as written (a bad value
+        # is one line now, not two minutes of MLflow's retries later)
+        timed = backend in ("postgresql", "mysql") and "connect_timeout" not in url.query
+        args = {"connect_timeout": CONNECT_TIMEOUT_S} if timed else {}
         engine = create_engine(url, poolclass=NullPool, connect_args=args)
         connection = engine.connect()
     except Exception as err:
@@ -360,15 +404,12 @@ def _first_line(err: BaseException) -> str:
 
 
 def masked_text(text: str, uri: str) -> str:
-    """``text`` without the URI's password: the URI as :func:`mask_password` writes it, and
-    the password elsewhere (three characters or more), as written or decoded."""
+    """``text`` without the URI's passwords: the URI as :func:`mask_password` writes it, and
+    each password elsewhere (three characters or more), as written or decoded, and each
+    ``@``-separated part of one."""
     text = text.replace(uri, mask_password(uri))
-    _, sep, rest = uri.partition("://")
-    at = rest.rfind("@")
-    secret = rest[:at].partition(":")[2] if sep and at > 0 else ""
-    for form in {secret, urllib.parse.unquote(secret)} - {""}:
-        if len(form) >= 3:
-            text = text.replace(form, "***")
+    for form in sorted(_secrets(uri), key=len, reverse=True):
+        text = text.replace(form, "***")
     return text
 
 
