@@ -723,7 +723,8 @@ def _dotlist(overrides) -> Any:
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError)
+    # RecursionError: a value nested thousands of levels deep ([[[[...]]]])
+    unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError, RecursionError)
     try:
         return OmegaConf.from_dotlist(list(overrides))
     except unreadable as err:
@@ -731,7 +732,8 @@ def _dotlist(overrides) -> Any:
             try:
                 OmegaConf.from_dotlist([override])
             except unreadable as one:
-                raise ConfigError(f"command line: {override!r}: {_first_line(one)}") from None
+                shown = override if len(override) <= 120 else f"{override[:100]}..."
+                raise ConfigError(f"command line: {shown!r}: {_first_line(one)}") from None
         raise ConfigError(f"command line: {_first_line(err)}") from None
 
 

@@ -55,6 +55,22 @@ def test_node_key_adds_each_robot_to_the_roster_in_the_lowest_free_slot(tmp_path
     assert roster.member(pem(creds / "robot1.pub")).client == 1
 
 
+@pytest.mark.parametrize("name", ["roster.yaml", "ca.key", "server.pem", "robot0.pub"])
+@pytest.mark.parametrize("roster", [[], ["--no-roster"]])
+def test_a_robot_named_after_a_file_of_the_folder_is_refused(tmp_path, capsys, name, roster):
+    """NAME and NAME.pub are written beside the roster, the certificates and the other
+    robots' public keys: a robot named ``roster.yaml`` lost its private key to the roster
+    (which was then written over it), one named ``robot0.pub`` would replace robot0's key."""
+    creds = tmp_path / "creds"
+    assert main(["deploy", "node-key", str(creds), "robot0"]) == 0
+    before = {p.name: p.read_bytes() for p in creds.iterdir()}
+    for force in ([], ["--force"]):
+        assert main(["deploy", "node-key", str(creds), name, *roster, *force]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"fedlgr: error: node-key NAME {name!r}: the name of a file")
+        assert {p.name: p.read_bytes() for p in creds.iterdir()} == before  # nothing written
+
+
 def test_a_run_needs_a_roster_with_a_robot_for_every_client(tmp_path):
     from fedlgr.config import load_config
 

@@ -251,6 +251,19 @@ def test_a_robot_resolves_nothing_the_server_sends(tmp_path, monkeypatch, built)
     assert reply_error(ValueError("first\nsecond: s3cr3t-value")) == "ValueError: first"
 
 
+def test_a_robot_refuses_a_slot_or_a_config_it_cannot_take_before_writing_anything(tmp_path, built):
+    """A slot outside the run's clients, and a config nested thousands of levels deep (a
+    RecursionError in the YAML parser), are one line each, and the run's state folder is
+    not created."""
+    with pytest.raises(FedlgrError, match=r"client=-1: the run has data.clients=2 \(clients"):
+        robot_module.robot("12346", node(tmp_path), server_yaml(), slot=-1)
+    deep = "data:\n" + "".join(f"{'  ' * (i + 1)}k{i}:\n" for i in range(500))
+    for sent in (deep, "data: " + "[" * 3000 + "]" * 3000):
+        with pytest.raises(FedlgrError, match="the server's config: nested too deeply"):
+            robot_module.robot("12347", node(tmp_path), sent)
+    assert not (tmp_path / "state").exists()
+
+
 def test_a_robot_reads_no_file_the_server_names(tmp_path, built):
     private = tmp_path / "robot-private.yaml"
     private.write_text("robot_private_setting_name: 1\n")

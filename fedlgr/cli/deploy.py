@@ -49,6 +49,16 @@ def node_key(args: argparse.Namespace) -> int:
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
         raise FedlgrError(f"node-key NAME {args.name!r}: letters, digits, '.', '_', '-' only")
+    # NAME and NAME.pub share the folder with the deployment's other files: a robot named
+    # after one of them (or after another robot's public key) would overwrite it, or lose
+    # its private key to it.
+    taken = {"roster.yaml", "ca.pem", "ca.key", "server.pem", "server.key"}
+    if args.name in taken or args.name.endswith(".pub"):
+        raise FedlgrError(
+            f"node-key NAME {args.name!r}: the name of a file this folder holds (NAME and "
+            f"NAME.pub are written beside {', '.join(sorted(taken))} and other robots' "
+            "NAME.pub); choose another"
+        )
     roster = None
     if not args.no_roster:
         from fedlgr.deploy.roster import ROSTER_NAME, Roster

@@ -65,11 +65,7 @@ class Robot:
         from fedlgr.federated.experiment import make_fabric
         from fedlgr.runtime import torch_threads
 
-        if not 0 <= client < config.data.clients:
-            raise FedlgrError(
-                f"--node-config client={client}: the run has data.clients="
-                f"{config.data.clients} (clients 0 to {config.data.clients - 1})"
-            )
+        check_client(config, client)
         fabric = make_fabric(config)
         if fabric.device.type == "cpu":
             torch.set_num_threads(torch_threads(config, 1))
@@ -151,6 +147,14 @@ class Robot:
         return res
 
 
+def check_client(config: ExperimentConfig, client: int) -> None:
+    if not 0 <= client < config.data.clients:
+        raise FedlgrError(
+            f"--node-config client={client}: the run has data.clients="
+            f"{config.data.clients} (clients 0 to {config.data.clients - 1})"
+        )
+
+
 def own_split(table, config: ExperimentConfig, client: int):
     """A robot's own folder as its whole shard: its scenes split into train and test by
     ``data.seed`` and ``data.test_fraction``, its tasks as configured - the split of a
@@ -172,6 +176,7 @@ def robot(run_id: int | str, node_config: dict, config_yaml: str, slot: int | No
     key = (run_id, client)
     if key not in _robots:
         config = robot_config(node_config, config_yaml)
+        check_client(config, client)  # before anything of the run is written
         folder = state_dir(node_config) / f"run-{run_id}"
         folder.mkdir(parents=True, exist_ok=True)
         # What this robot runs; written beside and renamed over, so a link planted at
@@ -202,6 +207,8 @@ def robot_config(node_config: dict, config_yaml: str) -> ExperimentConfig:
         settings = yaml.load(config_yaml, Loader=_DataLoader)  # a SafeLoader
     except yaml.YAMLError as err:
         raise FedlgrError(f"{SERVER}: not valid YAML ({str(err).splitlines()[0]})") from None
+    except RecursionError:  # thousands of levels: a message no fedlgr server sends
+        raise FedlgrError(f"{SERVER}: nested too deeply to be a config") from None
     check_data(settings, SERVER)
     data, model, tracking, runtime = (
         _section(settings, name) for name in ("data", "model", "tracking", "runtime")
