@@ -240,6 +240,14 @@ def load_sweep(
     if sampler == "grid" and not all_grid:
         ranges = [p.name for p in params if not p.is_grid]
         raise fail("sampler", f"grid needs a list of values for every parameter, not {ranges}")
+    points = math.prod(len(p.values) for p in params) if sampler == "grid" else 0
+    if points > MAX_GRID_POINTS:
+        raise fail(
+            "space",
+            f"a {points:,}-point grid; at most {MAX_GRID_POINTS:,} (Optuna's GridSampler "
+            f"holds every point in memory, ~{points * (56 + 8 * len(params)) / 1e9:,.0f} GB "
+            "here, and each point is a trial): fewer values, or sampler: tpe with trials: N",
+        )
     trials = raw.get("trials")
     if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
         raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
@@ -334,6 +342,7 @@ def _yaml_problem(err) -> str:
 
 
 MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
+MAX_GRID_POINTS = 1_000_000  # GridSampler lists every point (a tuple each) up front
 
 
 def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail) -> int:
