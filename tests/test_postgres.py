@@ -186,6 +186,37 @@ def test_a_wrong_password_a_stopped_server_and_bad_uris_are_one_line_each(
         assert connection.execute(tables).fetchall() == []
 
 
+@pytest.mark.slow
+def test_a_database_server_that_stops_mid_sweep_is_one_line(tmp_path, synth_dir):
+    """The study's server stopped (pg_ctl -m fast) while a trial trains: the sweep exits 1
+    with one line naming the storage and what to do, not Optuna's chain of seven
+    tracebacks (its UnboundLocalError raised while it handled the lost connection)."""
+    server = PostgresServer().start()
+    try:
+        storage = server.create_database("optuna")
+        machine, env, path = _machine(tmp_path, "m", synth_dir, "stops")
+        path.write_text(path.read_text().replace("federated.rounds=2", "federated.rounds=40"))
+        command = [sys.executable, "-m", "fedlgr", "sweep", str(path), "--storage", storage]
+        command += ["--tracking-uri", f"sqlite:///{machine}/mlflow.db"]
+        proc = subprocess.Popen(
+            command, cwd=machine, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True,
+        )  # fmt: skip
+        deadline = time.monotonic() + 300
+        while _running_trial(storage) is None:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()
+            time.sleep(0.1)
+    finally:
+        server.stop()
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 1, out
+    assert "Traceback" not in out, out[-3000:]
+    last = out.strip().splitlines()[-1]
+    assert last.startswith(f"fedlgr: error: --storage {mask_password(storage)}: "), last
+    assert "run the same command again once the storage answers" in last, last
+    assert server.password not in out
+
+
 def test_a_missing_driver_is_one_line_naming_the_extra(postgres, tmp_path):
     """Without psycopg (here: its import blocked, as in an environment synced without the
     ``postgres`` extra) the storage and the tracking URI each say how to install it."""

@@ -217,7 +217,14 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
     from fedlgr.tracking.server import mask_password, masked_text
 
     internal = optuna.exceptions.StorageInternalError
-    if not isinstance(err, internal | SQLAlchemyError | sqlite3.Error):
+    storage_kinds = internal | SQLAlchemyError | sqlite3.Error
+    # An error raised while Optuna handled a storage error (Optuna 4's _optimize raises an
+    # UnboundLocalError when the database server goes away mid-trial) is that error.
+    seen: set[int] = set()
+    while err is not None and not isinstance(err, storage_kinds) and id(err) not in seen:
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    if err is None or not isinstance(err, storage_kinds):
         return None
     cause = err.__cause__ if isinstance(err, internal) else err
     cause = getattr(cause, "orig", None) or cause  # SQLAlchemy wraps the driver's error
@@ -233,7 +240,12 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
         "attempt to write a readonly database": "the sqlite file is read-only",
         "database or disk is full": "the disk is full",
     }
-    problem = next((v for k, v in known.items() if k in text), text)
+    problem = next((v for k, v in known.items() if k in text), None)
+    if problem is None:  # a database server gone, a lost connection, ...
+        problem = (
+            f"{text} - run the same command again once the storage answers: finished "
+            "trials are kept, and a trial that was running is retried"
+        )
     return FedlgrError(f"--storage {mask_password(storage)}: {problem}")
 
 
