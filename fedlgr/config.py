@@ -614,6 +614,11 @@ def _renamed(source: Any, node):
             target = here.setdefault(group, {})
             if not isinstance(target, dict):
                 continue  # e.g. continual.lgr=5: the merge names the bad value
+            if leaf in target:
+                raise ConfigError(
+                    f"{source}: {section}.{name} and {section}.{new} are one setting (the "
+                    f"first is its deprecated name), given twice: keep {section}.{new}"
+                )
             target[leaf] = here.pop(name)
             moved.append(f"{section}.{name} is now {section}.{new}")
     if not moved:

@@ -231,3 +231,20 @@ def test_the_old_flat_method_settings_are_read_for_one_more_release(tmp_path, ca
     assert capsys.readouterr().err == ""
     with pytest.raises(ConfigError, match=r"continual\.lgr_hiden: unknown setting"):
         load_config(None, ["continual.lgr_hiden=8"])
+    # The old and the new name of one setting in one layer: refused, whichever comes last
+    # (the old name won silently before).
+    pair = ["continual.ewc_lambda=5", "continual.ewc.lambda_=7"]
+    for both in (pair, pair[::-1]):
+        with pytest.raises(ConfigError) as caught:
+            load_config(None, both)
+        assert str(caught.value) == (
+            "command line: continual.ewc_lambda and continual.ewc.lambda_ are one setting "
+            "(the first is its deprecated name), given twice: keep continual.ewc.lambda_"
+        )
+    old.write_text("federated:\n  prox_mu: 0.1\n  prox:\n    mu: 0.2\n")
+    with pytest.raises(ConfigError, match=f"{old.resolve()}: federated.prox_mu and federated"):
+        load_config(old)
+    # In different layers the later wins, as for any setting.
+    old.write_text("federated:\n  prox_mu: 0.1\n")
+    assert load_config(old, ["federated.prox.mu=0.3"]).federated.prox.mu == 0.3
+    assert load_config(old).federated.prox.mu == 0.1
