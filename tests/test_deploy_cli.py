@@ -185,6 +185,37 @@ def test_superlink_refuses_a_missing_certificate(certs, capsys):
     assert "--certs" in capsys.readouterr().err
 
 
+def test_impossible_ports_waits_and_database_folders_are_one_line(
+    tmp_path, synth_dir, capsys, monkeypatch
+):
+    """Refused before anything is written or started (Flower took them, or wrote port 99999
+    into its config, or ended in a SQLAlchemy traceback for a missing database folder)."""
+    data = str(Path(shutil.copytree(synth_dir, tmp_path / "robot")))
+    node = ["deploy", "supernode", "--data", data, "--insecure", "--print-command"]
+    link = ["deploy", "superlink", "--insecure", "--port", "47105", "--print-command"]
+    cases = {
+        ("--superlink", "127.0.0.1:0"): "--superlink '127.0.0.1:0': a port is 1 to 65535",
+        ("--superlink", "h:99999"): "--superlink 'h:99999': a port is 1 to 65535",
+        ("--max-wait-time", "-1"): "--max-wait-time -1.0: must be 0 or more",
+        ("--max-retries", "-1"): "--max-retries -1: must be 0 or more",
+    }
+    for extra, said in cases.items():
+        argv = [*node, *(() if extra[0] == "--superlink" else ("--superlink", "h:9092")), *extra]
+        assert main(argv) == 1, extra
+        assert capsys.readouterr().err.strip() == f"fedlgr: error: {said}"
+    home = tmp_path / "flwr-home"
+    monkeypatch.setenv("FLWR_HOME", str(home))
+    assert main(["deploy", "connect", "robots", "--superlink", "h:99999", "--insecure"]) == 1
+    assert capsys.readouterr().err.strip().endswith("'h:99999': a port is 1 to 65535")
+    assert not home.exists()
+    missing = tmp_path / "no" / "such" / "link.db"
+    assert main([*link, "--database", str(missing)]) == 1
+    said = f"fedlgr: error: --database {missing}: no folder {missing.parent} (make it first)"
+    assert capsys.readouterr().err.strip() == said
+    assert main([*link, "--database", str(tmp_path)]) == 1
+    assert "a folder; name the SuperLink's database file" in capsys.readouterr().err
+
+
 def test_supernode_node_config(tmp_path, certs, synth_dir, capsys):
     data = Path(shutil.copytree(synth_dir, tmp_path / "robot data"))
     key, _ = make_node_key(tmp_path / "keys", "robot1")

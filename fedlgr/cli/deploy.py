@@ -188,7 +188,18 @@ def _internal_port(args: argparse.Namespace) -> int:
 
 
 def _database(args: argparse.Namespace) -> list[str]:
-    return [] if args.database is None else ["--database", str(_absolute(args.database))]
+    """``--database FILE`` for Flower, its folder checked first: Flower would end in a
+    SQLAlchemy traceback ("unable to open database file")."""
+    if args.database is None:
+        return []
+    path = _absolute(args.database)
+    if path.is_dir():
+        raise FedlgrError(f"--database {path}: a folder; name the SuperLink's database file")
+    if not path.parent.is_dir():
+        raise FedlgrError(f"--database {path}: no folder {path.parent} (make it first)")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise FedlgrError(f"--database {path}: cannot write in {path.parent}")
+    return ["--database", str(path)]
 
 
 def _gateway(
@@ -302,6 +313,12 @@ def supernode(args: argparse.Namespace) -> int:
             raise FedlgrError(f"--idle-s {args.idle_s}: must be > 0")
         settings.append(f"robot-idle-s={args.idle_s}")
     cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(args.port)]
+    for option, value in (
+        ("--max-retries", args.max_retries),
+        ("--max-wait-time", args.max_wait_time),
+    ):
+        if value is not None and not value >= 0:  # NaN too
+            raise FedlgrError(f"{option} {value}: must be 0 or more")
     if args.max_retries is not None:
         cmd += ["--max-retries", str(args.max_retries)]
     if args.max_wait_time is not None:
@@ -444,6 +461,8 @@ def _address(address: str) -> None:
     host, _, port = address.rpartition(":")
     if not host or not port.isdigit():
         raise FedlgrError(f"--superlink {address!r}: expected HOST:PORT, e.g. 10.0.0.5:9092")
+    if not 1 <= int(port) <= 65535:
+        raise FedlgrError(f"--superlink {address!r}: a port is 1 to 65535")
 
 
 def _toml_string(value: str) -> str:
