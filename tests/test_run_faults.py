@@ -300,7 +300,15 @@ def test_a_sigkilled_run_stays_running_until_it_is_found_dead(synth_dir, cache_d
 
 
 # (A NaN learning rate is refused with the config now: tests/test_bad_inputs.py.)
-@pytest.mark.parametrize("rates", [["train.lr_root=1e30", "train.lr_top=1e30"]], ids=["huge"])
+@pytest.mark.parametrize(
+    "rates",
+    [
+        ["train.lr_root=1e30", "train.lr_top=1e30"],
+        # the server's step: finite in round 1, then every client's loss in round 2
+        ["method=FedAvgM", "federated.avgm.lr=1e30"],
+    ],
+    ids=["huge", "huge-server-lr"],
+)
 def test_a_non_finite_training_loss_is_one_error_line_and_a_failed_run(
     rates, synth_dir, cache_dir, tmp_path, monkeypatch, capfd
 ):
@@ -313,10 +321,11 @@ def test_a_non_finite_training_loss_is_one_error_line_and_a_failed_run(
     errors = [line for line in err.splitlines() if line.startswith("fedlgr: error:")]
     assert len(errors) == 1, err
     assert re.fullmatch(
-        r"fedlgr: error: round 1, client \d+: the training loss is (nan|inf|-inf) "
+        r"fedlgr: error: round [12], client \d+: the training loss is (nan|inf|-inf) "
         r"\(not a finite number\); lower the learning rates .*",
         errors[0],
     ), errors[0]
+    assert "federated.avgm.lr" in errors[0]  # the server's, where one steps
     _, run = only_run(store)
     assert run.info.status == "FAILED"
 

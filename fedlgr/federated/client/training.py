@@ -176,7 +176,8 @@ def round_stats(client: Client, ctx: LocalContext, total: torch.Tensor, seen: in
     if not math.isfinite(mean):
         raise FedlgrError(
             f"round {ctx.round}, client {client.index}: the training loss is {mean} "
-            "(not a finite number); lower the learning rates (train.lr_root, train.lr_top) "
+            "(not a finite number); lower the learning rates (train.lr_root, train.lr_top; "
+            "with FedOpt or FedAvgM the server's too, federated.opt.lr or federated.avgm.lr) "
             "or check the data for extreme values (fedlgr data check)"
         )
     return LocalStats(seen, mean)
