@@ -72,6 +72,7 @@ _ROUNDS_BOUND = (
 MAX_EXPERIMENT_NAME = 500  # MLflow's mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH
 MAX_INTERVAL_S = 86_400  # heartbeat and system-metrics intervals (threading.Event.wait)
 MOBILENET_V2_NUMBERS = 2_258_036  # parameters and buffers of torchvision's features, width 1
+MOBILENET_V2_BLOCKS = 19  # its features' blocks (Root.blocks(); a test checks the model)
 
 
 @dataclass(frozen=True)
@@ -417,7 +418,24 @@ class ExperimentConfig:
             )
         if self.data.modality == "image" and root == "mlp":
             raise ConfigError("model.root=mlp reads the descriptors: set data.modality=features")
+        self._check_train_blocks()
         self._check_model_fits()
+
+    def _check_train_blocks(self) -> None:
+        """``continual.lgr.train_blocks=k`` trains the root's last k blocks: more blocks than
+        the root has would train it whole without a word."""
+        k = self.continual.lgr.train_blocks
+        if k is None or self.continual.method != "lgr" or not self.continual.tasks:
+            return
+        # Root.blocks() (fedlgr.models.scholar): MobileNetV2's features, an MLP's layers
+        mlp = self.root_kind == "mlp"
+        blocks = len(self.model.mlp_hidden) if mlp else MOBILENET_V2_BLOCKS
+        if k > blocks:
+            what = f"model.mlp_hidden={list(self.model.mlp_hidden)}" if mlp else "MobileNetV2"
+            raise ConfigError(
+                f"continual.lgr.train_blocks={k}: the root ({what}) has {blocks} block"
+                f"{'' if blocks == 1 else 's'}; at most {blocks} (null: the whole root trains)"
+            )
 
     def _check_model_fits(self) -> None:
         """Refuse a scholar too large to train in this machine's memory, before it is built."""

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.config import load_config
+from fedlgr.config import MOBILENET_V2_BLOCKS, load_config
 from fedlgr.continual import continual_plugins
 from fedlgr.continual.drift import drift_distance, fit_drift_map
 from fedlgr.continual.lgr import LatentReplay, latents_of
@@ -19,6 +19,7 @@ from fedlgr.errors import ConfigError
 from fedlgr.federated.client.plugins import LocalContext
 from fedlgr.federated.client.training import Client, train_locally
 from fedlgr.federated.messages import RoundPlan
+from fedlgr.federated.scope import initial_scholar
 from fedlgr.models.scholar import Scholar, Top
 from tests.support.lgr import (
     BN_BUFFERS,
@@ -291,6 +292,34 @@ def test_frozen_blocks_are_bit_identical_after_a_task_two_round(
 def test_bad_drift_settings_are_refused_by_name(override, setting):
     with pytest.raises(ConfigError, match=setting):
         load_config(None, ["method=FedLGR", override])
+
+
+@pytest.mark.parametrize(
+    ("overrides", "said"),
+    [
+        (
+            ["data.modality=features", "model.mlp_hidden=[16]", "continual.lgr.train_blocks=2"],
+            "continual.lgr.train_blocks=2: the root (model.mlp_hidden=[16]) has 1 block; at "
+            "most 1 (null: the whole root trains)",
+        ),
+        (
+            ["continual.lgr.train_blocks=20"],
+            "continual.lgr.train_blocks=20: the root (MobileNetV2) has 19 blocks; at most 19",
+        ),
+    ],
+)
+def test_more_trained_blocks_than_the_root_has_are_refused(overrides, said):
+    """It trained the whole root without a word before."""
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, ["method=FedLGR", *overrides])
+    assert said in str(caught.value)
+
+
+def test_the_block_counts_the_config_checks_are_the_models():
+    mlp = load_config(None, ["data.modality=features", "model.mlp_hidden=[16,8,4]"])
+    assert len(initial_scholar(mlp).root.blocks()) == 3
+    image = load_config(None, ["model.width=0.35"])
+    assert len(initial_scholar(image).root.blocks()) == MOBILENET_V2_BLOCKS == 19
 
 
 def test_drift_settings_reach_the_plugin():
