@@ -942,7 +942,8 @@ def to_yaml(config: ExperimentConfig) -> str:
 
 
 def flatten(config: ExperimentConfig) -> dict[str, str]:
-    """``{"data.clients": "2", ...}``: the resolved config as MLflow params."""
+    """``{"data.clients": "2", ...}``: the resolved config as MLflow params and as a
+    checkpoint keeps it, the password of ``tracking.uri`` masked."""
     out: dict[str, str] = {}
 
     def walk(prefix: str, value: Any) -> None:
@@ -953,4 +954,8 @@ def flatten(config: ExperimentConfig) -> dict[str, str]:
             out[prefix[:-1]] = str(value)
 
     walk("", to_plain(config))
+    if out.get("tracking.uri"):  # what is kept (checkpoints) holds no password
+        from fedlgr.tracking.server import mask_password
+
+        out["tracking.uri"] = mask_password(out["tracking.uri"])
     return out

@@ -25,7 +25,7 @@ import optuna
 import pytest
 
 from fedlgr.cli import main
-from fedlgr.config import to_yaml
+from fedlgr.config import flatten, to_yaml
 from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.tracking.server import mask_password, masked_text
 from tests.support.data import read_rows
@@ -71,6 +71,12 @@ def test_a_password_is_masked_wherever_it_stands():
             "postgresql://h/db?user=me&password=***&sslmode=require"
         ),
         "postgresql://me:pw@h/db?PASSWORD=x": "postgresql://me:***@h/db?PASSWORD=***",
+        # libpq decodes the name (pass%77ord is password) and reads sslpassword too
+        "postgresql://h/db?user=me&pass%77ord=s3cret": "postgresql://h/db?user=me&pass%77ord=***",
+        "postgresql://h/db?sslpassword=k3y&sslmode=require": (
+            "postgresql://h/db?sslpassword=***&sslmode=require"
+        ),
+        "http://alice:s3cret@127.0.0.1:1/": "http://alice:***@127.0.0.1:1/",
         "sqlite:////tmp/a:b@c/optuna.db": "sqlite:////tmp/a:b@c/optuna.db",
         "http://127.0.0.1:5000": "http://127.0.0.1:5000",
     }
@@ -92,6 +98,15 @@ def test_the_config_a_run_shows_logs_and_sends_holds_no_password(synth_dir, tmp_
     assert "Artifact5ecret" not in text
     assert "uri: postgresql://me:***@db.lab:5432/mlflow" in text
     assert config.tracking.uri == uri  # the run itself still connects with it
+    # what a checkpoint keeps of the config (and MLflow's params) neither
+    assert flatten(config)["tracking.uri"] == "postgresql://me:***@db.lab:5432/mlflow"
+
+
+def test_an_unreachable_tracking_server_is_named_without_its_password(capsys, synth_dir):
+    uri = "http://alice:HtS3cret9@127.0.0.1:1/"
+    code = main(["run", str(FAST), f"data.path={synth_dir}", "--tracking-uri", uri])
+    line = _one_line(capsys, code, "HtS3cret9")
+    assert line.startswith("fedlgr: error: tracking URI http://alice:***@127.0.0.1:1/: no MLflow")
 
 
 def _one_line(capsys, code: int, *secrets: str) -> str:

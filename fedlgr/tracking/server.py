@@ -99,10 +99,10 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
     except urllib.error.HTTPError:
         return  # something answered
     except (OSError, ValueError) as err:
-        reason = getattr(err, "reason", err)
+        reason = masked_text(str(getattr(err, "reason", err)), uri)
         raise TrackingUnreachable(
-            f"tracking URI {uri}: no MLflow server answers there ({reason}); start one "
-            "(`mlflow server --host 127.0.0.1 --port PORT`), fix --tracking-uri / "
+            f"tracking URI {mask_password(uri)}: no MLflow server answers there ({reason}); "
+            "start one (`mlflow server --host 127.0.0.1 --port PORT`), fix --tracking-uri / "
             "$MLFLOW_TRACKING_URI, or leave both unset for the local sqlite store"
         ) from None
 
@@ -232,8 +232,9 @@ def _mlflow() -> str:
 
 def mask_password(uri: str) -> str:
     """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
-    holds ``/`` or ``@``, or in a URL no parser reads), and the value of a ``password=``
-    query parameter (libpq takes it there too): what fedlgr prints of a URI."""
+    holds ``/`` or ``@``, or in a URL no parser reads), and the value of every query
+    parameter named ``...password`` (libpq reads ``password`` and ``sslpassword`` there,
+    also percent-encoded, ``pass%77ord``): what fedlgr prints of a URI."""
     scheme, sep, rest = uri.partition("://")
     if not sep:
         return uri
@@ -242,11 +243,19 @@ def mask_password(uri: str) -> str:
     user, colon, _ = rest[: max(at, 0)].partition(":")
     if at >= 0 and colon and "/" not in user:
         rest = f"{user}:***{rest[at:]}"
-    return f"{scheme}://" + _QUERY_PASSWORD.sub(r"\1***", rest)
+    return f"{scheme}://" + _QUERY_PARAM.sub(_masked_param, rest)
 
 
-# password=VALUE in a URL's query (or fragment): libpq reads a password there as well
-_QUERY_PASSWORD = re.compile(r"([?&#;]password=)[^&#;]*", re.IGNORECASE)
+# a query (or fragment) parameter: its separator, name and value
+_QUERY_PARAM = re.compile(r"([?&#;])([^=&#;]*)=([^&#;]*)")
+
+
+def _secret_param(name: str) -> bool:
+    return urllib.parse.unquote(name).strip().lower().endswith("password")
+
+
+def _masked_param(m: re.Match) -> str:
+    return f"{m.group(1)}{m.group(2)}=***" if _secret_param(m.group(2)) else m.group(0)
 
 
 def _authority_end(rest: str) -> int:
@@ -264,7 +273,7 @@ def _secrets(uri: str) -> set[str]:
     end = _authority_end(rest)
     at = rest.rfind("@", 0, end)
     found = {rest[:at].partition(":")[2]} if at > 0 else set()
-    found |= {m.group(0).partition("=")[2] for m in _QUERY_PASSWORD.finditer(rest)}
+    found |= {m.group(3) for m in _QUERY_PARAM.finditer(rest) if _secret_param(m.group(2))}
     forms = found | {urllib.parse.unquote(f) for f in found}
     forms |= {part for f in forms for part in f.split("@")}
     return {f for f in forms if len(f) >= 3}
