@@ -71,6 +71,21 @@ def test_a_robot_named_after_a_file_of_the_folder_is_refused(tmp_path, capsys, n
         assert {p.name: p.read_bytes() for p in creds.iterdir()} == before  # nothing written
 
 
+def test_a_name_too_long_or_a_roster_nested_too_deep_is_one_line(tmp_path, capsys):
+    """A 300-character name (its NAME.pub longer than a file name may be) and a roster of
+    3000 nested lists gave tracebacks (OSError, RecursionError)."""
+    assert main(["deploy", "node-key", str(tmp_path / "a"), "r" * 300]) == 1
+    said = "fedlgr: error: node-key NAME rrrrrrrrrrrrrrrrrrrr...: at most 100 characters"
+    assert capsys.readouterr().err.strip() == said
+    roster = tmp_path / "b" / "roster.yaml"
+    roster.parent.mkdir()
+    roster.write_text("robots: " + "[" * 3000 + "]" * 3000)
+    assert main(["deploy", "node-key", str(roster.parent), "robot0"]) == 1
+    said = f"fedlgr: error: roster {roster}: nested too deeply to be a roster"
+    assert capsys.readouterr().err.strip() == said
+    assert sorted(p.name for p in roster.parent.iterdir()) == ["roster.yaml"]
+
+
 def test_a_run_needs_a_roster_with_a_robot_for_every_client(tmp_path):
     from fedlgr.config import load_config
 

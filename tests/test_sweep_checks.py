@@ -148,6 +148,13 @@ def test_a_large_grid_is_checked_one_value_at_a_time(tmp_path, monkeypatch, caps
         load_sweep(bad)
 
 
+def test_a_sweep_file_nested_too_deep_is_one_line(tmp_path):
+    path = _sweep_file(tmp_path, "space: " + "[" * 50_000 + "]" * 50_000 + "\n")
+    with pytest.raises(ConfigError) as caught:
+        load_sweep(path)
+    assert str(caught.value) == f"{path}: nested too deeply to be a sweep file"
+
+
 def test_a_grid_optuna_cannot_hold_is_refused_in_one_line(tmp_path, monkeypatch):
     """8 parameters of 30 values: 656,100,000,000 points, which Optuna's GridSampler lists
     up front (it filled 20 GB of memory in 80 s and ignored SIGTERM). Refused before any

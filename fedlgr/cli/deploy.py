@@ -49,6 +49,8 @@ def node_key(args: argparse.Namespace) -> int:
 
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", args.name):
         raise FedlgrError(f"node-key NAME {args.name!r}: letters, digits, '.', '_', '-' only")
+    if len(args.name) > 100:  # NAME.pub must fit a file name (255 bytes at most)
+        raise FedlgrError(f"node-key NAME {args.name[:20]}...: at most 100 characters")
     # NAME and NAME.pub share the folder with the deployment's other files: a robot named
     # after one of them (or after another robot's public key) would overwrite it, or lose
     # its private key to it.

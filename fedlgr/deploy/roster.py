@@ -81,6 +81,8 @@ class Roster:
         except (yaml.YAMLError, UnicodeDecodeError) as err:
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise FedlgrError(f"roster {path}: not valid YAML ({first})") from None
+        except RecursionError:  # thousands of nested levels: no roster fedlgr writes
+            raise FedlgrError(f"roster {path}: nested too deeply to be a roster") from None
         entries = data.get("robots") if isinstance(data, dict) else None
         if not isinstance(entries, list):
             raise FedlgrError(f"roster {path}: expected 'robots:' and a list of robots")

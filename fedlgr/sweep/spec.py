@@ -325,6 +325,8 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: {key}{str(err).splitlines()[0]}") from err
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"{path}: cannot read the sweep file: {err}") from err
+    except RecursionError:  # thousands of nested levels
+        raise ConfigError(f"{path}: nested too deeply to be a sweep file") from None
     return raw
 
 
