@@ -326,7 +326,30 @@ def fake_flwr(tmp_path, monkeypatch):
     )
     script.chmod(0o755)
     monkeypatch.setattr(deploy_cli, "_flower", lambda name: script)
+    home = tmp_path / "flwr-home"  # what fedlgr deploy connect robots ... writes
+    home.mkdir()
+    (home / "config.toml").write_text(
+        '[superlink]\ndefault = "robots"\n\n[superlink.robots]\naddress = "10.0.0.5:9093"\n'
+    )
+    monkeypatch.setenv("FLWR_HOME", str(home))
     return tmp_path / "calls.txt"
+
+
+def test_run_without_a_connection_is_refused_before_flower_starts_one_of_its_own(
+    tmp_path, fake_flwr, monkeypatch, capsys
+):
+    """With no SuperLink connection flwr 1.41 writes its own config, whose default starts
+    a local simulation SuperLink and SuperExec, left running when the run fails."""
+    config = tmp_path / "conf.yaml"
+    config.write_text("seed: 3\ndeploy:\n  roster: none\n")
+    home = tmp_path / "bare-home"
+    monkeypatch.setenv("FLWR_HOME", str(home))
+    for extra, which in (([], "the default connection"), (["--federation", "lab"], "lab")):
+        assert main(["deploy", "run", str(config), *extra]) == 1
+        [line] = capsys.readouterr().err.strip().splitlines()
+        assert line.startswith(f"fedlgr: error: {which.replace('lab', '--federation lab')}: ")
+        assert "add one with fedlgr deploy connect NAME --superlink HOST:PORT" in line
+    assert not home.exists() and not fake_flwr.exists()  # nothing written, flwr never called
 
 
 def test_run_exit_status_follows_the_flower_run(tmp_path, fake_flwr, monkeypatch, capsys):

@@ -129,6 +129,29 @@ def connect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_connection(name: str | None) -> None:
+    """The SuperLink ``flwr run`` will submit to must be one ``fedlgr deploy connect``
+    named: with none, flwr 1.41 writes its own config, whose default ``local`` starts a
+    simulation SuperLink and SuperExec of its own in the background - left running after
+    the run fails, with the app installed under ``~/.flwr``."""
+    import tomllib
+
+    path = Path(os.environ.get("FLWR_HOME") or Path.home() / ".flwr") / "config.toml"
+    try:
+        links = tomllib.loads(path.read_text()).get("superlink", {}) if path.is_file() else {}
+    except (OSError, tomllib.TOMLDecodeError) as err:
+        raise FedlgrError(f"{path}: cannot read it ({err})") from None
+    chosen = name or links.get("default")
+    entry = links.get(chosen) if isinstance(chosen, str) else None
+    if not isinstance(entry, dict) or entry.get("address", ":local:") == ":local:":
+        which = f"--federation {name}" if name else "the default connection"
+        raise FedlgrError(
+            f"{which}: no SuperLink connection of that name in {path} (flwr would start a "
+            "local simulation of its own); add one with fedlgr deploy connect NAME "
+            "--superlink HOST:PORT --ca ca.pem"
+        )
+
+
 EXPOSED_CONTROL_WARNING = """\
 fedlgr: ####################### WARNING: --expose-control-api #######################
 fedlgr: Flower serves ALL its APIs on this port, not only the robots' Fleet API: anyone
@@ -347,6 +370,7 @@ def run(args: argparse.Namespace) -> int:
     print(shlex.join(cmd), flush=True)
     if args.print_command:
         return 0
+    _check_connection(args.federation)
     if config.is_file():
         from fedlgr.config import load_config
         from fedlgr.deploy.roster import roster_of
