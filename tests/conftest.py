@@ -6,8 +6,6 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -15,7 +13,7 @@ import torch
 
 from fedlgr.data.synth import synthesize
 from tests.support.checkout import REPO, ignored, untracked_files
-from tests.support.ports import free_port
+from tests.support.ports import free_port, wait_healthy
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -115,20 +113,9 @@ def mlflow_server(tmp_path_factory):
         text=True,
     )
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120  # ~18 s here (LIBRARY-NOTES)
     try:
-        while True:
-            if process.poll() is not None:
-                pytest.fail(f"mlflow server exited: {process.stderr.read()[-2000:]}")
-            try:
-                with urllib.request.urlopen(f"{url}/health", timeout=2) as answer:
-                    if answer.status == 200:
-                        break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail("mlflow server did not answer /health within 120 s")
-            time.sleep(0.5)
+        # ~18 s here (LIBRARY-NOTES)
+        wait_healthy(url, process, lambda: process.stderr.read()[-2000:], timeout=120)
         yield url
     finally:
         process.terminate()

@@ -17,7 +17,6 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import mlflow
@@ -29,7 +28,7 @@ from fedlgr.config import flatten, to_yaml
 from fedlgr.sweep import load_sweep, run_sweep
 from fedlgr.tracking.server import mask_password, masked_text
 from tests.support.data import read_rows
-from tests.support.ports import free_port
+from tests.support.ports import free_port, wait_healthy
 from tests.support.postgres import USER, PostgresServer, missing, postgres_server
 from tests.support.runs import FAST, fast_config
 
@@ -313,17 +312,7 @@ def _mlflow_server(folder: Path, backend: str) -> tuple[subprocess.Popen, str]:
 
 
 def _wait_for(process: subprocess.Popen, url: str, log: Path) -> None:
-    deadline = time.monotonic() + 180
-    while True:
-        assert process.poll() is None, log.read_text()[-3000:]
-        try:
-            with urllib.request.urlopen(f"{url}/health", timeout=2) as answer:
-                if answer.status == 200:
-                    return
-        except OSError:
-            pass
-        assert time.monotonic() < deadline, "mlflow server: no /health in 180 s"
-        time.sleep(0.5)
+    wait_healthy(url, process, lambda: log.read_text()[-3000:], timeout=180)
 
 
 def _machine(
