@@ -92,8 +92,6 @@ def app(args: argparse.Namespace) -> int:
 
 
 def connect(args: argparse.Namespace) -> int:
-    import tomllib
-
     import tomli_w
 
     if not re.fullmatch(r"[A-Za-z0-9_-]+", args.name):
@@ -106,12 +104,8 @@ def connect(args: argparse.Namespace) -> int:
         entry["insecure"] = True
     else:
         entry["root-certificates"] = str(_existing(args.ca, "--ca", "fedlgr deploy certs"))
-    home = Path(os.environ.get("FLWR_HOME") or Path.home() / ".flwr")
-    path = home / "config.toml"
-    try:
-        config = tomllib.loads(path.read_text()) if path.is_file() else {}
-    except tomllib.TOMLDecodeError as err:
-        raise FedlgrError(f"{path}: not valid TOML ({err})") from None
+    path, config = _flower_config()
+    home = path.parent
     links = config.setdefault("superlink", {})
     links[args.name] = entry
     if args.default or "default" not in links:
@@ -129,18 +123,27 @@ def connect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _flower_config() -> tuple[Path, dict]:
+    """The flwr CLI's ``config.toml`` (under ``$FLWR_HOME``, else ``~/.flwr``) and its
+    settings ({} while there is none)."""
+    import tomllib
+
+    path = Path(os.environ.get("FLWR_HOME") or Path.home() / ".flwr") / "config.toml"
+    try:
+        return path, tomllib.loads(path.read_text()) if path.is_file() else {}
+    except tomllib.TOMLDecodeError as err:
+        raise FedlgrError(f"{path}: not valid TOML ({err})") from None
+    except OSError as err:
+        raise FedlgrError(f"{path}: cannot read it ({err.strerror or err})") from None
+
+
 def _check_connection(name: str | None) -> None:
     """The SuperLink ``flwr run`` will submit to must be one ``fedlgr deploy connect``
     named: with none, flwr 1.41 writes its own config, whose default ``local`` starts a
     simulation SuperLink and SuperExec of its own in the background - left running after
     the run fails, with the app installed under ``~/.flwr``."""
-    import tomllib
-
-    path = Path(os.environ.get("FLWR_HOME") or Path.home() / ".flwr") / "config.toml"
-    try:
-        links = tomllib.loads(path.read_text()).get("superlink", {}) if path.is_file() else {}
-    except (OSError, tomllib.TOMLDecodeError) as err:
-        raise FedlgrError(f"{path}: cannot read it ({err})") from None
+    path, config = _flower_config()
+    links = config.get("superlink", {})
     chosen = name or links.get("default")
     entry = links.get(chosen) if isinstance(chosen, str) else None
     if not isinstance(entry, dict) or entry.get("address", ":local:") == ":local:":
