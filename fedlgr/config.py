@@ -28,6 +28,7 @@ from fedlgr.data.config import (
 )
 from fedlgr.data.config import betas as _betas
 from fedlgr.data.config import choice as _choice
+from fedlgr.data.config import epochs as _epochs
 from fedlgr.data.config import positive as _positive
 from fedlgr.errors import ConfigError
 from fedlgr.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
@@ -123,7 +124,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_numbers("train.", self)
-        _positive("train.epochs", self.epochs)
+        _epochs("train.epochs", self.epochs)
         _positive("train.batch_size", self.batch_size)
         _positive("train.eval_batch_size", self.eval_batch_size)
         if self.max_batches is not None:
@@ -511,6 +512,22 @@ _POLICY = (
 )
 
 
+def yaml_reason(err: Exception) -> str:
+    """Why OmegaConf's loader refused a YAML file, in one line: ``not valid YAML (...)`` or
+    ``too large: ...``. Its limit on the nodes of
+    one file (10,000, against alias bombs) names aliases and how to raise it, whether or
+    not the file has an alias (the sixth fault sweep: a file of 200,000 plain keys); that
+    is said as what it is, with no advice to lift a safety limit."""
+    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    found = re.search(r"YAML node expansion exceeds the configured limit of (\d+)", first)
+    if found:
+        return (
+            f"too large: over {int(found.group(1)):,} YAML nodes (keys, values and list "
+            "items), more than OmegaConf reads from one file (a config holds a few hundred)"
+        )
+    return f"not valid YAML ({first})"
+
+
 def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     """The YAML at ``path`` preceded by what it includes, each as an OmegaConf node."""
     from omegaconf import OmegaConf
@@ -525,7 +542,7 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     try:
         node = OmegaConf.load(path)
     except Exception as err:
-        raise ConfigError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from err
+        raise ConfigError(f"{path}: {yaml_reason(err)}") from err
     if node is None or not OmegaConf.is_dict(node):
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
     if len(node) == 0:  # an empty file would run every default without a word
@@ -875,6 +892,20 @@ def known_settings() -> list[str]:
     return list(leaves(OmegaConf.to_container(defaults, resolve=False, throw_on_missing=False)))
 
 
+def _dotted_key(key: str, written: Any) -> str | None:
+    """The key holding a dot, as written in a file's values, on the way to dotted ``key``
+    (``tracking.run_name`` for ``{"tracking.run_name": ...}``); None where there is none."""
+    parts = key.split(".")
+    for i in range(len(parts)):
+        if not isinstance(written, dict):
+            return None
+        for j in range(len(parts), i + 1, -1):  # the longest such key first
+            if ".".join(parts[i:j]) in written:
+                return ".".join(parts[i:j])
+        written = written.get(parts[i])
+    return None
+
+
 def _unknown_setting(key: str, written: dict) -> str:
     """``KEY: unknown setting; did you mean NAME?`` - the closest known settings to what was
     written (the whole dotted name, so ``train.learning_rate`` finds ``train.lr_root``).
@@ -882,6 +913,16 @@ def _unknown_setting(key: str, written: dict) -> str:
     setting when it holds one (``trian: {lr_top: 1}`` is ``trian.lr_top``)."""
     import difflib
 
+    dotted = _dotted_key(key, written)
+    if dotted is not None:  # `tracking.run_name: x` in a file (the sixth fault sweep)
+        section, _, rest = dotted.partition(".")
+        nest = (
+            f"a dotted name is read on the command line only; in a file, nest it: "
+            f"`{section}:` and below it, indented, `{rest}: ...`"
+        )
+        if key in known_settings():
+            return f"{key}: {nest}"
+        return f"{_unknown_setting(key, {})} ({nest})"
     below = _lookup(written, key)
     if isinstance(below, dict) and len(below) == 1:
         inner, value = next(iter(below.items()))

@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 
 from fedlgr.data.config import betas as check_betas
 from fedlgr.data.config import check_numbers, choice, nonnegative, positive
+from fedlgr.data.config import epochs as check_epochs
 from fedlgr.errors import ConfigError
 
 
@@ -257,8 +258,10 @@ class LGRSettings(Settings):
             value = getattr(self, name)
             if value is not None and value < 0:
                 raise ConfigError(f"{at}{name}={value}: must be >= 0")
-        for name in ("hidden", "latent", "epochs", "batch_size"):
+        for name in ("hidden", "latent", "batch_size"):
             positive(f"{at}{name}", getattr(self, name))
+        check_epochs(f"{at}epochs", self.epochs)
+        check_epochs(f"{at}root_epochs", self.root_epochs, least=0)
         for name in ("replay_ratio", "lr", "lr_root", "beta", "distill_weight"):
             nonnegative(f"{at}{name}", getattr(self, name))
         if self.compensate_ridge <= 0:  # clients hold fewer scenes than latent features

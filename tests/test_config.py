@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -208,6 +209,63 @@ def test_an_unknown_setting_names_the_closest_known_ones(tmp_path, written, mean
     with pytest.raises(ConfigError) as on_line:
         load_config(None, [f"{written}=1"])
     assert str(on_line.value) == f"command line: {hint}"
+
+
+@pytest.mark.parametrize(
+    ("written", "said"),
+    [
+        # a known setting: no "did you mean" naming the refused name itself
+        (
+            "tracking.run_name: x\n",
+            "tracking.run_name: a dotted name is read on the command line only; in a file, "
+            "nest it: `tracking:` and below it, indented, `run_name: ...`",
+        ),
+        (
+            "train:\n  lr_top.x: 1\n",
+            "train.lr_top.x: unknown setting; did you mean train.lr_top? (a dotted name is "
+            "read on the command line only; in a file, nest it: `lr_top:` and below it, "
+            "indented, `x: ...`)",
+        ),
+    ],
+)
+def test_a_dotted_name_in_a_file_is_told_to_nest(tmp_path, written, said):
+    """The sixth fault sweep (n18, n23): ``tracking.run_name: x`` in a file was refused
+    with "did you mean tracking.run_name?"."""
+    path = tmp_path / "dotted.yaml"
+    path.write_text("includes: [debug/tiny]\n" + written)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(err.value) == f"{path.resolve()}: {said}"
+
+
+def test_a_file_over_omegaconfs_node_limit_is_called_too_large(tmp_path):
+    """Not "not valid YAML ... aliases ... increase max_yaml_expanded_nodes" (the sixth
+    fault sweep, n22: 200,000 plain keys and no alias)."""
+    path = tmp_path / "big.yaml"
+    path.write_text("".join(f"k{i}: {i}\n" for i in range(12_000)))
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(err.value) == (
+        f"{path.resolve()}: too large: over 10,000 YAML nodes (keys, values and list items), "
+        "more than OmegaConf reads from one file (a config holds a few hundred)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("override", "said"),
+    [
+        ("train.epochs=100001", "train.epochs=100001: at most 100000 epochs"),
+        ("continual.lgr.epochs=1000000000000", "continual.lgr.epochs=1000000000000: at most"),
+        ("continual.lgr.root_epochs=100001", "continual.lgr.root_epochs=100001: at most"),
+        ("continual.lgr.root_epochs=-1", "continual.lgr.root_epochs=-1: must be >= 0"),
+        ("continual.lgr.epochs=0", "continual.lgr.epochs=0: must be >= 1"),
+    ],
+)
+def test_epochs_have_a_bound(override, said):
+    """The sixth fault sweep (r39): a robot took 10**12 VAE epochs from its server."""
+    with pytest.raises(ConfigError, match=re.escape(said)):
+        load_config(None, ["method=FedLGR", override])
+    assert load_config(None, ["method=FedLGR", "continual.lgr.root_epochs=0"])
 
 
 def test_the_old_flat_method_settings_are_read_for_one_more_release(tmp_path, capsys):

@@ -151,8 +151,14 @@ BASE = f"base: {FAST}\n"
         (BASE + "space: {seed: [1]}\nworkers: 2\n", "workers: unknown setting"),
         (BASE + "space: {seed: [1]}\nobjective: {metrc: x}\n", "objective.metrc: unknown"),
         (BASE + "space: {seed: [1]}\nheartbeat_s: often\n", "heartbeat_s: expected a whole"),
+        (
+            BASE + f"space: {{seed: {list(range(12_000))}}}\n",
+            ": too large: over 10,000 YAML nodes (keys, values and list items), more than "
+            "OmegaConf reads from one file (a config holds a few hundred); give a long list "
+            "as low/high/step",
+        ),
     ],
-    ids=["yaml", "tab", "twice", "list", "scalar", "key", "objective-key", "integer"],
+    ids=["yaml", "tab", "twice", "list", "scalar", "key", "objective-key", "integer", "nodes"],
 )
 def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, message):
     path = tmp_path / "bad.yaml"

@@ -215,6 +215,24 @@ def positive(setting: str, value: int) -> None:
         raise ConfigError(f"{setting}={value}: must be >= 1")
 
 
+MAX_EPOCHS = 100_000
+
+
+def epochs(setting: str, value: int | None, least: int = 1) -> None:
+    """A count of epochs: ``least`` or more, and at most MAX_EPOCHS - a fixed bound (found
+    by the sixth fault sweep: a robot accepted 10**12 VAE epochs from its server, a run
+    that never ends; the paper's longest is 300)."""
+    if value is None:
+        return
+    if value < least:
+        raise ConfigError(f"{setting}={value}: must be >= {least}")
+    if value > MAX_EPOCHS:
+        raise ConfigError(
+            f"{setting}={value}: at most {MAX_EPOCHS} epochs (a fixed bound; the paper's "
+            "longest is the VAE's 300)"
+        )
+
+
 def nonnegative(setting: str, value: float) -> None:
     if value < 0:
         raise ConfigError(f"{setting}={value}: must be >= 0")

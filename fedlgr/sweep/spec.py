@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from fedlgr.config import CONF_DIR, SWEEPS_DIR, check_interpolations
+from fedlgr.config import CONF_DIR, SWEEPS_DIR, check_interpolations, yaml_reason
 from fedlgr.errors import ConfigError
 
 CONFIG_KEY = "config"  # the space key that chooses the base config file
@@ -332,9 +332,11 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
 
 def _yaml_problem(err) -> str:
     """``, line L, column C: not valid YAML: PROBLEM (CONTEXT from line ...)``."""
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    if "YAML node expansion" in problem:  # OmegaConf's limit on one file's nodes
+        return f": {yaml_reason(Exception(problem))}; give a long list as low/high/step"
     mark = getattr(err, "problem_mark", None)
     where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
     context, start = getattr(err, "context", None), getattr(err, "context_mark", None)
     if context and start is not None:
         problem += f" ({context} from line {start.line + 1}, column {start.column + 1})"
