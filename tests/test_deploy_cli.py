@@ -273,6 +273,42 @@ def test_supernode_refuses_missing_files(tmp_path, certs, synth_dir, capsys):
     )
 
 
+def test_supernode_refuses_the_wrong_kind_of_file_or_folder(tmp_path, certs, synth_dir, capsys):
+    """A key's public half as --key, a key as --ca, a file as --state-dir or under
+    --cache-dir: one line each before Flower starts (the fifth and sixth fault sweeps, k37,
+    k38, k62), with --print-command too; a missing state folder is made only by a start."""
+    key, pub = make_node_key(tmp_path / "keys", "robot1")
+    ca = str(certs / "ca.pem")
+    base = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(synth_dir)]
+    cases = {
+        ("--ca", ca, "--key", str(pub)): f"--key {pub}: not a private node key (the public "
+        "half: give NAME, not NAME.pub); fedlgr deploy node-key DIR NAME writes one",
+        ("--ca", str(key), "--key", str(key)): f"--ca {key}: not a PEM certificate (the "
+        "deployment's ca.pem, made by fedlgr deploy certs DIR)",
+        ("--insecure", "--state-dir", str(key)): f"--state-dir {key}: a file, not a folder",
+        ("--insecure", "--cache-dir", str(key / "x")): f"--cache-dir {key / 'x'}: {key} is a "
+        "file, not a folder",
+    }
+    for extra, said in cases.items():
+        assert main([*base, *extra, "--print-command"]) == 1, extra
+        assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"fedlgr: error: {said}")
+    state = tmp_path / "state" / "robot1"
+    assert (
+        main([*base, "--ca", ca, "--key", str(key), "--state-dir", str(state), "--print-command"])
+        == 0
+    )
+    assert f'state-dir="{state}"' in capsys.readouterr().out and not state.exists()
+
+
+@pytest.mark.parametrize("host", ["bad host", "999.1.1.1", "host:1", ""])
+def test_superlink_refuses_a_host_it_cannot_listen_on(host, capsys):
+    assert main(["deploy", "superlink", "--insecure", "--host", host, "--print-command"]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"fedlgr: error: --host {host!r}: not an address to listen on (an IP address such as "
+        "0.0.0.0 or 127.0.0.1, or this machine's host name)"
+    )
+
+
 def test_a_robot_with_a_broken_dataset_is_refused_when_its_supernode_starts(
     tmp_path, certs, synth_dir, capsys
 ):

@@ -103,7 +103,7 @@ def connect(args: argparse.Namespace) -> int:
         _warn_insecure()
         entry["insecure"] = True
     else:
-        entry["root-certificates"] = str(_existing(args.ca, "--ca", "fedlgr deploy certs"))
+        entry["root-certificates"] = str(_certificates(args.ca))
     path, config = _flower_config()
     home = path.parent
     links = config.setdefault("superlink", {})
@@ -169,7 +169,14 @@ def superlink(args: argparse.Namespace) -> int:
     """Flower's SuperLink behind fedlgr's Fleet-only gateway (:mod:`fedlgr.deploy.gateway`)
     on ``--host``/``--port``, bound to 127.0.0.1:``--internal-port`` itself; or, with
     ``--expose-control-api``, Flower alone on ``--host``/``--port`` with all its APIs."""
+    from fedlgr.deploy.credentials import is_host
+
     exe = _flower("flower-superlink")
+    if not is_host(args.host):  # the fifth fault sweep, k36: 'bad host' was printed as a URL
+        raise FedlgrError(
+            f"--host {args.host!r}: not an address to listen on (an IP address such as "
+            "0.0.0.0 or 127.0.0.1, or this machine's host name)"
+        )
     cmd = [str(exe)]
     tls = None
     if args.insecure:
@@ -304,14 +311,17 @@ def supernode(args: argparse.Namespace) -> int:
         _no_ca(args)
         cmd.append("--insecure")
     else:
-        cmd += ["--root-certificates", str(_existing(args.ca, "--ca", "fedlgr deploy certs"))]
+        cmd += ["--root-certificates", str(_certificates(args.ca))]
     if args.insecure and args.key is not None:
         raise FedlgrError(
             "--insecure turns TLS off, and SuperNode authentication needs TLS: drop --key "
             "(or drop --insecure)"
         )
     if not args.insecure:
+        from fedlgr.deploy.credentials import check_node_key
+
         key = _existing(args.key, "--key", "fedlgr deploy node-key DIR NAME")
+        check_node_key(key)
         cmd += ["--auth-supernode-private-key", str(key)]
     from fedlgr.data.ratings import read_ratings
 
@@ -325,7 +335,8 @@ def supernode(args: argparse.Namespace) -> int:
         settings.append("own-data=true")
     for name, folder in (("state-dir", args.state_dir), ("cache-dir", args.cache_dir)):
         if folder is not None:
-            settings.append(f"{name}={_toml_string(str(_absolute(folder)))}")
+            own = _own_folder(folder, f"--{name}", make=not args.print_command)
+            settings.append(f"{name}={_toml_string(str(own))}")
     if args.weights is not None:
         weights = _absolute(args.weights)
         if not weights.is_file():
@@ -479,6 +490,39 @@ def _existing(path: Path | None, option: str, maker: str) -> Path:
     if not path.is_file():
         raise FedlgrError(f"{option}: {path} does not exist (made by {maker})")
     return path
+
+
+def _certificates(path: Path | None) -> Path:
+    """``--ca``: an existing file of PEM certificates."""
+    from fedlgr.deploy.credentials import check_certificates
+
+    path = _existing(path, "--ca", "fedlgr deploy certs")
+    check_certificates(path)
+    return path
+
+
+def _own_folder(folder: Path, option: str, make: bool) -> Path:
+    """A folder the robot writes (``--state-dir``, ``--cache-dir``), checked before Flower
+    starts rather than when a run's first message arrives (the fifth fault sweep, k30 and
+    k62: ``/proc/x`` and a private key's path were taken): an existing folder it can write
+    in, or one it can make - made here, unless only the command is printed."""
+    path = _absolute(folder)
+    if path.exists() and not path.is_dir():
+        raise FedlgrError(f"{option} {path}: a file, not a folder")
+    if not path.exists():
+        if make:
+            try:
+                path.mkdir(parents=True)
+            except OSError as err:
+                raise FedlgrError(f"{option} {path}: cannot make it ({err.strerror})") from None
+        else:
+            parent = next(p for p in path.parents if p.exists())
+            if not parent.is_dir():
+                raise FedlgrError(f"{option} {path}: {parent} is a file, not a folder")
+            path = parent  # what must be writable
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise FedlgrError(f"{option} {_absolute(folder)}: cannot write in {path}")
+    return _absolute(folder)
 
 
 def _no_ca(args: argparse.Namespace) -> None:

@@ -25,6 +25,7 @@ import re
 from pathlib import Path
 
 from cryptography import x509
+from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -112,27 +113,61 @@ def check_validity(days: int) -> None:
         )
 
 
-def check_host(host: str) -> None:
-    """A host name or address a TLS client can match: an IP address, or a DNS name of
-    letters, digits and hyphens (a leading ``*.`` wildcard allowed), at most 253 long."""
+def is_host(host: str, wildcard: bool = False) -> bool:
+    """An IP address, or a DNS name of letters, digits and hyphens (with ``wildcard``, a
+    leading ``*.`` allowed), at most 253 long."""
     try:
         ipaddress.ip_address(host)
-        return
+        return True
     except ValueError:
         pass
-    name = host.removeprefix("*.")
+    name = host.removeprefix("*.") if wildcard else host
     labels = name.split(".")
-    if (
-        not name
-        or len(host) > 253
-        or not all(_LABEL.fullmatch(p) for p in labels)
-        or labels[-1].isdigit()  # a mistyped address (999.1.1.1), not a name
-    ):
+    return bool(
+        name
+        and len(host) <= 253
+        and all(_LABEL.fullmatch(p) for p in labels)
+        and not labels[-1].isdigit()  # a mistyped address (999.1.1.1), not a name
+    )
+
+
+def check_host(host: str) -> None:
+    """A host name or address a TLS client can match (:func:`is_host`, wildcards too)."""
+    if not is_host(host, wildcard=True):
         raise FedlgrError(
             f"--host {host!r}: not an IP address or a DNS name (letters, digits, hyphens and "
             "dots, no trailing dot, labels of at most 63, at most 253 in all; a leading *. "
             "for a wildcard); robots could never match it"
         )
+
+
+def check_node_key(path: Path, option: str = "--key") -> None:
+    """``path`` holds a robot's private node key (OpenSSH, as ``node-key`` writes it): not
+    its ``.pub`` half or another file, which Flower refuses only as the SuperNode starts,
+    in a traceback (the fifth fault sweep, k37)."""
+    try:
+        serialization.load_ssh_private_key(path.read_bytes(), password=None)
+    except (ValueError, TypeError, UnsupportedAlgorithm) as err:
+        half = " (the public half: give NAME, not NAME.pub)" if path.suffix == ".pub" else ""
+        raise FedlgrError(
+            f"{option} {path}: not a private node key{half}; fedlgr deploy node-key DIR NAME "
+            f"writes one ({str(err).splitlines()[0] if str(err) else type(err).__name__})"
+        ) from None
+    except OSError as err:
+        raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None
+
+
+def check_certificates(path: Path, option: str = "--ca") -> None:
+    """``path`` holds PEM certificates (a ``ca.pem``), not a key or another file (k38)."""
+    try:
+        x509.load_pem_x509_certificates(path.read_bytes())
+    except ValueError:
+        raise FedlgrError(
+            f"{option} {path}: not a PEM certificate (the deployment's ca.pem, made by "
+            "fedlgr deploy certs DIR)"
+        ) from None
+    except OSError as err:
+        raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None
 
 
 def make_certificates(
