@@ -528,6 +528,37 @@ def yaml_reason(err: Exception) -> str:
     return f"not valid YAML ({first})"
 
 
+MAX_NESTING = 100  # levels of a config file; fedlgr's own nest 4 at most
+
+
+def _check_nesting(path: Path) -> None:
+    """A file nested deeper than MAX_NESTING levels is one line. OmegaConf composes YAML
+    with libyaml's recursive C code, which crashed the process (SIGSEGV, no word) on
+    100,000 nested ``[`` (the sixth fault sweep, n17); libyaml's event parser keeps its own
+    stack, so the levels are counted from its events first (microseconds for a config)."""
+    import yaml
+
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    opened = (yaml.MappingStartEvent, yaml.SequenceStartEvent)
+    closed = (yaml.MappingEndEvent, yaml.SequenceEndEvent)
+    depth = 0
+    try:
+        with path.open("rb") as stream:
+            for event in yaml.parse(stream, Loader=loader):
+                if isinstance(event, opened):
+                    depth += 1
+                    if depth > MAX_NESTING:
+                        line = event.start_mark.line + 1
+                        raise ConfigError(
+                            f"{path}: nested over {MAX_NESTING} levels deep (line {line}); "
+                            "a config nests a few"
+                        )
+                elif isinstance(event, closed):
+                    depth -= 1
+    except (yaml.YAMLError, OSError, UnicodeDecodeError):
+        return  # said with its reason by the load that follows
+
+
 def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     """The YAML at ``path`` preceded by what it includes, each as an OmegaConf node."""
     from omegaconf import OmegaConf
@@ -539,6 +570,7 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
         raise ConfigError(f"{path}: a folder, not a config file (name a .yaml file in it)")
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
+    _check_nesting(path)
     try:
         node = OmegaConf.load(path)
     except Exception as err:

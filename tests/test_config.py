@@ -251,6 +251,20 @@ def test_a_file_over_omegaconfs_node_limit_is_called_too_large(tmp_path):
     )
 
 
+def test_a_file_nested_too_deep_is_one_line_in_the_process_itself(tmp_path):
+    """100,000 nested ``[`` crashed the process in libyaml's C composer (SIGSEGV, exit 139,
+    nothing said: the sixth fault sweep, n17); 150 levels are refused before, and the
+    refusal happens in this process (a crash would take pytest with it)."""
+    for depth in (150, 100_000):
+        path = tmp_path / f"deep{depth}.yaml"
+        path.write_text("train:\n  betas: " + "[" * depth + "]" * depth + "\n")
+        with pytest.raises(ConfigError) as err:
+            load_config(path)
+        assert str(err.value) == (
+            f"{path.resolve()}: nested over 100 levels deep (line 2); a config nests a few"
+        )
+
+
 @pytest.mark.parametrize(
     ("override", "said"),
     [
