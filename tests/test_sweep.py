@@ -140,6 +140,31 @@ def test_a_grid_sweep_runs_every_point_once_under_one_parent_run(
     assert len(child_runs(store, "sweep-grid4")[2]) == 4
 
 
+def test_a_sigterm_while_optuna_records_a_trial_stops_the_sweep_as_an_interrupt(
+    tmp_path, synth_dir, cache_dir, monkeypatch
+):
+    """The seventh fault sweep (i17): SIGTERM that arrives while Optuna records a finished
+    trial (``_tell_with_warning``, here raising the Terminated the signal handler raises)
+    became Optuna 4's ``UnboundLocalError: ... 'updated_state'`` and two tracebacks. It is
+    the interrupt: the trial is queued again and the parent run ends KILLED."""
+    import optuna.study._optimize as optimize
+
+    from fedlgr.signals import Terminated
+
+    def interrupted(**_):
+        raise Terminated("SIGTERM")
+
+    monkeypatch.setattr(optimize, "_tell_with_warning", interrupted)
+    spec = load_sweep(write_sweep(tmp_path, synth_dir, cache_dir, name="tell"))
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    with pytest.raises(Terminated):
+        run_sweep(spec, storage=storage, tracking_uri=store, echo=print)
+    states = trials_by_state(storage, "tell")
+    assert len(states["WAITING"]) == 1  # the copy the next launch runs
+    _, (parent,), _ = child_runs(store, "sweep-tell")
+    assert parent.info.status == "KILLED"
+
+
 def test_a_failing_trial_is_recorded_failed_and_the_sweep_goes_on(tmp_path, synth_dir, cache_dir):
     path = tmp_path / "fails.yaml"
     path.write_text(

@@ -357,6 +357,10 @@ class Worker:
                 self._requeue_interrupted()
                 raise
             except Exception as err:  # the study's storage failed (full, locked, damaged)
+                interrupt = interrupt_in(err)
+                if interrupt is not None:
+                    self._requeue_interrupted()
+                    raise interrupt from None
                 problem = storage_error(self.storage, err)
                 if problem is None:
                     raise
@@ -378,6 +382,10 @@ class Worker:
             self.client.set_terminated(self.parent_run_id, "KILLED")
             raise
         except Exception as err:  # the study's storage failed (full, locked, damaged)
+            interrupt = interrupt_in(err)
+            if interrupt is not None:
+                self.client.set_terminated(self.parent_run_id, "KILLED")
+                raise interrupt from None
             problem = storage_error(self.storage, err)
             if problem is None:
                 raise
@@ -482,3 +490,17 @@ class Worker:
         }[t.state.name]
         self.echo(f"=== trial {t.number}: {what} ({seconds:.0f} s)")
         self.last_trial = None
+
+
+def interrupt_in(err: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM (:class:`fedlgr.signals.Terminated`) behind ``err``, if any:
+    one that arrives while Optuna records a trial turns into Optuna 4's
+    ``UnboundLocalError: ... 'updated_state'`` in ``_run_trial``, and a sweep stopped
+    there ended in two tracebacks (the seventh fault sweep, i17)."""
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
