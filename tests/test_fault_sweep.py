@@ -7,7 +7,9 @@ folder made 0777 under umask 000."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sqlite3
 import stat
 
 import pytest
@@ -189,3 +191,27 @@ def test_adams_decay_rates_are_checked_with_the_config(setting):
     """The fifth sweep: train.betas=[1.5,0.9] failed inside torch's Adam after 13 s."""
     with pytest.raises(ConfigError, match=r"betas=\[.*\]: two decay rates, each in \[0, 1\)"):
         load_config(None, [setting])
+
+
+def test_a_symbolic_link_that_loops_is_one_line(tmp_path, synth_dir, capsys):
+    """The seventh fault sweep (v27): a config path that is a looping link gave Python
+    3.11's ``RuntimeError: Symlink loop from ...`` traceback; a looping checkpoint folder
+    too, and no run was started for either."""
+    (tmp_path / "a.yaml").symlink_to(tmp_path / "b.yaml")
+    (tmp_path / "b.yaml").symlink_to(tmp_path / "a.yaml")
+    assert main(["run", str(tmp_path / "a.yaml"), "--print-config"]) == 1
+    said = f"fedlgr: error: {tmp_path / 'a.yaml'}: a symbolic link that loops"
+    assert capsys.readouterr().err.strip() == said
+    store = tmp_path / "mlflow.db"
+    argv = [
+        "run",
+        "debug/tiny",
+        f"data.path={synth_dir}",
+        f"tracking.checkpoint_dir={tmp_path / 'a.yaml'}",
+    ]
+    assert main([*argv, "--tracking-uri", f"sqlite:///{store}"]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == said
+    if store.exists():  # no run left RUNNING: none was started
+        with contextlib.closing(sqlite3.connect(store)) as db:
+            tables = {name for (name,) in db.execute("select name from sqlite_master")}
+            assert "runs" not in tables or not db.execute("select * from runs").fetchall()

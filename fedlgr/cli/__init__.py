@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import logging
 import os
+import re
 import signal
 import sys
 import warnings
@@ -388,6 +389,14 @@ def main(argv: list[str] | None = None) -> int:
         return verb(args) or 0
     except FedlgrError as err:
         print(f"fedlgr: error: {err}", file=sys.stderr)
+        return 1
+    except RuntimeError as err:
+        # Python 3.11's pathlib says a symbolic link that loops (a config, data.path, a
+        # store's path ...) this way, where 3.13 raises OSError (the seventh fault sweep, v27)
+        loop = re.fullmatch(r"Symlink loop from '(.*)'", str(err))
+        if loop is None:
+            raise
+        print(f"fedlgr: error: {loop.group(1)}: a symbolic link that loops", file=sys.stderr)
         return 1
     except KeyboardInterrupt as err:
         from fedlgr.signals import Terminated, quiet_exit
