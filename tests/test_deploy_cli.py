@@ -275,8 +275,9 @@ def test_supernode_refuses_missing_files(tmp_path, certs, synth_dir, capsys):
 
 def test_supernode_refuses_the_wrong_kind_of_file_or_folder(tmp_path, certs, synth_dir, capsys):
     """A key's public half as --key, a key as --ca, a file as --state-dir or under
-    --cache-dir: one line each before Flower starts (the fifth and sixth fault sweeps, k37,
-    k38, k62), with --print-command too; a missing state folder is made only by a start."""
+    --cache-dir, a folder in /proc, a key as --weights, 100,000 threads: one line each
+    before Flower starts (the fifth to seventh fault sweeps: k30, k37, k38, k62, e16, e17,
+    e25), with --print-command too; a missing state folder is made only by a start."""
     key, pub = make_node_key(tmp_path / "keys", "robot1")
     ca = str(certs / "ca.pem")
     base = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(synth_dir)]
@@ -288,7 +289,13 @@ def test_supernode_refuses_the_wrong_kind_of_file_or_folder(tmp_path, certs, syn
         ("--insecure", "--state-dir", str(key)): f"--state-dir {key}: a file, not a folder",
         ("--insecure", "--cache-dir", str(key / "x")): f"--cache-dir {key / 'x'}: {key} is a "
         "file, not a folder",
+        ("--insecure", "--weights", str(key)): f"--weights {key}: cannot read a state dict",
+        ("--insecure", "--threads", "100000"): "--threads 100000: 1 to 1024",
     }
+    if Path("/proc/self").is_dir():  # Linux: no folder can be made there, even by root
+        cases[("--insecure", "--state-dir", "/proc/fedlgr")] = (
+            "--state-dir /proc/fedlgr: cannot make it"
+        )
     for extra, said in cases.items():
         assert main([*base, *extra, "--print-command"]) == 1, extra
         assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"fedlgr: error: {said}")
@@ -330,7 +337,7 @@ def test_a_robot_with_a_broken_dataset_is_refused_when_its_supernode_starts(
     assert "flower-supernode" not in out.out  # nothing was started
 
 
-def test_run_command(tmp_path, monkeypatch, capsys):
+def test_run_command(tmp_path, fake_flwr, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     items = ["conf.yaml", "method=FedRootAvg", "--federation", "robots"]
     odd = ['tracking.run_name=it\'s a "run"', "data.path=C:\\robots\\data"]
@@ -380,7 +387,9 @@ def test_run_without_a_connection_is_refused_before_flower_starts_one_of_its_own
     config.write_text("seed: 3\ndeploy:\n  roster: none\n")
     home = tmp_path / "bare-home"
     monkeypatch.setenv("FLWR_HOME", str(home))
-    for extra, which in (([], "the default connection"), (["--federation", "lab"], "lab")):
+    cases = [([], "the default connection"), (["--federation", "lab"], "lab")]
+    cases += [([*extra, "--print-command"], which) for extra, which in cases]  # e21
+    for extra, which in cases:
         assert main(["deploy", "run", str(config), *extra]) == 1
         [line] = capsys.readouterr().err.strip().splitlines()
         assert line.startswith(f"fedlgr: error: {which.replace('lab', '--federation lab')}: ")

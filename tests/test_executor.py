@@ -87,3 +87,20 @@ def test_only_client_and_server_apps_are_run():
     result = executor.ForkExecutor().launch(spec(task_type=TaskType.MODEL))
     assert result.status == LaunchResultStatus.FAILED
     assert "runs ClientApps and ServerApps" in result.message
+
+
+def test_an_executor_stopped_while_it_preloads_says_nothing(tmp_path):
+    """The seventh fault sweep (e24): a SuperNode that gave up on an unreachable SuperLink
+    stopped its warm executor while that still imported what it preloads, and the
+    executor printed a KeyboardInterrupt traceback after Flower's one-line reason."""
+    import signal
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "fedlgr.deploy.flower.executor", "--insecure"]
+    command += ["--runtime-api-address", "127.0.0.1:9", "--preload", "clientapp"]
+    with subprocess.Popen(command, stderr=subprocess.PIPE, text=True, cwd=tmp_path) as proc:
+        time.sleep(1.0)  # inside the imports (torch, lightning, flwr: seconds)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in err, err

@@ -283,14 +283,17 @@ def _gateway(
 
 
 def supernode(args: argparse.Namespace) -> int:
+    from fedlgr.config import MAX_PER_MACHINE
     from fedlgr.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
 
     _flower("flower-supernode")  # Flower is installed here
     _address(args.superlink)
     if args.client is not None and args.client < 0:
         raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
-    if args.threads is not None and args.threads < 1:
-        raise FedlgrError(f"--threads {args.threads}: must be 1 or more")
+    if args.threads is not None and not 1 <= args.threads <= MAX_PER_MACHINE:
+        raise FedlgrError(
+            f"--threads {args.threads}: 1 to {MAX_PER_MACHINE} (runtime.threads' bound)"
+        )
     data = _absolute(args.data)
     if not data.is_dir():
         raise FedlgrError(f"--data {data}: no such folder (the robot's dataset, MANNERS-DB layout)")
@@ -344,6 +347,14 @@ def supernode(args: argparse.Namespace) -> int:
                 f"--weights {weights}: no such file (this robot's copy of the root weights "
                 "a run's model.weights names)"
             )
+        from fedlgr.errors import ConfigError
+        from fedlgr.models.scholar import file_state_dict
+
+        try:  # its content too (the seventh fault sweep, e17: /etc/shadow was taken)
+            file_state_dict(weights)
+        except ConfigError as err:
+            said = str(err).replace(f"model.weights={weights}", f"--weights {weights}")
+            raise FedlgrError(said) from None
         settings.append(f"weights={_toml_string(str(weights))}")
     if args.threads is not None:
         settings.append(f"threads={args.threads}")
@@ -381,10 +392,10 @@ def run(args: argparse.Namespace) -> int:
         run_config += f" resume={_toml_string(args.resume)}"
     link = [args.federation] if args.federation else []
     cmd = [str(flwr), "run", str(APP_DIR), *link, "--stream", "--run-config", run_config]
+    _check_connection(args.federation)  # --print-command too (the seventh fault sweep, e21)
     print(shlex.join(cmd), flush=True)
     if args.print_command:
         return 0
-    _check_connection(args.federation)
     if config.is_file():
         from fedlgr.config import load_config
         from fedlgr.deploy.roster import roster_of
@@ -503,23 +514,27 @@ def _certificates(path: Path | None) -> Path:
 
 def _own_folder(folder: Path, option: str, make: bool) -> Path:
     """A folder the robot writes (``--state-dir``, ``--cache-dir``), checked before Flower
-    starts rather than when a run's first message arrives (the fifth fault sweep, k30 and
-    k62: ``/proc/x`` and a private key's path were taken): an existing folder it can write
-    in, or one it can make - made here, unless only the command is printed."""
+    starts rather than when a run's first message arrives (the fifth to seventh fault
+    sweeps, k30, k62, e23, e25: ``/proc/x`` and a private key's path were taken): an
+    existing folder it can write in, or one it can make - made here, and with
+    ``--print-command`` (``make`` False) made and removed again, as only trying tells
+    (root may write anywhere by its permissions, yet not in /proc)."""
     path = _absolute(folder)
     if path.exists() and not path.is_dir():
         raise FedlgrError(f"{option} {path}: a file, not a folder")
     if not path.exists():
-        if make:
-            try:
-                path.mkdir(parents=True)
-            except OSError as err:
-                raise FedlgrError(f"{option} {path}: cannot make it ({err.strerror})") from None
-        else:
-            parent = next(p for p in path.parents if p.exists())
-            if not parent.is_dir():
-                raise FedlgrError(f"{option} {path}: {parent} is a file, not a folder")
-            path = parent  # what must be writable
+        above = next(p for p in path.parents if p.exists())
+        if not above.is_dir():
+            raise FedlgrError(f"{option} {path}: {above} is a file, not a folder")
+        made = [p for p in (path, *path.parents) if not p.exists()]  # the deepest first
+        try:
+            path.mkdir(parents=True)
+        except OSError as err:
+            raise FedlgrError(f"{option} {path}: cannot make it ({err.strerror})") from None
+        if not make:
+            for part in made:
+                part.rmdir()
+            path = above  # what must be writable
     if not os.access(path, os.W_OK | os.X_OK):
         raise FedlgrError(f"{option} {_absolute(folder)}: cannot write in {path}")
     return _absolute(folder)

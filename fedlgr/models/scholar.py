@@ -50,7 +50,7 @@ def _imagenet_state_dict() -> dict[str, torch.Tensor]:
         ) from err
 
 
-def _file_state_dict(path: Path) -> dict[str, torch.Tensor]:
+def file_state_dict(path: Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise ConfigError(
             f"model.weights={path}: file not found (use imagenet, none or a file path)"
@@ -101,7 +101,7 @@ class MobileNetRoot(L.LightningModule):
 
     @staticmethod
     def _load_file(net: nn.Module, path: Path) -> None:
-        state = _file_state_dict(path)
+        state = file_state_dict(path)
         # Accept a full torchvision MobileNetV2 state dict, or one saved from this root.
         state = {k.removeprefix("root."): v for k, v in state.items() if not k.startswith("top.")}
         features = {k: v for k, v in state.items() if k.startswith("features.")}

@@ -194,4 +194,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        # Stopped by its SuperNode or SuperLink as that exits - possibly while still
+        # importing what it preloads: a traceback then says nothing (the seventh fault
+        # sweep, e24: a SuperNode that gave up on an unreachable SuperLink).
+        sys.exit(130)
