@@ -568,6 +568,8 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
         raise ConfigError(f"{path}: includes itself (via {' -> '.join(p.name for p in seen)})")
     if path.is_dir():
         raise ConfigError(f"{path}: a folder, not a config file (name a .yaml file in it)")
+    if path.exists() and not path.is_file():  # /dev/zero, a FIFO (seventh fault sweep)
+        raise ConfigError(f"{path}: not a regular file (a device, pipe or socket)")
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     _check_nesting(path)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -249,6 +250,16 @@ def test_a_file_over_omegaconfs_node_limit_is_called_too_large(tmp_path):
         f"{path.resolve()}: too large: over 10,000 YAML nodes (keys, values and list items), "
         "more than OmegaConf reads from one file (a config holds a few hundred)"
     )
+
+
+def test_a_device_or_pipe_as_a_config_is_named_as_such(tmp_path):
+    """The seventh fault sweep (v23, v24): /dev/zero and a FIFO were "not found"."""
+    fifo = tmp_path / "pipe.yaml"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        with pytest.raises(ConfigError) as err:
+            load_config(path)
+        assert str(err.value) == f"{path.resolve()}: not a regular file (a device, pipe or socket)"
 
 
 def test_a_file_nested_too_deep_is_one_line_in_the_process_itself(tmp_path):

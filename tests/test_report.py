@@ -280,6 +280,18 @@ def test_cli_names_an_unknown_experiment_in_one_line(store, capsys):
     assert err.startswith("fedlgr: error: no MLflow experiment named 'nope'")
 
 
+def test_an_empty_store_file_is_refused_and_left_empty(tmp_path, capsys):
+    """The seventh fault sweep (p01): a read-only command wrote MLflow's schema into an
+    existing 0-byte file (a missing one was refused)."""
+    empty = tmp_path / "empty.db"
+    empty.touch()
+    assert main(["report", "--tracking-uri", f"sqlite:///{empty}", "--experiment", "x"]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"fedlgr: error: no MLflow store at sqlite:///{empty}: {empty} is an empty file"
+    )
+    assert empty.stat().st_size == 0
+
+
 # --------------------------------------------------------------------------- sweeps
 
 

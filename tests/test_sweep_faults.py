@@ -157,8 +157,23 @@ BASE = f"base: {FAST}\n"
             "OmegaConf reads from one file (a config holds a few hundred); give a long list "
             "as low/high/step",
         ),
+        (
+            BASE + "space: {tracking.uri: [sqlite:///evil.db]}\n",
+            "space.tracking.uri: set by the sweep for every trial (--tracking-uri), not swept",
+        ),
     ],
-    ids=["yaml", "tab", "twice", "list", "scalar", "key", "objective-key", "integer", "nodes"],
+    ids=[
+        "yaml",
+        "tab",
+        "twice",
+        "list",
+        "scalar",
+        "key",
+        "objective-key",
+        "integer",
+        "nodes",
+        "set",
+    ],
 )
 def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, message):
     path = tmp_path / "bad.yaml"
@@ -166,6 +181,17 @@ def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, mess
     line = _one_error_line(_fedlgr("sweep", str(path), cwd=tmp_path))
     assert line.startswith(f"fedlgr: error: {path}") and message in line
     assert not (tmp_path / "optuna.db").exists()  # refused before opening any study
+
+
+@pytest.mark.parametrize("study", ["", " ", "x" * 513])
+def test_an_empty_or_overlong_study_name_is_refused(tmp_path, study):
+    """The seventh fault sweep (w19): ``--study ''`` quietly became the sweep's name."""
+    path = tmp_path / "ok.yaml"
+    path.write_text(BASE + "space: {seed: [1]}\n")
+    line = _one_error_line(_fedlgr("sweep", str(path), "--study", study, cwd=tmp_path))
+    said = "513 characters, at most 512" if study.strip() else f"{study!r}: empty"
+    assert line.startswith("fedlgr: error: --study") and said in line
+    assert not (tmp_path / "optuna.db").exists()
 
 
 @pytest.mark.parametrize("missing", ["folder", "file"])

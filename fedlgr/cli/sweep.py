@@ -8,6 +8,8 @@ import os
 from fedlgr.errors import FedlgrError
 from fedlgr.runtime import available_cores
 
+MAX_STUDY_NAME = 512  # optuna.storages._rdb.models.MAX_INDEXED_STRING_LENGTH
+
 
 def sweep(args: argparse.Namespace) -> int:
     from fedlgr.signals import terminate_as_interrupt
@@ -26,6 +28,10 @@ def _sweep(args: argparse.Namespace) -> int:
             f"--workers {args.workers}: from 1 to {4 * cores} (4 x this machine's {cores} "
             "cores); each worker is a process that trains one trial at a time"
         )
+    if args.study is not None and not args.study.strip():  # '' fell back to the sweep's name
+        raise FedlgrError(f"--study {args.study!r}: empty; give a name, or leave it out")
+    if args.study is not None and len(args.study) > MAX_STUDY_NAME:
+        raise FedlgrError(f"--study: {len(args.study)} characters, at most {MAX_STUDY_NAME}")
     check_tracking(args.tracking_uri, overrides)  # before loading Optuna and MLflow
     from fedlgr.sweep import load_sweep, run_sweep
     from fedlgr.sweep.storage import check_storage

@@ -132,6 +132,8 @@ def open_store(uri: str):
         path = Path(uri.removeprefix("sqlite:///"))
         if not path.is_file():
             raise ReportError(f"no MLflow store at {uri}: {path} does not exist")
+        if path.stat().st_size == 0:  # MLflow would write its schema into it (p01)
+            raise ReportError(f"no MLflow store at {uri}: {path} is an empty file")
     return open_client(uri)
 
 

@@ -184,6 +184,8 @@ def find_sweep(name: str | Path) -> Path:
     for candidate in (path, SWEEPS_DIR / path, SWEEPS_DIR / f"{path}.yaml"):
         if candidate.is_file():
             return candidate
+    if path.exists() and not path.is_dir():  # /dev/zero, a FIFO (seventh fault sweep)
+        raise ConfigError(f"sweep {name}: not a regular file (a device, pipe or socket)")
     known = ", ".join(sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml")))
     raise ConfigError(f"sweep {name}: no such file; shipped sweeps: {known}")
 
@@ -358,9 +360,19 @@ def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, f
     return value
 
 
+#: Settings each trial's config gets from the sweep, whatever the space says.
+SET_BY_THE_SWEEP = {
+    "tracking.uri": "--tracking-uri",
+    "tracking.experiment": "the sweep's experiment, sweep-NAME",
+    "tracking.run_name": "its method and point",
+}
+
+
 def _param(name: str, value: Any, fail) -> Param:
     """One ``space`` entry, checked as Optuna would take it (a grid, choices or a range)."""
     key = f"space.{name}"
+    if name in SET_BY_THE_SWEEP:  # it had no effect (the seventh fault sweep, w10b)
+        raise fail(key, f"set by the sweep for every trial ({SET_BY_THE_SWEEP[name]}), not swept")
     if isinstance(value, list):
         return Param(name, values=_values(value, key, "grid", fail))
     if not isinstance(value, dict):
