@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
@@ -60,6 +61,69 @@ def test_a_trial_killed_before_drawing_its_point_is_retried_on_that_point(
     (copy,) = [c for c in complete if unborn.number in c.system_attrs.get("retry_history", [])]
     assert copy.system_attrs["grid_id"] == left.system_attrs["grid_id"]
     assert "PRUNED" not in states  # no point drawn twice on the way
+
+
+@pytest.mark.slow
+def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_dir, cache_dir):
+    """The seventh fault sweep (g04): a worker stopped with ``kill -STOP`` mid-trial went
+    silent, a second launch declared it dead by its heartbeat and took its trial over, and
+    the first died on ``kill -CONT`` with "Cannot tell a FAIL trial". A trial whose worker
+    is alive on this machine is left to it; once that worker is dead, it is retried."""
+    import threading
+
+    import psutil
+
+    from fedlgr.sweep.worker import OWNER
+
+    path = write_sweep(tmp_path, synth_dir, cache_dir, name="stopped")
+    path.write_text(path.read_text() + "heartbeat_s: 1\n")
+    spec = load_sweep(path)
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    study, _ = open_study(spec, storage)
+    taken = study.ask()  # the stopped worker's trial: its point drawn, its heartbeat stale
+    for p in spec.params:
+        p.suggest(taken)
+    stopped = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    try:
+        stopped.send_signal(signal.SIGSTOP)
+        owner = [socket.gethostname(), stopped.pid, psutil.Process(stopped.pid).create_time()]
+        study._storage.set_trial_system_attr(taken._trial_id, OWNER, owner)
+        study._storage.record_heartbeat(taken._trial_id)
+        time.sleep(3)  # past the grace period of 2 heartbeats
+        said: list[tuple[float, str]] = []
+        died: list[float] = []
+
+        def end_it() -> None:  # once the sweep has run the other three points
+            while len(trials_by_state(storage, "stopped").get("COMPLETE", [])) < 3:
+                time.sleep(0.5)
+            time.sleep(3)
+            stopped.kill()
+            stopped.wait()
+            died.append(time.monotonic())
+
+        ender = threading.Thread(target=end_it, daemon=True)
+        ender.start()
+        result = run_sweep(
+            spec,
+            storage=storage,
+            tracking_uri=f"sqlite:///{tmp_path}/mlflow.db",
+            echo=lambda line: said.append((time.monotonic(), line)),
+        )
+        ender.join(timeout=60)
+    finally:
+        stopped.kill()
+        stopped.wait()
+    assert result.done
+    left = f"trial {taken.number} belongs to process {stopped.pid} on this machine, which is alive"
+    assert [line for _, line in said if left in line]
+    states = trials_by_state(storage, "stopped")
+    assert [t.number for t in states["FAIL"]] == [taken.number]  # only after its worker died
+    (copy,) = [
+        c for c in states["COMPLETE"] if taken.number in c.system_attrs.get("retry_history", [])
+    ]
+    started = [at for at, line in said if f"trial {copy.number} (worker" in line]
+    assert started and started[0] > died[0]
+    assert len({point(t.params) for t in states["COMPLETE"]}) == 4
 
 
 def _reporting_trial(db: Path) -> int | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import time
 import warnings
 from collections.abc import Callable
@@ -74,6 +75,7 @@ class Worker:
             self.parent_run_id = self._parent()
         self.last_trial: int | None = None
         self.trial_id: int | None = None  # the storage id of the trial this worker runs
+        self.waited_for: set[int] = set()  # trials of live workers here, said once
 
     # ------------------------------------------------------------------ MLflow parent run
 
@@ -84,10 +86,15 @@ class Worker:
         return out
 
     def _mlflow(self):
-        import mlflow
 
         from fedlgr.config import load_config
-        from fedlgr.tracking.mlflow_run import experiment_id, resolve_uri, store_lock, tracking_uri
+        from fedlgr.tracking.mlflow_run import (
+            experiment_id,
+            open_client,
+            resolve_uri,
+            store_errors,
+            tracking_uri,
+        )
 
         base, overrides = self.spec.trial_config_args({})
         try:
@@ -96,9 +103,11 @@ class Worker:
         except FedlgrError:  # e.g. data.path left to the grid's config choice
             uri = resolve_uri(self.tracking_uri)
         self.tracking_uri = uri
-        with store_lock(uri):  # the client creates (migrates) a fresh sqlite store
-            client = mlflow.MlflowClient(uri)
-        parent = self._parent_run(client)
+        # One line for a store another process holds (e.g. a stopped sweep in the middle
+        # of a write: the seventh fault sweep, g04), as for fedlgr run.
+        with store_errors(uri, "open the sweep's store"):
+            client = open_client(uri)  # creates (migrates) a fresh sqlite store, locked
+            parent = self._parent_run(client)
         if parent is None:
             return client, experiment_id(client, self.experiment)
         # A relaunched study keeps its runs together: its trials go where its parent run is.
@@ -229,6 +238,7 @@ class Worker:
 
         self.last_trial, self.trial_id = trial.number, trial._trial_id
         trial.set_user_attr("worker", self.worker)
+        self.study._storage.set_trial_system_attr(trial._trial_id, OWNER, this_process())
         if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
             trial.set_user_attr("interrupted", False)
         try:
@@ -395,9 +405,32 @@ class Worker:
         """Queue again the trials of workers that died or were interrupted."""
         import optuna
 
+        self._keep_live_owners()
         optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
         self._fail_unborn_trials()
         self._retry_interrupted_trials()
+
+    def _keep_live_owners(self) -> None:
+        """A trial whose worker is alive on this machine is never declared dead by its
+        heartbeat: its worker may be stopped (Ctrl-Z, ``kill -STOP``, a suspended VM)
+        with its heartbeat stale, and would then go on with a trial Optuna has failed and
+        re-queued (the seventh fault sweep, g04: two workers on one run, and
+        ``ValueError: Cannot tell a FAIL trial``). Its heartbeat is recorded here for it;
+        a dead worker's, or one on another machine, is left to Optuna's heartbeat."""
+        from optuna.trial import TrialState
+
+        storage = self.study._storage
+        for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            if alive_here(t.system_attrs.get(OWNER)):
+                storage.record_heartbeat(t._trial_id)
+                if t.number not in self.waited_for and t._trial_id != self.trial_id:
+                    self.waited_for.add(t.number)
+                    pid = t.system_attrs[OWNER][1]
+                    self.echo(
+                        f"sweep {self.spec.name}: trial {t.number} belongs to process {pid} "
+                        "on this machine, which is alive: it is left to that process (if it "
+                        f"is stopped, `kill -CONT {pid}` lets it go on)"
+                    )
 
     def _run(self) -> bool:
         spec = self.spec
@@ -415,7 +448,17 @@ class Worker:
                 time.sleep(min(5.0, spec.heartbeat_s / 2))
                 continue
             start = time.perf_counter()
-            self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
+            try:
+                self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
+            except ValueError as err:  # Optuna's "Cannot tell a FAIL trial."
+                if not str(err).startswith("Cannot tell a"):
+                    raise
+                # Declared dead by a worker on another machine while this process was
+                # stopped (a suspended VM): that worker has queued it again.
+                self.echo(
+                    f"=== trial {self.last_trial}: another worker declared this one dead while "
+                    "it was stopped and queued the trial again; its result here is dropped"
+                )
             self.trial_id = None
             self._report_last(time.perf_counter() - start)
 
@@ -504,3 +547,35 @@ def interrupt_in(err: BaseException) -> KeyboardInterrupt | None:
         seen.add(id(err))
         err = err.__cause__ or err.__context__
     return None
+
+
+#: A trial's system attribute naming the process that runs it: [host, pid, start time].
+OWNER = "fedlgr_owner"
+
+
+def this_process() -> list:
+    import socket
+
+    import psutil
+
+    return [socket.gethostname(), os.getpid(), psutil.Process().create_time()]
+
+
+def alive_here(owner) -> bool:
+    """Whether ``owner`` (:data:`OWNER`) is a live process on this machine - the same
+    process, not a later one given its pid (the start time tells them apart); a zombie
+    is not alive."""
+    import socket
+
+    import psutil
+
+    if not isinstance(owner, list) or len(owner) != 3 or owner[0] != socket.gethostname():
+        return False
+    try:
+        process = psutil.Process(int(owner[1]))
+        return (
+            abs(process.create_time() - float(owner[2])) < 0.01
+            and process.status() != psutil.STATUS_ZOMBIE
+        )
+    except (psutil.Error, ValueError, TypeError):
+        return False

@@ -215,6 +215,11 @@ def store_errors(uri: str, what: str):
         from fedlgr.tracking.server import mask_password, masked_text
 
         problem = masked_text(_cause(err), uri)
+        if problem == "database is locked":
+            problem += (
+                " (another process holds the sqlite file: one stopped with Ctrl-Z or "
+                "kill -STOP? `kill -CONT PID` lets it go on)"
+            )
         raise StoreError(f"MLflow store {mask_password(uri)}: could not {what}: {problem}") from err
 
 
