@@ -572,3 +572,49 @@ def test_two_runs_opening_a_fresh_store_at_once_both_finish(synth_dir, cache_dir
         assert not failures, f"attempt {attempt + 1}: {failures}"
         _, runs = experiment_runs(store)
         assert sorted(r.info.status for r in runs) == ["FINISHED", "FINISHED"], attempt
+
+
+def test_a_new_store_appears_whole_or_not_at_all(tmp_path, monkeypatch):
+    """The seventh fault sweep (g03e): SIGKILL while MLflow created a new store's schema
+    left its tables without a version, and every later use of it failed ("duplicate column
+    name: step"). A new store is made under a temporary name and renamed when whole: a
+    creation cut short leaves no store, and its leftover is replaced by the next one."""
+    from fedlgr.tracking import mlflow_run
+
+    store = tmp_path / "new.db"
+    uri = f"sqlite:///{store}"
+    making = tmp_path / ".new.db.creating"
+    making.write_text("what a killed creation left")
+    real = mlflow.MlflowClient
+
+    def killed(uri_made):  # the creation stops in the middle (as a SIGKILL would)
+        assert uri_made == f"sqlite:///{making}" and not store.exists()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mlflow, "MlflowClient", killed)
+    with pytest.raises(KeyboardInterrupt):
+        mlflow_run.open_client(uri)
+    assert not store.exists()
+    monkeypatch.setattr(mlflow, "MlflowClient", real)
+    client = mlflow_run.open_client(uri)
+    assert store.is_file() and not making.exists()
+    assert [e.name for e in client.search_experiments()] == ["Default"]
+
+
+def test_a_half_created_store_is_named_as_such(tmp_path, synth_dir, capsys):
+    """A store left half-created by another tool or an earlier fedlgr (tables, no schema
+    version): one line saying so, not "duplicate column name" (g03f)."""
+    from fedlgr.tracking import mlflow_run
+
+    store = tmp_path / "half.db"
+    mlflow_run.open_client(f"sqlite:///{store}")
+    with sqlite3.connect(store) as db:
+        db.execute("DELETE FROM alembic_version")
+    db.close()
+    argv = ["run", str(FAST), f"data.path={synth_dir}", "--tracking-uri", f"sqlite:///{store}"]
+    assert main(argv) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"fedlgr: error: tracking store sqlite:///{store}: {store} is half-created (its "
+        "schema has no version: a process was killed while MLflow created it; it holds no "
+        "runs: remove it)"
+    )

@@ -180,9 +180,31 @@ def open_client(uri: str):
     with store_lock(uri):  # the client's construction creates and migrates the store
         if uri.startswith("sqlite:///"):
             check_sqlite_usable(uri)  # after the lock: a migration under way is not a fault
+            create_whole(uri)
         client = mlflow.MlflowClient(uri)
         client.search_experiments(max_results=1)
     return client
+
+
+def create_whole(uri: str) -> None:
+    """Create a new sqlite store under a temporary name beside it and rename it into place
+    once MLflow has made its whole schema: a kill during the creation (seconds) left a
+    half-made store no later run could use (the seventh fault sweep, g03e). Called under
+    :func:`store_lock`, so a temporary file found is one a kill left behind."""
+    import mlflow
+
+    from fedlgr.tracking.server import sqlite_path
+
+    path = sqlite_path(uri)
+    if str(path) == ":memory:" or path.exists():
+        return
+    making = path.with_name(f".{path.name}.creating")
+    making.unlink(missing_ok=True)
+    query = uri.partition("?")[2]
+    mlflow.MlflowClient(f"sqlite:///{making}" + (f"?{query}" if query else "")).search_experiments(
+        max_results=1
+    )
+    os.replace(making, path)
 
 
 def dataset_name(config: ExperimentConfig) -> str:

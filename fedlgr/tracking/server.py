@@ -161,6 +161,7 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
         connection = sqlite3.connect(path, timeout=wait)
         try:
             connection.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            half_created(connection)
             if path.stat().st_size < QUICK_CHECK_BYTES:  # ~20 ms per MB: skipped for big ones
                 problems = connection.execute("PRAGMA quick_check(1)").fetchone()
                 if problems and problems[0] != "ok":
@@ -173,9 +174,35 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
     except sqlite3.DatabaseError as err:
         if "locked" in str(err):
             why = f"another process has kept it locked for over {wait:.0f} s"
+        elif str(err).startswith("half-created"):
+            why = f"{path} is {err}"
         else:
             why = f"{path} is damaged ({err}); restore it from a copy, or start a new store"
         raise TrackingUnreachable(f"tracking store {uri}: {why}") from None
+
+
+def half_created(connection) -> None:
+    """Raise ``sqlite3.DatabaseError`` for an MLflow store whose creation a kill cut short
+    (the seventh fault sweep, g03e: its tables there, ``alembic_version`` empty, and every
+    later use a ``duplicate column name`` traceback). fedlgr now creates a store under
+    another name and renames it when whole (:func:`fedlgr.tracking.mlflow_run.open_client`);
+    this names the ones left by other tools or earlier versions."""
+    import sqlite3
+
+    tables = {name for (name,) in connection.execute("SELECT name FROM sqlite_master")}
+    if not tables or "experiments" not in tables:
+        return  # an empty file, or not MLflow's (refused as such elsewhere)
+    version = (
+        "alembic_version" in tables
+        and connection.execute("SELECT count(*) FROM alembic_version").fetchone()[0]
+    )
+    if not version:
+        runs = "runs" in tables and connection.execute("SELECT count(*) FROM runs").fetchone()[0]
+        hint = "it holds no runs: remove it" if not runs else f"it holds {runs} runs"
+        raise sqlite3.DatabaseError(
+            f"half-created (its schema has no version: a process was killed while MLflow "
+            f"created it; {hint})"
+        )
 
 
 def check_tracking(uri: str | None, overrides: list[str]) -> None:
