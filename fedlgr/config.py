@@ -239,8 +239,10 @@ class RuntimeConfig:
                     f"runtime.{name}={value}: at most {MAX_PER_MACHINE} (a fixed bound, more "
                     "than any machine's cores or GPUs: each is a process or a thread)"
                 )
-        if not 0 < self.timeout_s <= 7 * 86400:
-            raise ConfigError(f"runtime.timeout_s={self.timeout_s}: must be > 0 and at most a week")
+        if not 1 <= self.timeout_s <= 7 * 86400:  # 0.001 was taken (z14)
+            raise ConfigError(
+                f"runtime.timeout_s={self.timeout_s}: from 1 second to a week (604800)"
+            )
         for name in ("threads", "workers"):
             if getattr(self, name) is not None:
                 _positive(f"runtime.{name}", getattr(self, name))
@@ -310,10 +312,12 @@ class TrackingConfig:
                 f"{MAX_EXPERIMENT_NAME} (mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH)"
             )
         for name, what in (("heartbeat_s", "beats"), ("system_metrics_s", "samples")):
-            if not 0 < getattr(self, name) <= MAX_INTERVAL_S:
+            # at least a second: 0.0001 was taken (seventh fault sweep, z10/z13), a write
+            # to the store 10,000 times a second
+            if not 1 <= getattr(self, name) <= MAX_INTERVAL_S:
                 raise ConfigError(
-                    f"tracking.{name}={getattr(self, name)}: must be > 0 and at most "
-                    f"{MAX_INTERVAL_S} (a day: a thread waits this long between two {what})"
+                    f"tracking.{name}={getattr(self, name)}: from 1 to {MAX_INTERVAL_S} "
+                    f"seconds (a day: a thread waits this long between two {what})"
                 )
         if self.checkpoint < 0:
             raise ConfigError(f"tracking.checkpoint={self.checkpoint}: must be >= 0 (0: none)")
