@@ -107,11 +107,17 @@ def terminate_as_interrupt() -> Iterator[None]:
 
     previous = signal.signal(signal.SIGTERM, on_term)
     previous_int = signal.signal(signal.SIGINT, on_int)
+    # SIGHUP (the terminal closed, an ssh session dropped) as SIGTERM, unless it is ignored
+    # (nohup): it killed a run at once and left it RUNNING (the seventh fault sweep, s10b).
+    hangup = signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
+    previous_hup = signal.signal(signal.SIGHUP, on_term) if hangup else None
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
         signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
+        if hangup:
+            signal.signal(signal.SIGHUP, previous_hup or signal.SIG_DFL)
 
 
 def quiet_exit(code: int = 130) -> None:

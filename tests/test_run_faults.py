@@ -104,6 +104,24 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert not Path(run.data.tags["fedlgr.checkpoints"]).exists()  # a finished run has none
 
 
+@pytest.mark.slow
+def test_sighup_ends_the_run_killed_like_sigterm(synth_dir, cache_dir, tmp_path):
+    """The seventh fault sweep (s10b): SIGHUP (a closed terminal, a dropped ssh session)
+    killed the process at once and left its run RUNNING. It ends the run KILLED, as
+    SIGTERM does (exit 129)."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=12")
+    default = "import signal; signal.signal(signal.SIGHUP, signal.SIG_DFL)\n"
+    with Child(args, tmp_path, "hangup", prelude=default) as child:
+        child.wait_for(r"round 1/12:")
+        code, _ = child.signal_and_wait(signal.SIGHUP)
+        stderr = child.stderr()
+    assert code == 128 + signal.SIGHUP, stderr[-3000:]
+    assert "fedlgr: terminated (SIGHUP)" in stderr and "Traceback" not in stderr, stderr
+    _, run = only_run(store)
+    assert run.info.status == "KILLED"
+
+
 SLOW_EXIT = """
 import atexit, time
 

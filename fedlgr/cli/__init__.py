@@ -402,12 +402,13 @@ def main(argv: list[str] | None = None) -> int:
         from fedlgr.signals import Terminated, quiet_exit
 
         terminated = isinstance(err, Terminated)
-        code = 128 + (signal.SIGTERM if terminated else signal.SIGINT)  # the shell's convention
+        name = str(err) if terminated and str(err) in ("SIGTERM", "SIGHUP") else "SIGTERM"
+        code = 128 + (signal.Signals[name] if terminated else signal.SIGINT)  # the shell's way
         if argv is None:  # the process is fedlgr and exits now (not a caller's, e.g. a test's)
             quiet_exit(code)  # a second Ctrl-C would print a traceback from an atexit hook
         hint = "".join(f"; {note}" for note in getattr(err, "__notes__", ()))
         print(
-            f"fedlgr: {'terminated (SIGTERM)' if terminated else 'interrupted'}{hint}",
+            f"fedlgr: {f'terminated ({name})' if terminated else 'interrupted'}{hint}",
             file=sys.stderr,
         )
         if argv is None:
