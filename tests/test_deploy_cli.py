@@ -8,6 +8,7 @@ import datetime as dt
 import ipaddress
 import shlex
 import shutil
+import stat
 import sys
 import tomllib
 from pathlib import Path
@@ -305,6 +306,33 @@ def test_supernode_refuses_the_wrong_kind_of_file_or_folder(tmp_path, certs, syn
         == 0
     )
     assert f'state-dir="{state}"' in capsys.readouterr().out and not state.exists()
+
+
+def test_a_private_key_others_can_read_is_refused_and_an_open_folder_is_said(
+    tmp_path, synth_dir, capsys
+):
+    """The seventh fault sweep: a robot's private key of mode 0644 was taken as --key (z06;
+    ssh refuses such a key), and keys were written into a folder every user can write
+    (x12) without a word."""
+    key, _ = make_node_key(tmp_path / "keys", "robot1")
+    ca = tmp_path / "creds" / "ca.pem"
+    assert main(["deploy", "certs", str(ca.parent)]) == 0
+    key.chmod(0o644)
+    node = ["deploy", "supernode", "--superlink", "h:9092", "--data", str(synth_dir)]
+    assert main([*node, "--ca", str(ca), "--key", str(key), "--print-command"]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"fedlgr: error: --key {key}: a private key others can read or write (mode 0644); "
+        f"chmod 600 {key}"
+    )
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    assert main(["deploy", "node-key", str(shared), "robot2"]) == 0
+    assert (
+        f"fedlgr: warning: {shared} can be written by every user (mode 0777): anyone could "
+        f"replace a public key, the roster or ca.pem in it; chmod 700 {shared}"
+    ) in capsys.readouterr().err
+    assert stat.S_IMODE((shared / "robot2").stat().st_mode) == 0o600
 
 
 @pytest.mark.parametrize("host", ["bad host", "999.1.1.1", "host:1", ""])

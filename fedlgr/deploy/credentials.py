@@ -22,6 +22,8 @@ import datetime as dt
 import ipaddress
 import os
 import re
+import stat
+import sys
 from pathlib import Path
 
 from cryptography import x509
@@ -90,6 +92,14 @@ def _folder(folder: Path) -> None:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as err:
         raise FedlgrError(f"{folder}: cannot create the folder ({err.strerror})") from None
+    mode = folder.stat().st_mode
+    if mode & stat.S_IWOTH:  # an existing folder: said, not changed (the seventh sweep, x12)
+        print(
+            f"fedlgr: warning: {folder} can be written by every user (mode "
+            f"{stat.S_IMODE(mode):04o}): anyone could replace a public key, the roster or "
+            f"ca.pem in it; chmod 700 {folder}",
+            file=sys.stderr,
+        )
 
 
 def _names(hosts) -> list[x509.GeneralName]:
@@ -155,6 +165,12 @@ def check_node_key(path: Path, option: str = "--key") -> None:
         ) from None
     except OSError as err:
         raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None
+    mode = stat.S_IMODE(path.stat().st_mode)
+    if mode & 0o077:  # as ssh refuses such a key (the seventh fault sweep, z06)
+        raise FedlgrError(
+            f"{option} {path}: a private key others can read or write (mode {mode:04o}); "
+            f"chmod 600 {path}"
+        )
 
 
 def check_certificates(path: Path, option: str = "--ca") -> None:
