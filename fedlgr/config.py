@@ -532,7 +532,8 @@ def yaml_reason(err: Exception) -> str:
     return f"not valid YAML ({first})"
 
 
-MAX_NESTING = 100  # levels of a config file; fedlgr's own nest 4 at most
+MAX_NESTING = 50  # levels of a config file; fedlgr's own nest 4 at most (at 90 levels of
+# mappings OmegaConf's own recursion gave up: the seventh fault sweep's re-check, u43)
 
 
 def _check_nesting(path: Path) -> None:
@@ -707,6 +708,32 @@ def _renamed(source: Any, node):
 SETTING_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]{0,99}")
 
 
+def _container_mismatch(merged, written: dict, prefix: str = "") -> str | None:
+    """The setting given a mapping where a list goes, or a list where a section goes: what
+    OmegaConf's merge refuses with a bare ``TypeError`` (the author's own fault sweep:
+    ``train.betas: {a: 1}`` was a traceback)."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+    from omegaconf.tupleconfig import TupleConfig
+
+    for key, value in written.items():
+        name = f"{prefix}{key}"
+        target = OmegaConf.select(merged, name, default=None, throw_on_missing=False)
+        if isinstance(value, dict) and isinstance(target, ListConfig | TupleConfig):
+            return f"{name}: a list goes here, not a mapping ({_short(value)})"
+        if isinstance(value, list) and isinstance(target, DictConfig):
+            return f"{name}: a section of settings goes here, not a list ({_short(value)})"
+        if isinstance(value, dict) and isinstance(target, DictConfig):
+            found = _container_mismatch(merged, value, f"{name}.")
+            if found:
+                return found
+    return None
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> ExperimentConfig:
     """The dataclasses from ``layers`` (``(source, node)``, merged in order)."""
     from omegaconf import OmegaConf
@@ -723,6 +750,9 @@ def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> Experiment
             raise ConfigError(f"{source}: {_merge_message(err, merged, node)}") from err
         except ConfigError as err:
             raise ConfigError(f"{source}: {err}") from err
+        except TypeError as err:  # "Cannot merge incompatible container types" (a traceback)
+            plain = OmegaConf.to_container(node, resolve=False)
+            raise ConfigError(f"{source}: {_container_mismatch(merged, plain) or err}") from err
     _resolve(merged, interpolated)
     # ``method`` is input shorthand: afterwards it names what the settings say.
     fed, cont = merged.federated, merged.continual

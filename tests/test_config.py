@@ -252,6 +252,29 @@ def test_a_file_over_omegaconfs_node_limit_is_called_too_large(tmp_path):
     )
 
 
+@pytest.mark.parametrize(
+    ("written", "said"),
+    [
+        ("train:\n  betas: {a: 1}\n", "train.betas: a list goes here, not a mapping ({'a': 1})"),
+        ("data:\n  tasks: {a: 1}\n", "data.tasks: a list goes here, not a mapping ({'a': 1})"),
+    ],
+)
+def test_a_mapping_where_a_list_goes_is_one_line(tmp_path, written, said):
+    """OmegaConf's merge refused it with a bare TypeError ("Cannot merge incompatible
+    container types"), printed as a traceback."""
+    path = tmp_path / "mapping.yaml"
+    path.write_text(written)
+    with pytest.raises(ConfigError) as in_file:
+        load_config(path)
+    assert str(in_file.value) == f"{path.resolve()}: {said}"
+    with pytest.raises(ConfigError) as on_line:
+        load_config(None, ["train.betas={a: 1}"])
+    assert (
+        str(on_line.value)
+        == "command line: train.betas: a list goes here, not a mapping ({'a': 1})"
+    )
+
+
 def test_a_device_or_pipe_as_a_config_is_named_as_such(tmp_path):
     """The seventh fault sweep (v23, v24): /dev/zero and a FIFO were "not found"."""
     fifo = tmp_path / "pipe.yaml"
@@ -272,7 +295,7 @@ def test_a_file_nested_too_deep_is_one_line_in_the_process_itself(tmp_path):
         with pytest.raises(ConfigError) as err:
             load_config(path)
         assert str(err.value) == (
-            f"{path.resolve()}: nested over 100 levels deep (line 2); a config nests a few"
+            f"{path.resolve()}: nested over 50 levels deep (line 2); a config nests a few"
         )
 
 

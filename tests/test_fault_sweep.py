@@ -215,3 +215,19 @@ def test_a_symbolic_link_that_loops_is_one_line(tmp_path, synth_dir, capsys):
         with contextlib.closing(sqlite3.connect(store)) as db:
             tables = {name for (name,) in db.execute("select name from sqlite_master")}
             assert "runs" not in tables or not db.execute("select * from runs").fetchall()
+
+
+def test_a_store_path_that_is_a_dangling_link_is_refused_before_anything_is_made(
+    tmp_path, synth_dir, capsys
+):
+    """The re-check of the seventh fault sweep (u79): the new store replaced the link with
+    a file, and a checkpoints folder was made beside the link's missing target."""
+    link = tmp_path / "store.db"
+    link.symlink_to(tmp_path / "gone" / "x.db")
+    argv = ["run", "debug/tiny", f"data.path={synth_dir}", "--tracking-uri", f"sqlite:///{link}"]
+    assert main(argv) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"fedlgr: error: tracking store sqlite:///{link}: {link} is a symbolic link to "
+        f"{tmp_path / 'gone' / 'x.db'}, which does not exist"
+    )
+    assert link.is_symlink() and not (tmp_path / "gone").exists()

@@ -253,13 +253,14 @@ def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, mess
     assert not (tmp_path / "optuna.db").exists()  # refused before opening any study
 
 
-@pytest.mark.parametrize("study", ["", " ", "x" * 513])
+@pytest.mark.parametrize("study", ["", " ", "x" * 513, "a\nb"])
 def test_an_empty_or_overlong_study_name_is_refused(tmp_path, study):
     """The seventh fault sweep (w19): ``--study ''`` quietly became the sweep's name."""
     path = tmp_path / "ok.yaml"
     path.write_text(BASE + "space: {seed: [1]}\n")
     line = _one_error_line(_fedlgr("sweep", str(path), "--study", study, cwd=tmp_path))
     said = "513 characters, at most 512" if study.strip() else f"{study!r}: empty"
+    said = f"{study!r}: holds a control character" if "\n" in study else said
     assert line.startswith("fedlgr: error: --study") and said in line
     assert not (tmp_path / "optuna.db").exists()
 

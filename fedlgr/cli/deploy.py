@@ -498,6 +498,8 @@ def _existing(path: Path | None, option: str, maker: str) -> Path:
     if path is None:
         raise FedlgrError(f"{option} is required (made by {maker}), or --insecure")
     path = _absolute(path)
+    if path.exists() and not path.is_file():  # a folder, a FIFO, /dev/zero (u05-u11)
+        raise FedlgrError(f"{option}: {path} is not a regular file (made by {maker})")
     if not path.is_file():
         raise FedlgrError(f"{option}: {path} does not exist (made by {maker})")
     return path

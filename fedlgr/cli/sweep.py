@@ -30,6 +30,8 @@ def _sweep(args: argparse.Namespace) -> int:
         )
     if args.study is not None and not args.study.strip():  # '' fell back to the sweep's name
         raise FedlgrError(f"--study {args.study!r}: empty; give a name, or leave it out")
+    if args.study is not None and not args.study.isprintable():  # a newline was kept (u56)
+        raise FedlgrError(f"--study {args.study!r}: holds a control character")
     if args.study is not None and len(args.study) > MAX_STUDY_NAME:
         raise FedlgrError(f"--study: {len(args.study)} characters, at most {MAX_STUDY_NAME}")
     check_tracking(args.tracking_uri, overrides)  # before loading Optuna and MLflow

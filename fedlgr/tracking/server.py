@@ -127,6 +127,8 @@ def check_sqlite(uri: str) -> None:
 
     if path.is_dir():
         refuse(f"{path} is a folder; name the database file in it, e.g. sqlite:///{path}/mlflow.db")
+    if path.is_symlink() and not path.exists():  # a new store would replace the link (u79)
+        refuse(f"{path} is a symbolic link to {os.readlink(path)}, which does not exist")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
