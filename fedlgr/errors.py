@@ -26,3 +26,12 @@ def join_problems(subject: str, problems: list[str], shown: int = 5) -> str:
     listed = "; ".join(problems[:shown])
     more = f"; ... and {len(problems) - shown} more" if len(problems) > shown else ""
     return f"{subject}: {len(problems)} problems: {listed}{more}"
+
+
+def exception_chain(err: BaseException | None):
+    """``err``, then what caused it or was being handled when it was raised, each once."""
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        seen.add(id(err))
+        yield err
+        err = err.__cause__ or err.__context__

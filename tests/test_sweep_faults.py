@@ -71,9 +71,8 @@ def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_di
     is alive on this machine is left to it; once that worker is dead, it is retried."""
     import threading
 
-    import psutil
-
     from fedlgr.sweep.worker import OWNER
+    from fedlgr.tracking.mlflow_run import process_started
 
     path = write_sweep(tmp_path, synth_dir, cache_dir, name="stopped")
     path.write_text(path.read_text() + "heartbeat_s: 1\n")
@@ -86,7 +85,7 @@ def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_di
     stopped = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
     try:
         stopped.send_signal(signal.SIGSTOP)
-        owner = [socket.gethostname(), stopped.pid, psutil.Process(stopped.pid).create_time()]
+        owner = [socket.gethostname(), stopped.pid, process_started(stopped.pid)]
         study._storage.set_trial_system_attr(taken._trial_id, OWNER, owner)
         study._storage.record_heartbeat(taken._trial_id)
         time.sleep(3)  # past the grace period of 2 heartbeats

@@ -16,7 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, exception_chain
 from fedlgr.sweep.spec import SweepSpec
 
 
@@ -220,11 +220,8 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
     storage_kinds = internal | SQLAlchemyError | sqlite3.Error
     # An error raised while Optuna handled a storage error (Optuna 4's _optimize raises an
     # UnboundLocalError when the database server goes away mid-trial) is that error.
-    seen: set[int] = set()
-    while err is not None and not isinstance(err, storage_kinds) and id(err) not in seen:
-        seen.add(id(err))
-        err = err.__cause__ or err.__context__
-    if err is None or not isinstance(err, storage_kinds):
+    err = next((e for e in exception_chain(err) if isinstance(e, storage_kinds)), None)
+    if err is None:
         return None
     cause = err.__cause__ if isinstance(err, internal) else err
     cause = getattr(cause, "orig", None) or cause  # SQLAlchemy wraps the driver's error

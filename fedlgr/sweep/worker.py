@@ -12,7 +12,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, exception_chain
 from fedlgr.sweep.spec import SweepSpec
 from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed, storage_error
 from fedlgr.sweep.trials import (
@@ -540,13 +540,7 @@ def interrupt_in(err: BaseException) -> KeyboardInterrupt | None:
     one that arrives while Optuna records a trial turns into Optuna 4's
     ``UnboundLocalError: ... 'updated_state'`` in ``_run_trial``, and a sweep stopped
     there ended in two tracebacks (the seventh fault sweep, i17)."""
-    seen: set[int] = set()
-    while err is not None and id(err) not in seen:
-        if isinstance(err, KeyboardInterrupt):
-            return err
-        seen.add(id(err))
-        err = err.__cause__ or err.__context__
-    return None
+    return next((e for e in exception_chain(err) if isinstance(e, KeyboardInterrupt)), None)
 
 
 #: A trial's system attribute naming the process that runs it: [host, pid, start time].
@@ -556,26 +550,19 @@ OWNER = "fedlgr_owner"
 def this_process() -> list:
     import socket
 
-    import psutil
+    from fedlgr.tracking.mlflow_run import process_started
 
-    return [socket.gethostname(), os.getpid(), psutil.Process().create_time()]
+    return [socket.gethostname(), os.getpid(), process_started(os.getpid())]
 
 
 def alive_here(owner) -> bool:
     """Whether ``owner`` (:data:`OWNER`) is a live process on this machine - the same
     process, not a later one given its pid (the start time tells them apart); a zombie
-    is not alive."""
+    is not alive (as for a run's process: :func:`~fedlgr.tracking.mlflow_run.dead_reason`)."""
     import socket
 
-    import psutil
+    from fedlgr.tracking.mlflow_run import process_alive
 
     if not isinstance(owner, list) or len(owner) != 3 or owner[0] != socket.gethostname():
         return False
-    try:
-        process = psutil.Process(int(owner[1]))
-        return (
-            abs(process.create_time() - float(owner[2])) < 0.01
-            and process.status() != psutil.STATUS_ZOMBIE
-        )
-    except (psutil.Error, ValueError, TypeError):
-        return False
+    return str(owner[1]).isdigit() and process_alive(int(owner[1]), str(owner[2]))

@@ -379,7 +379,7 @@ class Tracker:
     def _start_heartbeat(self) -> None:
         self.client.set_tag(self.run_id, "fedlgr.host", socket.gethostname())
         self.client.set_tag(self.run_id, "fedlgr.pid", str(os.getpid()))
-        self.client.set_tag(self.run_id, "fedlgr.pid_started", _started(os.getpid()))
+        self.client.set_tag(self.run_id, "fedlgr.pid_started", process_started(os.getpid()))
         interval = str(self.config.tracking.heartbeat_s)
         self.client.set_tag(self.run_id, "fedlgr.heartbeat_s", interval)
         self.heartbeat()
@@ -502,7 +502,7 @@ class Tracker:
 # --------------------------------------------------------------------------- dead runs
 
 
-def _started(pid: int) -> str:
+def process_started(pid: int) -> str:
     """When process ``pid`` started (seconds since the epoch), "" if it cannot be told: with
     the pid it tells the run's process from a later one that was given the same pid."""
     import psutil
@@ -513,7 +513,7 @@ def _started(pid: int) -> str:
         return ""
 
 
-def _process_alive(pid: int, started: str = "") -> bool:
+def process_alive(pid: int, started: str = "") -> bool:
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -525,7 +525,7 @@ def _process_alive(pid: int, started: str = "") -> bool:
             return False
     except OSError:
         return True
-    return not started or _started(pid) in ("", started)  # not the pid of a later process
+    return not started or process_started(pid) in ("", started)  # not the pid of a later process
 
 
 def dead_reason(run, now: float | None = None) -> str | None:
@@ -540,7 +540,7 @@ def dead_reason(run, now: float | None = None) -> str | None:
     pid = tags.get("fedlgr.pid", "")
     here = tags.get("fedlgr.host") == socket.gethostname()
     if here and pid.isdigit():
-        if _process_alive(int(pid), tags.get("fedlgr.pid_started", "")):
+        if process_alive(int(pid), tags.get("fedlgr.pid_started", "")):
             return None
         return f"its process {pid} on this machine is gone"
     age = (now or time.time()) - float(tags["fedlgr.heartbeat"])
