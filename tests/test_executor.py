@@ -4,6 +4,7 @@ executor builds. The real Flower runs (tests/test_flower.py) go through it end t
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -113,3 +114,47 @@ def test_an_executor_stopped_while_it_preloads_says_nothing(tmp_path):
         finally:
             proc.kill()  # never left behind: a CI run would wait for it
     assert proc.returncode == 130 and "Traceback" not in err, err
+
+
+def test_an_executor_leaves_when_its_supernode_is_gone_though_not_reaped():
+    """The eighth fault sweep (b01): a SuperNode that gave up on its SuperLink exited,
+    and its warm executor stayed, retrying the gone Runtime API. Flower's parent monitor
+    (``os.kill(pid, 0)``) counts a parent that exited but is not reaped yet - a zombie -
+    as alive. The stand-in SuperNode here starts the executor as supernode.py does and
+    exits; the test does not reap it."""
+    import subprocess
+    import sys
+
+    import psutil
+
+    supernode = (
+        "import os, subprocess, sys\n"
+        "cmd = [sys.executable, '-m', 'fedlgr.deploy.flower.executor', '--insecure',\n"
+        "       '--runtime-api-address', '127.0.0.1:9', '--parent-pid', str(os.getpid())]\n"
+        "print(subprocess.Popen(cmd, stderr=subprocess.DEVNULL).pid, flush=True)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", supernode], stdout=subprocess.PIPE, text=True)
+    child = psutil.Process(int(parent.stdout.readline()))
+    try:
+        assert _gone_within(psutil.Process(parent.pid), 30)  # it exited: a zombie now
+        assert _gone_within(child, 60), "the executor outlived its SuperNode by 60 s"
+    finally:
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+        parent.wait()
+
+
+def _gone_within(process, seconds: float) -> bool:
+    """Whether ``process`` ended (exited, reaped or not) within ``seconds``."""
+    import psutil
+
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            if process.status() == psutil.STATUS_ZOMBIE:
+                return True
+        except psutil.NoSuchProcess:
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.2)

@@ -20,8 +20,8 @@ the imports are done once. ``fedlgr deploy supernode`` and ``fedlgr deploy super
 start it (``--cold-apps`` goes back to Flower's SuperExec).
 
 Forking is safe here because this process only imports: it runs no torch operation (no
-thread pool exists yet) and touches no GPU before a fork, and its one other thread
-(Flower's parent-process monitor) holds no lock the child needs.
+thread pool exists yet) and touches no GPU before a fork, and its other threads (Flower's
+parent-process monitor and :func:`leave_with`'s) hold no lock the child needs.
 
     python -m fedlgr.deploy.flower.executor --runtime-api-address HOST:PORT
         [--insecure | --root-certificates CA.pem] [--parent-pid PID] [--preload MODULE ...]
@@ -35,6 +35,8 @@ import importlib
 import os
 import signal
 import sys
+import threading
+import time
 
 # What each kind of task imports before its first fork (the app modules pull in the rest).
 PRELOAD = {
@@ -102,7 +104,7 @@ class ForkExecutor:
         sys.stderr.flush()
         pid = os.fork()
         if pid == 0:
-            _run_child(entry, argv, spec.suppress_output)  # never returns
+            _run_child(entry, argv, spec.suppress_output, self.owner)  # never returns
         self.children.add(pid)
         return LaunchResult.accepted()
 
@@ -121,8 +123,10 @@ class ForkExecutor:
         leaves them (each watches this process and leaves when it is gone)."""
 
 
-def _run_child(entry, argv: list[str], quiet: bool) -> None:
-    """In the forked task process: Flower's entry point as a fresh process would run it."""
+def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
+    """In the forked task process: Flower's entry point as a fresh process would run it,
+    leaving when the executor ``owner`` has gone (Flower's monitor in the task, watching
+    the same pid, counts an unreaped one as alive)."""
     code = 1
     try:
         from flwr.supercore.exit import exit_handler
@@ -132,6 +136,7 @@ def _run_child(entry, argv: list[str], quiet: bool) -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD):
             signal.signal(sig, signal.SIG_DFL)
+        leave_with(owner)
         if quiet:  # as SubprocessExecutor's stdout/stderr=DEVNULL
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, 1)
@@ -148,10 +153,34 @@ def _run_child(entry, argv: list[str], quiet: bool) -> None:
 
         traceback.print_exc()
     finally:
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(OSError, ValueError):
-                stream.flush()
+        _flush()
         os._exit(code)
+
+
+def leave_with(parent_pid: int) -> None:
+    """Exit at once (quietly, status 0) when ``parent_pid`` has ended or this process is
+    orphaned. Flower's own monitor (``run_superexec(parent_pid=...)``, ``os.kill(pid, 0)``)
+    counts a parent that exited but is not reaped yet - a zombie - as alive: a SuperNode that
+    gave up on its SuperLink left its executor retrying the gone Runtime API for ever (the
+    eighth fault sweep, b01). The exit is ``os._exit``: the interpreter's would wait for
+    Flower's threads, and with the parent gone nothing is left to close gracefully."""
+    from fedlgr.tracking.mlflow_run import process_alive
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while process_alive(parent_pid) and os.getppid() == parent:
+            time.sleep(0.2)
+        _flush()
+        os._exit(0)
+
+    threading.Thread(target=watch, name="fedlgr-leave-with-parent", daemon=True).start()
+
+
+def _flush() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
 
 
 def _name(name: str) -> None:
@@ -171,10 +200,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--parent-pid", type=int)
     parser.add_argument("--preload", choices=sorted(PRELOAD), action="append", default=[])
     args = parser.parse_args(argv)
+    if args.parent_pid is not None:
+        leave_with(args.parent_pid)  # before the preload, which takes seconds
     import warnings
 
-    # Python 3.12+ warns at every fork of a process with threads; this one's only other
-    # thread is Flower's parent-process monitor, which holds no lock a task needs.
+    # Python 3.12+ warns at every fork of a process with threads; this one's other threads
+    # (Flower's parent-process monitor, leave_with's) hold no lock a task needs.
     warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
     for kind in args.preload:
         for module in PRELOAD[kind]:
@@ -202,7 +233,5 @@ if __name__ == "__main__":
         # sweep, e24: a SuperNode that gave up on an unreachable SuperLink). It exits at
         # once: the interpreter's exit would wait for Flower's threads (a connection
         # retried for ever), and the process stayed (found when a CI run hung on it).
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(OSError, ValueError):
-                stream.flush()
+        _flush()
         os._exit(130)

@@ -87,4 +87,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        # Ctrl-C before Flower's own handlers are in place: while the imports above run,
+        # which took over 8 s under load (the eighth fault sweep, b02-b04, printed their
+        # traceback). A warm executor started already leaves by itself (executor.leave_with).
+        print("fedlgr: interrupted", file=sys.stderr, flush=True)
+        os._exit(130)  # the interpreter's exit could wait for threads Flower started
