@@ -35,3 +35,21 @@ def exception_chain(err: BaseException | None):
         seen.add(id(err))
         yield err
         err = err.__cause__ or err.__context__
+
+
+def broken_link(path) -> str | None:
+    """Why ``path`` leads nowhere though a symbolic link names it, in words - "a symbolic
+    link that loops" (on the way to it, too) or "a symbolic link to TARGET, which does not
+    exist" - or None. pathlib's ``exists()``/``is_file()`` say False for both, and an
+    error that then says "does not exist" or "cannot make it" names the wrong reason."""
+    import errno
+    import os
+
+    try:
+        os.stat(path)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            return "a symbolic link that loops"
+        if os.path.islink(path):
+            return f"a symbolic link to {os.readlink(path)}, which does not exist"
+    return None

@@ -23,7 +23,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, broken_link
 
 KIND = "fedlgr.kind"
 NOT_EXPERIMENTS = ("report", "sweep")
@@ -131,7 +131,9 @@ def open_store(uri: str):
     if uri.startswith("sqlite:///"):
         path = Path(uri.removeprefix("sqlite:///"))
         if not path.is_file():
-            raise ReportError(f"no MLflow store at {uri}: {path} does not exist")
+            why = broken_link(path)  # a loop was said not to exist (the eighth sweep, a78)
+            what = f"is {why}" if why else "does not exist"
+            raise ReportError(f"no MLflow store at {uri}: {path} {what}")
         if path.stat().st_size == 0:  # MLflow would write its schema into it (p01)
             raise ReportError(f"no MLflow store at {uri}: {path} is an empty file")
     return open_client(uri)
