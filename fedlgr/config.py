@@ -842,7 +842,24 @@ def _dotlist(overrides) -> Any:
             except unreadable as one:
                 shown = override if len(override) <= 120 else f"{override[:100]}..."
                 raise ConfigError(f"command line: {shown!r}: {_first_line(one)}") from None
+        if clash := _clashing(overrides):  # each reads alone (the eighth sweep, a12)
+            raise ConfigError(f"command line: {clash}") from None
         raise ConfigError(f"command line: {_first_line(err)}") from None
+
+
+def _clashing(overrides) -> str | None:
+    """Two overrides that set one setting both whole and by its parts (``data.path=D`` and
+    ``data=[1,2]``), which OmegaConf refuses with "Cannot merge incompatible container
+    types" or "invalid literal for int()", naming neither: both, named."""
+    keys = [override.partition("=")[0] for override in overrides]
+    for i, key in enumerate(keys):
+        for earlier, other in zip(overrides[:i], keys[:i], strict=True):
+            if other.startswith(f"{key}.") or key.startswith(f"{other}."):
+                return (
+                    f"{earlier!r} and {overrides[i]!r} set {min(key, other, key=len)} both "
+                    "whole and by its parts; give one of them"
+                )
+    return None
 
 
 def check_interpolations(source: Any, node) -> dict[str, tuple[Any, str]]:

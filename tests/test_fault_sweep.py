@@ -11,6 +11,7 @@ import contextlib
 import os
 import sqlite3
 import stat
+from pathlib import Path
 
 import pytest
 from flwr.app import ConfigRecord, RecordDict
@@ -231,3 +232,93 @@ def test_a_store_path_that_is_a_dangling_link_is_refused_before_anything_is_made
         f"{tmp_path / 'gone' / 'x.db'}, which does not exist"
     )
     assert link.is_symlink() and not (tmp_path / "gone").exists()
+
+
+def test_a_link_that_loops_or_leads_nowhere_is_named_as_such_wherever_a_path_is_given(
+    tmp_path, synth_dir, capsys
+):
+    """The eighth fault sweep: a looping link as the tracking store was "a symbolic link
+    to l2, which does not exist" (u50); as a report's store, a sweep's --storage, --key,
+    --ca or --weights, "does not exist", "cannot open the sqlite file" (after a minute) or
+    "no such file" (a46-a50, a60, a78, a79); a dangling --state-dir "cannot make it (File
+    exists)" (a81); a FIFO as --certs "ca.pem does not exist" (a53). Nothing is made."""
+    loop, dangling = tmp_path / "l1", tmp_path / "dangling"
+    loop.symlink_to(tmp_path / "l2")
+    (tmp_path / "l2").symlink_to(loop)
+    dangling.symlink_to(tmp_path / "gone" / "x")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    looping, leads_nowhere = "a symbolic link that loops", f"a symbolic link to {tmp_path}/gone/x"
+    run = ["run", "debug/tiny", f"data.path={synth_dir}", "--tracking-uri"]
+    supernode = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(synth_dir)]
+    cases = {
+        (*run, f"sqlite:///{loop}"): f"tracking store sqlite:///{loop}: {loop} is {looping}",
+        (
+            "report",
+            "--tracking-uri",
+            f"sqlite:///{loop}",
+            "--no-log",
+            "--out",
+            str(tmp_path / "r"),
+        ): (f"no MLflow store at sqlite:///{loop}: {loop} is {looping}"),
+        (*supernode, "--insecure", "--weights", str(loop), "--print-command"): (
+            f"--weights {loop}: {looping}"
+        ),
+        (*supernode, "--insecure", "--weights", str(fifo), "--print-command"): (
+            f"--weights {fifo}: not a regular file"
+        ),
+        (*supernode, "--ca", str(loop), "--key", str(loop), "--print-command"): (
+            f"--ca: {loop} is {looping} (made by fedlgr deploy certs)"
+        ),
+        (*supernode, "--insecure", "--state-dir", str(dangling), "--print-command"): (
+            f"--state-dir {dangling}: {leads_nowhere}, which does not exist"
+        ),
+        ("deploy", "superlink", "--certs", str(fifo), "--print-command"): (
+            f"--certs {fifo}: not a folder (made by fedlgr deploy certs DIR)"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    for storage in (loop, dangling):
+        with pytest.raises(FedlgrError) as err:
+            check_storage(f"sqlite:///{storage}")
+        why = looping if storage == loop else f"{leads_nowhere}, which does not exist"
+        assert str(err.value) == f"--storage sqlite:///{storage}: {storage} is {why}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dangling", "fifo", "l1", "l2"]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "said"),
+    [
+        (
+            ["data.path=d48", "data=[1,2]"],
+            "command line: 'data.path=d48' and 'data=[1,2]' set data both whole and by its "
+            "parts; give one of them",
+        ),
+        (
+            ["data=[1,2]", "data.path=d48"],
+            "command line: 'data=[1,2]' and 'data.path=d48' set data both whole and by its "
+            "parts; give one of them",
+        ),
+        (
+            [f"model.mlp_hidden={'[' * 45}16{']' * 45}"],
+            f"model.mlp_hidden=[{'[' * 44}16{']' * 44}]: a list or mapping where a number goes",
+        ),
+        (
+            ["train.betas=[[0.9],0.99]"],
+            "train.betas=[[0.9], 0.99]: a list or mapping where a number goes",
+        ),
+        (
+            ["model.mlp_hidden=[{a: 1}]"],
+            "model.mlp_hidden=[{'a': 1}]: a list or mapping where a number goes",
+        ),
+    ],
+)
+def test_a_setting_given_whole_and_by_parts_or_nested_where_numbers_go_is_named(overrides, said):
+    """The eighth fault sweep: ``data.path=D 'data=[1,2]'`` was OmegaConf's bare "Cannot
+    merge incompatible container types" (a12); lists nested where a size goes were
+    "'<' not supported between instances of 'list' and 'int'" (a24, a29, a75)."""
+    with pytest.raises(ConfigError) as err:
+        load_config(Path(__file__).parents[1] / "conf/debug/fast.yaml", overrides)
+    assert str(err.value) == said

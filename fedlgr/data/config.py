@@ -83,6 +83,10 @@ def _number_problem(hint, value) -> str | None:
         items = args[:1] * len(value) if args[1:] == (Ellipsis,) else args
         problems = (_number_problem(a, v) for a, v in zip(items, value, strict=False))
         return next((p for p in problems if p is not None), None)
+    if hint in (int, float) and isinstance(value, list | tuple | dict):
+        # OmegaConf does not type what a typed tuple holds: model.mlp_hidden=[[16]] was
+        # "'<' not supported between instances of 'list' and 'int'" (the eighth sweep, a24)
+        return "a list or mapping where a number goes"
     if hint is int and isinstance(value, float):
         return "must be an integer, not a float"
     if isinstance(value, float) and not math.isfinite(value):
