@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import os
 import re
 import sys
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ from fedlgr.data.config import betas as _betas
 from fedlgr.data.config import choice as _choice
 from fedlgr.data.config import epochs as _epochs
 from fedlgr.data.config import positive as _positive
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, broken_link
 from fedlgr.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
 
 
@@ -568,6 +569,11 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     """The YAML at ``path`` preceded by what it includes, each as an OmegaConf node."""
     from omegaconf import OmegaConf
 
+    if why := broken_link(path):
+        raise ConfigError(f"{path.absolute()}: {why}")
+    if path.exists() and not path.is_file() and not path.is_dir():
+        # /dev/stdin, before it resolves to /proc/PID/fd/pipe:[N], which is no file (u37)
+        raise ConfigError(f"{path.absolute()}: not a regular file (a device, pipe or socket)")
     path = path.resolve()
     if path in seen:
         raise ConfigError(f"{path}: includes itself (via {' -> '.join(p.name for p in seen)})")
@@ -600,11 +606,21 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     for inc in includes if isinstance(includes, list) else [includes]:
         if "${" in str(inc):
             raise ConfigError(f"{path}: includes: {inc!r}: name the file (no ${{...}} here)")
-        target = Path(str(inc)).with_suffix(".yaml")
-        if not target.is_absolute():  # relative to conf/, else to the including file
-            target = CONF_DIR / target if (CONF_DIR / target).is_file() else path.parent / target
-        layers += _read_layers(target, (*seen, path))
+        layers += _read_layers(_included(Path(str(inc)), path), (*seen, path))
     return [*layers, (path, node)]
+
+
+def _included(name: Path, including: Path) -> Path:
+    """The file ``includes: [NAME]`` in ``including`` names: NAME.yaml (or NAME if it ends
+    in .yaml/.yml, or NAME itself if only that exists), relative to conf/, else to the
+    including file. ``with_suffix`` replaced a suffix: ``includes: [cfg.fifo]`` was said
+    not to exist as cfg.yaml, ``/dev/zero`` as /dev/zero.yaml (the eighth fault sweep,
+    u38, u39)."""
+    names = [name] if name.suffix in (".yaml", ".yml") else [name.with_name(f"{name.name}.yaml")]
+    names += [name] if name not in names else []
+    folders = [Path("/")] if name.is_absolute() else [CONF_DIR, including.parent]
+    candidates = [folder / n for n in names for folder in folders]
+    return next((c for c in candidates if os.path.lexists(c)), candidates[len(folders) - 1])
 
 
 def load_config(

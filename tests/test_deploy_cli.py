@@ -335,6 +335,21 @@ def test_a_private_key_others_can_read_is_refused_and_an_open_folder_is_said(
         f"replace a public key, the roster or ca.pem in it; chmod 700 {shared}"
     ) in capsys.readouterr().err
     assert stat.S_IMODE((shared / "robot2").stat().st_mode) == 0o600
+    # The eighth sweep: the SuperNode took a key from that folder without a word (u04),
+    # and the SuperLink a server.key of mode 0644 (u31).
+    node = [*node, "--ca", str(ca), "--key", str(shared / "robot2"), "--print-command"]
+    assert main(node) == 0
+    assert (
+        f"fedlgr: warning: {shared} can be written by every user (mode 0777): anyone could "
+        f"replace the key in it; chmod 700 {shared}"
+    ) in capsys.readouterr().err
+    (ca.parent / "server.key").chmod(0o644)
+    assert main(["deploy", "superlink", "--certs", str(ca.parent), "--print-command"]) == 1
+    server_key = ca.parent / "server.key"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"fedlgr: error: --certs {server_key}: a private key others can read or write "
+        f"(mode 0644); chmod 600 {server_key}"
+    )
 
 
 @pytest.mark.parametrize("host", ["bad host", "999.1.1.1", "host:1", ""])

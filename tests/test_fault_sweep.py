@@ -322,3 +322,47 @@ def test_a_setting_given_whole_and_by_parts_or_nested_where_numbers_go_is_named(
     with pytest.raises(ConfigError) as err:
         load_config(Path(__file__).parents[1] / "conf/debug/fast.yaml", overrides)
     assert str(err.value) == said
+
+
+def test_a_config_from_a_pipe_an_include_with_a_suffix_and_loops_are_named(tmp_path, capsys):
+    """The eighth fault sweep: ``/dev/stdin`` as a config was "/proc/PID/fd/pipe:[N]:
+    config file not found" (u37); ``includes: [cfg.fifo]`` and ``[/dev/zero]`` named
+    cfg.yaml and /dev/zero.yaml, files never given (u38, u39); a looping data.path was
+    "no such folder" (u48), a looping sweep file "no such file" (u53)."""
+    from fedlgr.data.config import check_data_path
+    from fedlgr.errors import DataError
+    from fedlgr.sweep.spec import find_sweep
+
+    if not Path("/proc/self/fd").is_dir():
+        pytest.skip("needs Linux's /proc")
+    fifo = tmp_path / "cfg.fifo"
+    os.mkfifo(fifo)
+    (tmp_path / "inc_fifo.yaml").write_text("includes: [cfg.fifo]\nseed: 1\n")
+    (tmp_path / "inc_zero.yaml").write_text("includes: [/dev/zero]\nseed: 1\n")
+    (tmp_path / "base.yml").write_text("seed: 7\n")
+    (tmp_path / "inc_yml.yaml").write_text("includes: [base.yml]\n")
+    loop = tmp_path / "l1"
+    loop.symlink_to(tmp_path / "l2")
+    (tmp_path / "l2").symlink_to(loop)
+    special = "not a regular file (a device, pipe or socket)"
+    read, write = os.pipe()  # /dev/stdin of `echo seed: 3 | fedlgr run /dev/stdin`
+    pipe = f"/proc/self/fd/{read}"  # resolves to /proc/PID/fd/pipe:[N], which is no file
+    cases = {
+        pipe: f"{pipe}: {special}",
+        tmp_path / "inc_fifo.yaml": f"{fifo}: {special}",
+        tmp_path / "inc_zero.yaml": f"/dev/zero: {special}",
+        loop: f"{loop}: a symbolic link that loops",
+    }
+    for path, said in cases.items():
+        with pytest.raises(ConfigError) as err:
+            load_config(path)
+        assert str(err.value) == said
+    os.close(read)
+    os.close(write)
+    assert load_config(tmp_path / "inc_yml.yaml").seed == 7  # was read as base.yaml
+    with pytest.raises(DataError) as err:
+        check_data_path(loop)
+    assert str(err.value) == f"data.path={loop}: a symbolic link that loops"
+    with pytest.raises(ConfigError) as err:
+        find_sweep(loop)
+    assert str(err.value) == f"sweep {loop}: a symbolic link that loops"

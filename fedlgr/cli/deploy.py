@@ -192,6 +192,9 @@ def superlink(args: argparse.Namespace) -> int:
             _existing(args.certs / name, "--certs", "fedlgr deploy certs DIR")
             for name in ("ca.pem", "server.pem", "server.key")
         )
+        from fedlgr.deploy.credentials import check_private_mode
+
+        check_private_mode(tls[2], "--certs")
         flags = ("--ssl-ca-certfile", "--ssl-certfile", "--ssl-keyfile")
         for flag, path in zip(flags, tls, strict=True):
             cmd += [flag, str(path)]

@@ -35,9 +35,11 @@ def default_cache_dir() -> Path:
 def check_data_path(path: Path | str) -> None:
     """``data.path`` must exist: said at once (a run checks it before importing torch)
     rather than as a missing ratings CSV inside a folder that is not there."""
-    from fedlgr.errors import DataError
+    from fedlgr.errors import DataError, broken_link
 
     path = Path(path)
+    if why := broken_link(path):  # was "no such folder" (the eighth fault sweep, u48)
+        raise DataError(f"data.path={path}: {why}")
     if not path.exists():
         raise DataError(
             f"data.path={path}: no such folder (give the dataset folder, the one holding "

@@ -92,12 +92,18 @@ def _folder(folder: Path) -> None:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as err:
         raise FedlgrError(f"{folder}: cannot create the folder ({err.strerror})") from None
+    # an existing folder: said, not changed (the seventh sweep, x12)
+    warn_if_open(folder, "a public key, the roster or ca.pem")
+
+
+def warn_if_open(folder: Path, what: str) -> None:
+    """A warning when every user can write in ``folder`` - and so replace ``what`` in it -
+    unless its sticky bit (as /tmp's) keeps others from replacing files they do not own."""
     mode = folder.stat().st_mode
-    if mode & stat.S_IWOTH:  # an existing folder: said, not changed (the seventh sweep, x12)
+    if mode & stat.S_IWOTH and not mode & stat.S_ISVTX:
         print(
             f"fedlgr: warning: {folder} can be written by every user (mode "
-            f"{stat.S_IMODE(mode):04o}): anyone could replace a public key, the roster or "
-            f"ca.pem in it; chmod 700 {folder}",
+            f"{stat.S_IMODE(mode):04o}): anyone could replace {what} in it; chmod 700 {folder}",
             file=sys.stderr,
         )
 
@@ -165,8 +171,15 @@ def check_node_key(path: Path, option: str = "--key") -> None:
         ) from None
     except OSError as err:
         raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None
+    check_private_mode(path, option)
+    warn_if_open(path.parent, "the key")  # as node-key says of its folder (the eighth, u04)
+
+
+def check_private_mode(path: Path, option: str) -> None:
+    """A private key that others can read or write is refused, as ssh refuses one (the
+    seventh fault sweep, z06: a robot's --key; the eighth, u31: the SuperLink's server.key)."""
     mode = stat.S_IMODE(path.stat().st_mode)
-    if mode & 0o077:  # as ssh refuses such a key (the seventh fault sweep, z06)
+    if mode & 0o077:
         raise FedlgrError(
             f"{option} {path}: a private key others can read or write (mode {mode:04o}); "
             f"chmod 600 {path}"

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.config import CONF_DIR, SWEEPS_DIR, check_interpolations, yaml_reason
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, broken_link
 
 CONFIG_KEY = "config"  # the space key that chooses the base config file
 DIRECTIONS = ("minimize", "maximize")
@@ -184,6 +184,8 @@ def find_sweep(name: str | Path) -> Path:
     for candidate in (path, SWEEPS_DIR / path, SWEEPS_DIR / f"{path}.yaml"):
         if candidate.is_file():
             return candidate
+    if why := broken_link(path):  # was "no such file" (the eighth fault sweep, u53)
+        raise ConfigError(f"sweep {name}: {why}")
     if path.exists() and not path.is_dir():  # /dev/zero, a FIFO (seventh fault sweep)
         raise ConfigError(f"sweep {name}: not a regular file (a device, pipe or socket)")
     known = ", ".join(sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml")))
