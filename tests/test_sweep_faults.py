@@ -119,6 +119,7 @@ def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_di
         stopped.kill()
         stopped.wait()
     assert result.done
+    assert "(0 done, 1 running, 0 queued)" in said[0][1]  # it said 1 done (u80)
     left = f"trial {taken.number} belongs to process {stopped.pid} on this machine, which is alive"
     assert [line for _, line in said if left in line]
     states = trials_by_state(storage, "stopped")

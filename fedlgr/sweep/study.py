@@ -91,13 +91,14 @@ def run_sweep(
         echo=prefixed(echo, "[w0] ") if workers > 1 else echo,
         settings_changed=settings_changed,
     )
-    todo, running, waiting = counts(worker.study, spec)
+    _, running, waiting = counts(worker.study, spec)
     total, size = spec.n_trials, spec.space_size()
     echo(
         f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
         f"study {worker.study.study_name!r} in {mask_password(storage)} "
-        f"({ran(worker.study) if spec.sampler == 'tpe' else total - todo} "
-        f"done, {running} running, {waiting} queued); MLflow experiment {worker.experiment!r}, "
+        # done: trials that finished (a grid's total - todo counted its running ones, u80)
+        f"({ran(worker.study)} done, {running} running, {waiting} queued); "
+        f"MLflow experiment {worker.experiment!r}, "
         f"parent run {worker.parent_run_id}"
     )
     if worker.moved and worker_id == 0:
