@@ -849,6 +849,10 @@ def _dotlist(overrides) -> Any:
 
     # RecursionError: a value nested thousands of levels deep ([[[[...]]]])
     unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError, RecursionError)
+    # before OmegaConf reads them: 'train=5' train.lr_root=0.1 was read, the 5 dropped and
+    # nothing said (the ninth fault sweep, c50, c52); the other order, a Merge error
+    if clash := _clashing(overrides):
+        raise ConfigError(f"command line: {clash}")
     try:
         return OmegaConf.from_dotlist(list(overrides))
     except unreadable as err:
@@ -858,15 +862,14 @@ def _dotlist(overrides) -> Any:
             except unreadable as one:
                 shown = override if len(override) <= 120 else f"{override[:100]}..."
                 raise ConfigError(f"command line: {shown!r}: {_first_line(one)}") from None
-        if clash := _clashing(overrides):  # each reads alone (the eighth sweep, a12)
-            raise ConfigError(f"command line: {clash}") from None
         raise ConfigError(f"command line: {_first_line(err)}") from None
 
 
 def _clashing(overrides) -> str | None:
     """Two overrides that set one setting both whole and by its parts (``data.path=D`` and
     ``data=[1,2]``), which OmegaConf refuses with "Cannot merge incompatible container
-    types" or "invalid literal for int()", naming neither: both, named."""
+    types" or "invalid literal for int()", naming neither (the eighth sweep, a12), or reads
+    with one of them dropped: both, named."""
     keys = [override.partition("=")[0] for override in overrides]
     for i, key in enumerate(keys):
         for earlier, other in zip(overrides[:i], keys[:i], strict=True):
@@ -945,7 +948,7 @@ def _merge_message(err: Exception, merged, node) -> str:
 
     if isinstance(err, ConfigKeyError) and getattr(err, "full_key", None):
         return _unknown_setting(err.full_key, OmegaConf.to_container(node, resolve=False))
-    if getattr(err, "full_key", None) or "$VALUE" not in str(err):
+    if getattr(err, "full_key", None):
         return _omegaconf_message(err)
     plain = OmegaConf.to_container(node, resolve=False)
 
@@ -965,10 +968,29 @@ def _merge_message(err: Exception, merged, node) -> str:
         here[last] = value
         try:
             OmegaConf.merge(merged, single)
-        except OmegaConfBaseException:
-            text = _first_line(err).replace("Value '$VALUE' of type '$VALUE_TYPE'", "a value")
-            return f"{key}={value!r}: {text}"
+        except OmegaConfBaseException as one:
+            return f"{key}={value!r}: {_plain_reason(one, key, merged)}"
     return _omegaconf_message(err)
+
+
+def _plain_reason(err: Exception, key: str, merged) -> str:
+    """OmegaConf's reason a value cannot go at ``key``, in the config's words where its own
+    names its internals (the ninth fault sweep, c98-c104, c128, c132: "Merge error: int is
+    not a subclass of TrainConfig", "TupleConfig length 1 does not match type hint length
+    2")."""
+    import re
+
+    from omegaconf import DictConfig, OmegaConf
+
+    text = _first_line(err).replace("Value '$VALUE' of type '$VALUE_TYPE'", "a value")
+    here = OmegaConf.select(merged, key, throw_on_missing=False)
+    if isinstance(here, DictConfig) and text.startswith("Merge error:"):
+        first = next(iter(here), "...")
+        return f"a section of settings, not one value; set its parts (e.g. {key}.{first}=...)"
+    if found := re.match(r"TupleConfig length (\d+) does not match type hint length (\d+)", text):
+        given, wanted = found.groups()
+        return f"a list of {wanted} values expected, {given} given"
+    return text
 
 
 def short_setting(name: str) -> str:

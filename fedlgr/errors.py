@@ -53,3 +53,43 @@ def broken_link(path) -> str | None:
         if os.path.islink(path):
             return f"a symbolic link to {os.readlink(path)}, which does not exist"
     return None
+
+
+def not_a_file(path) -> str | None:
+    """Why ``path`` cannot be read or written as a regular file though something is there:
+    a broken link (:func:`broken_link`), "a folder", or "not a regular file (a device, pipe
+    or socket)" - which sqlite or ``open()`` would block on (a FIFO), read as empty
+    (/dev/null) or write beside (``/dev/null-journal``, the ninth fault sweep's c06-c17) -
+    or None for a regular file or nothing there."""
+    import os
+    import stat
+
+    if why := broken_link(path):
+        return why
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    return "a folder" if stat.S_ISDIR(mode) else "not a regular file (a device, pipe or socket)"
+
+
+def not_a_folder(path) -> str | None:
+    """Why ``path`` cannot be (or be made) a folder: a broken link (:func:`broken_link`;
+    ``mkdir`` said only "File exists", or followed a dangling one and made its target), or a
+    file, device, pipe or socket already there; None for a folder or nothing there."""
+    import os
+    import stat
+
+    if why := broken_link(path):
+        return why
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISDIR(mode):
+        return None
+    kind = "a file" if stat.S_ISREG(mode) else "a device, pipe or socket"
+    there = f" ({os.path.realpath(path)})" if os.path.islink(path) else ""
+    return f"{kind}{there}, not a folder"

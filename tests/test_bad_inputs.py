@@ -293,11 +293,13 @@ def test_found_by_the_third_sweep_are_one_line_before_any_work(
     afile = tmp_path / "ckfile"
     afile.write_text("x")
     base = ["run", str(FAST), f"data.path={synth_dir}", "--tracking-uri", f"sqlite:///{store}"]
-    for folder in (afile, afile / "sub"):
-        assert main([*base, f"tracking.checkpoint_dir={folder}"]) == 1
-        err = capsys.readouterr().err.strip()
-        assert err.startswith(f"fedlgr: error: cannot make the checkpoint folder {folder} ")
-        assert "tracking.checkpoint_dir=..." in err and len(err.splitlines()) == 1
+    assert main([*base, f"tracking.checkpoint_dir={afile}"]) == 1
+    said = f"fedlgr: error: tracking.checkpoint_dir={afile}: a file, not a folder"
+    assert capsys.readouterr().err.strip() == said
+    assert main([*base, f"tracking.checkpoint_dir={afile / 'sub'}"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"fedlgr: error: cannot make the checkpoint folder {afile / 'sub'} ")
+    assert "tracking.checkpoint_dir=..." in err and len(err.splitlines()) == 1
     client = mlflow.MlflowClient(f"sqlite:///{store}")
     assert not client.search_runs([e.experiment_id for e in client.search_experiments()])
 

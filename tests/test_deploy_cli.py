@@ -293,7 +293,7 @@ def test_supernode_refuses_the_wrong_kind_of_file_or_folder(tmp_path, certs, syn
         ("--insecure", "--weights", str(key)): f"--weights {key}: cannot read a state dict",
         ("--insecure", "--threads", "100000"): "--threads 100000: 1 to 1024",
     }
-    cases[("--ca", ca, "--key", str(tmp_path))] = f"--key: {tmp_path} is not a regular file"
+    cases[("--ca", ca, "--key", str(tmp_path))] = f"--key: {tmp_path} is a folder"
     cases[("--ca", "/dev/zero", "--key", str(key))] = "--ca: /dev/zero is not a regular file"
     if Path("/proc/self").is_dir():  # Linux: no folder can be made there, even by root
         cases[("--insecure", "--state-dir", "/proc/fedlgr")] = (

@@ -211,6 +211,9 @@ def test_a_symbolic_link_that_loops_is_one_line(tmp_path, synth_dir, capsys):
         f"tracking.checkpoint_dir={tmp_path / 'a.yaml'}",
     ]
     assert main([*argv, "--tracking-uri", f"sqlite:///{store}"]) == 1
+    said = (
+        f"fedlgr: error: tracking.checkpoint_dir={tmp_path / 'a.yaml'}: a symbolic link that loops"
+    )
     assert capsys.readouterr().err.strip().splitlines()[-1] == said
     if store.exists():  # no run left RUNNING: none was started
         with contextlib.closing(sqlite3.connect(store)) as db:
@@ -265,7 +268,7 @@ def test_a_link_that_loops_or_leads_nowhere_is_named_as_such_wherever_a_path_is_
             f"--weights {loop}: {looping}"
         ),
         (*supernode, "--insecure", "--weights", str(fifo), "--print-command"): (
-            f"--weights {fifo}: not a regular file"
+            f"--weights {fifo}: not a regular file (a device, pipe or socket)"
         ),
         (*supernode, "--ca", str(loop), "--key", str(loop), "--print-command"): (
             f"--ca: {loop} is {looping} (made by fedlgr deploy certs)"
@@ -274,7 +277,8 @@ def test_a_link_that_loops_or_leads_nowhere_is_named_as_such_wherever_a_path_is_
             f"--state-dir {dangling}: {leads_nowhere}, which does not exist"
         ),
         ("deploy", "superlink", "--certs", str(fifo), "--print-command"): (
-            f"--certs {fifo}: not a folder (made by fedlgr deploy certs DIR)"
+            f"--certs {fifo}: a device, pipe or socket, not a folder (made by fedlgr deploy "
+            "certs DIR)"
         ),
     }
     for argv, said in cases.items():
@@ -312,6 +316,25 @@ def test_a_link_that_loops_or_leads_nowhere_is_named_as_such_wherever_a_path_is_
         (
             ["model.mlp_hidden=[{a: 1}]"],
             "model.mlp_hidden=[{'a': 1}]: a list or mapping where a number goes",
+        ),
+        (  # the ninth sweep, c50: read, the 5 dropped, nothing said
+            ["train=5", "train.lr_root=0.1"],
+            "command line: 'train=5' and 'train.lr_root=0.1' set train both whole and by its "
+            "parts; give one of them",
+        ),
+        (  # c52
+            ["data=null", "data.path=d48"],
+            "command line: 'data=null' and 'data.path=d48' set data both whole and by its "
+            "parts; give one of them",
+        ),
+        (  # c100: "Merge error: int is not a subclass of TrainConfig. value: 5"
+            ["train=5"],
+            "command line: train=5: a section of settings, not one value; set its parts "
+            "(e.g. train.epochs=...)",
+        ),
+        (  # c128: "TupleConfig length 1 does not match type hint length 2"
+            ["train.betas=[0.9]"],
+            "command line: train.betas=[0.9]: a list of 2 values expected, 1 given",
         ),
     ],
 )
@@ -366,3 +389,113 @@ def test_a_config_from_a_pipe_an_include_with_a_suffix_and_loops_are_named(tmp_p
     with pytest.raises(ConfigError) as err:
         find_sweep(loop)
     assert str(err.value) == f"sweep {loop}: a symbolic link that loops"
+
+
+def test_a_device_pipe_or_socket_as_a_store_is_refused_before_anything_opens_it(
+    tmp_path, synth_dir, capsys
+):
+    """The ninth fault sweep: a FIFO as the tracking store hung with no word (c06); a link
+    to /dev/null, /dev/null itself or a FIFO as the store or --storage made
+    ``/dev/null-journal``, ``/dev/null.lock``, ``FIFO.lock`` (c07, c16, c17, c120, c135);
+    a report said "does not exist" (c11-c13). Now one line each, and nothing is made."""
+    import signal
+    import socket
+
+    fifo, null, sock = tmp_path / "fifo", tmp_path / "null", tmp_path / "sock"
+    os.mkfifo(fifo)
+    null.symlink_to("/dev/null")
+    server = socket.socket(socket.AF_UNIX)
+    server.bind(str(sock))
+    special = "not a regular file (a device, pipe or socket)"
+
+    def hung(*_):
+        raise TimeoutError("opened a FIFO as a store and waited on it")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(60)
+    try:
+        for store in (fifo, null, sock):
+            uri = f"sqlite:///{store}"
+            run = ["run", "debug/tiny", f"data.path={synth_dir}", "--tracking-uri", uri]
+            assert main(run) == 1
+            said = capsys.readouterr().err.strip().splitlines()[-1]
+            assert said == f"fedlgr: error: tracking store {uri}: {store} is {special}"
+            report = ["report", "--tracking-uri", uri, "--no-log", "--out", str(tmp_path / "r")]
+            assert main(report) == 1
+            said = capsys.readouterr().err.strip().splitlines()[-1]
+            assert said == f"fedlgr: error: no MLflow store at {uri}: {store} is {special}"
+            with pytest.raises(FedlgrError) as err:
+                check_storage(uri)
+            assert str(err.value) == f"--storage {uri}: {store} is {special}"
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+        server.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fifo", "null", "sock"]
+
+
+def test_a_folder_given_as_a_link_that_leads_nowhere_or_to_a_device_is_named(
+    tmp_path, synth_dir, capsys
+):
+    """The ninth fault sweep: data.path a FIFO or /dev/null was, after 15 s, "file not
+    found (expected the MANNERS-DB ratings CSV)" (c41, c42, c110); --data a loop or a FIFO
+    "no such folder" (c137-c139); --out, node-key DIR and certs DIR given a dangling link
+    or loop "(File exists)" (c112-c116); tracking.checkpoint_dir a dangling link had its
+    target made (c118), a link to /dev/null was "(File exists)" (c69); superlink
+    --database a loop was passed on to Flower (c117)."""
+    from fedlgr.data.config import check_data_path
+    from fedlgr.errors import DataError
+    from fedlgr.tracking.checkpoint import checkpoint_root
+
+    fifo, null, loop = tmp_path / "fifo", tmp_path / "null", tmp_path / "l1"
+    os.mkfifo(fifo)
+    null.symlink_to("/dev/null")
+    loop.symlink_to(tmp_path / "l2")
+    (tmp_path / "l2").symlink_to(loop)
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "gone")
+    device = "a device, pipe or socket, not a folder"
+    looping, nowhere = "a symbolic link that loops", f"a symbolic link to {tmp_path}/gone"
+    nowhere += ", which does not exist"
+    for path, said in (
+        (fifo, device),
+        (null, "a device, pipe or socket (/dev/null), not a folder"),
+    ):
+        with pytest.raises(DataError) as err:
+            check_data_path(path)
+        assert str(err.value) == f"data.path={path}: {said}"
+    supernode = ["deploy", "supernode", "--superlink", "127.0.0.1:9092", "--insecure"]
+    cases = {
+        (*supernode, "--data", str(loop), "--print-command"): (
+            f"--data {loop}: {looping} (the robot's dataset, MANNERS-DB layout)"
+        ),
+        (*supernode, "--data", str(fifo), "--print-command"): (
+            f"--data {fifo}: {device} (the robot's dataset, MANNERS-DB layout)"
+        ),
+        ("data", "synth", "--out", str(dangling), "--scenes", "4", "--size", "32"): (
+            f"{dangling}: {nowhere}"
+        ),
+        ("deploy", "node-key", str(loop), "robot0"): f"{loop}: {looping}",
+        ("deploy", "certs", str(dangling)): f"{dangling}: {nowhere}",
+        ("deploy", "superlink", "--insecure", "--database", str(loop), "--print-command"): (
+            f"--database {loop}: {looping}"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    for out in (loop, dangling):
+        argv = ["report", "--tracking-uri", f"sqlite:///{tmp_path / 'no.db'}", "--out", str(out)]
+        assert main(argv) == 1
+        why = looping if out == loop else nowhere
+        said = f"fedlgr: error: {out}: {why}; the report (--out) is a folder"
+        assert capsys.readouterr().err.strip().splitlines()[-1] == said
+    for folder, why in (
+        (dangling, nowhere),
+        (null, "a device, pipe or socket (/dev/null), not a folder"),
+    ):
+        config = load_config(None, [f"data.path={synth_dir}", f"tracking.checkpoint_dir={folder}"])
+        with pytest.raises(FedlgrError) as err:
+            checkpoint_root(config, "sqlite:///x.db")
+        assert str(err.value) == f"tracking.checkpoint_dir={folder}: {why}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dangling", "fifo", "l1", "l2", "null"]

@@ -18,7 +18,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from fedlgr.errors import FedlgrError, broken_link
+from fedlgr.errors import FedlgrError, not_a_file, not_a_folder
 
 INSECURE_WARNING = """\
 fedlgr: ############################ WARNING: --insecure ############################
@@ -185,8 +185,7 @@ def superlink(args: argparse.Namespace) -> int:
         if args.certs is None:
             raise FedlgrError("--certs DIR is required (fedlgr deploy certs DIR), or --insecure")
         folder = _absolute(args.certs)  # a FIFO was said to hold no ca.pem (a53)
-        why = broken_link(folder) or (folder.exists() and not folder.is_dir() and "not a folder")
-        if why:
+        if why := not_a_folder(folder):
             raise FedlgrError(f"--certs {folder}: {why} (made by fedlgr deploy certs DIR)")
         tls = tuple(
             _existing(args.certs / name, "--certs", "fedlgr deploy certs DIR")
@@ -237,6 +236,8 @@ def _database(args: argparse.Namespace) -> list[str]:
     path = _absolute(args.database)
     if path.is_dir():
         raise FedlgrError(f"--database {path}: a folder; name the SuperLink's database file")
+    if why := not_a_file(path):  # a loop was passed on to Flower (the ninth sweep, c117)
+        raise FedlgrError(f"--database {path}: {why}")
     if not path.parent.is_dir():
         raise FedlgrError(f"--database {path}: no folder {path.parent} (make it first)")
     if not os.access(path.parent, os.W_OK | os.X_OK):
@@ -302,6 +303,8 @@ def supernode(args: argparse.Namespace) -> int:
             f"--threads {args.threads}: 1 to {MAX_PER_MACHINE} (runtime.threads' bound)"
         )
     data = _absolute(args.data)
+    if why := not_a_folder(data):  # was "no such folder" (the ninth sweep, c137-c139)
+        raise FedlgrError(f"--data {data}: {why} (the robot's dataset, MANNERS-DB layout)")
     if not data.is_dir():
         raise FedlgrError(f"--data {data}: no such folder (the robot's dataset, MANNERS-DB layout)")
     for option, value, (low, high) in (
@@ -349,7 +352,7 @@ def supernode(args: argparse.Namespace) -> int:
             settings.append(f"{name}={_toml_string(str(own))}")
     if args.weights is not None:
         weights = _absolute(args.weights)
-        if why := _not_a_file(weights):  # was "no such file" (the eighth sweep, u11-u18, a46-a50)
+        if why := not_a_file(weights):  # was "no such file" (the eighth sweep, u11-u18, a46-a50)
             raise FedlgrError(f"--weights {weights}: {why}")
         if not weights.is_file():
             raise FedlgrError(
@@ -507,20 +510,11 @@ def _existing(path: Path | None, option: str, maker: str) -> Path:
     if path is None:
         raise FedlgrError(f"{option} is required (made by {maker}), or --insecure")
     path = _absolute(path)
-    if why := _not_a_file(path):
+    if why := not_a_file(path):
         raise FedlgrError(f"{option}: {path} is {why} (made by {maker})")
     if not path.is_file():
         raise FedlgrError(f"{option}: {path} does not exist (made by {maker})")
     return path
-
-
-def _not_a_file(path: Path) -> str | None:
-    """Why an existing ``path`` is not a regular file: a folder, a FIFO, /dev/zero (the
-    seventh fault sweep, u05-u11), or a symbolic link that loops or leads nowhere (was "does
-    not exist": the eighth, a46-a50); None if it is one or does not exist."""
-    if why := broken_link(path):
-        return why
-    return "not a regular file" if path.exists() and not path.is_file() else None
 
 
 def _certificates(path: Path | None) -> Path:
@@ -540,10 +534,8 @@ def _own_folder(folder: Path, option: str, make: bool) -> Path:
     ``--print-command`` (``make`` False) made and removed again, as only trying tells
     (root may write anywhere by its permissions, yet not in /proc)."""
     path = _absolute(folder)
-    if why := broken_link(path):  # was "cannot make it (File exists)" (u20, a81)
+    if why := not_a_folder(path):  # was "cannot make it (File exists)" (u20, a81)
         raise FedlgrError(f"{option} {path}: {why}")
-    if path.exists() and not path.is_dir():
-        raise FedlgrError(f"{option} {path}: a file, not a folder")
     if not path.exists():
         above = next(p for p in path.parents if p.exists())
         if not above.is_dir():

@@ -33,12 +33,21 @@ def default_cache_dir() -> Path:
 
 
 def check_data_path(path: Path | str) -> None:
-    """``data.path`` must exist: said at once (a run checks it before importing torch)
-    rather than as a missing ratings CSV inside a folder that is not there."""
-    from fedlgr.errors import DataError, broken_link
+    """``data.path`` must be a folder: said at once (a run checks it before importing
+    torch) rather than as a missing ratings CSV inside a folder that is not there."""
+    from fedlgr.data.ratings import CSV_NAME
+    from fedlgr.errors import DataError, not_a_folder
 
     path = Path(path)
-    if why := broken_link(path):  # was "no such folder" (the eighth fault sweep, u48)
+    if path.is_file():  # the CSV would be read and then the images looked for under it
+        hint = f"; here data.path={path.parent}" if path.name == CSV_NAME else ""
+        raise DataError(
+            f"data.path={path} is a file; expected the dataset folder (the one holding "
+            f"{CSV_NAME} and images/{hint})"
+        )
+    # a link was "no such folder" (the eighth fault sweep, u48); a FIFO or /dev/null, after
+    # 15 s, "file not found (expected the MANNERS-DB ratings CSV)" (the ninth, c41, c42)
+    if why := not_a_folder(path):
         raise DataError(f"data.path={path}: {why}")
     if not path.exists():
         raise DataError(

@@ -17,8 +17,7 @@ import torch
 
 from fedlgr.data.config import DataConfig, check_data_path
 from fedlgr.data.images import load_image_store
-from fedlgr.data.ratings import CSV_NAME, SceneTable, read_ratings
-from fedlgr.errors import DataError
+from fedlgr.data.ratings import SceneTable, read_ratings
 
 
 @dataclass(frozen=True)
@@ -83,14 +82,6 @@ def load_scenes(config: DataConfig, progress: Callable[[int, int], None] | None 
 
 
 def _dataset_folder(path: Path) -> Path:
-    """``path`` itself, refused when it is a file (the CSV would be read and then the
-    images looked for under it, or any other file reported as a CSV without its columns)
-    and when it does not exist."""
+    """``path`` itself, refused when it is not a folder (:func:`check_data_path`)."""
     check_data_path(path)
-    if path.is_file():
-        hint = f"; here data.path={path.parent}" if path.name == CSV_NAME else ""
-        raise DataError(
-            f"data.path={path} is a file; expected the dataset folder (the one holding "
-            f"{CSV_NAME} and images/{hint})"
-        )
     return path

@@ -32,7 +32,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, not_a_folder
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 
@@ -88,6 +88,8 @@ def _private_bytes(key, encoding) -> bytes:
 def _folder(folder: Path) -> None:
     """The credentials folder, made 0700 (it holds private keys and the roster: under
     umask 000 it was 0777, and anyone could replace a public key or the roster in it)."""
+    if why := not_a_folder(folder):  # was "cannot create the folder (File exists)" (c115)
+        raise FedlgrError(f"{folder}: {why}")
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as err:

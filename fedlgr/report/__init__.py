@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fedlgr.errors import broken_link
 from fedlgr.report.runs import ReportError, RunRecord
 from fedlgr.tracking.server import mask_password
 
@@ -72,6 +73,8 @@ def _check_folder(out: Path) -> None:
             "--out names the current folder ('' or .): name a folder of its own for the "
             "report's tables and plots (default: reports/NAME)"
         )
+    if why := broken_link(out):  # was "cannot create the report folder (File exists)"
+        raise ReportError(f"{out}: {why}; the report (--out) is a folder")  # (c113, c114)
     existing = next((p for p in (out, *out.parents) if p.exists()), None)
     if existing is not None and not existing.is_dir():
         where = "is a file" if existing == out else f"lies under the file {existing}"

@@ -23,7 +23,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError, broken_link
+from fedlgr.errors import FedlgrError, not_a_file
 
 KIND = "fedlgr.kind"
 NOT_EXPERIMENTS = ("report", "sweep")
@@ -131,7 +131,7 @@ def open_store(uri: str):
     if uri.startswith("sqlite:///"):
         path = Path(uri.removeprefix("sqlite:///"))
         if not path.is_file():
-            why = broken_link(path)  # a loop was said not to exist (the eighth sweep, a78)
+            why = not_a_file(path)  # a loop, a FIFO were said not to exist (a78, c11-c13)
             what = f"is {why}" if why else "does not exist"
             raise ReportError(f"no MLflow store at {uri}: {path} {what}")
         if path.stat().st_size == 0:  # MLflow would write its schema into it (p01)

@@ -16,7 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError, broken_link, exception_chain
+from fedlgr.errors import FedlgrError, exception_chain, not_a_file
 from fedlgr.sweep.spec import SweepSpec
 
 
@@ -154,8 +154,8 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         return None
     if path.is_dir():
         raise fail(f"{path} is a folder, not an sqlite file")
-    if why := broken_link(path):  # sqlite said only "cannot open" after a minute (a60, a79)
-        raise fail(f"{path} is {why}")
+    if why := not_a_file(path):  # a link: "cannot open" after a minute (a60, a79); a
+        raise fail(f"{path} is {why}")  # device: /dev/null.lock was made (c16, c17, c135)
     if not make:
         folder = next(p for p in path.absolute().parents if p.exists())
         if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):

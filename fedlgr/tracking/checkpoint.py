@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from fedlgr.config import ExperimentConfig, flatten
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, not_a_folder
 
 FORMAT = 1
 PATTERN = re.compile(r"round-(\d+)\.ckpt")
@@ -55,7 +55,13 @@ SAFE_KEYS = frozenset(
 def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
     """The folder that holds the runs' checkpoint folders (see the module docstring)."""
     if config.tracking.checkpoint_dir:
-        return Path(config.tracking.checkpoint_dir).expanduser().resolve()
+        given = Path(config.tracking.checkpoint_dir).expanduser()
+        # resolve() followed a dangling link and the run made its target; a link to
+        # /dev/null was "cannot make the checkpoint folder /dev/null (File exists)" (the
+        # ninth fault sweep, c118, c69)
+        if why := not_a_folder(given):
+            raise FedlgrError(f"tracking.checkpoint_dir={config.tracking.checkpoint_dir}: {why}")
+        return given.resolve()
     if tracking_uri.startswith("sqlite:///"):
         return Path(tracking_uri.removeprefix("sqlite:///")).expanduser().resolve().parent / (
             "checkpoints"

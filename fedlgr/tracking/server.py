@@ -30,7 +30,7 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from fedlgr.errors import FedlgrError, broken_link
+from fedlgr.errors import FedlgrError, not_a_file
 
 UI_PORT = 5000  # mlflow ui's default
 # The runs table, in fedlgr's shared view of it (fedlgr.tracking.views).
@@ -127,8 +127,8 @@ def check_sqlite(uri: str) -> None:
 
     if path.is_dir():
         refuse(f"{path} is a folder; name the database file in it, e.g. sqlite:///{path}/mlflow.db")
-    if why := broken_link(path):  # a new store would replace the link (u79, u50)
-        refuse(f"{path} is {why}")
+    if why := not_a_file(path):  # a new store would replace a link (u79, u50); a FIFO
+        refuse(f"{path} is {why}")  # hung, /dev/null made /dev/null-journal (c06, c07)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

@@ -63,7 +63,7 @@ from fedlgr.data.config import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
 from fedlgr.data.synth.appropriateness import RaterPool, true_appropriateness
 from fedlgr.data.synth.drawing import render
 from fedlgr.data.synth.layout import Layout, descriptors, sample_layout
-from fedlgr.errors import ConfigError, DataError
+from fedlgr.errors import ConfigError, DataError, not_a_folder
 
 FIRST_STAMP = 250
 RATERS_PER_SCENE = (4, 6)
@@ -120,8 +120,8 @@ MAX_SCENES = 1_000_000
 
 def _prepare(out: Path, force: bool) -> None:
     csv_path, images = out / "all_data.csv", out / "images"
-    if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: exists and is not a folder")
+    if why := not_a_folder(out):  # a link was "cannot write there (File exists)" (c112)
+        raise DataError(f"{out}: {why}")
     if out.exists() and any(out.iterdir()):
         if not force:
             raise DataError(f"{out}: folder is not empty; pass --force to overwrite it")
