@@ -165,6 +165,42 @@ def test_a_sigterm_while_optuna_records_a_trial_stops_the_sweep_as_an_interrupt(
     assert parent.info.status == "KILLED"
 
 
+def test_a_sigterm_just_as_a_trial_begins_queues_that_trial_again(
+    tmp_path, synth_dir, cache_dir, monkeypatch
+):
+    """The ninth fault sweep (i17d, i17g): SIGTERM or SIGHUP the moment a trial began -
+    after Optuna's ask() had made it, before the objective ran - left it RUNNING and
+    queued nothing (only a relaunch's dead-worker check recovered it). The signal now waits
+    for the objective: the trial ends FAIL, interrupted, and a copy waits for the next
+    launch."""
+    import os
+    import signal
+
+    import optuna
+
+    from fedlgr.signals import Terminated, terminate_as_interrupt
+
+    ask = optuna.Study.ask
+
+    def ask_then_signal(study, *args, **kwargs):
+        trial = ask(study, *args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)  # its handler runs here, in ask()
+        return trial
+
+    monkeypatch.setattr(optuna.Study, "ask", ask_then_signal)
+    spec = load_sweep(write_sweep(tmp_path, synth_dir, cache_dir, name="ask"))
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    with pytest.raises(Terminated), terminate_as_interrupt():
+        run_sweep(spec, storage=storage, tracking_uri=store, echo=print)
+    states = trials_by_state(storage, "ask")
+    assert "RUNNING" not in states, states
+    (failed,) = states["FAIL"]
+    assert failed.user_attrs["interrupted"]
+    assert len(states["WAITING"]) == 1  # the copy the next launch runs
+    _, (parent,), _ = child_runs(store, "sweep-ask")
+    assert parent.info.status == "KILLED"
+
+
 def test_a_failing_trial_is_recorded_failed_and_the_sweep_goes_on(tmp_path, synth_dir, cache_dir):
     path = tmp_path / "fails.yaml"
     path.write_text(

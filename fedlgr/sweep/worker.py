@@ -13,6 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 from fedlgr.errors import FedlgrError, exception_chain
+from fedlgr.signals import deferred
 from fedlgr.sweep.spec import SweepSpec
 from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed, storage_error
 from fedlgr.sweep.trials import (
@@ -75,6 +76,10 @@ class Worker:
             self.parent_run_id = self._parent()
         self.last_trial: int | None = None
         self.trial_id: int | None = None  # the storage id of the trial this worker runs
+        # Ctrl-C / SIGTERM from Optuna's ask() to objective() waits until trial_id is set:
+        # the trial it had made was left RUNNING, never queued again (the ninth fault
+        # sweep, i17d, i17g: SIGTERM or SIGHUP just as a trial began)
+        self.unborn = contextlib.ExitStack()
         self.waited_for: set[int] = set()  # trials of live workers here, said once
 
     # ------------------------------------------------------------------ MLflow parent run
@@ -242,6 +247,7 @@ class Worker:
         if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
             trial.set_user_attr("interrupted", False)
         try:
+            self.unborn.close()  # an interrupt that came since ask() is raised now
             return self._train(trial)
         except optuna.TrialPruned:
             raise
@@ -449,6 +455,7 @@ class Worker:
                 continue
             start = time.perf_counter()
             try:
+                self.unborn.enter_context(deferred())
                 self.study.optimize(self.objective, n_trials=1, catch=(Exception,))
             except ValueError as err:  # Optuna's "Cannot tell a FAIL trial."
                 if not str(err).startswith("Cannot tell a"):
@@ -459,6 +466,8 @@ class Worker:
                     f"=== trial {self.last_trial}: another worker declared this one dead while "
                     "it was stopped and queued the trial again; its result here is dropped"
                 )
+            finally:
+                self.unborn.close()  # no trial began (the study's storage failed in ask())
             self.trial_id = None
             self._report_last(time.perf_counter() - start)
 
