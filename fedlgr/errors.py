@@ -52,6 +52,30 @@ def broken_link(path) -> str | None:
             return "a symbolic link that loops"
         if os.path.islink(path):
             return f"a symbolic link to {os.readlink(path)}, which does not exist"
+        if err.errno == errno.ENOENT:  # a folder above it may be one (the tenth sweep, d24)
+            return _above(path, links_only=True)
+    return None
+
+
+def _above(path, links_only: bool = False) -> str | None:
+    """Why the nearest thing above ``path`` that is there cannot hold it: "under DIR, a
+    symbolic link to TARGET, which does not exist" (``mkdir(parents=True)`` said "File
+    exists", or followed it and made TARGET) or, unless ``links_only``, "under FILE, a file,
+    not a folder"; None when it is a folder."""
+    import os
+    from pathlib import Path
+
+    for parent in Path(path).parents:
+        if not os.path.lexists(parent):
+            continue
+        if os.path.isdir(parent):
+            return None
+        if os.path.islink(parent) and not os.path.exists(parent):
+            return f"under {parent}, a symbolic link to {os.readlink(parent)}, which does not exist"
+        if links_only:
+            return None
+        kind = "a file" if os.path.isfile(parent) else "a device, pipe or socket"
+        return f"under {parent}, {kind}, not a folder"
     return None
 
 
@@ -69,7 +93,7 @@ def not_a_file(path) -> str | None:
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        return None
+        return _above(path)
     if stat.S_ISREG(mode):
         return None
     return "a folder" if stat.S_ISDIR(mode) else "not a regular file (a device, pipe or socket)"
@@ -87,7 +111,7 @@ def not_a_folder(path) -> str | None:
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        return None
+        return _above(path)
     if stat.S_ISDIR(mode):
         return None
     kind = "a file" if stat.S_ISREG(mode) else "a device, pipe or socket"

@@ -297,9 +297,11 @@ def test_found_by_the_third_sweep_are_one_line_before_any_work(
     said = f"fedlgr: error: tracking.checkpoint_dir={afile}: a file, not a folder"
     assert capsys.readouterr().err.strip() == said
     assert main([*base, f"tracking.checkpoint_dir={afile / 'sub'}"]) == 1
-    err = capsys.readouterr().err.strip()
-    assert err.startswith(f"fedlgr: error: cannot make the checkpoint folder {afile / 'sub'} ")
-    assert "tracking.checkpoint_dir=..." in err and len(err.splitlines()) == 1
+    said = (
+        f"fedlgr: error: tracking.checkpoint_dir={afile / 'sub'}: under {afile}, a file, "
+        "not a folder"
+    )
+    assert capsys.readouterr().err.strip() == said
     client = mlflow.MlflowClient(f"sqlite:///{store}")
     assert not client.search_runs([e.experiment_id for e in client.search_experiments()])
 
@@ -328,8 +330,7 @@ def test_synthetic_data_goes_to_a_folder_of_its_own_that_can_be_written(
     afile.write_text("x")
     assert main(["data", "synth", "--out", str(afile / "s"), "--scenes", "1", "--size", "16"]) == 1
     err = capsys.readouterr().err.strip()
-    assert err.startswith(f"fedlgr: error: {afile / 's'}: cannot write there (")
-    assert len(err.splitlines()) == 1
+    assert err == f"fedlgr: error: {afile / 's'}: under {afile}, a file, not a folder"
     monkeypatch.chdir(tmp_path)
     for out in ("", "."):
         assert main(["data", "synth", "--out", out, "--scenes", "1", "--size", "16"]) == 1

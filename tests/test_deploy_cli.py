@@ -288,8 +288,8 @@ def test_supernode_refuses_the_wrong_kind_of_file_or_folder(tmp_path, certs, syn
         ("--ca", str(key), "--key", str(key)): f"--ca {key}: not a PEM certificate (the "
         "deployment's ca.pem, made by fedlgr deploy certs DIR)",
         ("--insecure", "--state-dir", str(key)): f"--state-dir {key}: a file, not a folder",
-        ("--insecure", "--cache-dir", str(key / "x")): f"--cache-dir {key / 'x'}: {key} is a "
-        "file, not a folder",
+        ("--insecure", "--cache-dir", str(key / "x")): f"--cache-dir {key / 'x'}: under {key}, "
+        "a file, not a folder",
         ("--insecure", "--weights", str(key)): f"--weights {key}: cannot read a state dict",
         ("--insecure", "--threads", "100000"): "--threads 100000: 1 to 1024",
     }

@@ -499,3 +499,51 @@ def test_a_folder_given_as_a_link_that_leads_nowhere_or_to_a_device_is_named(
             checkpoint_root(config, "sqlite:///x.db")
         assert str(err.value) == f"tracking.checkpoint_dir={folder}: {why}"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dangling", "fifo", "l1", "l2", "null"]
+
+
+def test_a_path_under_a_dangling_link_is_named_and_the_links_target_is_not_made(
+    tmp_path, synth_dir, capsys
+):
+    """The tenth fault sweep: a path whose folder is a dangling symbolic link was "File
+    exists" as the tracking store, --storage, --database, data synth --out, node-key DIR,
+    certs DIR, report --out and --cache-dir (d24, d28, d32, d39, d50, d53, d56, d60, d71);
+    as tracking.checkpoint_dir the run made the link's target and went on (d74)."""
+    from fedlgr.data.images import _check_cache_dir
+    from fedlgr.tracking.checkpoint import checkpoint_root
+
+    link = tmp_path / "dir"
+    link.symlink_to(tmp_path / "made_by_link")
+    under = f"under {link}, a symbolic link to {tmp_path / 'made_by_link'}, which does not exist"
+    sub = link / "sub"
+    cases = {
+        ("run", "debug/tiny", f"data.path={synth_dir}", "--tracking-uri", f"sqlite:///{sub}"): (
+            f"tracking store sqlite:///{sub}: {sub} is {under}"
+        ),
+        ("data", "synth", "--out", str(sub), "--scenes", "4", "--size", "32"): f"{sub}: {under}",
+        ("deploy", "node-key", str(sub), "robot0"): f"{sub}: {under}",
+        ("deploy", "certs", str(sub)): f"{sub}: {under}",
+        ("deploy", "superlink", "--insecure", "--database", str(sub), "--print-command"): (
+            f"--database {sub}: {under}"
+        ),
+        (
+            *("deploy", "supernode", "--superlink", "127.0.0.1:9092", "--data", str(synth_dir)),
+            *("--insecure", "--cache-dir", str(sub), "--print-command"),
+        ): f"--cache-dir {sub}: {under}",
+        ("report", "--tracking-uri", f"sqlite:///{tmp_path / 'no.db'}", "--out", str(sub)): (
+            f"{sub}: {under}; the report (--out) is a folder"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    with pytest.raises(FedlgrError) as err:
+        check_storage(f"sqlite:///{sub}")
+    assert str(err.value) == f"--storage sqlite:///{sub}: {sub} is {under}"
+    config = load_config(None, [f"data.path={synth_dir}", f"tracking.checkpoint_dir={sub}"])
+    with pytest.raises(FedlgrError) as err:
+        checkpoint_root(config, "sqlite:///x.db")
+    assert str(err.value) == f"tracking.checkpoint_dir={sub}: {under}"
+    with pytest.raises(ConfigError) as err:
+        _check_cache_dir(sub)
+    assert str(err.value).startswith(f"data.cache_dir={sub}: {under} (point data.cache_dir at")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir"]

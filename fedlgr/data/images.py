@@ -211,13 +211,24 @@ def _check_store_fits(n: int, size: int) -> None:
 
 
 def _check_cache_dir(cache_dir: Path) -> None:
-    """Refuse a cache folder that is, or lies under, a file (before decoding, not after)."""
+    """Refuse a cache folder that is, or lies under, a file (before decoding, not after),
+    a device or pipe, or a link that loops or leads nowhere (the cache was not written,
+    with a warning after decoding: the tenth fault sweep)."""
+    from fedlgr.errors import broken_link
+
+    if why := broken_link(cache_dir):
+        setting = cache_dir_setting(cache_dir)
+        raise ConfigError(
+            f"{setting}={cache_dir}: {why} (point {setting} at a folder, or turn the cache "
+            "off with data.cache=false)"
+        )
     existing = next(p for p in (cache_dir, *cache_dir.parents) if p.exists())
     if not existing.is_dir():
         setting = cache_dir_setting(cache_dir)
         where = "" if existing == cache_dir else f": {existing}"
+        what = "a file" if existing.is_file() else "a device, pipe or socket"
         raise ConfigError(
-            f"{setting}={cache_dir}{where} is a file; the image cache needs a folder "
+            f"{setting}={cache_dir}{where} is {what}; the image cache needs a folder "
             f"(point {setting} at one, or turn the cache off with data.cache=false)"
         )
 
