@@ -158,7 +158,7 @@ def test_a_report_folder_that_is_a_file_is_one_line(tmp_path, monkeypatch, capsy
     file = tmp_path / "report.md"
     file.write_text("not a folder")
     uri = ["--tracking-uri", "sqlite:///x", "--no-log"]
-    for out, why in ((file, "is a file"), (file / "sub", f"lies under the file {file}")):
+    for out, why in ((file, "is a file"), (file / "sub", f"lies under {file}, a file")):
         assert main(["report", "--out", str(out), *uri]) == 1
         err = capsys.readouterr().err
         assert err == f"fedlgr: error: {out}: {why}; the report (--out) is a folder of " + (

@@ -350,6 +350,23 @@ def test_a_private_key_others_can_read_is_refused_and_an_open_folder_is_said(
         f"fedlgr: error: --certs {server_key}: a private key others can read or write "
         f"(mode 0644); chmod 600 {server_key}"
     )
+    # The tenth sweep: a --key reached through a link into that folder (d188), and a
+    # --certs folder every user can write (d198), were taken without a word.
+    (tmp_path / "mine").mkdir(mode=0o700)
+    (tmp_path / "mine" / "robot2").symlink_to(shared / "robot2")
+    node[node.index("--key") + 1] = str(tmp_path / "mine" / "robot2")
+    assert main(node) == 0
+    assert (
+        f"fedlgr: warning: {shared} can be written by every user (mode 0777): anyone could "
+        f"replace the key in it; chmod 700 {shared}"
+    ) in capsys.readouterr().err
+    server_key.chmod(0o600)
+    ca.parent.chmod(0o777)
+    assert main(["deploy", "superlink", "--certs", str(ca.parent), "--print-command"]) == 0
+    assert (
+        f"fedlgr: warning: {ca.parent} can be written by every user (mode 0777): anyone could "
+        f"replace the certificates or server.key in it; chmod 700 {ca.parent}"
+    ) in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("host", ["bad host", "999.1.1.1", "host:1", ""])

@@ -547,3 +547,71 @@ def test_a_path_under_a_dangling_link_is_named_and_the_links_target_is_not_made(
         _check_cache_dir(sub)
     assert str(err.value).startswith(f"data.cache_dir={sub}: {under} (point data.cache_dir at")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir"]
+
+
+def test_a_setting_given_twice_a_report_into_a_device_and_a_shared_store_are_refused(
+    tmp_path, synth_dir, capsys
+):
+    """The tenth fault sweep: a setting given twice with two values kept the last and
+    dropped the first without a word (d101, d145, d146), as did --tracking-uri with another
+    tracking.uri= (d163); report --out /dev/null or a FIFO was "is a file" (d36, d37); a
+    sweep whose base: is a FIFO "no such file" (d88); one sqlite file as --storage and
+    tracking store failed after 11 s with Alembic's "No such revision" (d167)."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    run = ["run", "debug/tiny", f"data.path={synth_dir}"]
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    (tmp_path / "fifo_base.yaml").write_text(f"base: {fifo}\nspace:\n  seed: [1, 2]\n")
+    (tmp_path / "grid.yaml").write_text("base: debug/tiny\nspace:\n  seed: [1, 2]\n")
+    cases = {
+        (*run, "seed=1", "seed=2", "--print-config"): (
+            "command line: 'seed=1' and 'seed=2' both set seed; give one of them"
+        ),
+        (*run, f"data.path={tmp_path}", "--print-config"): (
+            f"command line: 'data.path={synth_dir}' and 'data.path={tmp_path}' both set "
+            "data.path; give one of them"
+        ),
+        (*run, "--tracking-uri", store, f"tracking.uri=sqlite:///{tmp_path / 'b.db'}"): (
+            f"command line: --tracking-uri {store} and 'tracking.uri=sqlite:///"
+            f"{tmp_path / 'b.db'}' name two tracking stores; give one of them"
+        ),
+        ("report", "--tracking-uri", store, "--out", "/dev/null"): (
+            "/dev/null: is a device, pipe or socket; the report (--out) is a folder of tables "
+            "and plots: name a new or existing folder"
+        ),
+        ("sweep", str(tmp_path / "fifo_base.yaml"), "--tracking-uri", store): (
+            f"config {fifo}: {fifo} is not a regular file (a device, pipe or socket)"
+        ),
+        (
+            *("sweep", str(tmp_path / "grid.yaml"), f"data.path={synth_dir}"),
+            *("--tracking-uri", store, "--storage", store),
+        ): (
+            f"--storage {store}: the tracking store's file too; Optuna's study and MLflow's "
+            f"runs each need a database of their own (e.g. --storage sqlite:///"
+            f"{tmp_path / 'optuna.db'})"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    assert main([*run, f"data.path={synth_dir}", "--print-config"]) == 0  # the same twice
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fifo", "fifo_base.yaml", "grid.yaml"]
+
+
+def test_a_checkpoint_folder_the_user_made_is_kept_when_a_run_finishes(
+    tmp_path, synth_dir, cache_dir
+):
+    """The tenth fault sweep: a finished run removed an empty tracking.checkpoint_dir the
+    user had made (d196), and the folder a link there led to, leaving the link leading
+    nowhere (d190). fedlgr's own checkpoints/ beside the store still goes."""
+    mine, real = tmp_path / "mine", tmp_path / "real"
+    mine.mkdir()
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    base = ["run", "debug/tiny", f"data.path={synth_dir}", f"data.cache_dir={cache_dir}"]
+    for folder in (mine, tmp_path / "link"):
+        store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+        assert main([*base, f"tracking.checkpoint_dir={folder}", "--tracking-uri", store]) == 0
+        assert folder.is_dir() and not any(folder.iterdir())
+    assert main([*base, "--tracking-uri", f"sqlite:///{tmp_path / 'own' / 'mlflow.db'}"]) == 0
+    assert "checkpoints" not in {p.name for p in (tmp_path / "own").iterdir()}

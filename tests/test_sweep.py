@@ -165,7 +165,7 @@ def test_a_sigterm_while_optuna_records_a_trial_stops_the_sweep_as_an_interrupt(
     assert parent.info.status == "KILLED"
 
 
-def test_a_sigterm_just_as_a_trial_begins_queues_that_trial_again(
+def test_a_sighup_just_as_a_trial_begins_queues_that_trial_again(
     tmp_path, synth_dir, cache_dir, monkeypatch
 ):
     """The ninth fault sweep (i17d, i17g): SIGTERM or SIGHUP the moment a trial began -
@@ -184,7 +184,7 @@ def test_a_sigterm_just_as_a_trial_begins_queues_that_trial_again(
 
     def ask_then_signal(study, *args, **kwargs):
         trial = ask(study, *args, **kwargs)
-        os.kill(os.getpid(), signal.SIGTERM)  # its handler runs here, in ask()
+        os.kill(os.getpid(), signal.SIGHUP)  # its handler runs here, in ask()
         return trial
 
     monkeypatch.setattr(optuna.Study, "ask", ask_then_signal)
@@ -195,7 +195,8 @@ def test_a_sigterm_just_as_a_trial_begins_queues_that_trial_again(
     states = trials_by_state(storage, "ask")
     assert "RUNNING" not in states, states
     (failed,) = states["FAIL"]
-    assert failed.user_attrs["interrupted"]
+    # the signal named (a SIGHUP was "stopped by SIGTERM": the tenth fault sweep, d03)
+    assert failed.user_attrs["interrupted"] == "stopped by SIGHUP"
     assert len(states["WAITING"]) == 1  # the copy the next launch runs
     _, (parent,), _ = child_runs(store, "sweep-ask")
     assert parent.info.status == "KILLED"

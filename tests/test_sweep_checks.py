@@ -346,7 +346,7 @@ def test_a_storage_that_cannot_hold_the_study_is_one_line(tmp_path, tiny_sweep, 
         "folder": "is a folder, not an sqlite file",
         "text": "is not an sqlite database",
         "damaged": "the sqlite file is damaged",
-        "under-a-file": "is not a folder",
+        "under-a-file": "a file, not a folder",
     }[kind]
     assert expected in line
 

@@ -191,9 +191,11 @@ def superlink(args: argparse.Namespace) -> int:
             _existing(args.certs / name, "--certs", "fedlgr deploy certs DIR")
             for name in ("ca.pem", "server.pem", "server.key")
         )
-        from fedlgr.deploy.credentials import check_private_mode
+        from fedlgr.deploy.credentials import check_private_mode, warn_if_open
 
         check_private_mode(tls[2], "--certs")
+        # as node-key and the SuperNode say of theirs (the tenth fault sweep, d198)
+        warn_if_open(folder, "the certificates or server.key")
         flags = ("--ssl-ca-certfile", "--ssl-certfile", "--ssl-keyfile")
         for flag, path in zip(flags, tls, strict=True):
             cmd += [flag, str(path)]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 
 from fedlgr.errors import FedlgrError
 from fedlgr.runtime import available_cores
@@ -38,7 +39,8 @@ def _sweep(args: argparse.Namespace) -> int:
     from fedlgr.sweep import load_sweep, run_sweep
     from fedlgr.sweep.storage import check_storage
 
-    check_storage(args.storage, make=False)  # before the configs' checks load torch
+    optuna_file = check_storage(args.storage, make=False)  # before the configs load torch
+    _not_the_tracking_store(optuna_file, args, overrides)
 
     if args.workers > 1 and not any(o.startswith("runtime.threads=") for o in overrides):
         # Share this machine's cores between the workers instead of oversubscribing them.
@@ -73,3 +75,22 @@ def _sweep(args: argparse.Namespace) -> int:
 def _tracking_uris(overrides: list[str]) -> list[str]:
     given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
     return [*given, os.environ.get("MLFLOW_TRACKING_URI", "")]
+
+
+def _not_the_tracking_store(optuna_file: Path | None, args, overrides: list[str]) -> None:
+    """One sqlite file for the study and the MLflow runs failed after 11 s with Alembic's
+    "No such revision or branch" and left both sets of tables in it (the tenth fault
+    sweep, d167): refused first."""
+    from fedlgr.tracking.mlflow_run import resolve_uri
+    from fedlgr.tracking.server import sqlite_path
+
+    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
+    uri = resolve_uri(args.tracking_uri or (given[-1] if given else None))
+    if optuna_file is None or not uri.startswith("sqlite:///"):
+        return
+    if sqlite_path(uri).absolute() == optuna_file.absolute():
+        raise FedlgrError(
+            f"--storage {args.storage}: the tracking store's file too; Optuna's study and "
+            "MLflow's runs each need a database of their own (e.g. --storage "
+            f"sqlite:///{optuna_file.with_name('optuna.db')})"
+        )

@@ -175,6 +175,8 @@ def check_node_key(path: Path, option: str = "--key") -> None:
         raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None
     check_private_mode(path, option)
     warn_if_open(path.parent, "the key")  # as node-key says of its folder (the eighth, u04)
+    if path.resolve().parent != path.parent.resolve():  # through a link: where it lies (d188)
+        warn_if_open(path.resolve().parent, "the key")
 
 
 def check_private_mode(path: Path, option: str) -> None:

@@ -77,7 +77,9 @@ def _check_folder(out: Path) -> None:
         raise ReportError(f"{out}: {why}; the report (--out) is a folder")  # (c113, c114)
     existing = next((p for p in (out, *out.parents) if p.exists()), None)
     if existing is not None and not existing.is_dir():
-        where = "is a file" if existing == out else f"lies under the file {existing}"
+        # /dev/null, a FIFO was "is a file" (the tenth fault sweep, d36-d38, d142)
+        kind = "a file" if existing.is_file() else "a device, pipe or socket"
+        where = f"is {kind}" if existing == out else f"lies under {existing}, {kind}"
         raise ReportError(
             f"{out}: {where}; the report (--out) is a folder of tables and plots: "
             "name a new or existing folder"

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.config import CONF_DIR, SWEEPS_DIR, check_interpolations, yaml_reason
-from fedlgr.errors import ConfigError, broken_link
+from fedlgr.errors import ConfigError, broken_link, not_a_file
 
 CONFIG_KEY = "config"  # the space key that chooses the base config file
 DIRECTIONS = ("minimize", "maximize")
@@ -168,13 +168,13 @@ def _as_override(value: Any) -> str:
 def resolve_config(name: str | Path, sweep_path: Path | None = None) -> Path:
     """A base config named relative to ``conf/`` (``experiment/table1/clients2_noaug.yaml``),
     to the sweep file, or as a path."""
-    for candidate in (
-        Path(name),
-        CONF_DIR / name,
-        *([sweep_path.parent / name] if sweep_path else []),
-    ):
+    candidates = (Path(name), CONF_DIR / name, *([sweep_path.parent / name] if sweep_path else []))
+    for candidate in candidates:
         if candidate.is_file():
             return candidate.resolve()
+    for candidate in candidates:  # a FIFO was "no such file" (the tenth fault sweep, d88)
+        if why := not_a_file(candidate):
+            raise ConfigError(f"config {name}: {candidate} is {why}")
     raise ConfigError(f"config {name}: no such file (looked in ., conf/ and next to the sweep)")
 
 

@@ -46,7 +46,9 @@ def _one_line(err: BaseException) -> str:
 def _interrupt_reason(err: KeyboardInterrupt) -> str:
     from fedlgr.signals import Terminated
 
-    return "stopped by SIGTERM" if isinstance(err, Terminated) else "stopped by Ctrl-C"
+    if isinstance(err, Terminated):  # SIGTERM or SIGHUP (was always "SIGTERM": d03-d158)
+        return f"stopped by {err.args[0] if err.args else 'SIGTERM'}"
+    return "stopped by Ctrl-C"
 
 
 class Worker:

@@ -36,6 +36,7 @@ from fedlgr.errors import FedlgrError, not_a_folder
 
 FORMAT = 1
 PATTERN = re.compile(r"round-(\d+)\.ckpt")
+ROOT = "checkpoints"  # the folder of runs' folders, unless tracking.checkpoint_dir names one
 # Settings a resumed run may change: they do not touch a number the run computes.
 SAFE_KEYS = frozenset(
     {
@@ -63,10 +64,8 @@ def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
             raise FedlgrError(f"tracking.checkpoint_dir={config.tracking.checkpoint_dir}: {why}")
         return given.resolve()
     if tracking_uri.startswith("sqlite:///"):
-        return Path(tracking_uri.removeprefix("sqlite:///")).expanduser().resolve().parent / (
-            "checkpoints"
-        )
-    return Path("checkpoints").resolve()
+        return Path(tracking_uri.removeprefix("sqlite:///")).expanduser().resolve().parent / ROOT
+    return Path(ROOT).resolve()
 
 
 def checkpoints(folder: Path) -> list[Path]:
@@ -189,10 +188,13 @@ def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
 
 def remove(folder: Path) -> None:
     """Remove a run's checkpoint folder, and the folder of runs' folders if that is left
-    empty (a finished run leaves nothing behind)."""
+    empty and is fedlgr's own ``checkpoints/`` (a finished run leaves nothing behind): a
+    ``tracking.checkpoint_dir`` the user made is kept (an empty one was removed, and a link
+    to it left leading nowhere: the tenth fault sweep, d190, d196)."""
     shutil.rmtree(folder, ignore_errors=True)
-    with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile
-        folder.parent.rmdir()
+    if folder.parent.name == ROOT:
+        with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile
+            folder.parent.rmdir()
 
 
 # --------------------------------------------------------------------------- the config
