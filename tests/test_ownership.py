@@ -279,7 +279,9 @@ def test_stores_that_cannot_be_used_are_one_line_before_any_work(
         f"sqlite:///{tmp_path}/text.db": "is not an SQLite database",
         f"sqlite:///{tmp_path}/damaged.db": "is damaged (database disk image is malformed)",
         f"sqlite:///{tmp_path}/inner.db": "is damaged (database disk image is malformed",
-        f"sqlite:///{tmp_path}/a-file/mlflow.db": f"is under {tmp_path}/a-file, a file, not a folder",
+        f"sqlite:///{tmp_path}/a-file/mlflow.db": (
+            f"is under {tmp_path}/a-file, a file, not a folder"
+        ),
         f"file://{tmp_path}/mlruns": "a plain file store, which MLflow 3 keeps in maintenance",
         str(tmp_path / "mlruns"): "a plain file store",
     }
