@@ -615,3 +615,25 @@ def test_a_checkpoint_folder_the_user_made_is_kept_when_a_run_finishes(
         assert folder.is_dir() and not any(folder.iterdir())
     assert main([*base, "--tracking-uri", f"sqlite:///{tmp_path / 'own' / 'mlflow.db'}"]) == 0
     assert "checkpoints" not in {p.name for p in (tmp_path / "own").iterdir()}
+
+
+def test_an_interrupt_while_a_run_is_being_started_ends_it_killed(tmp_path, synth_dir, monkeypatch):
+    """The tenth fault sweep (d07, d155): Ctrl-C or SIGHUP 0.1 s into a sweep's trial, while
+    its MLflow run was being set up, ended the run FAILED, as an error would; an interrupt
+    later in the run ends it KILLED."""
+    import mlflow
+
+    from fedlgr.tracking import mlflow_run
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mlflow_run.context, "log_dataset", interrupted)
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    config = load_config(None, [f"data.path={synth_dir}", f"tracking.uri={store}"])
+    with pytest.raises(KeyboardInterrupt):
+        mlflow_run.Tracker(config)
+    client = mlflow.MlflowClient(store)
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    (run,) = client.search_runs(experiments)
+    assert run.info.status == "KILLED"
