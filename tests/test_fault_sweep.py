@@ -562,7 +562,7 @@ def test_a_setting_given_twice_a_report_into_a_device_and_a_shared_store_are_ref
     run = ["run", "debug/tiny", f"data.path={synth_dir}"]
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     (tmp_path / "fifo_base.yaml").write_text(f"base: {fifo}\nspace:\n  seed: [1, 2]\n")
-    (tmp_path / "grid.yaml").write_text("base: debug/tiny\nspace:\n  seed: [1, 2]\n")
+    (tmp_path / "grid.yaml").write_text("base: debug/tiny.yaml\nspace:\n  seed: [1, 2]\n")
     cases = {
         (*run, "seed=1", "seed=2", "--print-config"): (
             "command line: 'seed=1' and 'seed=2' both set seed; give one of them"
@@ -637,3 +637,75 @@ def test_an_interrupt_while_a_run_is_being_started_ends_it_killed(tmp_path, synt
     experiments = [e.experiment_id for e in client.search_experiments()]
     (run,) = client.search_runs(experiments)
     assert run.info.status == "KILLED"
+
+
+def test_one_value_spelled_twice_passes_and_what_a_sweep_would_drop_is_refused(
+    tmp_path, synth_dir, cache_dir, capsys, monkeypatch
+):
+    """The eleventh fault sweep: one value spelled two ways (``seed=1 seed=01``, one sqlite
+    file by two paths, ``tracking.uri=null``) was refused as two (e64, e73, d178); one
+    sqlite file as --storage and store by a link or ``..`` was not caught (e81, e84); a
+    sweep file's overrides: setting a key twice, or an override of a setting the space
+    varies, were dropped without a word (e162, e163, e168); a config or sweep under a FIFO
+    or a file was "not found" (e50, e147, e148); a tracking.checkpoint_dir of the user's
+    named checkpoints was removed after the run (e92)."""
+    monkeypatch.chdir(tmp_path)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    run = ["run", "debug/tiny", f"data.path={synth_dir}"]
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    for same in (
+        ["seed=1", "seed=01"],
+        ["tracking.uri=null", "--tracking-uri", store],
+        ["tracking.uri=sqlite:///mlflow.db", "--tracking-uri", store],
+    ):
+        assert main([*run, *same, "--print-config"]) == 0, same
+    capsys.readouterr()
+    (tmp_path / "mlflow.db").touch()
+    (tmp_path / "link.db").symlink_to(tmp_path / "mlflow.db")
+    space = "space:\n  seed: [1, 2]\n"
+    (tmp_path / "grid.yaml").write_text(f"base: debug/tiny.yaml\n{space}")
+    (tmp_path / "twice.yaml").write_text(
+        f"base: debug/tiny.yaml\noverrides: [seed=1, seed=2]\n{space}"
+    )
+    (tmp_path / "rounds.yaml").write_text(
+        "base: debug/tiny.yaml\noverrides: [federated.rounds=1, federated.rounds=2]\n"
+        "space:\n  train.lr_top: [0.1, 0.2]\n"
+    )
+
+    def sweep(name: str, *more: str) -> tuple[str, ...]:
+        return ("sweep", name, f"data.path={synth_dir}", "--tracking-uri", store, *more)
+
+    cases = {
+        sweep("grid.yaml", "--storage", f"sqlite:///{tmp_path / 'link.db'}"): (
+            f"--storage sqlite:///{tmp_path / 'link.db'}: the tracking store's file too; "
+            "Optuna's study and MLflow's runs each need a database of their own (e.g. "
+            f"--storage sqlite:///{tmp_path / 'optuna.db'})"
+        ),
+        sweep("grid.yaml", "seed=3"): (
+            "sweep grid: 'seed=3' (the command line) sets seed, which its space: varies, "
+            "each trial its own value; drop it, or take seed out of space:"
+        ),
+        sweep("rounds.yaml"): (
+            "sweep rounds: its overrides: set federated.rounds twice ('federated.rounds=1', "
+            "'federated.rounds=2'); keep one"
+        ),
+        sweep("twice.yaml"): (
+            "sweep twice: 'seed=1' (its overrides:) sets seed, which its space: varies, each "
+            "trial its own value; drop it, or take seed out of space:"
+        ),
+        ("run", f"{fifo}/x.yaml", "--print-config"): (
+            f"{fifo}/x.yaml: under {fifo}, a device, pipe or socket, not a folder"
+        ),
+        ("sweep", f"{fifo}/s.yaml"): (
+            f"sweep {fifo}/s.yaml: under {fifo}, a device, pipe or socket, not a folder"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    mine = tmp_path / "mine" / "checkpoints"
+    mine.mkdir(parents=True)
+    base = [*run, f"data.cache_dir={cache_dir}", f"tracking.checkpoint_dir={mine}"]
+    assert main([*base, "--tracking-uri", store]) == 0
+    assert mine.is_dir() and not any(mine.iterdir())

@@ -88,7 +88,7 @@ def _not_the_tracking_store(optuna_file: Path | None, args, overrides: list[str]
     uri = resolve_uri(args.tracking_uri or (given[-1] if given else None))
     if optuna_file is None or not uri.startswith("sqlite:///"):
         return
-    if sqlite_path(uri).absolute() == optuna_file.absolute():
+    if sqlite_path(uri).resolve() == optuna_file.resolve():  # by a link, or .. (e81, e84)
         raise FedlgrError(
             f"--storage {args.storage}: the tracking store's file too; Optuna's study and "
             "MLflow's runs each need a database of their own (e.g. --storage "

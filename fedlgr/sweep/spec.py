@@ -186,6 +186,8 @@ def find_sweep(name: str | Path) -> Path:
             return candidate
     if why := broken_link(path):  # was "no such file" (the eighth fault sweep, u53)
         raise ConfigError(f"sweep {name}: {why}")
+    if not path.exists() and (why := not_a_file(path)):  # under a FIFO or a file (e148)
+        raise ConfigError(f"sweep {name}: {why}")
     if path.exists() and not path.is_dir():  # /dev/zero, a FIFO (seventh fault sweep)
         raise ConfigError(f"sweep {name}: not a regular file (a device, pipe or socket)")
     known = ", ".join(sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml")))
@@ -292,11 +294,35 @@ def load_sweep(
     )
     if spec.heartbeat_s > MAX_HEARTBEAT_S:
         raise fail("heartbeat_s", f"{spec.heartbeat_s} is above {MAX_HEARTBEAT_S} (one day)")
+    _check_overrides(spec, len(fixed))
     check_trial_configs(spec, echo)
     if any(o.split("=", 1)[0].strip() == "tracking.experiment" for o in spec.overrides):
         # An override names the experiment: it wins over the file's ``experiment``.
         spec = replace(spec, experiment=tracking_experiment(spec))
     return spec
+
+
+def _check_overrides(spec: SweepSpec, in_file: int) -> None:
+    """Refuse what a trial would drop without a word (the eleventh fault sweep): a setting
+    given twice in the file's ``overrides:`` (the last won, e168), or an override - in the
+    file or on the command line - of a setting the space varies (each trial set its own,
+    e162, e163). The command line's overrides may change the file's: that is their use."""
+    swept = {p.name for p in spec.params}
+    seen: dict[str, str] = {}
+    for k, override in enumerate(spec.overrides):
+        key = override.split("=", 1)[0].strip()
+        where = "its overrides:" if k < in_file else "the command line"
+        if key in swept:
+            raise ConfigError(
+                f"sweep {spec.name}: {override!r} ({where}) sets {key}, which its space: "
+                f"varies, each trial its own value; drop it, or take {key} out of space:"
+            )
+        if k < in_file and key in seen:
+            raise ConfigError(
+                f"sweep {spec.name}: its overrides: set {key} twice ({seen[key]!r}, "
+                f"{override!r}); keep one"
+            )
+        seen[key] = override
 
 
 def read_sweep_file(path: Path) -> dict[str, Any]:

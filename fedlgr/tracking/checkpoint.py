@@ -186,13 +186,14 @@ def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
     return decode(state)
 
 
-def remove(folder: Path) -> None:
+def remove(folder: Path, ours: bool = False) -> None:
     """Remove a run's checkpoint folder, and the folder of runs' folders if that is left
-    empty and is fedlgr's own ``checkpoints/`` (a finished run leaves nothing behind): a
-    ``tracking.checkpoint_dir`` the user made is kept (an empty one was removed, and a link
-    to it left leading nowhere: the tenth fault sweep, d190, d196)."""
+    empty and ``ours`` - fedlgr's own ``checkpoints/``, not a ``tracking.checkpoint_dir``
+    the user made (an empty one was removed, and a link to it left leading nowhere: the
+    tenth and eleventh fault sweeps, d190, d196, e92, e93): a finished run leaves nothing
+    of its own behind."""
     shutil.rmtree(folder, ignore_errors=True)
-    if folder.parent.name == ROOT:
+    if ours and folder.parent.name == ROOT:
         with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile
             folder.parent.rmdir()
 

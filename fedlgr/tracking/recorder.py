@@ -210,13 +210,14 @@ class Recorder:
         """A finished run needs no checkpoint; one that ended before its first checkpoint
         leaves no empty folder. Either way the folders are released."""
         tracker, folder, old = self.tracker, self.folder, self.old
+        ours = not self.config.tracking.checkpoint_dir  # its root is fedlgr's checkpoints/
         if tracker is not None and getattr(tracker, "finished", False):
             if self.every and folder is not None:
-                remove(folder)
+                remove(folder, ours)
             if old is not None:  # also when resumed with tracking.checkpoint=0
                 remove(old)
         elif folder is not None and self.every and not checkpoints(folder) and folder != old:
-            remove(folder)  # ended before its first checkpoint: only its lock file is there
+            remove(folder, ours)  # ended before its first checkpoint: only its lock file
         owner.release(folder)
         owner.release(old)
 
