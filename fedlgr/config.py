@@ -31,7 +31,7 @@ from fedlgr.data.config import betas as _betas
 from fedlgr.data.config import choice as _choice
 from fedlgr.data.config import epochs as _epochs
 from fedlgr.data.config import positive as _positive
-from fedlgr.errors import ConfigError, broken_link, not_a_file
+from fedlgr.errors import ConfigError, not_a_file
 from fedlgr.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
 
 
@@ -569,9 +569,8 @@ def _read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[Any]:
     """The YAML at ``path`` preceded by what it includes, each as an OmegaConf node."""
     from omegaconf import OmegaConf
 
-    if why := broken_link(path):
-        raise ConfigError(f"{path.absolute()}: {why}")
-    if not path.exists() and (why := not_a_file(path)):  # under a FIFO or a file (e50, e147)
+    # a broken link, or a path under a FIFO or a file (e50, e147): named, not "not found"
+    if not path.exists() and (why := not_a_file(path)):
         raise ConfigError(f"{path.absolute()}: {why}")
     if path.exists() and not path.is_file() and not path.is_dir():
         # /dev/stdin, before it resolves to /proc/PID/fd/pipe:[N], which is no file (u37)

@@ -37,6 +37,14 @@ def exception_chain(err: BaseException | None):
         err = err.__cause__ or err.__context__
 
 
+def interrupt_in(err: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM (:class:`fedlgr.signals.Terminated`) behind ``err``, if any:
+    one that arrives while Optuna records a trial turns into Optuna 4's
+    ``UnboundLocalError: ... 'updated_state'`` in ``_run_trial``, and a sweep stopped
+    there ended in two tracebacks (the seventh fault sweep, i17)."""
+    return next((e for e in exception_chain(err) if isinstance(e, KeyboardInterrupt)), None)
+
+
 def broken_link(path) -> str | None:
     """Why ``path`` leads nowhere though a symbolic link names it, in words - "a symbolic
     link that loops" (on the way to it, too) or "a symbolic link to TARGET, which does not
@@ -79,23 +87,31 @@ def _above(path, links_only: bool = False) -> str | None:
     return None
 
 
+def _mode(path) -> tuple[str | None, int | None]:
+    """``(why, None)`` where ``path`` leads nowhere (:func:`broken_link`) or something above
+    it is in the way (:func:`_above`; ``why`` None when simply nothing is there), else
+    ``(None, its mode)``: what :func:`not_a_file` and :func:`not_a_folder` start from."""
+    import os
+
+    if why := broken_link(path):
+        return why, None
+    try:
+        return None, os.stat(path).st_mode
+    except OSError:
+        return _above(path), None
+
+
 def not_a_file(path) -> str | None:
     """Why ``path`` cannot be read or written as a regular file though something is there:
     a broken link (:func:`broken_link`), "a folder", or "not a regular file (a device, pipe
     or socket)" - which sqlite or ``open()`` would block on (a FIFO), read as empty
     (/dev/null) or write beside (``/dev/null-journal``, the ninth fault sweep's c06-c17) -
     or None for a regular file or nothing there."""
-    import os
     import stat
 
-    if why := broken_link(path):
+    why, mode = _mode(path)
+    if mode is None or stat.S_ISREG(mode):
         return why
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return _above(path)
-    if stat.S_ISREG(mode):
-        return None
     return "a folder" if stat.S_ISDIR(mode) else "not a regular file (a device, pipe or socket)"
 
 
@@ -106,14 +122,9 @@ def not_a_folder(path) -> str | None:
     import os
     import stat
 
-    if why := broken_link(path):
+    why, mode = _mode(path)
+    if mode is None or stat.S_ISDIR(mode):
         return why
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return _above(path)
-    if stat.S_ISDIR(mode):
-        return None
     kind = "a file" if stat.S_ISREG(mode) else "a device, pipe or socket"
     there = f" ({os.path.realpath(path)})" if os.path.islink(path) else ""
     return f"{kind}{there}, not a folder"

@@ -81,11 +81,9 @@ def _not_the_tracking_store(optuna_file: Path | None, args, overrides: list[str]
     """One sqlite file for the study and the MLflow runs failed after 11 s with Alembic's
     "No such revision or branch" and left both sets of tables in it (the tenth fault
     sweep, d167): refused first."""
-    from fedlgr.tracking.mlflow_run import resolve_uri
-    from fedlgr.tracking.server import sqlite_path
+    from fedlgr.tracking.server import given_uri, sqlite_path
 
-    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
-    uri = resolve_uri(args.tracking_uri or (given[-1] if given else None))
+    uri = given_uri(args.tracking_uri, overrides)
     if optuna_file is None or not uri.startswith("sqlite:///"):
         return
     if sqlite_path(uri).resolve() == optuna_file.resolve():  # by a link, or .. (e81, e84)

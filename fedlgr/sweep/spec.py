@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.config import CONF_DIR, SWEEPS_DIR, check_interpolations, yaml_reason
-from fedlgr.errors import ConfigError, broken_link, not_a_file
+from fedlgr.errors import ConfigError, not_a_file
 
 CONFIG_KEY = "config"  # the space key that chooses the base config file
 DIRECTIONS = ("minimize", "maximize")
@@ -184,9 +184,8 @@ def find_sweep(name: str | Path) -> Path:
     for candidate in (path, SWEEPS_DIR / path, SWEEPS_DIR / f"{path}.yaml"):
         if candidate.is_file():
             return candidate
-    if why := broken_link(path):  # was "no such file" (the eighth fault sweep, u53)
-        raise ConfigError(f"sweep {name}: {why}")
-    if not path.exists() and (why := not_a_file(path)):  # under a FIFO or a file (e148)
+    # a broken link (u53) or a path under a FIFO or a file (e148) was "no such file"
+    if not path.exists() and (why := not_a_file(path)):
         raise ConfigError(f"sweep {name}: {why}")
     if path.exists() and not path.is_dir():  # /dev/zero, a FIFO (seventh fault sweep)
         raise ConfigError(f"sweep {name}: not a regular file (a device, pipe or socket)")

@@ -12,7 +12,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-from fedlgr.errors import FedlgrError, exception_chain
+from fedlgr.errors import FedlgrError, interrupt_in
 from fedlgr.signals import deferred
 from fedlgr.sweep.spec import SweepSpec
 from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed, storage_error
@@ -544,14 +544,6 @@ class Worker:
         }[t.state.name]
         self.echo(f"=== trial {t.number}: {what} ({seconds:.0f} s)")
         self.last_trial = None
-
-
-def interrupt_in(err: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C or SIGTERM (:class:`fedlgr.signals.Terminated`) behind ``err``, if any:
-    one that arrives while Optuna records a trial turns into Optuna 4's
-    ``UnboundLocalError: ... 'updated_state'`` in ``_run_trial``, and a sweep stopped
-    there ended in two tracebacks (the seventh fault sweep, i17)."""
-    return next((e for e in exception_chain(err) if isinstance(e, KeyboardInterrupt)), None)
 
 
 #: A trial's system attribute naming the process that runs it: [host, pid, start time].

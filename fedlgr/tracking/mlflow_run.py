@@ -40,7 +40,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from fedlgr.config import ExperimentConfig, to_yaml
-from fedlgr.errors import FedlgrError, exception_chain
+from fedlgr.errors import FedlgrError, interrupt_in
 from fedlgr.tracking import context
 from fedlgr.tracking.server import check_reachable, check_sqlite_usable
 
@@ -313,11 +313,11 @@ class Tracker:
                 if self.run_id is not None:  # created, then a write failed: not left RUNNING
                     # an interrupt is KILLED, as later in the run (was FAILED: the tenth
                     # fault sweep, d07, d155: a sweep's trial stopped 0.1 s in)
-                    cut = any(isinstance(e, KeyboardInterrupt) for e in exception_chain(err))
+                    status = "KILLED" if interrupt_in(err) else "FAILED"
                     with contextlib.suppress(Exception):
                         if hasattr(self, "_beat"):
                             self._stop_heartbeat()
-                        self.client.set_terminated(self.run_id, "KILLED" if cut else "FAILED")
+                        self.client.set_terminated(self.run_id, status)
                 raise
 
     def _start(self, config, tags, parent_run_id, run_id, digest) -> None:

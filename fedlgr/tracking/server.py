@@ -210,10 +210,16 @@ def half_created(connection) -> None:
 def check_tracking(uri: str | None, overrides: list[str]) -> None:
     """:func:`check_reachable` on the URI a command was given: ``--tracking-uri``, else
     its last ``tracking.uri=`` override, else ``$MLFLOW_TRACKING_URI``."""
+    check_reachable(given_uri(uri, overrides))
+
+
+def given_uri(uri: str | None, overrides: list[str]) -> str:
+    """The tracking URI a command was given: ``--tracking-uri``, else its last
+    ``tracking.uri=`` override, else ``$MLFLOW_TRACKING_URI`` or the default."""
     from fedlgr.tracking.mlflow_run import resolve_uri
 
     given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
-    check_reachable(resolve_uri(uri or (given[-1] if given else None)))
+    return resolve_uri(uri or (given[-1] if given else None))
 
 
 def runs_link(server: str, experiment_id: str) -> str:
