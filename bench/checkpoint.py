@@ -2,7 +2,7 @@
 
 Side by side in one process: one round of the demo config (conf/experiment/demo.yaml:
 2 clients, half-width MobileNetV2, 128 px, augmented) and the checkpoint written after it
-(``fedlgr.federated.resume.save_checkpoint``: gather, Fabric save to a temporary file,
+(``fedlgr.shell.run.resume.save_checkpoint``: gather, Fabric save to a temporary file,
 rename), best of ``--repeats``; then the checkpoint of the full-width MobileNetV2 with 2
 and 10 clients (after one short round, so that every Adam state exists): seconds and MB.
 Target: the demo's checkpoint costs under 5% of its round.
@@ -25,11 +25,11 @@ TARGETS = {"demo_checkpoint_share_%": (5.0, "max")}
 
 
 def setup(tmp: str, overrides: list[str]):
-    from fedlgr.config import CONF_DIR, load_config
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.in_process import Orchestrator
+    from fedlgr.core.in_process import Orchestrator
+    from fedlgr.shell.config import CONF_DIR, load_config
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
+    from fedlgr.shell.run.experiment import make_fabric
 
     config = load_config(
         CONF_DIR / "experiment" / "demo.yaml",
@@ -48,7 +48,7 @@ def setup(tmp: str, overrides: list[str]):
 
 def timed_checkpoint(fabric, orchestrator, log, folder: Path) -> tuple[float, float]:
     """Seconds to write the checkpoint, and its size in MB."""
-    from fedlgr.federated.resume import save_checkpoint
+    from fedlgr.shell.run.resume import save_checkpoint
 
     start = time.perf_counter()
     path = save_checkpoint(fabric, folder, orchestrator, [log], "bench", 0.0, keep=1)
@@ -64,9 +64,9 @@ def main() -> int:
 
     import torch
 
-    from fedlgr.data.synth import synthesize
-    from fedlgr.federated.messages import RoundPlan
-    from fedlgr.runtime import torch_threads
+    from fedlgr.core.messages import RoundPlan
+    from fedlgr.shell.data.synth import synthesize
+    from fedlgr.shell.machine import torch_threads
 
     figures: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -35,17 +35,17 @@ def main() -> int:
     parser.add_argument("--epochs", type=int, default=2, help="augmented epochs to time")
     args = parser.parse_args()
 
-    from fedlgr.runtime import tune_allocator
+    from fedlgr.shell.machine import tune_allocator
 
     tuned = tune_allocator()  # as the fedlgr command does
 
     import numpy as np
     import torch
 
-    from fedlgr.data.augment import Augment, SceneBatches
-    from fedlgr.data.config import DataConfig
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.synth import synthesize
+    from fedlgr.core.data.augment import Augment, SceneBatches
+    from fedlgr.shell.data.config import DataConfig
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.synth import synthesize
 
     figures: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -30,7 +30,7 @@ def evaluation_cost(side, received, repeats: int) -> dict[str, float]:
     now; median of ``repeats``, alternating; the outputs are checked to be identical."""
     import torch
 
-    from fedlgr.federated.evaluation import predict
+    from fedlgr.core.evaluation import predict
 
     batch = side.config.train.eval_batch_size
 
@@ -70,13 +70,13 @@ def main() -> int:
 
     import torch
 
-    from fedlgr.config import load_config
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.data.synth import synthesize
-    from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.in_process import Orchestrator
-    from fedlgr.runtime import torch_threads
+    from fedlgr.core.in_process import Orchestrator
+    from fedlgr.shell.config import load_config
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
+    from fedlgr.shell.data.synth import synthesize
+    from fedlgr.shell.machine import torch_threads
+    from fedlgr.shell.run.experiment import make_fabric
 
     with tempfile.TemporaryDirectory() as tmp:
         synthesize(Path(tmp) / "synth", args.scenes, seed=0, size=args.size)

@@ -44,7 +44,7 @@ OTHERS = [
     "FedRoot-EWCOnline",
     "FedRoot-SI",
     "FedRoot-MAS",
-    "FedAvg-LwF",  # not in the paper (Li & Hoiem 2016, fedlgr/continual/lwf.py)
+    "FedAvg-LwF",  # not in the paper (Li & Hoiem 2016, fedlgr/core/continual/lwf.py)
     "FedRoot-LwF",
 ]
 # FedLGR's variants (issue 19): "FedLGR" is the method at its defaults (conf/continual/
@@ -110,7 +110,7 @@ def main() -> int:
     parser.add_argument("--workdir", type=Path, default=None, help="keep data, root, runs here")
     args = parser.parse_args()
 
-    from fedlgr.runtime import tune_allocator
+    from fedlgr.shell.machine import tune_allocator
 
     tune_allocator()
     import torch
@@ -131,10 +131,10 @@ def main() -> int:
 
 
 def run_modality(modality: str, work: Path, args) -> tuple[str, int]:
-    from fedlgr.config import CONF_DIR, load_config
-    from fedlgr.data.synth import synthesize
-    from fedlgr.federated.experiment import run_experiment
-    from fedlgr.models.pretrain import synthetic_root
+    from fedlgr.shell.config import CONF_DIR, load_config
+    from fedlgr.shell.data.synth import synthesize
+    from fedlgr.shell.pretrain import synthetic_root
+    from fedlgr.shell.run.experiment import run_experiment
 
     data = work / "synth"
     if not (data / "all_data.csv").is_file():
@@ -217,9 +217,9 @@ def final_drift(result) -> dict[str, float | None]:
 def report(
     modality: str, results: dict, args, uri: str, experiment: str, work: Path
 ) -> tuple[str, int]:
-    from fedlgr.cli.demo import forgetting_table
-    from fedlgr.console import table
-    from fedlgr.report import make_report
+    from fedlgr.shell.cli.demo import forgetting_table
+    from fedlgr.shell.console import table
+    from fedlgr.shell.report import make_report
 
     runs = list(results.values())
     labels = {id(r): f"{label} seed {seed}" for (label, seed), r in results.items()}

@@ -33,7 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fedlgr.data.synth import synthesize  # noqa: E402
+from fedlgr.shell.data.synth import synthesize  # noqa: E402
 from tests.support.flower import Federation  # noqa: E402
 
 CONFIG = ROOT / "conf" / "debug" / "tiny.yaml"

@@ -47,7 +47,7 @@ def settings(tmp: str, args, clients: int, *extra: str) -> list[str]:
 def environment() -> dict:
     import torch
 
-    from fedlgr.tracking.resources import nvml_available
+    from fedlgr.core.meters.costs import nvml_available
 
     cuda = torch.cuda.is_available()
     return {
@@ -75,11 +75,11 @@ def cuda_tests() -> dict:
 
 def one_round(overrides: list[str], device) -> tuple[float, list]:
     """Images/s of one training round of a fresh ClientSide, and its clients' usage."""
-    from fedlgr.config import load_config
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.client.side import ClientSide
-    from fedlgr.federated.messages import RoundPlan, TrainIns
+    from fedlgr.core.client.side import ClientSide
+    from fedlgr.core.messages import RoundPlan, TrainIns
+    from fedlgr.shell.config import load_config
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
 
     config = load_config(None, overrides)
     scenes = load_scenes(config.data)
@@ -138,8 +138,8 @@ def concurrency(tmp: str, args, device, clients_list) -> dict:
 
 def methods(tmp: str, args) -> dict:
     """Part 3: FedAvg vs FedRootAvg on the GPU, 2 rounds."""
-    from fedlgr.config import load_config
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.config import load_config
+    from fedlgr.shell.run.experiment import run_experiment
 
     out = {}
     for method in ("FedAvg", "FedRootAvg"):
@@ -158,8 +158,8 @@ def precisions(tmp: str, args) -> dict:
     """Part 4: fp32 vs 16-mixed vs bf16-mixed on the GPU, 2 rounds each."""
     import torch
 
-    from fedlgr.config import load_config
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.config import load_config
+    from fedlgr.shell.run.experiment import run_experiment
 
     out = {}
     for precision in ("32-true", "16-mixed", "bf16-mixed"):
@@ -198,8 +198,8 @@ def main() -> int:
 
     import torch
 
-    from fedlgr.data.synth import synthesize
-    from fedlgr.runtime import tune_allocator
+    from fedlgr.shell.data.synth import synthesize
+    from fedlgr.shell.machine import tune_allocator
 
     tune_allocator()
     figures: dict = {"environment": environment()}

@@ -31,8 +31,8 @@ METHODS = ("FedAvg", "FedRootAvg")
 
 
 def measure(data: Path, rounds: int, threads: int, size: int) -> dict[str, dict[str, float]]:
-    from fedlgr.config import CONF_DIR, load_config
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.config import CONF_DIR, load_config
+    from fedlgr.shell.run.experiment import run_experiment
 
     out = {}
     for method in METHODS:
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, default=128, help="image size (the paper's: 128)")
     parser.add_argument("--scenes", type=int, default=240)
     args = parser.parse_args(argv)
-    from fedlgr.data.synth import synthesize
+    from fedlgr.shell.data.synth import synthesize
 
     with tempfile.TemporaryDirectory(prefix="fedlgr-bench-") as tmp:
         data = Path(tmp) / "synth"

@@ -91,7 +91,7 @@ def client_batches(side, epochs: int) -> dict[int, list]:
 
 def plain_process(overrides, client: int, repeats: int, barrier, results) -> None:
     """One process of the N-process reference: one thread, one client's batches."""
-    from fedlgr.runtime import tune_allocator
+    from fedlgr.shell.machine import tune_allocator
 
     tune_allocator()  # the same allocator settings as the parent: a fair reference
     import torch
@@ -114,10 +114,10 @@ def build(overrides: list[str], clients: list[int]):
     """A ``ClientSide`` holding ``clients`` of the config, and the config."""
     import torch
 
-    from fedlgr.config import load_config
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.client.side import ClientSide
+    from fedlgr.core.client.side import ClientSide
+    from fedlgr.shell.config import load_config
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
 
     config = load_config(None, overrides)
     scenes = load_scenes(config.data)
@@ -127,7 +127,7 @@ def build(overrides: list[str], clients: list[int]):
 
 def train_img_per_s(side) -> tuple[float, float]:
     """Images/s of one round of ``side``'s clients, and CPU s per client."""
-    from fedlgr.federated.messages import RoundPlan, TrainIns
+    from fedlgr.core.messages import RoundPlan, TrainIns
 
     start = time.perf_counter()
     trained = side.train(TrainIns(RoundPlan(1, 0, True, True)))
@@ -144,12 +144,12 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
 
-    from fedlgr.runtime import available_cores, tune_allocator
+    from fedlgr.shell.machine import available_cores, tune_allocator
 
     tuned = tune_allocator()
     import torch
 
-    from fedlgr.data.synth import synthesize
+    from fedlgr.shell.data.synth import synthesize
 
     cores = available_cores()
     torch.set_num_threads(cores)

@@ -1,5 +1,5 @@
 import sys
 
-from fedlgr.cli import main
+from fedlgr.shell.cli import main
 
 sys.exit(main())

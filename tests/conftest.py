@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from fedlgr.data.synth import synthesize
+from fedlgr.shell.data.synth import synthesize
 from tests.support.checkout import REPO, ignored, untracked_files
 from tests.support.ports import free_port, wait_healthy
 

@@ -1,4 +1,4 @@
-"""Batched rotation, per-image augmentation and epoch batches (fedlgr/data/augment.py)."""
+"""Batched rotation, per-image augmentation and epoch batches (fedlgr/core/data/augment.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 from torchvision.transforms.v2 import functional as F
 
-from fedlgr.data.augment import (
+from fedlgr.core.data.augment import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     Augment,

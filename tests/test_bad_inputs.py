@@ -12,15 +12,15 @@ import mlflow.utils.validation
 import pytest
 from PIL import Image
 
-import fedlgr.config as config_module
-import fedlgr.data.images as images_module
-import fedlgr.report.runs as report_runs
-from fedlgr.cli import main
-from fedlgr.config import FederatedConfig, ModelConfig, load_config
-from fedlgr.data.config import DataConfig
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.ratings import read_ratings
+import fedlgr.shell.config as config_module
+import fedlgr.shell.data.images as images_module
+import fedlgr.shell.report.runs as report_runs
 from fedlgr.errors import ConfigError, DataError
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import FederatedConfig, ModelConfig, load_config
+from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.ratings import read_ratings
 from tests.support.data import HEADER, rating_row, write_rows
 
 
@@ -253,7 +253,7 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
     empty --tracking-uri (it fell back to the default store)."""
     import torch
 
-    from fedlgr.config import SWEEPS_DIR
+    from fedlgr.shell.config import SWEEPS_DIR
     from tests.support.runs import FAST
 
     fast, sweep = str(FAST), str(SWEEPS_DIR / "fedlgr.yaml")

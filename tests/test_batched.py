@@ -1,4 +1,4 @@
-"""Batched client training (fedlgr/federated/batched.py) against sequential ``train_locally``.
+"""Batched client training (fedlgr/core/batched.py) against sequential ``train_locally``.
 
 Each test builds real clients with :class:`ClientSide` on the synthetic data, copies them,
 trains one copy client after client with ``train_locally`` and the other with
@@ -24,14 +24,14 @@ import numpy as np
 import pytest
 import torch
 
-from fedlgr.data.augment import Augment, SceneBatches
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.splits import make_split
+from fedlgr.core.client import stacked as batched
+from fedlgr.core.client.side import ClientSide
+from fedlgr.core.client.stacked import train_batched
+from fedlgr.core.client.training import Client, train_locally
+from fedlgr.core.data.augment import Augment, SceneBatches
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.client import stacked as batched
-from fedlgr.federated.client.side import ClientSide
-from fedlgr.federated.client.stacked import train_batched
-from fedlgr.federated.client.training import Client, train_locally
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
 from tests.support.float64 import Float64Batches, assert_close_f64
 from tests.support.runs import fast_config
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import mlflow
 
-from fedlgr.tracking.mlflow_run import Tracker
+from fedlgr.shell.tracking.mlflow_run import Tracker
 from tests.support.checkout import ignored, untracked_files
 from tests.support.runs import fast_config
 

@@ -13,9 +13,9 @@ import pytest
 import yaml
 from PIL import Image
 
-from fedlgr.cli import build_parser, main, shipped_sweeps
-from fedlgr.config import CONF_DIR, SWEEPS_DIR, load_config, to_plain
-from fedlgr.console import Progress, duration
+from fedlgr.shell.cli import build_parser, main, shipped_sweeps
+from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, load_config, to_plain
+from fedlgr.shell.console import Progress, duration
 from tests.support.runs import FAST
 
 
@@ -23,7 +23,7 @@ def test_help_does_not_import_heavy_modules():
     """``fedlgr --help`` stays fast because torch & co. load only inside the verbs."""
     code = (
         "import sys\n"
-        "from fedlgr.cli import build_parser\n"
+        "from fedlgr.shell.cli import build_parser\n"
         "build_parser().format_help()\n"
         "heavy = [m for m in ('torch', 'torchvision', 'lightning', 'mlflow', 'optuna', 'numpy')"
         " if m in sys.modules]\n"
@@ -182,7 +182,9 @@ def test_duration_reads_as_a_person_would():
 
 def test_progress_off_a_terminal_logs_tenths_and_waits_between_lines(monkeypatch, capsys):
     clock = [0.0]
-    monkeypatch.setattr("fedlgr.console.time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    monkeypatch.setattr(
+        "fedlgr.shell.console.time", types.SimpleNamespace(monotonic=lambda: clock[0])
+    )
     with Progress("decoding images", "img") as progress:
         assert progress.bar is None and not progress.terminal
         for done in range(1, 101):
@@ -207,7 +209,7 @@ def test_progress_off_a_terminal_logs_tenths_and_waits_between_lines(monkeypatch
 def test_default_threads_leave_busy_cores_alone(monkeypatch):
     import psutil
 
-    from fedlgr import runtime
+    from fedlgr.shell import machine as runtime
 
     def machine(cores, load, percent, machine_cores=None):
         """This process may use CPUs 0..cores-1 of machine_cores; load average; each CPU's
@@ -238,8 +240,8 @@ def test_run_off_a_terminal_logs_progress_eta_and_threads(synth_dir, tmp_path, m
     """A fresh cache (images decoded), progress on, stderr not a terminal: log lines for
     the decoding and the client epochs; round lines with an ETA but the last; the header
     names the effective thread count and why it is below the cores."""
-    from fedlgr import runtime
-    from fedlgr.federated import experiment
+    from fedlgr.shell import machine as runtime
+    from fedlgr.shell.run import experiment
 
     monkeypatch.setattr(Progress, "every_s", 0.0)  # a line for every step: the run is short
     monkeypatch.setattr(runtime, "available_cores", lambda: 4)
@@ -283,7 +285,7 @@ def test_a_data_path_that_does_not_exist_is_named_before_torch_is_imported(tmp_p
     missing = tmp_path / "no" / "such" / "dir"
     probe = (
         "import sys\n"
-        "from fedlgr.cli import main\n"
+        "from fedlgr.shell.cli import main\n"
         f"code = main(['run', {str(FAST)!r}, 'data.path={missing}', 'tracking.enabled=false'])\n"
         "print('torch imported' if 'torch' in sys.modules else 'torch not imported')\n"
         "sys.exit(code)\n"

@@ -9,11 +9,11 @@ import threading
 import pytest
 import torch
 
-from fedlgr.config import ConfigError
+from fedlgr.core.client import pool as concurrency
+from fedlgr.core.meters.costs import Usage, share_process_cpu
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.client import pool as concurrency
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.tracking.resources import Usage, share_process_cpu
+from fedlgr.shell.config import ConfigError
+from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config, read_run, results_csv
 
 CPU = torch.device("cpu")
@@ -131,10 +131,10 @@ def test_batched_client_side_trains_what_sequential_training_trains(synth_dir, c
     """``ClientSide.train`` with runtime.concurrency=batched (CPU here: not yet measured on
     a GPU) against sequential, in float64 (see tests/test_batched.py for why float32
     cannot be compared over many steps on the fast config)."""
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.client.side import ClientSide
-    from fedlgr.federated.messages import RoundPlan, TrainIns
+    from fedlgr.core.client.side import ClientSide
+    from fedlgr.core.messages import RoundPlan, TrainIns
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
     from tests.support.float64 import Float64Batches, assert_close_f64
 
     class Float64Data(Float64Batches):  # and the rest of SceneBatches (positions, ...)

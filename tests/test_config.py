@@ -8,7 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from fedlgr.config import (
+from fedlgr.core.models.scholar import build_scholar
+from fedlgr.core.scope import shared_keys
+from fedlgr.core.strategies import build_strategy
+from fedlgr.errors import ConfigError
+from fedlgr.shell.config import (
     CONF_DIR,
     FCL_METHODS,
     METHODS,
@@ -17,10 +21,6 @@ from fedlgr.config import (
     load_config,
     to_yaml,
 )
-from fedlgr.errors import ConfigError
-from fedlgr.federated.scope import shared_keys
-from fedlgr.federated.strategies import build_strategy
-from fedlgr.models.scholar import build_scholar
 
 CONFIGS = sorted(CONF_DIR.rglob("*.yaml"))
 

@@ -7,19 +7,19 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.config import load_config
-from fedlgr.continual import continual_plugins
-from fedlgr.continual.ewc import EWC, EWCOnline, fisher
-from fedlgr.continual.lgr import LatentReplay
-from fedlgr.continual.lwf import LwF
-from fedlgr.continual.mas import MAS, output_norm_importance
-from fedlgr.continual.rehearsal import NaiveRehearsal
-from fedlgr.continual.si import SI
-from fedlgr.data.augment import SceneBatches
-from fedlgr.federated.client.plugins import LocalContext
-from fedlgr.federated.client.training import Client, train_locally
-from fedlgr.models.generator import LatentVAE
-from fedlgr.models.scholar import MLPRoot, Scholar, Top
+from fedlgr.core.client.plugins import LocalContext
+from fedlgr.core.client.training import Client, train_locally
+from fedlgr.core.continual import continual_plugins
+from fedlgr.core.continual.ewc import EWC, EWCOnline, fisher
+from fedlgr.core.continual.lgr import LatentReplay
+from fedlgr.core.continual.lwf import LwF
+from fedlgr.core.continual.mas import MAS, output_norm_importance
+from fedlgr.core.continual.rehearsal import NaiveRehearsal
+from fedlgr.core.continual.si import SI
+from fedlgr.core.data.augment import SceneBatches
+from fedlgr.core.models.generator import LatentVAE
+from fedlgr.core.models.scholar import MLPRoot, Scholar, Top
+from fedlgr.shell.config import load_config
 from tests.support.lgr import context as lgr_context
 
 

@@ -1,4 +1,4 @@
-"""load_scenes: a dataset folder as aligned per-scene tensors (fedlgr/data/dataset.py)."""
+"""load_scenes: a dataset folder as aligned per-scene tensors (fedlgr/shell/data/dataset.py)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from fedlgr.data.columns import DESCRIPTOR_COLUMNS, LABEL_COLUMNS, MODE_COLUMNS, STAMP
-from fedlgr.data.config import DataConfig
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.images import decode
+from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS, LABEL_COLUMNS, MODE_COLUMNS, STAMP
 from fedlgr.errors import DataError
+from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.images import decode
 
 
 def csv_means(folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -170,7 +170,7 @@ def test_missing_image_is_an_error_by_default(synth_copy, cache_dir):
 
 @pytest.mark.parametrize("name", ["notes.txt", "all_data.csv"])
 def test_a_file_as_data_path_asks_for_the_folder(synth_copy, cache_dir, name, capsys):
-    from fedlgr.cli import main
+    from fedlgr.shell.cli import main
 
     file = synth_copy / name
     if not file.exists():

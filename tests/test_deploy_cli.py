@@ -19,10 +19,10 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.x509.verification import PolicyBuilder, Store, VerificationError
 from flwr.common.config import parse_config_args
 
-from fedlgr.cli import deploy as deploy_cli
-from fedlgr.cli import main
-from fedlgr.deploy.credentials import make_node_key
-from fedlgr.deploy.flower import APP_DIR
+from fedlgr.shell.cli import deploy as deploy_cli
+from fedlgr.shell.cli import main
+from fedlgr.shell.deploy.credentials import make_node_key
+from fedlgr.shell.deploy.flower import APP_DIR
 
 
 def option(cmd: list[str], flag: str) -> str:
@@ -145,7 +145,7 @@ def test_superlink_command_has_tls_and_node_auth(certs, capsys):
     assert len(lines) == 4, lines
     cmd = shlex.split(lines[0])
     assert cmd[-2:] == ["--isolation", "process"]  # fedlgr's executor runs the ServerApps
-    assert "--root-certificates" in lines[1] and "fedlgr.deploy.flower.executor" in lines[1]
+    assert "--root-certificates" in lines[1] and "fedlgr.shell.deploy.flower.executor" in lines[1]
     del lines[1]
     assert cmd[0] == str(deploy_cli._flower("flower-superlink"))
     assert option(cmd, "--ssl-ca-certfile") == str(certs / "ca.pem")
@@ -226,7 +226,13 @@ def test_supernode_node_config(tmp_path, certs, synth_dir, capsys):
     assert main([*args, "--threads", "2", "--port", "9095", "--print-command"]) == 0
     cmd = printed(capsys)
     # flower-supernode through fedlgr's launcher, its idle poll shortened
-    assert cmd[:5] == [sys.executable, "-m", "fedlgr.deploy.flower.supernode", "--poll-s", "0.5"]
+    assert cmd[:5] == [
+        sys.executable,
+        "-m",
+        "fedlgr.shell.deploy.flower.supernode",
+        "--poll-s",
+        "0.5",
+    ]
     assert option(cmd, "--heartbeat-s") == "30"  # Flower's own interval
     assert option(cmd, "--superlink") == "robots.lab:9092"
     assert option(cmd, "--root-certificates") == str(certs / "ca.pem")
@@ -511,7 +517,7 @@ def test_the_supernode_launcher_shortens_only_flowers_idle_poll_and_reply_wait(m
 
     from flwr.supernode import start_client_internal as internal
 
-    from fedlgr.deploy.flower import supernode
+    from fedlgr.shell.deploy.flower import supernode
 
     source = inspect.getsource(internal)
     assert source.count("time.sleep(3)") == 1, "flwr's idle poll is no longer time.sleep(3)"
@@ -555,7 +561,7 @@ def test_the_supernode_launcher_sets_the_heartbeat_flower_declares_and_beats_at(
     from flwr.supercore import heartbeat
     from flwr.supernode import fleet_http_connection
 
-    from fedlgr.deploy.flower import supernode
+    from fedlgr.shell.deploy.flower import supernode
 
     connection = inspect.getsource(fleet_http_connection)
     assert connection.count("heartbeat_interval=HEARTBEAT_DEFAULT_INTERVAL") == 2
@@ -588,7 +594,7 @@ def test_a_supernode_interrupted_while_it_imports_flower_says_one_line(tmp_path)
         "    return real(name, *args, **kwargs)\n"
         "builtins.__import__ = stopped\n"
         "sys.argv = ['supernode', '--poll-s', '0.5', '--superlink', '127.0.0.1:9', '--insecure']\n"
-        "runpy.run_module('fedlgr.deploy.flower.supernode', run_name='__main__')\n"
+        "runpy.run_module('fedlgr.shell.deploy.flower.supernode', run_name='__main__')\n"
     )
     command = [sys.executable, "-c", interrupted]
     with subprocess.Popen(command, stderr=subprocess.PIPE, text=True, cwd=tmp_path) as proc:

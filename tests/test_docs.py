@@ -21,10 +21,10 @@ from pathlib import Path
 
 import pytest
 
-from fedlgr.cli import parse
-from fedlgr.cli.run import split_config_and_overrides
-from fedlgr.config import find_config, load_config
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.cli import parse
+from fedlgr.shell.cli.run import split_config_and_overrides
+from fedlgr.shell.config import find_config, load_config
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
@@ -231,7 +231,7 @@ def check_config(config: str | None, overrides: list[str]) -> None:
 def check_sweep(name: str, overrides: list[str]) -> None:
     """The sweep file exists and its base config loads with the overrides (the trials' own
     points are ``fedlgr sweep``'s check, which imports torch: too slow here)."""
-    from fedlgr.sweep.spec import find_sweep, read_sweep_file, resolve_config
+    from fedlgr.shell.sweep.spec import find_sweep, read_sweep_file, resolve_config
 
     if is_placeholder(name):
         load_config(None, concrete(overrides))

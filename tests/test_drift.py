@@ -11,16 +11,16 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.config import MOBILENET_V2_BLOCKS, load_config
-from fedlgr.continual import continual_plugins
-from fedlgr.continual.drift import drift_distance, fit_drift_map
-from fedlgr.continual.lgr import LatentReplay, latents_of
+from fedlgr.core.client.plugins import LocalContext
+from fedlgr.core.client.training import Client, train_locally
+from fedlgr.core.continual import continual_plugins
+from fedlgr.core.continual.drift import drift_distance, fit_drift_map
+from fedlgr.core.continual.lgr import LatentReplay, latents_of
+from fedlgr.core.messages import RoundPlan
+from fedlgr.core.models.scholar import Scholar, Top
+from fedlgr.core.scope import initial_scholar
 from fedlgr.errors import ConfigError
-from fedlgr.federated.client.plugins import LocalContext
-from fedlgr.federated.client.training import Client, train_locally
-from fedlgr.federated.messages import RoundPlan
-from fedlgr.federated.scope import initial_scholar
-from fedlgr.models.scholar import Scholar, Top
+from fedlgr.shell.config import MOBILENET_V2_BLOCKS, load_config
 from tests.support.lgr import (
     BN_BUFFERS,
     after_task_one,
@@ -340,7 +340,7 @@ def test_drift_settings_reach_the_plugin():
 
 @pytest.mark.slow
 def test_drift_figures_are_logged_at_every_round_of_a_later_task(synth_dir, cache_dir, store):
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.run.experiment import run_experiment
 
     config = fedlgr_config(
         synth_dir,

@@ -1,4 +1,4 @@
-"""fedlgr's warm SuperExec (``fedlgr.deploy.flower.executor``): a task's process is a fork
+"""fedlgr's warm SuperExec (``fedlgr.shell.deploy.flower.executor``): a task's process is a fork
 that runs the entry point Flower would have started, with the command line Flower's own
 executor builds. The real Flower runs (tests/test_flower.py) go through it end to end."""
 
@@ -15,7 +15,7 @@ from flwr.supercore.constant import TaskType
 from flwr.supercore.exit import exit_handler
 from flwr.supercore.superexec.executor import ExecutionSpec, LaunchResultStatus, subprocess_executor
 
-from fedlgr.deploy.flower import executor
+from fedlgr.shell.deploy.flower import executor
 
 
 def spec(task_type=TaskType.CLIENT_APP, **fields) -> ExecutionSpec:
@@ -105,7 +105,7 @@ def test_an_executor_stopped_while_it_preloads_says_nothing(tmp_path):
         "importlib.import_module = stopped\n"
         "sys.argv = ['executor', '--insecure', '--runtime-api-address', '127.0.0.1:9',"
         " '--preload', 'clientapp']\n"
-        "runpy.run_module('fedlgr.deploy.flower.executor', run_name='__main__')\n"
+        "runpy.run_module('fedlgr.shell.deploy.flower.executor', run_name='__main__')\n"
     )
     command = [sys.executable, "-c", interrupted]
     with subprocess.Popen(command, stderr=subprocess.PIPE, text=True, cwd=tmp_path) as proc:
@@ -129,7 +129,7 @@ def test_an_executor_leaves_when_its_supernode_is_gone_though_not_reaped():
 
     supernode = (
         "import os, subprocess, sys\n"
-        "cmd = [sys.executable, '-m', 'fedlgr.deploy.flower.executor', '--insecure',\n"
+        "cmd = [sys.executable, '-m', 'fedlgr.shell.deploy.flower.executor', '--insecure',\n"
         "       '--runtime-api-address', '127.0.0.1:9', '--parent-pid', str(os.getpid())]\n"
         "print(subprocess.Popen(cmd, stderr=subprocess.DEVNULL).pid, flush=True)\n"
     )

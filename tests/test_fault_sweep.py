@@ -16,15 +16,15 @@ from pathlib import Path
 import pytest
 from flwr.app import ConfigRecord, RecordDict
 
-from fedlgr.cli import main
-from fedlgr.config import load_config
-from fedlgr.data.synth import MAX_SCENES, synthesize
-from fedlgr.deploy.credentials import make_node_key
-from fedlgr.deploy.flower import robot, wire
 from fedlgr.errors import ConfigError, FedlgrError
-from fedlgr.sweep.storage import check_storage
-from fedlgr.tracking.mlflow_run import StoreError, store_lock
-from fedlgr.tracking.server import TrackingUnreachable, check_reachable
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import load_config
+from fedlgr.shell.data.synth import MAX_SCENES, synthesize
+from fedlgr.shell.deploy.credentials import make_node_key
+from fedlgr.shell.deploy.flower import robot, wire
+from fedlgr.shell.sweep.storage import check_storage
+from fedlgr.shell.tracking.mlflow_run import StoreError, store_lock
+from fedlgr.shell.tracking.server import TrackingUnreachable, check_reachable
 
 
 def plan(run_key: str) -> RecordDict:
@@ -172,7 +172,7 @@ def test_a_text_file_named_as_a_sweep_is_refused_without_its_text(tmp_path, caps
 
 def test_the_robots_config_is_never_written_through_a_link(tmp_path, synth_dir):
     """A link planted at <state>/run-<id>/config.yaml is replaced, its target untouched."""
-    from fedlgr.config import load_config, to_yaml
+    from fedlgr.shell.config import load_config, to_yaml
 
     state = tmp_path / "state"
     (state / "run-r1").mkdir(parents=True)
@@ -352,9 +352,9 @@ def test_a_config_from_a_pipe_an_include_with_a_suffix_and_loops_are_named(tmp_p
     config file not found" (u37); ``includes: [cfg.fifo]`` and ``[/dev/zero]`` named
     cfg.yaml and /dev/zero.yaml, files never given (u38, u39); a looping data.path was
     "no such folder" (u48), a looping sweep file "no such file" (u53)."""
-    from fedlgr.data.config import check_data_path
     from fedlgr.errors import DataError
-    from fedlgr.sweep.spec import find_sweep
+    from fedlgr.shell.data.config import check_data_path
+    from fedlgr.shell.sweep.spec import find_sweep
 
     if not Path("/proc/self/fd").is_dir():
         pytest.skip("needs Linux's /proc")
@@ -443,9 +443,9 @@ def test_a_folder_given_as_a_link_that_leads_nowhere_or_to_a_device_is_named(
     or loop "(File exists)" (c112-c116); tracking.checkpoint_dir a dangling link had its
     target made (c118), a link to /dev/null was "(File exists)" (c69); superlink
     --database a loop was passed on to Flower (c117)."""
-    from fedlgr.data.config import check_data_path
     from fedlgr.errors import DataError
-    from fedlgr.tracking.checkpoint import checkpoint_root
+    from fedlgr.shell.data.config import check_data_path
+    from fedlgr.shell.run.checkpoint import checkpoint_root
 
     fifo, null, loop = tmp_path / "fifo", tmp_path / "null", tmp_path / "l1"
     os.mkfifo(fifo)
@@ -508,8 +508,8 @@ def test_a_path_under_a_dangling_link_is_named_and_the_links_target_is_not_made(
     exists" as the tracking store, --storage, --database, data synth --out, node-key DIR,
     certs DIR, report --out and --cache-dir (d24, d28, d32, d39, d50, d53, d56, d60, d71);
     as tracking.checkpoint_dir the run made the link's target and went on (d74)."""
-    from fedlgr.data.images import _check_cache_dir
-    from fedlgr.tracking.checkpoint import checkpoint_root
+    from fedlgr.shell.data.images import _check_cache_dir
+    from fedlgr.shell.run.checkpoint import checkpoint_root
 
     link = tmp_path / "dir"
     link.symlink_to(tmp_path / "made_by_link")
@@ -623,7 +623,7 @@ def test_an_interrupt_while_a_run_is_being_started_ends_it_killed(tmp_path, synt
     later in the run ends it KILLED."""
     import mlflow
 
-    from fedlgr.tracking import mlflow_run
+    from fedlgr.shell.tracking import mlflow_run
 
     def interrupted(*_args, **_kwargs):
         raise KeyboardInterrupt

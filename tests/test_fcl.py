@@ -6,10 +6,10 @@ import math
 
 import pytest
 
-from fedlgr.config import FCL_METHODS
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.federated.messages import nbytes
-from fedlgr.models.scholar import build_scholar
+from fedlgr.core.messages import nbytes
+from fedlgr.core.models.scholar import build_scholar
+from fedlgr.shell.config import FCL_METHODS
+from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config, read_run, results_csv
 
 TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT")]
@@ -117,7 +117,7 @@ def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, s
     other rounds of this fast run take well under that, replay included)."""
     import time as clock
 
-    from fedlgr.continual.lgr import LatentReplay
+    from fedlgr.core.continual.lgr import LatentReplay
 
     real = LatentReplay.on_task_end
 
@@ -145,8 +145,8 @@ def test_end_of_task_work_is_billed_to_the_clients_round(synth_dir, cache_dir, s
 
 
 def test_schedule_steps_mark_task_boundaries():
-    from fedlgr.config import load_config
-    from fedlgr.continual.schedule import schedule
+    from fedlgr.core.schedule import schedule
+    from fedlgr.shell.config import load_config
 
     fl = schedule(load_config(None, ["federated.rounds=3"]))
     assert [(s.round, fl.tasks[s.task], s.first_of_task, s.last_of_task) for s in fl] == [
@@ -165,7 +165,7 @@ def test_schedule_steps_mark_task_boundaries():
 
 def test_three_tasks_forget_the_two_before(tmp_path, cache_dir, store):
     """Tasks are data: three tasks by number of animals (0, 1, 2), in that order."""
-    from fedlgr.data.synth import synthesize
+    from fedlgr.shell.data.synth import synthesize
 
     synthesize(tmp_path / "d", scenes=90, seed=2, size=16)
     spec = ", ".join(

@@ -16,9 +16,9 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.federated.messages import nbytes
-from fedlgr.federated.scope import initial_scholar
+from fedlgr.core.messages import nbytes
+from fedlgr.core.scope import initial_scholar
+from fedlgr.shell.run.experiment import run_experiment
 from tests.support.flower import Federation
 from tests.support.runs import FAST, fast_config, results_csv
 

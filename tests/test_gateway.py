@@ -17,8 +17,8 @@ import time
 import psutil
 import pytest
 
-from fedlgr.cli import main
-from fedlgr.deploy.gateway import refusal
+from fedlgr.shell.cli import main
+from fedlgr.shell.deploy.gateway import refusal
 from tests.support.flower import BIN, Federation
 
 pytestmark = pytest.mark.slow
@@ -150,7 +150,7 @@ def flower_of(gateway: subprocess.Popen) -> psutil.Process:
 def test_sigterm_stops_flower_too(own_federation):
     gateway = own_federation.procs["superlink"]
     child = flower_of(gateway)
-    executor = child_of(gateway, "fedlgr.deploy.flower.executor")
+    executor = child_of(gateway, "fedlgr.shell.deploy.flower.executor")
     gateway.send_signal(signal.SIGTERM)
     assert gateway.wait(timeout=30) == 128 + signal.SIGTERM
     assert not child.is_running() and not executor.is_running()
@@ -173,7 +173,7 @@ def test_the_serverapp_executor_dying_ends_the_gateway(own_federation):
     executor a run would wait for ever, so the gateway stops, saying why."""
     gateway = own_federation.procs["superlink"]
     flower = flower_of(gateway)
-    child_of(gateway, "fedlgr.deploy.flower.executor").kill()
+    child_of(gateway, "fedlgr.shell.deploy.flower.executor").kill()
     assert gateway.wait(timeout=30) == 1
     line = (
         "fedlgr: error: its ServerApp executor ended (killed by SIGKILL); its log is above. "
@@ -197,7 +197,7 @@ def test_print_command_shows_flower_on_loopback_and_the_gateway(tmp_path, capsys
     assert cmd[-2:] == ["--isolation", "process"]
     assert shlex.split(executor)[1:] == [
         "-m",
-        "fedlgr.deploy.flower.executor",
+        "fedlgr.shell.deploy.flower.executor",
         "--preload",
         "serverapp",
         "--runtime-api-address",
@@ -243,7 +243,7 @@ def test_expose_control_api_warns(tmp_path, capsys):
 def test_a_certificate_without_loopback_is_refused(tmp_path, capsys):
     """``fedlgr deploy certs`` always adds 127.0.0.1; a certificate made otherwise (an
     organisation's CA, an older fedlgr) may lack it."""
-    from fedlgr.deploy.credentials import make_certificates
+    from fedlgr.shell.deploy.credentials import make_certificates
 
     make_certificates(tmp_path, ("robots.lab",), days=30)
     assert main(["deploy", "superlink", "--certs", str(tmp_path), "--print-command"]) == 1

@@ -9,8 +9,8 @@ import math
 import pytest
 import torch
 
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.tracking.resources import Usage, measure
+from fedlgr.core.meters.costs import Usage, measure
+from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config, read_run, results_csv
 
 CUDA = torch.cuda.is_available()
@@ -75,14 +75,14 @@ def test_a_clients_gpu_seconds_reach_results_csv_and_mlflow(
 ):
     """Each client's training is measured with the timer (the fake one here: 0.125 s a
     block): results.csv has gpu_s per client, MLflow the mean ``cost/gpu_s``."""
-    from fedlgr.tracking import resources
+    from fedlgr.core.meters import costs as resources
 
     real = resources.measure
 
     def with_fake_timer(device, per_thread=False, timer=None):
         return real(device, per_thread, FakeTimer(0.125))
 
-    monkeypatch.setattr("fedlgr.federated.client.side.measure", with_fake_timer)
+    monkeypatch.setattr("fedlgr.core.client.side.measure", with_fake_timer)
     config = fast_config(synth_dir, cache_dir, store, "federated.rounds=2", "data.clients=2")
     result = run_experiment(config)
     client, run, _ = read_run(store, result.run_id)

@@ -11,12 +11,12 @@ import pytest
 import torch
 from PIL import Image
 
-import fedlgr.data.images as images_module
-from fedlgr.cli import main
-from fedlgr.data.config import DataConfig
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.images import decode, load_image_store, match_images
+import fedlgr.shell.data.images as images_module
 from fedlgr.errors import ConfigError, DataError
+from fedlgr.shell.cli import main
+from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.images import decode, load_image_store, match_images
 
 
 def _png(path, colour=(200, 10, 10), size=(40, 30)):

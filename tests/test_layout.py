@@ -14,7 +14,7 @@ import pytest
 import fedlgr
 
 PACKAGE = Path(fedlgr.__file__).parent
-FEDERATED = PACKAGE / "federated"
+CORE = PACKAGE / "core"
 
 
 def imported_modules(source: str, module: str) -> set[str]:
@@ -36,42 +36,42 @@ def imported_modules(source: str, module: str) -> set[str]:
 
 
 def side_crossings(side: str, other: str) -> list[str]:
-    """``module -> imported`` for every module under ``federated/<side>/`` that imports one
-    under ``federated/<other>/``."""
+    """``module -> imported`` for every module under ``core/<side>/`` that imports one
+    under ``core/<other>/``."""
     crossings = []
-    for path in sorted((FEDERATED / side).rglob("*.py")):
+    for path in sorted((CORE / side).rglob("*.py")):
         module = ".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts)
         for name in imported_modules(path.read_text(), module):
-            if name == f"fedlgr.federated.{other}" or name.startswith(f"fedlgr.federated.{other}."):
+            if name == f"fedlgr.core.{other}" or name.startswith(f"fedlgr.core.{other}."):
                 crossings.append(f"{module} -> {name}")
     return crossings
 
 
 @pytest.mark.parametrize(("side", "other"), [("client", "server"), ("server", "client")])
 def test_client_and_server_modules_never_import_each_other(side, other):
-    assert list((FEDERATED / side).glob("*.py")), f"federated/{side}/ has no modules"
+    assert list((CORE / side).glob("*.py")), f"core/{side}/ has no modules"
     assert side_crossings(side, other) == []
 
 
 def test_the_import_reader_sees_every_form_of_import():
     source = (
-        "import fedlgr.federated.server.side\n"
-        "from fedlgr.federated.server import aggregate\n"
+        "import fedlgr.core.server.side\n"
+        "from fedlgr.core.server import aggregate\n"
         "def later():\n"
         "    from ..server.side import ServerSide\n"
     )
-    found = imported_modules(source, "fedlgr.federated.client.side")
-    assert "fedlgr.federated.server.side" in found
-    assert "fedlgr.federated.server.aggregate" in found
-    assert "fedlgr.federated.server.side.ServerSide" in found
+    found = imported_modules(source, "fedlgr.core.client.side")
+    assert "fedlgr.core.server.side" in found
+    assert "fedlgr.core.server.aggregate" in found
+    assert "fedlgr.core.server.side.ServerSide" in found
 
 
 def test_the_registry_and_the_config_load_without_torch():
     """A config is checked, and every method's settings and names are known, before torch
     is imported (the CLI answers --help and --print-config in a second)."""
     code = (
-        "import sys, fedlgr.methods, fedlgr.config\n"
-        "fedlgr.config.load_config(None, ['method=FedRoot-EWC', 'continual.ewc.lambda_=2'])\n"
+        "import sys, fedlgr.core.methods, fedlgr.shell.config\n"
+        "fedlgr.shell.config.load_config(None, ['method=FedRoot-EWC', 'continual.ewc.lambda_=2'])\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torchvision')))"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -79,9 +79,9 @@ def test_the_registry_and_the_config_load_without_torch():
 
 
 def test_every_registered_method_loads_its_class():
-    from fedlgr.federated.client.plugins import ClientPlugin
-    from fedlgr.federated.strategies.base import Strategy
-    from fedlgr.methods import CONTINUAL, STRATEGIES
+    from fedlgr.core.client.plugins import ClientPlugin
+    from fedlgr.core.methods import CONTINUAL, STRATEGIES
+    from fedlgr.core.strategies.base import Strategy
 
     for method in STRATEGIES.values():
         assert issubclass(method.load(), Strategy), method.key

@@ -1,4 +1,4 @@
-"""FedLGR's latent generative replay (``fedlgr.continual.lgr``): the two schedules, stored
+"""FedLGR's latent generative replay (``fedlgr.core.continual.lgr``): the two schedules, stored
 replay, frozen root BatchNorm statistics, the replay's fidelity and its tracking - on tiny
 models with hand-checkable numbers, and through fast runs of the real orchestrator."""
 
@@ -13,17 +13,17 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.config import load_config
-from fedlgr.continual import continual_plugins
-from fedlgr.continual.batchnorm import FrozenRootStatistics
-from fedlgr.continual.fidelity import frechet_distance, replay_fidelity
-from fedlgr.continual.lgr import LatentReplay, latents_of
+from fedlgr.core.client.plugins import ClientPlugin, LocalContext
+from fedlgr.core.client.training import Client, train_locally
+from fedlgr.core.continual import continual_plugins
+from fedlgr.core.continual.batchnorm import FrozenRootStatistics
+from fedlgr.core.continual.fidelity import frechet_distance, replay_fidelity
+from fedlgr.core.continual.lgr import LatentReplay, latents_of
+from fedlgr.core.messages import RoundPlan, nbytes
+from fedlgr.core.models.generator import LatentVAE
+from fedlgr.core.models.scholar import build_scholar
 from fedlgr.errors import ConfigError
-from fedlgr.federated.client.plugins import ClientPlugin, LocalContext
-from fedlgr.federated.client.training import Client, train_locally
-from fedlgr.federated.messages import RoundPlan, nbytes
-from fedlgr.models.generator import LatentVAE
-from fedlgr.models.scholar import build_scholar
+from fedlgr.shell.config import load_config
 from tests.support.lgr import (
     BN_BUFFERS,
     after_task_one,
@@ -483,7 +483,7 @@ def test_lgr_settings_reach_the_plugin():
 @pytest.fixture(scope="module")
 def synth96(tmp_path_factory) -> Path:
     """96 scenes: every client has >= 10 scenes per task, so the generator holds some out."""
-    from fedlgr.data.synth import synthesize
+    from fedlgr.shell.data.synth import synthesize
 
     out = tmp_path_factory.mktemp("synth96") / "d"
     synthesize(out, scenes=96, seed=7, size=16)
@@ -504,7 +504,7 @@ def tracked_config(synth96, cache, store, *overrides):
 
 @pytest.fixture(scope="module")
 def generator_run(synth96, tmp_path_factory, store):
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.run.experiment import run_experiment
 
     config = tracked_config(synth96, tmp_path_factory.mktemp("cache"), store)
     threads = torch.get_num_threads()
@@ -516,7 +516,7 @@ def generator_run(synth96, tmp_path_factory, store):
 def test_stored_replay_uploads_the_root_only_and_keeps_past_latents(
     generator_run, synth96, cache_dir, store, monkeypatch
 ):
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.run.experiment import run_experiment
 
     uploaded: set[str] = set()
     real_upload = Client.upload

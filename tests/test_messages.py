@@ -9,10 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from fedlgr.config import load_config
-from fedlgr.deploy.flower import wire
-from fedlgr.errors import FedlgrError
-from fedlgr.federated.messages import (
+from fedlgr.core.messages import (
     EvaluateIns,
     EvaluateRes,
     RoundPlan,
@@ -21,9 +18,12 @@ from fedlgr.federated.messages import (
     check_shared,
     nbytes,
 )
-from fedlgr.federated.records import COST_FIELDS
-from fedlgr.federated.server.side import ServerSide
-from fedlgr.tracking.resources import Usage
+from fedlgr.core.meters.costs import Usage
+from fedlgr.core.records import COST_FIELDS
+from fedlgr.core.server.side import ServerSide
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.config import load_config
+from fedlgr.shell.deploy.flower import wire
 from tests.support.runs import FAST
 
 
@@ -35,9 +35,9 @@ def config(synth_dir, cache_dir):
 
 
 def test_nothing_but_the_shared_tensors_may_cross(config, synth_dir):
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.client.side import ClientSide
+    from fedlgr.core.client.side import ClientSide
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
 
     scenes = load_scenes(config.data)
     side = ClientSide(
@@ -79,7 +79,7 @@ def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):
 def test_the_summary_averages_a_robot_s_costs_over_the_rounds_it_took_part_in(config):
     """One missed round leaves the robot's CPU, upload and the mean row as numbers (they
     were nan), averaged over what was measured."""
-    from fedlgr.federated.result import ExperimentResult
+    from fedlgr.shell.run.result import ExperimentResult
 
     server = ServerSide(config)
     scores = [0.5] * (len(server.fields) - len(COST_FIELDS))

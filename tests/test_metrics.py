@@ -8,8 +8,8 @@ import time
 import pytest
 import torch
 
-from fedlgr.tracking.metrics import regression_scores
-from fedlgr.tracking.resources import measure, nvml_available
+from fedlgr.core.meters.costs import measure, nvml_available
+from fedlgr.core.meters.scores import regression_scores
 
 
 def test_scores_by_hand():

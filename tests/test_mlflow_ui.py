@@ -16,11 +16,11 @@ from pathlib import Path
 
 import pytest
 
-from fedlgr.cli import main
-from fedlgr.config import load_config
-from fedlgr.tracking.context import run_name, trial_config
-from fedlgr.tracking.mlflow_run import headline_first
-from fedlgr.tracking.server import runs_hint
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import load_config
+from fedlgr.shell.tracking.context import run_name, trial_config
+from fedlgr.shell.tracking.mlflow_run import headline_first
+from fedlgr.shell.tracking.server import runs_hint
 from tests.support.ports import free_port
 from tests.support.runs import FAST
 
@@ -272,8 +272,8 @@ def test_a_local_store_hint_gives_the_ui_command_and_the_runs_link(tmp_path, mon
 def test_the_shared_view_gathers_every_sweeps_settings_and_trials(tmp_path):
     import mlflow
 
-    from fedlgr.tracking.mlflow_run import experiment_id
-    from fedlgr.tracking.views import TAG, share_view
+    from fedlgr.shell.tracking.mlflow_run import experiment_id
+    from fedlgr.shell.tracking.views import TAG, share_view
 
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     eid = experiment_id(client, "views")

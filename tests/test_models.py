@@ -6,9 +6,16 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.config import load_config
+from fedlgr.core.models.scholar import (
+    OFFLINE_ENV,
+    MLPRoot,
+    MobileNetRoot,
+    Scholar,
+    Top,
+    build_scholar,
+)
 from fedlgr.errors import ConfigError
-from fedlgr.models.scholar import OFFLINE_ENV, MLPRoot, MobileNetRoot, Scholar, Top, build_scholar
+from fedlgr.shell.config import load_config
 
 
 def test_mobilenet_root_pools_to_1280():

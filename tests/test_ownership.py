@@ -20,14 +20,14 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fedlgr.cli import main
-from fedlgr.data.synth import synthesize
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.resume import find_checkpoint
-from fedlgr.report.runs import select_runs
-from fedlgr.tracking import checkpoint as ckpt
-from fedlgr.tracking.mlflow_run import SENTINEL, StoreError, dead_reason
-from fedlgr.tracking.server import TrackingUnreachable, check_sqlite_usable
+from fedlgr.shell.cli import main
+from fedlgr.shell.data.synth import synthesize
+from fedlgr.shell.report.runs import select_runs
+from fedlgr.shell.run import checkpoint as ckpt
+from fedlgr.shell.run.resume import find_checkpoint
+from fedlgr.shell.tracking.mlflow_run import SENTINEL, StoreError, dead_reason
+from fedlgr.shell.tracking.server import TrackingUnreachable, check_sqlite_usable
 from tests.support.ports import free_port
 from tests.support.processes import Child, child_env, metric_steps, only_run, run_args
 from tests.support.runs import fast_config
@@ -308,8 +308,8 @@ def test_stores_that_cannot_be_used_are_one_line_before_any_work(
 
 @pytest.mark.slow
 def test_a_full_store_is_one_line_and_the_run_ends_failed_once_it_has_room(tmp_path, capfd):
-    from fedlgr.config import load_config
-    from fedlgr.tracking.mlflow_run import Tracker
+    from fedlgr.shell.config import load_config
+    from fedlgr.shell.tracking.mlflow_run import Tracker
 
     store = f"sqlite:///{tmp_path}/mlflow.db"
     config = load_config(None, [f"tracking.uri={store}", "tracking.system_metrics=false"])
@@ -328,7 +328,7 @@ def test_a_full_store_is_one_line_and_the_run_ends_failed_once_it_has_room(tmp_p
 
 
 def test_store_errors_name_the_store_and_the_innermost_cause():
-    from fedlgr.tracking.mlflow_run import store_errors
+    from fedlgr.shell.tracking.mlflow_run import store_errors
 
     def fail() -> None:
         try:
@@ -347,7 +347,7 @@ def test_a_sigterm_that_lands_in_a_finaliser_is_not_lost():
     """Found by the re-test: a SIGTERM whose handler ran inside a weakref callback of the
     garbage collector was printed ("Exception ignored in ...") and dropped, and the sweep
     went on for minutes. It is delivered again once the finaliser is done."""
-    from fedlgr.signals import Terminated, terminate_as_interrupt
+    from fedlgr.shell.signals import Terminated, terminate_as_interrupt
 
     class Finalised:
         def __del__(self):

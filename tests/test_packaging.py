@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from fedlgr.config import CONF_DIR, SWEEPS_DIR
+from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 

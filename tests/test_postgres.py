@@ -23,10 +23,10 @@ import mlflow
 import optuna
 import pytest
 
-from fedlgr.cli import main
-from fedlgr.config import flatten, to_yaml
-from fedlgr.sweep import load_sweep, run_sweep
-from fedlgr.tracking.server import mask_password, masked_text
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import flatten, to_yaml
+from fedlgr.shell.sweep import load_sweep, run_sweep
+from fedlgr.shell.tracking.server import mask_password, masked_text
 from tests.support.data import read_rows
 from tests.support.ports import free_port, wait_healthy
 from tests.support.postgres import USER, PostgresServer, missing, postgres_server
@@ -239,7 +239,7 @@ def test_a_missing_driver_is_one_line_naming_the_extra(postgres, tmp_path):
     sweep = str(_grid(tmp_path, "nodriver"))
     code = (
         "import sys; sys.modules['psycopg'] = None\n"  # `import psycopg` raises ImportError
-        "from fedlgr.cli import main; sys.exit(main(sys.argv[1:]))"
+        "from fedlgr.shell.cli import main; sys.exit(main(sys.argv[1:]))"
     )
     for argv, named in [
         (["sweep", sweep, "--storage", uri, "--tracking-uri", store], "--storage"),
@@ -476,7 +476,7 @@ def test_a_run_on_a_postgresql_store_resumes_and_reports(
     """``fedlgr run`` with ``--tracking-uri postgresql://``: stopped after round 2 of 3,
     ``--resume`` finishes it in the same MLflow run with the values of an uninterrupted
     run on sqlite; ``fedlgr report`` reads it back."""
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.run.experiment import run_experiment
 
     monkeypatch.chdir(tmp_path)  # checkpoints/ and mlruns/ (artifacts) go here
     store = postgres.create_database("runs")

@@ -9,10 +9,10 @@ import copy
 import pytest
 import torch
 
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.splits import make_split
-from fedlgr.federated.client.side import ClientSide
-from fedlgr.federated.client.training import train_locally
+from fedlgr.core.client.side import ClientSide
+from fedlgr.core.client.training import train_locally
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
 from tests.support.runs import fast_config
 
 
@@ -64,7 +64,7 @@ def test_a_step_with_an_infinite_gradient_is_skipped_and_the_scale_halved(synth_
     # A loss that overflows once scaled: 3e38 x 4096 is inf in float32.
     params = [p for p in client.model.parameters() if p.requires_grad]
     loss = params[0].sum() * 0 + params[0].flatten()[0] * 3e38
-    from fedlgr.federated.client.training import backward, optimizer_step
+    from fedlgr.core.client.training import backward, optimizer_step
 
     client.optimizer.zero_grad(set_to_none=True)
     backward(loss, client.scaler, client.optimizer)

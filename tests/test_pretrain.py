@@ -9,11 +9,11 @@ import mlflow
 import pytest
 import torch
 
-from fedlgr.cli import main
-from fedlgr.config import load_config
-from fedlgr.data.dataset import load_scenes
-from fedlgr.models.pretrain import pretrain_root, synthetic_root
-from fedlgr.models.scholar import MobileNetRoot
+from fedlgr.core.models.scholar import MobileNetRoot
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import load_config
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.pretrain import pretrain_root, synthetic_root
 
 
 def test_pretrained_root_loads_as_model_weights(synth_dir, cache_dir, tmp_path):

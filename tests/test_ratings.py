@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from fedlgr.cli import main
-from fedlgr.data.columns import DESCRIPTOR_COLUMNS, FEATURE_COLUMNS, LABEL_COLUMNS
-from fedlgr.data.ratings import read_ratings
+from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS, FEATURE_COLUMNS, LABEL_COLUMNS
 from fedlgr.errors import DataError
+from fedlgr.shell.cli import main
+from fedlgr.shell.data.ratings import read_ratings
 from tests.support.data import HEADER, rating_row, write_rows
 
 L1 = [1, 2, 3, 4, 5, 1, 2, 3]

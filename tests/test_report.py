@@ -12,14 +12,14 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from fedlgr.cli import main
-from fedlgr.config import FCL_METHODS, METHODS, load_config
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.methods import in_paper
-from fedlgr.report import ReportError, make_report
-from fedlgr.report.tables import mark_best, mark_lower_of_pair, reduction_percent
-from fedlgr.tracking.checkpoint import fingerprint
-from fedlgr.tracking.context import run_params
+from fedlgr.core.methods import in_paper
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import FCL_METHODS, METHODS, load_config
+from fedlgr.shell.report import ReportError, make_report
+from fedlgr.shell.report.tables import mark_best, mark_lower_of_pair, reduction_percent
+from fedlgr.shell.run.checkpoint import fingerprint
+from fedlgr.shell.run.experiment import run_experiment
+from fedlgr.shell.tracking.context import run_params
 from tests.support.report import markdown_blocks, parse
 from tests.support.runs import fast_config
 

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.tracking import checkpoint as ckpt
+from fedlgr.shell.run import checkpoint as ckpt
+from fedlgr.shell.run.experiment import run_experiment
 from tests.support.processes import DETAIL, run_args
 from tests.support.runs import Interrupt, results_csv
 from tests.support.runs import fast_config as _fast_config
@@ -359,7 +359,7 @@ def test_checkpoint_files_hold_only_tensors_and_plain_values(interrupted):
 
 
 def test_a_report_marks_a_dead_run_killed(tmp_path):
-    from fedlgr.report.runs import ReportError, select_runs
+    from fedlgr.shell.report.runs import ReportError, select_runs
 
     store = f"sqlite:///{tmp_path}/mlflow.db"
     client = mlflow.MlflowClient(store)
@@ -399,7 +399,7 @@ WRITER = """
 import sys, torch
 from pathlib import Path
 from lightning.fabric import Fabric
-from fedlgr.tracking import checkpoint as ckpt
+from fedlgr.shell.run import checkpoint as ckpt
 fabric = Fabric(accelerator="cpu", devices=1)
 state = {"format": ckpt.FORMAT, "run_id": "r", "big": torch.randn(12_000_000)}
 for round_ in range(1, 1000):
@@ -431,7 +431,7 @@ def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
 ):
     """The default thread count follows the machine's load (and concurrency follows it): a
     resume that leaves them unset takes the checkpoint's, one that sets others is refused."""
-    from fedlgr.federated.resume import MACHINE_CHOSEN, adopt_settings, load_checkpoint
+    from fedlgr.shell.run.resume import MACHINE_CHOSEN, adopt_settings, load_checkpoint
 
     store = f"sqlite:///{tmp_path}/mlflow.db"
     chosen = ["federated.rounds=3", "runtime.threads=2", "runtime.concurrency=threads"]

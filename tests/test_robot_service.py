@@ -1,4 +1,4 @@
-"""A robot between Flower messages: the robot service (``fedlgr.deploy.flower.service``)
+"""A robot between Flower messages: the robot service (``fedlgr.shell.deploy.flower.service``)
 as a real process - a start-up probe is not logged as a failure, SIGTERM leaves no stale
 pid file or socket - and the robot's data, its own or its slot's shard."""
 
@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from fedlgr.config import load_config
-from fedlgr.deploy.flower import service
+from fedlgr.shell.config import load_config
+from fedlgr.shell.deploy.flower import service
 
 
 @pytest.mark.slow
@@ -23,7 +23,7 @@ def test_sigterm_leaves_no_pid_file_or_socket_and_a_probe_is_not_an_error(tmp_pa
     folder.mkdir()
     log = (folder / "robot.log").open("wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "fedlgr.deploy.flower.service", str(folder), "600"],
+        [sys.executable, "-m", "fedlgr.shell.deploy.flower.service", str(folder), "600"],
         stdout=log,
         stderr=subprocess.STDOUT,
     )
@@ -49,9 +49,9 @@ def test_a_robot_with_its_own_data_trains_and_scores_on_its_own_scenes(synth_dir
     """``--own-data``: the robot's whole folder is its shard - its own train/test split by
     data.seed, the split of a one-client run - under the slot the roster gives it; without
     it, the robot takes its slot's shard of the whole dataset, as ``fedlgr run`` does."""
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.deploy.flower.robot import Robot
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
+    from fedlgr.shell.deploy.flower.robot import Robot
     from tests.support.runs import FAST
 
     config = load_config(FAST, [f"data.path={synth_dir}", "method=FedRootAvg"])

@@ -1,4 +1,4 @@
-"""The federation's roster (``fedlgr.deploy.roster``): ``fedlgr deploy node-key`` adds each
+"""The federation's roster (``fedlgr.shell.deploy.roster``): ``fedlgr deploy node-key`` adds each
 robot with its slot and public key, the ServerApp finds a node's robot by the key Flower
 authenticated it with (Flower keeps it as PEM), and a broken roster is refused by name."""
 
@@ -8,9 +8,9 @@ import pytest
 import yaml
 from cryptography.hazmat.primitives import serialization
 
-from fedlgr.cli import main
-from fedlgr.deploy.roster import Roster, roster_of
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.cli import main
+from fedlgr.shell.deploy.roster import Roster, roster_of
 
 
 def pem(public_file) -> bytes:
@@ -87,7 +87,7 @@ def test_a_name_too_long_or_a_roster_nested_too_deep_is_one_line(tmp_path, capsy
 
 
 def test_a_run_needs_a_roster_with_a_robot_for_every_client(tmp_path):
-    from fedlgr.config import load_config
+    from fedlgr.shell.config import load_config
 
     creds = tmp_path / "creds"
     for name in ("robot0", "robot2"):

@@ -22,10 +22,10 @@ from urllib.parse import urlparse
 import mlflow
 import pytest
 
-from fedlgr.cli import main, parse
 from fedlgr.errors import FedlgrError
-from fedlgr.federated.experiment import run_experiment
-from fedlgr.tracking.mlflow_run import dead_reason, end_dead_runs
+from fedlgr.shell.cli import main, parse
+from fedlgr.shell.run.experiment import run_experiment
+from fedlgr.shell.tracking.mlflow_run import dead_reason, end_dead_runs
 from tests.support.processes import (
     TELEMETRY,
     Child,
@@ -40,7 +40,7 @@ from tests.support.runs import FAST, fast_config, results_csv
 
 @pytest.fixture(autouse=True)
 def _telemetry_setting_restored():
-    """``fedlgr.cli.main`` sets MLFLOW_DISABLE_TELEMETRY in this process: undo it."""
+    """``fedlgr.shell.cli.main`` sets MLFLOW_DISABLE_TELEMETRY in this process: undo it."""
     before = os.environ.get(TELEMETRY)
     yield
     if before is None:
@@ -161,7 +161,7 @@ def test_ctrl_c_ends_with_one_line_saying_how_to_resume_and_no_traceback(
 
 SLOW_CURVES = """
 import time
-import fedlgr.tracking.plots as plots
+import fedlgr.shell.tracking.plots as plots
 
 draw = plots.curves_png
 drawn = []
@@ -597,7 +597,7 @@ def test_a_new_store_appears_whole_or_not_at_all(tmp_path, monkeypatch):
     left its tables without a version, and every later use of it failed ("duplicate column
     name: step"). A new store is made under a temporary name and renamed when whole: a
     creation cut short leaves no store, and its leftover is replaced by the next one."""
-    from fedlgr.tracking import mlflow_run
+    from fedlgr.shell.tracking import mlflow_run
 
     store = tmp_path / "new.db"
     uri = f"sqlite:///{store}"
@@ -622,7 +622,7 @@ def test_a_new_store_appears_whole_or_not_at_all(tmp_path, monkeypatch):
 def test_a_half_created_store_is_named_as_such(tmp_path, synth_dir, capsys):
     """A store left half-created by another tool or an earlier fedlgr (tables, no schema
     version): one line saying so, not "duplicate column name" (g03f)."""
-    from fedlgr.tracking import mlflow_run
+    from fedlgr.shell.tracking import mlflow_run
 
     store = tmp_path / "half.db"
     mlflow_run.open_client(f"sqlite:///{store}")

@@ -13,11 +13,11 @@ import textwrap
 import pytest
 import yaml
 
-from fedlgr.cli import main
-from fedlgr.config import load_config, to_plain, to_yaml
-from fedlgr.deploy.flower import robot as robot_module
-from fedlgr.deploy.flower.service import reply_error
 from fedlgr.errors import ConfigError, FedlgrError
+from fedlgr.shell.cli import main
+from fedlgr.shell.config import load_config, to_plain, to_yaml
+from fedlgr.shell.deploy.flower import robot as robot_module
+from fedlgr.shell.deploy.flower.service import reply_error
 from tests.support.runs import FAST
 
 # ---------------------------------------------------------------------- private keys
@@ -56,7 +56,7 @@ WATCH = textwrap.dedent(
 
     sys.addaudithook(lambda event, args: look())
     os.umask(0o022)
-    from fedlgr.deploy.credentials import make_certificates, make_node_key
+    from fedlgr.shell.deploy.credentials import make_certificates, make_node_key
 
     watcher = threading.Thread(target=poll)
     watcher.start()

@@ -8,7 +8,7 @@ import math
 import mlflow
 import pytest
 
-from fedlgr.cli import main
+from fedlgr.shell.cli import main
 from tests.support.runs import FAST
 
 

@@ -7,15 +7,15 @@ import time
 import pytest
 import torch
 
-from fedlgr.config import load_config
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.splits import make_split
+from fedlgr.core.in_process import Orchestrator
+from fedlgr.core.messages import RoundPlan
+from fedlgr.core.scope import initial_scholar
+from fedlgr.core.server.evaluate import ServerEvaluation
 from fedlgr.errors import ConfigError
-from fedlgr.federated.experiment import make_fabric, run_experiment
-from fedlgr.federated.in_process import Orchestrator
-from fedlgr.federated.messages import RoundPlan
-from fedlgr.federated.scope import initial_scholar
-from fedlgr.federated.server.evaluate import ServerEvaluation
+from fedlgr.shell.config import load_config
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
+from fedlgr.shell.run.experiment import make_fabric, run_experiment
 from tests.support.runs import FAST, fast_config, read_run
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -145,8 +145,8 @@ def test_the_report_shows_the_papers_cpu_figure_beside_each_clients_own(
     """Runs as sweeps/paper_costs.yaml makes them (federated.server_eval=auto: the server
     scores FedAvg's global model, not FedRootAvg's): Table III has a row with the paper's
     figure - the server's CPU over clients x rounds - beside the clients' own CPU."""
-    from fedlgr.report import make_report
-    from fedlgr.sweep.spec import load_sweep
+    from fedlgr.shell.report import make_report
+    from fedlgr.shell.sweep.spec import load_sweep
     from tests.support.report import markdown_blocks, parse
 
     sweep = load_sweep("paper_costs")

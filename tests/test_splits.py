@@ -1,4 +1,4 @@
-"""Train/test split, client shards and tasks (fedlgr/data/splits.py) on hand-checkable data."""
+"""Train/test split, client shards and tasks (fedlgr/shell/data/splits.py) on hand-checked data."""
 
 from __future__ import annotations
 
@@ -7,23 +7,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fedlgr.data.columns import (
+from fedlgr.core.data.columns import (
     DESCRIPTOR_COLUMNS,
     LABEL_COLUMNS,
     MODE_COLUMNS,
     USING_ARROW,
     USING_CIRCLE,
 )
-from fedlgr.data.config import DEFAULT_TASKS, DataConfig, TaskSpec
-from fedlgr.data.ratings import SceneTable, read_ratings
-from fedlgr.data.splits import (
+from fedlgr.errors import ConfigError, DataError
+from fedlgr.shell.data.config import DEFAULT_TASKS, DataConfig, TaskSpec
+from fedlgr.shell.data.ratings import SceneTable, read_ratings
+from fedlgr.shell.data.splits import (
     make_split,
     shard_clients,
     split_tasks,
     task_members,
     train_test_split,
 )
-from fedlgr.errors import ConfigError, DataError
 from tests.support.data import HEADER, rating_row, write_rows
 
 MUSIC = "Music playing?"

@@ -8,17 +8,17 @@ import pytest
 import torch
 from torch import nn
 
-from fedlgr.config import FederatedConfig, method_name
-from fedlgr.federated.client.plugins import LocalContext
-from fedlgr.federated.messages import nbytes
-from fedlgr.federated.scope import batchnorm_keys, shared_keys
-from fedlgr.federated.server.aggregate import weighted_mean
-from fedlgr.federated.strategies import FedAvg, Strategy, build_strategy
-from fedlgr.federated.strategies.fedavgm import FedAvgM
-from fedlgr.federated.strategies.fedbn import FedBN
-from fedlgr.federated.strategies.fedopt import FedOpt
-from fedlgr.federated.strategies.fedprox import FedProx, ProximalTerm
-from fedlgr.methods import STRATEGIES, AvgMSettings, OptSettings
+from fedlgr.core.client.plugins import LocalContext
+from fedlgr.core.messages import nbytes
+from fedlgr.core.methods import STRATEGIES, AvgMSettings, OptSettings
+from fedlgr.core.scope import batchnorm_keys, shared_keys
+from fedlgr.core.server.aggregate import weighted_mean
+from fedlgr.core.strategies import FedAvg, Strategy, build_strategy
+from fedlgr.core.strategies.fedavgm import FedAvgM
+from fedlgr.core.strategies.fedbn import FedBN
+from fedlgr.core.strategies.fedopt import FedOpt
+from fedlgr.core.strategies.fedprox import FedProx, ProximalTerm
+from fedlgr.shell.config import FederatedConfig, method_name
 
 
 class Tiny(nn.Module):
@@ -189,7 +189,7 @@ def test_weighted_mean_needs_samples():
 
 
 def test_every_registered_strategy_builds_with_its_settings_and_names_its_plugins():
-    """The registry (fedlgr.methods) is the one list: each entry's class loads, takes the
+    """The registry (fedlgr.core.methods) is the one list: each entry's class loads, takes the
     config with its settings section, and declares the types of the plugins it adds."""
     for key, method in STRATEGIES.items():
         strategy = build_strategy(FederatedConfig(strategy=key))

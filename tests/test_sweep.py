@@ -15,8 +15,8 @@ import pytest
 from optuna.distributions import CategoricalDistribution, FloatDistribution
 
 from fedlgr.errors import ConfigError
-from fedlgr.sweep import load_sweep, run_sweep
-from fedlgr.sweep.spec import SWEEPS_DIR
+from fedlgr.shell.sweep import load_sweep, run_sweep
+from fedlgr.shell.sweep.spec import SWEEPS_DIR
 from tests.support.runs import FAST
 from tests.support.sweeps import (
     child_runs,
@@ -53,8 +53,8 @@ def test_a_grid_null_reaches_the_trial_as_an_unset_setting():
 
 
 def test_the_paper_grids_cover_every_method_and_setting():
-    from fedlgr.config import FCL_METHODS, METHODS
-    from fedlgr.methods import in_paper
+    from fedlgr.core.methods import in_paper
+    from fedlgr.shell.config import FCL_METHODS, METHODS
 
     fl, fcl = load_sweep("paper_fl"), load_sweep("paper_fcl")
     assert fl.n_trials == 10 * 4 and set(fl.grid["method"]) == set(filter(in_paper, METHODS))
@@ -149,7 +149,7 @@ def test_a_sigterm_while_optuna_records_a_trial_stops_the_sweep_as_an_interrupt(
     the interrupt: the trial is queued again and the parent run ends KILLED."""
     import optuna.study._optimize as optimize
 
-    from fedlgr.signals import Terminated
+    from fedlgr.shell.signals import Terminated
 
     def interrupted(**_):
         raise Terminated("SIGTERM")
@@ -178,7 +178,7 @@ def test_a_sighup_just_as_a_trial_begins_queues_that_trial_again(
 
     import optuna
 
-    from fedlgr.signals import Terminated, terminate_as_interrupt
+    from fedlgr.shell.signals import Terminated, terminate_as_interrupt
 
     ask = optuna.Study.ask
 

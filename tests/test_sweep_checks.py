@@ -20,14 +20,14 @@ import pytest
 from optuna.distributions import CategoricalDistribution
 from optuna.trial import TrialState, create_trial
 
-import fedlgr.config
-import fedlgr.sweep.storage
-from fedlgr.cli import main
+import fedlgr.shell.config
+import fedlgr.shell.sweep.storage
 from fedlgr.errors import ConfigError
-from fedlgr.sweep import load_sweep, run_sweep
-from fedlgr.sweep.checks import run_metrics
-from fedlgr.sweep.spec import Param
-from fedlgr.sweep.trials import DUPLICATES_IN_A_ROW, counts, no_new_point
+from fedlgr.shell.cli import main
+from fedlgr.shell.sweep import load_sweep, run_sweep
+from fedlgr.shell.sweep.checks import run_metrics
+from fedlgr.shell.sweep.spec import Param
+from fedlgr.shell.sweep.trials import DUPLICATES_IN_A_ROW, counts, no_new_point
 from tests.support.runs import FAST
 
 BASE = f"base: {FAST}\n"
@@ -110,12 +110,12 @@ def test_an_objective_no_run_logs_is_refused_before_training(tmp_path, objective
     assert message.startswith(f"{path}: objective.metric: {objective} is not a metric")
     assert hint in message and "\n" not in message
     # What the runs end with (FL: round means and per client, FCL: after each task) passes.
-    config = fedlgr.config.load_config(FAST, ["method=FedAvg-EWC", "data.path=/x"])
+    config = fedlgr.shell.config.load_config(FAST, ["method=FedAvg-EWC", "data.path=/x"])
     names = run_metrics(config)
     assert {"test/rmse", "test/client1/pcc", "after_task2/test/rmse", "mean/cost/cpu_s"} <= names
     assert "after_task2/forgetting/circle/rmse" in names and "forgetting/circle/rmse" not in names
     assert "mean/cost/paper_cpu_s" in names and "server/test/rmse" not in names
-    served = fedlgr.config.load_config(FAST, ["federated.server_eval=on", "data.path=/x"])
+    served = fedlgr.shell.config.load_config(FAST, ["federated.server_eval=on", "data.path=/x"])
     assert {"server/test/rmse", "cost/server_cpu_s"} <= run_metrics(served)
 
 
@@ -123,14 +123,14 @@ def test_a_large_grid_is_checked_one_value_at_a_time(tmp_path, monkeypatch, caps
     """10,000 points: every value of each parameter is loaded once (37 configs), not every
     point (10,000 loads of ~25 ms); a bad value in the middle of a list is still found."""
     loads = []
-    real = fedlgr.config.load_config
+    real = fedlgr.shell.config.load_config
 
     def counted(*args, **kwargs):
         loads.append(args)
         assert len(loads) < 200, "the grid's points are being loaded one by one"
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(fedlgr.config, "load_config", counted)
+    monkeypatch.setattr(fedlgr.shell.config, "load_config", counted)
     ten = list(range(1, 11))
     space = f"  seed: {ten}\n  train.epochs: {ten}\n  federated.rounds: {ten}\n"
     spec = load_sweep(_sweep_file(tmp_path, f"space:\n{space}  data.seed: {ten}\n"))
@@ -159,7 +159,7 @@ def test_a_grid_optuna_cannot_hold_is_refused_in_one_line(tmp_path, monkeypatch)
     """8 parameters of 30 values: 656,100,000,000 points, which Optuna's GridSampler lists
     up front (it filled 20 GB of memory in 80 s and ignored SIGTERM). Refused before any
     config is loaded; 1,000,000 points still pass."""
-    monkeypatch.setattr(fedlgr.config, "load_config", lambda *a, **k: pytest.fail("loaded"))
+    monkeypatch.setattr(fedlgr.shell.config, "load_config", lambda *a, **k: pytest.fail("loaded"))
     values = list(range(30))
     keys = ["seed", "data.seed", "train.epochs", "federated.rounds", "train.batch_size"]
     keys += ["continual.rounds_per_task", "model.top_hidden", "train.lr_top"]
@@ -299,7 +299,7 @@ def test_every_trial_error_is_shown_and_an_all_failed_sweep_exits_1(
     assert "this run did not log it" in child.data.tags["fedlgr.error"]
     assert "more clients than the" in parent.data.tags[f"trial.{early}.error"]
     # What the trained run logged is what the objective's check expects runs to log.
-    config = fedlgr.config.load_config(FAST, [f"data.path={synth_dir}", "data.clients=2"])
+    config = fedlgr.shell.config.load_config(FAST, [f"data.path={synth_dir}", "data.clients=2"])
     logged = {m for m in child.data.metrics if not m.startswith(("forgetting/", "system/"))}
     assert logged <= run_metrics(config)
 
@@ -354,7 +354,7 @@ def test_a_storage_that_cannot_hold_the_study_is_one_line(tmp_path, tiny_sweep, 
 def test_a_storage_locked_by_another_process_is_one_line_within_seconds(
     tmp_path, tiny_sweep, capsys, monkeypatch
 ):
-    monkeypatch.setattr(fedlgr.sweep.storage, "LOCK_WAIT_S", 1.0)  # 5 s in real use
+    monkeypatch.setattr(fedlgr.shell.sweep.storage, "LOCK_WAIT_S", 1.0)  # 5 s in real use
     path = tmp_path / "optuna.db"
     optuna.create_study(study_name="other", storage=f"sqlite:///{path}")
     holder = subprocess.Popen(
@@ -418,7 +418,7 @@ def test_a_sweep_file_resolves_no_environment_variable(tmp_path, monkeypatch):
     """The config files' rule holds in sweep files: ``${oc.env:...}`` of a variable that
     is not FEDLGR_* is refused, its value never shown."""
     from fedlgr.errors import ConfigError
-    from fedlgr.sweep.spec import load_sweep
+    from fedlgr.shell.sweep.spec import load_sweep
 
     monkeypatch.setenv("SWEEP_SECRET", "s3cr3t-value")
     path = tmp_path / "leak.yaml"

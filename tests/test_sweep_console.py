@@ -11,11 +11,11 @@ import optuna
 import pytest
 from optuna.trial import TrialState
 
-from fedlgr.cli import main
-from fedlgr.sweep import load_sweep, run_sweep
-from fedlgr.sweep.storage import fail_and_retry, open_study, retry_failed
-from fedlgr.sweep.trials import summary
-from fedlgr.sweep.worker import Worker
+from fedlgr.shell.cli import main
+from fedlgr.shell.sweep import load_sweep, run_sweep
+from fedlgr.shell.sweep.storage import fail_and_retry, open_study, retry_failed
+from fedlgr.shell.sweep.trials import summary
+from fedlgr.shell.sweep.worker import Worker
 from tests.support.runs import FAST
 from tests.support.sweeps import child_runs, trials_by_state
 

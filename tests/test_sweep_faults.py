@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from optuna.trial import TrialState
 
-from fedlgr.sweep import load_sweep, run_sweep
-from fedlgr.sweep.storage import open_study
+from fedlgr.shell.sweep import load_sweep, run_sweep
+from fedlgr.shell.sweep.storage import open_study
 from tests.support.checkout import REPO
 from tests.support.runs import FAST
 from tests.support.sweeps import (
@@ -71,8 +71,8 @@ def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_di
     is alive on this machine is left to it; once that worker is dead, it is retried."""
     import threading
 
-    from fedlgr.sweep.worker import OWNER
-    from fedlgr.tracking.mlflow_run import process_started
+    from fedlgr.shell.sweep.worker import OWNER
+    from fedlgr.shell.tracking.mlflow_run import process_started
 
     path = write_sweep(tmp_path, synth_dir, cache_dir, name="stopped")
     path.write_text(path.read_text() + "heartbeat_s: 1\n")

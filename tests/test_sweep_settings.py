@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from fedlgr.errors import FedlgrError
-from fedlgr.sweep.spec import load_sweep
-from fedlgr.sweep.storage import SETTINGS_ATTR, open_study
-from fedlgr.sweep.study import run_sweep
+from fedlgr.shell.sweep.spec import load_sweep
+from fedlgr.shell.sweep.storage import SETTINGS_ATTR, open_study
+from fedlgr.shell.sweep.study import run_sweep
 
 
 @pytest.mark.slow

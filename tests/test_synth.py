@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fedlgr.cli import main
-from fedlgr.data.columns import ALL_COLUMNS, DESCRIPTOR_COLUMNS
-from fedlgr.data.ratings import read_ratings
-from fedlgr.data.synth import generate_scenes, synthesize
-from fedlgr.data.synth.appropriateness import true_appropriateness
-from fedlgr.data.synth.layout import Layout, Person, descriptors
+from fedlgr.core.data.columns import ALL_COLUMNS, DESCRIPTOR_COLUMNS
 from fedlgr.errors import DataError
+from fedlgr.shell.cli import main
+from fedlgr.shell.data.ratings import read_ratings
+from fedlgr.shell.data.synth import generate_scenes, synthesize
+from fedlgr.shell.data.synth.appropriateness import true_appropriateness
+from fedlgr.shell.data.synth.layout import Layout, Person, descriptors
 from tests.support.data import read_rows
 
 

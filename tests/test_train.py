@@ -11,14 +11,14 @@ import mlflow
 import pytest
 import torch
 
-from fedlgr.config import METHODS, load_config
-from fedlgr.data.dataset import load_scenes
-from fedlgr.data.splits import make_split
-from fedlgr.federated.client.side import ClientSide
-from fedlgr.federated.experiment import make_fabric, run_experiment
-from fedlgr.federated.in_process import Orchestrator
-from fedlgr.federated.messages import EvaluateIns, RoundPlan, TrainIns, nbytes
-from fedlgr.methods import STRATEGIES
+from fedlgr.core.client.side import ClientSide
+from fedlgr.core.in_process import Orchestrator
+from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainIns, nbytes
+from fedlgr.core.methods import STRATEGIES
+from fedlgr.shell.config import METHODS, load_config
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
+from fedlgr.shell.run.experiment import make_fabric, run_experiment
 from tests.support.runs import FAST, fast_config, read_run, results_csv
 
 ACTIONS = ("vacuum", "conversation")
@@ -32,7 +32,7 @@ def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, st
     assert run.info.status == "FINISHED" and run.info.run_name == f"{method}-2c-noaug-image"
     tags = run.data.tags
     scope = "root" if method.startswith("FedRoot") else "full"
-    strategy = METHODS[method][0]  # the registry's (fedlgr.methods): e.g. FedRootAvgM -> avgm
+    strategy = METHODS[method][0]  # the registry's (fedlgr.core.methods): e.g. FedRootAvgM -> avgm
     assert method.endswith(STRATEGIES[strategy].suffix)
     assert (tags["method"], tags["scope"], tags["strategy"]) == (method, scope, strategy)
     assert (tags["dataset"], tags["clients"], tags["augmentation"]) == ("synthetic", "2", "false")
@@ -217,7 +217,7 @@ def test_two_processes_give_the_same_numbers_as_one(synth_dir, cache_dir, tmp_pa
 
 
 def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir, cache_dir):
-    from fedlgr.federated.evaluation import predict
+    from fedlgr.core.evaluation import predict
 
     config = fast_config(
         synth_dir,
@@ -255,9 +255,9 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
 def test_the_fast_config_shows_learning_in_its_default_run(tmp_path):
     """conf/debug/fast.yaml is the smoke test a user runs first: as shipped (no override
     but the data), it must learn something measurable, not print PCC 0.000."""
-    from fedlgr.config import CONF_DIR, load_config
-    from fedlgr.data.synth import synthesize
-    from fedlgr.federated.experiment import run_experiment
+    from fedlgr.shell.config import CONF_DIR, load_config
+    from fedlgr.shell.data.synth import synthesize
+    from fedlgr.shell.run.experiment import run_experiment
 
     synthesize(tmp_path / "synth", scenes=400, seed=0, size=32)
     config = load_config(

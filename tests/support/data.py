@@ -5,7 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from fedlgr.data.columns import ALL_COLUMNS
+from fedlgr.core.data.columns import ALL_COLUMNS
 
 HEADER = list(ALL_COLUMNS)
 

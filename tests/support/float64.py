@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from fedlgr.data.augment import SceneBatches
+from fedlgr.core.data.augment import SceneBatches
 
 # float64, measured over these tests: weights and BatchNorm statistics differ by 1.7e-8 at
 # most (biases whose true gradient is 0, where Adam scales up the remaining noise), Adam's

@@ -7,11 +7,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from fedlgr.continual.lgr import LatentReplay
-from fedlgr.data.augment import SceneBatches
-from fedlgr.federated.client.plugins import LocalContext
-from fedlgr.federated.client.training import Client, train_locally
-from fedlgr.models.scholar import MLPRoot, Scholar, Top
+from fedlgr.core.client.plugins import LocalContext
+from fedlgr.core.client.training import Client, train_locally
+from fedlgr.core.continual.lgr import LatentReplay
+from fedlgr.core.data.augment import SceneBatches
+from fedlgr.core.models.scholar import MLPRoot, Scholar, Top
 
 from .runs import fast_config
 
@@ -91,10 +91,10 @@ def fedlgr_config(synth_dir, cache_dir, store, *overrides):
 
 
 def orchestrator(config):
-    from fedlgr.data.dataset import load_scenes
-    from fedlgr.data.splits import make_split
-    from fedlgr.federated.experiment import make_fabric
-    from fedlgr.federated.in_process import Orchestrator
+    from fedlgr.core.in_process import Orchestrator
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
+    from fedlgr.shell.run.experiment import make_fabric
 
     scenes = load_scenes(config.data)
     return Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))

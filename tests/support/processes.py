@@ -17,7 +17,7 @@ from pathlib import Path
 
 import mlflow
 
-from fedlgr.tracking.mlflow_run import SENTINEL
+from fedlgr.shell.tracking.mlflow_run import SENTINEL
 
 from .checkout import REPO
 from .runs import FAST

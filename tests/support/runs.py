@@ -7,7 +7,7 @@ import csv
 
 import mlflow
 
-from fedlgr.config import CONF_DIR, load_config
+from fedlgr.shell.config import CONF_DIR, load_config
 
 FAST = CONF_DIR / "debug" / "tiny.yaml"  # the cheapest run through the image path
 

@@ -1,0 +1,348 @@
+"""The client side of a federation: everything that runs on a robot.
+
+:class:`ClientSide` holds some clients - all of them in one process, a process's share
+under Fabric, one robot's on Flower - each with its data shard, model, optimiser and
+plugins (the strategy's client part, the CL method: importance, memories, FedLGR's
+generator and labeller). It answers the server's :mod:`messages`: ``train`` (take the
+global tensors if sent, train locally, upload the shared tensors) and ``evaluate`` (take
+the new global tensors, end the task at its last round, score on the test scenes). The
+top and every plugin's state stay here; what leaves is checked against the shared keys.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import numpy as np
+import torch
+
+from fedlgr.core.client.plugins import ClientPlugin, LocalContext
+from fedlgr.core.client.pool import ClientPool, resolve
+from fedlgr.core.client.training import Client, train_locally
+from fedlgr.core.continual import continual_plugins
+from fedlgr.core.data.augment import Augment, SceneBatches
+from fedlgr.core.evaluation import eval_set, predict, predict_tops
+from fedlgr.core.messages import (
+    EvaluateIns,
+    EvaluateRes,
+    TrainIns,
+    TrainRes,
+    Weights,
+    check_shared,
+)
+from fedlgr.core.meters.costs import Usage, measure, process_cpu_seconds, share_process_cpu
+from fedlgr.core.meters.scores import regression_scores
+from fedlgr.core.schedule import ALL
+from fedlgr.core.scope import SCOPE_PREFIX, initial_scholar, shared_keys
+from fedlgr.core.strategies import build_strategy
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.config import ExperimentConfig
+from fedlgr.shell.data.dataset import Scenes
+from fedlgr.shell.data.splits import FederatedSplit
+
+
+def client_seed(seed: int, client: int) -> int:
+    return int(np.random.SeedSequence([seed, client]).generate_state(1)[0])
+
+
+class ClientSide:
+    def __init__(
+        self,
+        config: ExperimentConfig,
+        scenes: Scenes,
+        split: FederatedSplit,
+        indices: list[int],
+        device: torch.device,
+        autocast=contextlib.nullcontext,
+    ):
+        cfg = config = resolve(config, device, len(indices))
+        self.config, self.scenes, self.split = config, scenes, split
+        self.pool = ClientPool(cfg.runtime.workers, torch.get_num_threads(), device)
+        self.device, self.autocast = device, autocast
+        self.tasks = list(cfg.continual.tasks) or [ALL]
+        strategy = build_strategy(cfg.federated)  # its client part
+        initial = initial_scholar(cfg).to(device)
+        self.keys = shared_keys(initial, cfg.federated.scope, strategy)
+        float_keys = {k for k, v in initial.state_dict().items() if torch.is_floating_point(v)}
+        # With nothing kept locally every client holds the same model after aggregation:
+        # one evaluation gives every client's (identical) figures.
+        self.identical_models = float_keys == set(self.keys)
+        # The root's floating-point tensors, where every one of them is shared (FedRoot
+        # with any strategy that shares the whole root): see ``predictions``.
+        root_keys = {k for k in float_keys if k.startswith("root.")}
+        self.root_keys = sorted(root_keys) if root_keys <= set(self.keys) else []
+        self.channels_last = cfg.model.channels_last and scenes.images is not None
+        augment = Augment() if cfg.data.augment and scenes.images is not None else None
+        copies = cfg.data.augment_copies if augment is not None else 1
+        self.clients: list[Client] = []
+        for shard in split.clients:
+            if shard.client not in indices:
+                continue
+            model = copy.deepcopy(initial)
+            seed = client_seed(cfg.seed, shard.client)
+            data = {
+                task: SceneBatches(
+                    scenes.inputs,
+                    scenes.targets,
+                    shard.train if task == ALL else shard.tasks[task],
+                    cfg.train.batch_size,
+                    copies=copies,
+                    augment=augment,
+                    seed=seed + t,
+                    device=device,
+                )
+                for t, task in enumerate(self.tasks)
+            }
+            plugins = [
+                *strategy.client_plugins(shard.client),
+                *continual_plugins(cfg.continual, shard.client, cfg.seed),
+            ]
+            optimizer = model.configure_optimizers()
+            self.clients.append(
+                Client(shard.client, model, optimizer, data, plugins, scaler=self._scaler())
+            )
+        if cfg.runtime.concurrency == "batched":
+            from fedlgr.core.client.stacked import refuse_plugins  # torch.func: when asked
+
+            refuse_plugins(self.clients)  # before any run is started, not at round 1
+            if any(c.scaler is not None for c in self.clients):
+                raise FedlgrError(
+                    "runtime.concurrency=batched does not scale losses yet: with "
+                    "train.precision=16-mixed on a GPU use runtime.concurrency=threads or "
+                    "sequential, or train.precision=bf16-mixed"
+                )
+        self._prepare_test_set()
+        self._warm_up(initial)
+
+    def _scaler(self) -> torch.amp.GradScaler | None:
+        """A client's loss scaler: float16 autocast on a GPU needs one (small gradients
+        underflow in float16). On CPU, Lightning Fabric runs ``16-mixed`` as bfloat16
+        autocast, which needs none."""
+        if self.config.train.precision != "16-mixed" or self.device.type != "cuda":
+            return None
+        return torch.amp.GradScaler(self.device.type)
+
+    def _prepare_test_set(self) -> None:
+        self.test = eval_set(
+            self.scenes, self.split, self.tasks, self.device, self.channels_last, self.autocast
+        )
+        # Rows of the test set per task, and of every task seen up to each point.
+        self.test_inputs, self.test_targets = self.test.test_inputs, self.test.test_targets
+        self.test_rows, self.seen_rows = self.test.test_rows, self.test.seen_rows
+
+    def _warm_up(self, model: torch.nn.Module) -> None:
+        """One untimed training step on a throwaway copy, so that kernel selection and
+        allocator set-up are not billed to the first client's first round (in every
+        worker of the pool: kernels are chosen per thread count)."""
+        if not self.clients:
+            return
+        x, y = next(iter(self.clients[0].batches.peek()))
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+
+        def step() -> None:
+            copied = copy.deepcopy(model).train()
+            with self.autocast():
+                loss = torch.nn.functional.mse_loss(copied(x).float(), y)
+            loss.backward()
+
+        self.pool.each_worker(step)
+
+    def context(self, client: Client, round_: int, task: int) -> LocalContext:
+        global_weights = {k: v for k, v in client.model.state_dict().items() if k in self.keys}
+        return LocalContext(
+            client.index,
+            round_,
+            client.model,
+            global_weights,
+            self.device,
+            self.autocast,
+            task,
+            self.config.train.epochs,
+            self.config.train.max_batches,
+            self.tasks[task],
+            client.batches,
+            client.optimizer,
+            seen=[client.data[t] for t in self.tasks[: task + 1]],
+            scaler=client.scaler,
+        )
+
+    # ------------------------------------------------------------------ the messages
+
+    def train(self, ins: TrainIns, progress=None) -> list[TrainRes]:
+        """Every client's local training of the round, and what it uploads."""
+        cfg, plan = self.config, ins.plan
+        for client in self.clients:
+            if ins.weights is not None:
+                client.download(ins.weights)
+            client.task = self.tasks[plan.task]
+            if cfg.train.reset_optimizer:
+                client.optimizer = client.model.configure_optimizers()
+        if cfg.runtime.concurrency == "batched":
+            return self._train_batched(plan, progress)
+        return self._side_by_side(lambda c: self._train_one(c, plan, progress))
+
+    def _side_by_side(self, work):
+        """``work(client)`` for every client, in the pool (``runtime.concurrency``); each
+        result's ``usage`` is measured in its own thread there, then given its share of
+        the process's CPU seconds (``share_process_cpu``)."""
+        if self.pool.workers == 1 or len(self.clients) == 1:
+            return [work(c) for c in self.clients]
+        start = process_cpu_seconds()
+        out = self.pool.map(work, self.clients)
+        usages = [r.usage if isinstance(r, TrainRes) else r[0] for r in out]
+        share_process_cpu([u for u in usages if u is not None], process_cpu_seconds() - start)
+        return out
+
+    def _train_one(self, client: Client, plan, progress) -> TrainRes:
+        cfg = self.config
+        ctx = self.context(client, plan.round, plan.task)
+        on_epoch = None if progress is None else (lambda e, c=client.index: progress(c, e))
+        with measure(self.device, per_thread=self.pool.workers > 1) as usage:
+            if plan.first_of_task:
+                for plugin in client.plugins:
+                    plugin.on_task_start(ctx)
+            stats = train_locally(
+                client,
+                ctx,
+                cfg.train.epochs,
+                cfg.train.max_batches,
+                self.channels_last,
+                self.autocast,
+                on_epoch,
+                self.pool.stop,
+            )
+        upload = self.upload(client)
+        return TrainRes(client.index, upload, client.n_samples, stats.samples, stats.loss, usage)
+
+    def _train_batched(self, plan, progress) -> list[TrainRes]:
+        """All clients as one stacked model (``runtime.concurrency=batched``). The one
+        measured cost is shared out in proportion to the samples each client trained."""
+        from fedlgr.core.client.stacked import train_batched
+
+        cfg = self.config
+        ctxs = [self.context(c, plan.round, plan.task) for c in self.clients]
+        on_epoch = None
+        if progress is not None:  # one call per epoch of all clients: one per client
+            on_epoch = lambda e: [progress(c.index, e) for c in self.clients]  # noqa: E731
+        with measure(self.device) as usage:
+            stats = train_batched(
+                self.clients,
+                ctxs,
+                cfg.train.epochs,
+                cfg.train.max_batches,
+                self.channels_last,
+                self.autocast,
+                on_epoch,
+            )
+        total = max(sum(s.samples for s in stats), 1)
+        out = []
+        for client, s in zip(self.clients, stats, strict=True):
+            share = s.samples / total
+            mine = usage.share(share)
+            upload = self.upload(client)
+            out.append(TrainRes(client.index, upload, client.n_samples, s.samples, s.loss, mine))
+        return out
+
+    def upload(self, client: Client) -> Weights:
+        weights = client.upload(self.keys)
+        prefix = SCOPE_PREFIX[self.config.federated.scope]
+        check_shared(weights, self.keys, f"client {client.index}'s upload", prefix)
+        return weights
+
+    def evaluate(self, ins: EvaluateIns) -> list[EvaluateRes]:
+        """Every client takes the new global tensors, ends the task at its last round
+        (measured as its work), and scores its model."""
+        plan = ins.plan
+        prefix = SCOPE_PREFIX[self.config.federated.scope]
+        check_shared(ins.weights, self.keys, "the server's download", prefix)
+        for client in self.clients:
+            client.download(ins.weights)
+        ended = self._side_by_side(lambda c: self.finish_round(c, plan))
+        predictions = self.predictions(ins.weights)
+        return [
+            EvaluateRes(client.index, self.scores(pred, plan.task), figures, usage)
+            for client, pred, (usage, figures) in zip(self.clients, predictions, ended, strict=True)
+        ]
+
+    def predictions(self, received: Weights) -> list[torch.Tensor]:
+        """Every client's outputs on the test scenes. Clients that hold the same model
+        share one pass (nothing kept locally); clients that hold the same root (FedRoot,
+        the root as received) share the root's pass over the test set and add their own
+        top's: one root pass plus N tops instead of N whole models."""
+        cfg, autocast, map_ = self.config.train, self.autocast, self.pool.map
+        if self.identical_models:
+            model = self.clients[0].model
+            pred = predict(model, self.test_inputs, cfg.eval_batch_size, autocast, map_)
+            return [pred] * len(self.clients)
+        if (
+            self.root_keys
+            and len(self.clients) > 1
+            and all(self.holds_root(c, received) for c in self.clients)
+        ):
+            tops = [c.model.top for c in self.clients]
+            root = self.clients[0].model.root
+            return predict_tops(root, tops, self.test_inputs, cfg.eval_batch_size, autocast, map_)
+        return self.pool.map(
+            lambda c: predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast),
+            self.clients,
+        )
+
+    def holds_root(self, client: Client, received: Weights) -> bool:
+        """Is the client's root exactly the one received (no task end changed it)?"""
+        state = client.model.state_dict()
+        return all(torch.equal(state[k], received[k]) for k in self.root_keys)
+
+    def finish_round(self, client: Client, plan) -> tuple[Usage | None, dict[str, float]]:
+        """The plugins' round figures on the received model, then, at a task's last
+        round, the task end (its usage and figures)."""
+        figures = {}
+        if any(type(p).round_metrics is not ClientPlugin.round_metrics for p in client.plugins):
+            ctx = self.context(client, plan.round, plan.task)
+            figures = {  # outside any measurement: diagnostics are not the client's work
+                f"{p.name}_{k}": v for p in client.plugins for k, v in p.round_metrics(ctx).items()
+            }
+        if not plan.last_of_task:
+            return None, figures
+        usage, ended = self.end_task(client, plan.round, plan.task)
+        return usage, figures | ended
+
+    def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, dict[str, float]]:
+        """The plugins' ``on_task_end``, and what they measured then (``<plugin>_<name>``)."""
+        ctx = self.context(client, round_, task)
+        with measure(self.device, per_thread=self.pool.workers > 1) as usage:
+            for plugin in client.plugins:
+                plugin.on_task_end(ctx)
+        figures = {  # outside the measurement: diagnostics are not the client's work
+            f"{p.name}_{k}": v for p in client.plugins for k, v in p.task_metrics(ctx).items()
+        }
+        return usage, figures
+
+    def scores(self, pred: torch.Tensor, task: int) -> list[float]:
+        """The score fields of outputs ``pred``: all tasks seen so far, then each task."""
+        cfg = self.config.train
+        seen = self.seen_rows[task]
+        s = regression_scores(pred[seen], self.test_targets[seen], cfg.compat_batch_metrics)
+        values = [
+            s.loss,
+            s.mean_rmse,
+            s.mean_pcc,
+            *s.mse.tolist(),
+            *s.rmse.tolist(),
+            *s.pcc.tolist(),
+        ]
+        for rows in self.test_rows.values():
+            t = regression_scores(pred[rows], self.test_targets[rows], cfg.compat_batch_metrics)
+            values += [t.loss, t.mean_rmse, t.mean_pcc]
+        return values
+
+    # ------------------------------------------------------------------ private state
+
+    def state_dict(self) -> dict[int, dict]:
+        """Every client's private state (model, optimiser, plugins, generators)."""
+        return {c.index: c.state_dict() for c in self.clients}
+
+    def load_state_dict(self, states: dict[int, dict]) -> None:
+        for client in self.clients:
+            client.load_state_dict(states[client.index])

@@ -1,0 +1,87 @@
+"""Quadratic parameter penalties, the common form of EWC, EWC-Online, SI and MAS.
+
+``penalty = coefficient * sum over terms, over parameters: importance * (theta - anchor)^2``
+
+Each method differs only in how it computes the importance and the anchor at the end of a
+task (and SI in what it records during training); the penalty is added to the client's
+loss before ``backward``. Importance and anchors are per client and never leave it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+import torch
+from torch import nn
+
+from fedlgr.core.client.plugins import ClientPlugin
+
+Tensors = dict[str, torch.Tensor]
+
+
+class QuadraticPenalty(ClientPlugin):
+    """Holds ``(importance, anchor)`` terms; subclasses fill them in ``on_task_end``."""
+
+    def __init__(self, coefficient: float):
+        self.coefficient = coefficient
+        self.terms: list[tuple[Tensors, Tensors]] = []
+
+    def penalty(self, model: nn.Module) -> torch.Tensor | None:
+        if not self.terms or self.coefficient == 0:
+            return None
+        params = dict(model.named_parameters())
+        total = None
+        for importance, anchor in self.terms:
+            for name, weight in importance.items():
+                term = torch.sum(weight * (params[name] - anchor[name]) ** 2)
+                total = term if total is None else total + term
+        return self.coefficient * total
+
+    def loss(self, ctx, x, y, outputs, loss):
+        extra = self.penalty(ctx.model)
+        return loss if extra is None else loss + extra
+
+    def state_dict(self) -> dict:
+        return {"terms": [(dict(i), dict(a)) for i, a in self.terms]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.terms = [(dict(i), dict(a)) for i, a in state.get("terms", [])]
+
+
+def snapshot(model: nn.Module) -> Tensors:
+    """A detached copy of every trainable parameter."""
+    return {n: p.detach().clone() for n, p in model.named_parameters() if p.requires_grad}
+
+
+def gradient_importance(
+    model: nn.Module,
+    batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
+    objective: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    reduce: Callable[[torch.Tensor], torch.Tensor] = torch.square,
+    max_batches: int | None = None,
+) -> Tensors:
+    """Mean over batches of ``reduce(d objective / d theta)`` per trainable parameter.
+
+    ``objective(outputs, y)`` is a scalar per batch; gradients are per mini-batch (as in
+    Avalanche's EWC and MAS plugins), with the model in eval mode so that BatchNorm
+    statistics are used and left untouched.
+    """
+    was_training = model.training
+    model.eval()
+    params = {n: p for n, p in model.named_parameters() if p.requires_grad}
+    total = {n: torch.zeros_like(p) for n, p in params.items()}
+    count = 0
+    try:
+        for step, (x, y) in enumerate(batches):
+            if max_batches is not None and step >= max_batches:
+                break
+            model.zero_grad(set_to_none=True)
+            objective(model(x).float(), y).backward()
+            for n, p in params.items():
+                if p.grad is not None:
+                    total[n] += reduce(p.grad.detach())
+            count += 1
+    finally:
+        model.zero_grad(set_to_none=True)
+        model.train(was_training)
+    return {n: t / max(count, 1) for n, t in total.items()}

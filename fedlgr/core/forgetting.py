@@ -1,0 +1,49 @@
+"""FCL metrics (SPEC 5): scores after each task, and the forgetting of past tasks.
+
+"After Task k" is measured at the end of task k's last round, on the test scenes of all
+tasks seen so far (the paper: after Task 1 on circle, after Task 2 on circle + arrow), and
+on each task's scenes. The forgetting of a past task j, at any later point, is per client
+its score now minus its score just after task j was learnt, averaged over clients, with a
+sign that makes positive mean forgotten: loss and RMSE now - then, PCC then - now.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fedlgr.core.records import RoundLog
+
+METRICS = ("loss", "rmse", "pcc")
+
+
+def _sign(metric: str) -> float:
+    return -1.0 if metric == "pcc" else 1.0
+
+
+class ForgettingTracker:
+    def __init__(self, tasks: list[str]):
+        self.tasks = tasks
+        self.learnt: dict[str, dict[str, np.ndarray]] = {}  # task -> metric -> per client
+        self.after: list[dict[str, float]] = []  # per finished task: its summary metrics
+
+    def forgetting(self, log: RoundLog) -> dict[str, float]:
+        """Forgetting of every task learnt before the one being trained."""
+        out = {}
+        for task, then in self.learnt.items():
+            if task == log.task:
+                continue
+            for m in METRICS:
+                now = log.column(f"task_{task}_{m}")
+                out[f"forgetting/{task}/{m}"] = float(np.mean(_sign(m) * (now - then[m])))
+        return out
+
+    def end_of_task(self, log: RoundLog, k: int) -> dict[str, float]:
+        """Record task k as learnt; the "after task k+1" summary metrics."""
+        self.learnt[log.task] = {m: log.column(f"task_{log.task}_{m}").copy() for m in METRICS}
+        prefix = f"after_task{k + 1}"
+        out = {f"{prefix}/test/{m}": log.mean(f"test_{m}") for m in METRICS}
+        for task in self.tasks[: k + 1]:
+            out.update({f"{prefix}/task/{task}/{m}": log.mean(f"task_{task}_{m}") for m in METRICS})
+        out.update({f"{prefix}/{k}": v for k, v in self.forgetting(log).items()})
+        self.after.append(out)
+        return out

@@ -1,0 +1,40 @@
+"""The server's arithmetic: sample-weighted sums and means of client tensors.
+
+Sums are taken in float64 so that the order in which clients (or processes) contribute
+changes nothing visible; the multi-process orchestrator adds the per-process sums with one
+``all_reduce`` before dividing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import torch
+
+from fedlgr.core.messages import Weights
+
+
+def weighted_sum(uploads: Iterable[tuple[int, Weights]], keys: list[str]) -> tuple[Weights, float]:
+    """Sum of ``n * weights`` over the uploads, and the sum of ``n``."""
+    sums: Weights = {}
+    total = 0.0
+    for n, weights in uploads:
+        for k in keys:
+            term = n * weights[k].detach().double()
+            sums[k] = term if k not in sums else sums[k] + term
+        total += n
+    return sums, total
+
+
+def weighted_mean(
+    uploads: Iterable[tuple[int, Weights]], keys: list[str], like: Weights | None = None
+) -> Weights:
+    """Sample-weighted mean (FedAvg), in the dtypes of ``like`` (default: float32)."""
+    sums, total = weighted_sum(uploads, keys)
+    return finish_mean(sums, total, like)
+
+
+def finish_mean(sums: Weights, total: float, like: Weights | None = None) -> Weights:
+    if total <= 0:
+        raise ValueError("no samples to aggregate")
+    return {k: (s / total).to(like[k].dtype if like else torch.float32) for k, s in sums.items()}

@@ -1,0 +1,86 @@
+"""Server-side (centralised) evaluation, ``federated.server_eval``: the aggregated global
+model scored on the test scenes by the server, every round and once before round 1.
+
+The standard FL feature (Flower's ``evaluate_fn``) that the paper's full-model baselines
+had and its FedRoot variants did not (there is no global top): the authors' Table III/IV
+CPU figures include it (docs/methods.md, "Table III and IV: what the paper measured"). Scores are
+logged as ``server/test/{loss,rmse,pcc}`` - over every task seen so far - and, with
+tasks, ``server/task/<name>/...`` per task. A shared subset of the model (FedBN keeps its
+batch-norm layers on the clients) is scored with the initial model's other tensors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from fedlgr.core.evaluation import EvalSet, predict
+from fedlgr.core.messages import Weights
+from fedlgr.core.meters.costs import Usage, measure
+from fedlgr.core.meters.scores import regression_scores
+from fedlgr.core.scope import initial_scholar
+
+
+class ServerEvaluation:
+    """Scores the global weights on ``test``, the scenes the clients score on."""
+
+    def __init__(self, config, test: EvalSet):
+        self.config, self.test = config, test
+        self.model = initial_scholar(config).to(test.test_inputs.device)
+
+    def scores(self, weights: Weights, task: int) -> dict[str, float]:
+        cfg, test = self.config.train, self.test
+        self.model.load_state_dict(weights, strict=False)
+        pred = predict(self.model, test.test_inputs, cfg.eval_batch_size, test.autocast)
+        compat = cfg.compat_batch_metrics
+        seen = test.seen_rows[task]
+        out = _named("server/test", regression_scores(pred[seen], test.test_targets[seen], compat))
+        for name, rows in test.test_rows.items():
+            scores = regression_scores(pred[rows], test.test_targets[rows], compat)
+            out |= _named(f"server/task/{name}", scores)
+        return out
+
+
+def _named(prefix: str, scores) -> dict[str, float]:
+    return {
+        f"{prefix}/loss": scores.loss,
+        f"{prefix}/rmse": scores.mean_rmse,
+        f"{prefix}/pcc": scores.mean_pcc,
+    }
+
+
+def serve_round(
+    server, evaluation: ServerEvaluation | None, round_: int, task: int, aggregate: Callable
+) -> tuple[dict[str, float], dict[str, float]]:
+    """The server's part of a round: ``aggregate()`` (aggregation and the server update of
+    ``server``, a :class:`ServerSide`), then its evaluation - and, in round 1, that of
+    the initial model first. Returns the round's server figures (``cost/server_cpu_s``,
+    ``cost/server_wall_s``, ``server/...``) and the initial model's scores (or {})."""
+    device = next(iter(server.global_weights.values())).device
+    before, initial = Usage(), {}
+    if evaluation is not None and round_ == 1:
+        with measure(device) as before:
+            initial = evaluation.scores(server.global_weights, task)
+    with measure(device) as usage:
+        aggregate()
+        scores = evaluation.scores(server.global_weights, task) if evaluation else {}
+    usage = usage + before
+    return {"cost/server_cpu_s": usage.cpu_s, "cost/server_wall_s": usage.wall_s, **scores}, initial
+
+
+def server_evaluation(config) -> ServerEvaluation:
+    """For a server whose clients are elsewhere (a Flower ServerApp): its own copy of the
+    test scenes, read from ``data.path`` on the server's machine, split as the clients
+    split them."""
+    import torch
+
+    from fedlgr.core.evaluation import eval_set
+    from fedlgr.core.schedule import ALL
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
+
+    scenes = load_scenes(config.data)
+    split = make_split(scenes.table, config.data)
+    tasks = list(config.continual.tasks) or [ALL]
+    channels_last = config.model.channels_last and scenes.images is not None
+    cpu = torch.device("cpu")
+    return ServerEvaluation(config, eval_set(scenes, split, tasks, cpu, channels_last))

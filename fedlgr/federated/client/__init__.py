@@ -1,9 +1,0 @@
-"""The client side: what runs on a robot (or for a process's share of the clients).
-
-``training`` (one client's model, optimiser, data and local training loop), ``plugins``
-(the hooks strategies and continual-learning methods add to that loop), ``side``
-(:class:`ClientSide`: a process's clients answering the server's messages), ``pool``
-(clients trained side by side in threads) and ``stacked`` (clients trained as one stacked
-model). Nothing here imports ``fedlgr.federated.server``: the two sides meet only through
-``fedlgr.federated.messages`` (tests/test_layout.py checks it).
-"""

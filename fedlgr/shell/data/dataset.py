@@ -1,0 +1,87 @@
+"""A dataset folder as per-scene tensors: what every training path reads.
+
+``load_scenes(config)`` reads ``all_data.csv`` (validated, ratings averaged per stamp) and,
+for the image modality, the decode-once image store. The result holds, in stamp order,
+the targets (mean rating of the 8 actions), the features-modality inputs (27 descriptors
++ 2 mode flags) and, for images, a uint8 ``(N, 3, S, S)`` tensor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fedlgr.shell.data.config import DataConfig, check_data_path
+from fedlgr.shell.data.images import load_image_store
+from fedlgr.shell.data.ratings import SceneTable, read_ratings
+
+
+@dataclass(frozen=True)
+class Scenes:
+    """Scenes of one dataset folder, in stamp order."""
+
+    table: SceneTable
+    targets: torch.Tensor  # (N, 8) float32, mean Likert rating per action
+    features: torch.Tensor  # (N, 29) float32, descriptors + mode flags
+    images: torch.Tensor | None  # (N, 3, S, S) uint8, or None for the features modality
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self.table.stamps
+
+    @property
+    def inputs(self) -> torch.Tensor:
+        """What the root reads: the images if loaded, else the features."""
+        return self.images if self.images is not None else self.features
+
+    def subset(self, index: np.ndarray) -> Scenes:
+        """The scenes at positions ``index`` (or where a boolean mask is true)."""
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.flatnonzero(index)
+        t = torch.as_tensor(index, dtype=torch.long)
+        return Scenes(
+            self.table.subset(index),
+            self.targets[t],
+            self.features[t],
+            None if self.images is None else self.images[t],
+        )
+
+
+def load_scenes(config: DataConfig, progress: Callable[[int, int], None] | None = None) -> Scenes:
+    """Load ``config.path`` for ``config.modality`` (decoding images at most once)."""
+    folder = _dataset_folder(Path(config.path))
+    table = read_ratings(folder)
+    images = None
+    if config.modality == "image":
+        store = load_image_store(
+            folder / "images",
+            table.stamps,
+            config.image_size,
+            config.crop,
+            config.on_bad_image,
+            config.cache_dir if config.cache else None,
+            progress,
+        )
+        if len(store.stamps) != len(table):  # scenes skipped for want of a usable image
+            table = table.subset(np.isin(table.stamps, store.stamps))
+        images = store.images
+    return Scenes(
+        table,
+        torch.as_tensor(table.targets, dtype=torch.float32),
+        torch.as_tensor(table.features, dtype=torch.float32),
+        images,
+    )
+
+
+def _dataset_folder(path: Path) -> Path:
+    """``path`` itself, refused when it is not a folder (:func:`check_data_path`)."""
+    check_data_path(path)
+    return path

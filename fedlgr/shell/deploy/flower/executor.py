@@ -1,0 +1,237 @@
+"""A warm SuperExec: Flower's own task loop, each app process forked from a process that
+has Flower and fedlgr's app already imported.
+
+Flower runs every ClientApp message and every ServerApp run in a process of its own: its
+SuperExec (``flower-superexec``, started by the SuperNode and the SuperLink in their
+default ``subprocess`` isolation) launches ``flwr-clientapp`` / ``flwr-serverapp`` per
+task, and each new Python process spends seconds importing before it does anything - ~3 s
+for a ClientApp that then answers in 0.2 s, ~10 s for the ServerApp (torch, torchvision,
+MLflow). bench/README.md "Flower rounds" has the figures.
+
+Flower's ``process`` isolation leaves the SuperExec to the operator, and flwr 1.41's
+SuperExec takes an executor (``flwr.supercore.superexec.executor.Executor``: the thing
+that starts a task's process). Flower ships two, ``subprocess`` and ``kubernetes``, and
+its factory has no way to name another, so this module runs Flower's own
+``run_superexec`` loop with its factory answering :class:`ForkExecutor`: a task's process
+is ``os.fork()`` of this one, which then runs the very entry point Flower would have
+started (``flwr-clientapp`` / ``flwr-serverapp`` with the same arguments). What a task
+does - the Runtime API, its token, heartbeats, the app - is Flower's code unchanged; only
+the imports are done once. ``fedlgr deploy supernode`` and ``fedlgr deploy superlink``
+start it (``--cold-apps`` goes back to Flower's SuperExec).
+
+Forking is safe here because this process only imports: it runs no torch operation (no
+thread pool exists yet) and touches no GPU before a fork, and its other threads (Flower's
+parent-process monitor and :func:`leave_with`'s) hold no lock the child needs.
+
+    python -m fedlgr.shell.deploy.flower.executor --runtime-api-address HOST:PORT
+        [--insecure | --root-certificates CA.pem] [--parent-pid PID] [--preload MODULE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import os
+import signal
+import sys
+import threading
+import time
+
+# What each kind of task imports before its first fork (the app modules pull in the rest).
+PRELOAD = {
+    "clientapp": ["fedlgr.shell.deploy.flower.client_app", "flwr.supernode.runtime.run_clientapp"],
+    "serverapp": ["fedlgr.shell.deploy.flower.server_app", "flwr.superlink.cli.flwr_serverapp"],
+}
+
+
+def _entry(task_type):
+    """The console entry point Flower's SubprocessExecutor would start for ``task_type``."""
+    from flwr.supercore.constant import TaskType
+
+    if task_type == TaskType.CLIENT_APP:
+        from flwr.supernode.cli.flwr_clientapp import flwr_clientapp
+
+        return flwr_clientapp
+    if task_type == TaskType.SERVER_APP:
+        from flwr.superlink.cli.flwr_serverapp import flwr_serverapp
+
+        return flwr_serverapp
+    return None
+
+
+def task_argv(spec) -> list[str]:
+    """The command line flwr 1.41's ``SubprocessExecutor.launch`` builds for ``spec``."""
+    from flwr.supercore.constant import TASK_TYPE_TO_APPIO_API_ADDRESS_ARG, TASK_TYPE_TO_COMMAND
+
+    argv = [TASK_TYPE_TO_COMMAND[spec.task_type]]
+    argv += [TASK_TYPE_TO_APPIO_API_ADDRESS_ARG[spec.task_type], spec.runtime_api_address]
+    argv += ["--token", spec.token]
+    if spec.insecure:
+        argv.append("--insecure")
+    elif spec.root_certificates_path is not None:
+        argv += ["--root-certificates", spec.root_certificates_path]
+    if spec.parent_pid is not None:
+        argv += ["--parent-pid", str(spec.parent_pid)]
+    if spec.runtime_dependency_install:
+        argv.append("--allow-runtime-dependency-installation")
+    return argv
+
+
+class ForkExecutor:
+    """A Flower ``Executor`` whose task processes are forks of this process."""
+
+    def __init__(self):
+        self.owner = os.getpid()
+        self.children: set[int] = set()
+
+    def get_eligible_capacity(self, supported_task_types, *, insecure=False, **_):
+        return supported_task_types, set()
+
+    def wait_for_capacity(self, task_type=None, **_) -> None:
+        """No capacity gate, as Flower's SubprocessExecutor."""
+
+    def launch(self, spec):
+        from flwr.supercore.superexec.executor import LaunchResult
+
+        entry = _entry(spec.task_type)
+        if entry is None:
+            return LaunchResult.failed(
+                f"fedlgr's executor runs ClientApps and ServerApps, not {spec.task_type}"
+            )
+        argv = task_argv(spec)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            _run_child(entry, argv, spec.suppress_output, self.owner)  # never returns
+        self.children.add(pid)
+        return LaunchResult.accepted()
+
+    def reconcile(self) -> None:
+        """Reap the task processes that ended (Flower's loop calls this every poll)."""
+        for pid in list(self.children):
+            try:
+                done, _ = os.waitpid(pid, os.WNOHANG)
+            except ChildProcessError:
+                done = pid
+            if done:
+                self.children.discard(pid)
+
+    def close(self) -> None:
+        """Task processes are left to end on their own, as Flower's SubprocessExecutor
+        leaves them (each watches this process and leaves when it is gone)."""
+
+
+def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
+    """In the forked task process: Flower's entry point as a fresh process would run it,
+    leaving when the executor ``owner`` has gone (Flower's monitor in the task, watching
+    the same pid, counts an unreaped one as alive)."""
+    code = 1
+    try:
+        from flwr.supercore.exit import exit_handler
+
+        # The parent's exit handlers (closing its Runtime API client) are not this task's.
+        exit_handler.registered_exit_handlers.clear()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD):
+            signal.signal(sig, signal.SIG_DFL)
+        leave_with(owner)
+        if quiet:  # as SubprocessExecutor's stdout/stderr=DEVNULL
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            os.close(devnull)
+        _name(argv[0])
+        sys.argv = argv
+        entry()
+        code = 0
+    except SystemExit as stop:
+        code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+    except BaseException:
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        _flush()
+        os._exit(code)
+
+
+def leave_with(parent_pid: int) -> None:
+    """Exit at once (quietly, status 0) when ``parent_pid`` has ended or this process is
+    orphaned. Flower's own monitor (``run_superexec(parent_pid=...)``, ``os.kill(pid, 0)``)
+    counts a parent that exited but is not reaped yet - a zombie - as alive: a SuperNode that
+    gave up on its SuperLink left its executor retrying the gone Runtime API for ever (the
+    eighth fault sweep, b01). The exit is ``os._exit``: the interpreter's would wait for
+    Flower's threads, and with the parent gone nothing is left to close gracefully."""
+    from fedlgr.shell.tracking.mlflow_run import process_alive
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while process_alive(parent_pid) and os.getppid() == parent:
+            time.sleep(0.2)
+        _flush()
+        os._exit(0)
+
+    threading.Thread(target=watch, name="fedlgr-leave-with-parent", daemon=True).start()
+
+
+def _flush() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+
+
+def _name(name: str) -> None:
+    """The process's name (``ps -o comm``, ``pgrep flwr-clientapp``) as Flower's own
+    process would have it; its command line stays this executor's."""
+    if sys.platform == "linux":
+        import ctypes
+
+        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # 15: PR_SET_NAME
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m fedlgr.shell.deploy.flower.executor")
+    parser.add_argument("--runtime-api-address", required=True)
+    parser.add_argument("--insecure", action="store_true")
+    parser.add_argument("--root-certificates")
+    parser.add_argument("--parent-pid", type=int)
+    parser.add_argument("--preload", choices=sorted(PRELOAD), action="append", default=[])
+    args = parser.parse_args(argv)
+    if args.parent_pid is not None:
+        leave_with(args.parent_pid)  # before the preload, which takes seconds
+    import warnings
+
+    # Python 3.12+ warns at every fork of a process with threads; this one's other threads
+    # (Flower's parent-process monitor, leave_with's) hold no lock a task needs.
+    warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
+    for kind in args.preload:
+        for module in PRELOAD[kind]:
+            importlib.import_module(module)
+    from flwr.supercore.superexec import run_superexec as loop
+
+    executor = ForkExecutor()
+    # Flower's factory knows only its own executors (see the module's docstring).
+    loop.get_executor = lambda *_, **__: executor
+    loop.run_superexec(
+        runtime_api_address=args.runtime_api_address,
+        insecure=args.insecure,
+        root_certificates_path=args.root_certificates,
+        parent_pid=args.parent_pid,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        # Stopped by its SuperNode or SuperLink as that exits - possibly while still
+        # importing what it preloads: a traceback then says nothing (the seventh fault
+        # sweep, e24: a SuperNode that gave up on an unreachable SuperLink). It exits at
+        # once: the interpreter's exit would wait for Flower's threads (a connection
+        # retried for ever), and the process stayed (found when a CI run hung on it).
+        _flush()
+        os._exit(130)

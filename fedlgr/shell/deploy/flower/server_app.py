@@ -1,0 +1,485 @@
+"""The ServerApp: a fedlgr run whose clients are robots behind a Flower SuperLink.
+
+``flwr run`` starts it on the SuperLink's machine with the app's run config: ``config``
+(a fedlgr config file on that machine; empty: the defaults) and ``overrides``
+(``key=value`` separated by spaces). It runs the schedule with the same round loop and
+recorder as ``fedlgr run`` (:func:`fedlgr.shell.run.loop.run_rounds`) - the same MLflow
+keys, artifacts and summary, plus the tag ``runtime=flower`` - over :class:`FlowerRounds`
+(a :class:`fedlgr.shell.run.loop.Rounds`), which speaks to the robots with
+:mod:`fedlgr.shell.deploy.flower.wire` messages and aggregates with
+:class:`fedlgr.core.server.side.ServerSide`, the very code of the in-process runs.
+
+Exchanges: with ``deploy.evaluate=with_next_round`` (the default) a round costs one
+exchange - each robot evaluates the new global tensors at the start of the next round's
+training message, and one last evaluate message ends the run; ``separate`` sends a train
+and an evaluate message every round (what a robot reports for round r then does not wait
+for round r + 1).
+
+Drop-outs: each exchange waits ``deploy.round_timeout_s`` at most; the round aggregates
+the uploads that arrived if there are at least ``deploy.min_clients`` of them (default:
+half the robots, at least one), records the missing clients (NaN rows,
+``round/missing_clients``, tag ``fedlgr.missing``), and a robot that comes back is sent
+the global tensors with its next training message. A robot that drops out while it
+answers a combined message misses the evaluation of the round before too.
+
+Checkpoints: what the server holds is checkpointed every ``tracking.checkpoint`` rounds as
+``fedlgr run`` does (:meth:`FlowerRounds.save`); ``fedlgr deploy run CONFIG --resume``
+continues the same MLflow run from the newest one. The robots keep their own state under
+the MLflow run's id, and a robot asked again what it last answered (the server died after
+it answered) sends the same reply again.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import shlex
+import time
+from pathlib import Path
+
+from flwr.app import Context, Message, RecordDict
+from flwr.serverapp import Grid, ServerApp
+
+from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes
+from fedlgr.core.records import RoundLog
+from fedlgr.core.schedule import schedule
+from fedlgr.core.server.evaluate import serve_round, server_evaluation
+from fedlgr.core.server.side import ServerSide
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.config import ExperimentConfig, load_config, to_yaml
+from fedlgr.shell.deploy.flower import wire
+from fedlgr.shell.deploy.roster import roster_of
+from fedlgr.shell.run.loop import EpochProgress
+
+app = ServerApp()
+POLL_S = 0.2  # how often the server asks the SuperLink for replies
+
+
+def quorum(clients: int) -> int:
+    """The uploads a round needs by default (``deploy.min_clients``): half the robots,
+    at least one - one robot's drop-out does not end a run."""
+    return max(1, math.ceil(clients / 2))
+
+
+class FlowerRounds:
+    """The rounds of :func:`fedlgr.shell.run.loop.run_rounds`, with the clients on the
+    robots."""
+
+    def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
+        self.grid, self.config, self.echo = grid, config, echo
+        self.roster = roster_of(config)
+        self.server = ServerSide(config)
+        self.fields = self.server.fields
+        # federated.server_eval: the server scores the global model on its own copy of the
+        # test scenes (data.path on the SuperLink's machine).
+        self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
+        self.config_yaml = to_yaml(config)
+        self.holders: set[int] = set()  # nodes that hold the current global tensors
+        self.min_clients = config.deploy.min_clients or quorum(config.data.clients)
+        self.joined = False
+        self.steps = schedule(config)
+        # (plan, uploads by client, bytes down by node, failures by node) of the next
+        # round, trained in the exchange that evaluated this one (with_next_round)
+        self.pending: tuple[RoundPlan, dict, dict[int, int], dict[int, str]] | None = None
+        self.slots: dict[int, int | None] = {}  # admitted node -> its client (None: no roster)
+        self.names: dict[int, str] = {}  # admitted node -> "robot0 (client 0)"
+        self.refused: dict[int, str] = {}  # node -> why it is sent nothing
+        self.failures: dict[int, str] = {}  # node -> its error in the last exchange
+        self.run_id: str | None = None  # the MLflow run (for tags), once it exists
+        self.tags: dict[str, str] = {}
+        self.missed: list[str] = []  # "round 2: robot1 (client 1)"
+
+    # ------------------------------------------------------------------ who takes part
+
+    def online(self) -> list[int]:
+        """The admitted nodes online now, by client slot. A node seen for the first time is
+        admitted if the roster lists the key the SuperLink authenticated it with (its slot
+        is the roster's), else refused - named, tagged and never sent a message."""
+        nodes = list(self.grid.get_nodes())
+        for info in nodes:
+            node = info.node_id
+            if node in self.slots or node in self.refused:
+                continue
+            if self.roster is None:
+                self.slots[node], self.names[node] = None, f"node {node}"
+                continue
+            member = self.roster.member(bytes(info.public_key))
+            if member is None:
+                key = _fingerprint(bytes(info.public_key))
+                self.refuse(node, f"its key {key} is not on the roster {self.roster.path}")
+            elif member.client >= self.config.data.clients:
+                self.refuse(node, f"{member}: the run has data.clients={self.config.data.clients}")
+            else:
+                self.slots[node], self.names[node] = member.client, str(member)
+                self.echo(f"{member} is online (node {node})")
+        here = {info.node_id for info in nodes}
+        admitted = [n for n in self.slots if n in here and n not in self.refused]
+        return sorted(admitted, key=lambda n: (self.slots[n] is None, self.slots[n] or 0, n))
+
+    def refuse(self, node: int, why: str) -> None:
+        self.refused[node] = why
+        self.slots.pop(node, None)
+        self.echo(f"refused node {node}: {why}; it is sent no work")
+        self.tag("fedlgr.refused", "; ".join(f"node {n}: {w}" for n, w in self.refused.items()))
+
+    def started(self, run_id: str) -> None:
+        """``on_start`` (:class:`fedlgr.shell.run.recorder.Hooks`): the MLflow run exists;
+        tags said before go to it."""
+        self.run_id = run_id
+        for key, value in self.tags.items():
+            self.tag(key, value)
+
+    def tag(self, key: str, value: str) -> None:
+        self.tags[key] = value
+        if self.run_id is not None and self.config.tracking.enabled:
+            from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
+
+            open_client(tracking_uri(self.config)).set_tag(self.run_id, key, value[:5000])
+
+    def wait_for_robots(self) -> None:
+        """Until every client's robot has joined, or ``deploy.join_timeout_s``."""
+        want, deadline = (
+            self.config.data.clients,
+            time.monotonic() + self.config.deploy.join_timeout_s,
+        )
+        nodes: list[int] = []
+        while time.monotonic() < deadline:
+            nodes = self.online()
+            if len(nodes) >= want:
+                break
+            time.sleep(0.5)
+        if len(nodes) < self.min_clients:
+            raise FedlgrError(
+                f"{len(nodes)} of {want} robots joined within deploy.join_timeout_s="
+                f"{self.config.deploy.join_timeout_s:g} (deploy.min_clients={self.min_clients})"
+            )
+        self.echo(f"{len(nodes)} of {want} robots joined: {', '.join(self.name(n) for n in nodes)}")
+        self.tag("fedlgr.robots", ", ".join(self.name(n) for n in nodes))
+        self.joined = True
+
+    def name(self, node: int) -> str:
+        return self.names.get(node, f"node {node}")
+
+    # ------------------------------------------------------------------ messages
+
+    def exchange(self, kind: str, contents: dict[int, RecordDict], round_: int, label: str = ""):
+        """Send ``contents`` (node -> message content); the replies that came back in
+        time, by node. Error replies (a robot's exception) are reported, not raised: a
+        robot whose SuperNode claims a slot the roster does not give it is refused."""
+        messages = [
+            Message(
+                wire.stamp_run(content, self.run_id or ""),
+                dst_node_id=node,
+                message_type=kind,
+                group_id=str(round_),
+            )
+            for node, content in contents.items()
+        ]
+        # Grid.send_and_receive polls every 3 s: up to 6 s idle per round for two
+        # exchanges. The same push/pull with a 0.2 s poll.
+        started = time.monotonic()
+        pending = {i for i in self.grid.push_messages(messages) if i}
+        replies = []
+        deadline = time.monotonic() + self.config.deploy.round_timeout_s
+        while pending and time.monotonic() < deadline:
+            for reply in self.grid.pull_messages(list(pending)):
+                pending.discard(reply.metadata.reply_to_message_id)
+                replies.append(reply)
+            if pending:
+                time.sleep(POLL_S)
+        seconds = time.monotonic() - started
+        # An error reply may come from the SuperLink itself (a robot gone offline): the
+        # robot is the one the message was sent to.
+        to_node = {m.metadata.message_id: m.metadata.dst_node_id for m in messages}
+        out = {}
+        self.failures = {}
+        for reply in replies:
+            node = to_node.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
+            if reply.has_error():
+                reason = " ".join(str(reply.error.reason).split())
+                self.failures[node] = reason
+                self.echo(f"round {round_}, {label or kind}: {self.name(node)} failed: {reason}")
+                if "the run's roster gives its key client" in reason:
+                    self.refuse(node, f"{self.name(node)} claims another slot")
+            else:
+                out[node] = reply
+        silent = [self.name(n) for n in contents if n not in out and n not in self.failures]
+        late = f"; no reply from {', '.join(silent)}" if silent else ""
+        self.echo(
+            f"round {round_}, {label or kind}: {len(out)} of {len(messages)} replies "
+            f"({seconds:.1f} s){late}"
+        )
+        return out
+
+    @property
+    def local_clients(self) -> int:
+        """No client trains in this process: they are on the robots."""
+        return 0
+
+    def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
+        """One round: its training (or the uploads the previous round's exchange brought
+        back), aggregation, and its evaluation - with ``deploy.evaluate=with_next_round``
+        in the same exchange as the next round's training. ``progress`` is never called
+        (no client trains here)."""
+        if not self.joined:
+            self.wait_for_robots()
+        start = time.perf_counter()
+        round_, task = plan.round, plan.task
+        if self.pending is not None and self.pending[0] == plan:
+            _, trained, down, failures = self.pending
+        else:
+            trained, down = self.train(plan)
+            failures = dict(self.failures)
+        self.pending = None
+        if len(trained) < self.min_clients:
+            causes = "".join(f"; {self.name(n)}: {why}" for n, why in failures.items())
+            raise FedlgrError(
+                f"round {round_}: {len(trained)} of {self.config.data.clients} robots sent "
+                f"their update within deploy.round_timeout_s={self.config.deploy.round_timeout_s:g}"
+                f" (deploy.min_clients={self.min_clients}){causes}"
+            )
+        # In client order, as in one process: the same sums to the last bit.
+        server, initial = serve_round(
+            self.server,
+            self.server_eval,
+            round_,
+            task,
+            lambda: self.server.aggregate(trained[c][1] for c in sorted(trained)),
+        )
+        evaluate = EvaluateIns(plan, self.server.global_weights)
+        following_plan = self.next_plan(round_)
+        contents, received = {}, {}
+        serving = {node: client for client, (node, _, _) in trained.items()}
+        if following_plan is None:
+            kind = "evaluate"
+            for node in serving:
+                contents[node] = wire.encode_evaluate_ins(
+                    evaluate, self.config_yaml, self.slots.get(node)
+                )
+        else:
+            kind = "train"
+            for node in sorted({*self.online(), *(n for n in serving if n in self.slots)}):
+                slot = self.slots.get(node)
+                if node in serving:  # evaluates this round's tensors, then trains on them
+                    ins = self.server.train_ins(following_plan)
+                    contents[node] = wire.encode_train_ins(ins, self.config_yaml, evaluate, slot)
+                else:  # missed this round: trains the next one on the tensors it is sent
+                    ins = self.server.train_ins(following_plan, holds_global=False)
+                    contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
+        for node, content in contents.items():
+            received[node] = wire.payload_bytes(content)
+        rows, following = {}, {}
+        self.holders = set()
+        label = kind if following_plan is None else f"evaluate + round {round_ + 1} train"
+        for node, reply in self.exchange(kind, contents, round_, label).items():
+            if kind == "evaluate":
+                res = wire.decode_evaluate_res(reply.content)
+            else:
+                res = wire.decode_evaluated(reply.content)
+                self.keep_upload(following, node, reply, round_ + 1)
+            if res is not None and serving.get(node) == res.client:
+                self.holders.add(node)
+                _, upload, up = trained[res.client]
+                rows[res.client] = self.server.row(upload, res, up, down[node] + received[node])
+        if following_plan is not None:
+            # what the next round's rows count as downloaded: nothing more for a robot that
+            # evaluated here (the tensors served both), the tensors for one that missed it
+            following_down = {
+                n: 0 if n in serving else received[n] for n, _, _ in following.values()
+            }
+            self.pending = (following_plan, following, following_down, dict(self.failures))
+        missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
+        if missing:
+            by_client = {c: self.name(n) for c, (n, _, _) in trained.items()}
+            by_client |= {s: self.names[n] for n, s in self.slots.items() if s is not None}
+            self.missed.append(
+                f"round {round_}: " + ", ".join(by_client.get(c, f"client {c}") for c in missing)
+            )
+            self.tag("fedlgr.missing_robots", "; ".join(self.missed))
+        seconds = time.perf_counter() - start
+        log = self.server.round_log(plan, self.server.table(rows), seconds, missing)
+        log.server, log.initial = server, initial
+        return log
+
+    def next_plan(self, round_: int) -> RoundPlan | None:
+        """The plan of the round after ``round_`` where its training goes with this
+        round's evaluation (``deploy.evaluate=with_next_round``), else None."""
+        if self.config.deploy.evaluate != "with_next_round" or round_ >= len(self.steps):
+            return None
+        return self.steps[round_]  # steps are 1-based rounds: this is round_ + 1
+
+    def train(self, plan: RoundPlan):
+        """A training exchange of its own (round 1, ``deploy.evaluate=separate``): the
+        uploads by client, and each node's bytes down."""
+        down: dict[int, int] = {}
+        contents = {}
+        for node in self.online():
+            ins = self.server.train_ins(plan, holds_global=node in self.holders)
+            contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=self.slots[node])
+            down[node] = wire.payload_bytes(contents[node])
+        trained: dict[int, tuple[int, TrainRes, int]] = {}  # client -> (node, upload, bytes)
+        for node, reply in self.exchange("train", contents, plan.round).items():
+            self.keep_upload(trained, node, reply, plan.round)
+        return trained, down
+
+    def keep_upload(self, trained: dict, node: int, reply: Message, round_: int) -> None:
+        res = wire.decode_train_res(reply.content)
+        slot = self.slots.get(node)
+        if slot is not None and res.client != slot:
+            self.echo(
+                f"round {round_}: {self.name(node)} sent client {res.client}'s upload; ignored"
+            )
+            return
+        if res.client in trained:
+            self.echo(
+                f"round {round_}: {self.name(trained[res.client][0])} and {self.name(node)} "
+                f"both serve client {res.client}; {self.name(node)}'s upload is ignored"
+            )
+            return
+        trained[res.client] = (node, res, wire.payload_bytes(reply.content))
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict:
+        """What the server holds between rounds: the global tensors, the strategy's state,
+        the uploads of the next round already trained (one exchange per round), which
+        robots hold the global tensors, and the drop-outs so far. The robots keep theirs."""
+        pending = None
+        if self.pending is not None:
+            plan, trained, down, failures = self.pending
+            uploads = {c: [n, _upload_state(res), b] for c, (n, res, b) in trained.items()}
+            pending = {
+                "plan": [plan.round, plan.task, plan.first_of_task, plan.last_of_task],
+                "uploads": uploads,
+                "down": down,
+                "failures": failures,
+            }
+        return {
+            "server": self.server.state_dict(),
+            "pending": pending,
+            "holders": sorted(self.holders),
+            "missed": list(self.missed),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.server.load_state_dict(state["server"], "cpu")
+        self.holders = set(state["holders"])
+        self.missed = list(state["missed"])
+        pending = state["pending"]
+        if pending is not None:
+            trained = {
+                int(c): (n, _upload(res), b) for c, (n, res, b) in pending["uploads"].items()
+            }
+            plan = RoundPlan(*pending["plan"])
+            self.pending = (plan, trained, dict(pending["down"]), dict(pending["failures"]))
+
+    def save(
+        self,
+        folder: Path | None,
+        rounds: list[RoundLog],
+        run_id: str | None,
+        elapsed: float,
+        keep: int,
+        digest: str = "",
+    ) -> Path | None:
+        """The run's checkpoint: what ``fedlgr run`` writes, with this server's state and
+        no clients (they are on the robots)."""
+        from fedlgr.shell.run import checkpoint as ckpt
+        from fedlgr.shell.run.resume import checkpoint_state
+
+        rng = [ckpt.rng_states()]
+        whole = checkpoint_state(
+            self.config, run_id, rounds, self.state_dict(), {}, rng, elapsed, digest
+        )
+        return ckpt.save(None, folder, rounds[-1].round, whole, keep)
+
+    def restore(self, state: dict) -> list[RoundLog]:
+        """Load a checkpoint (:meth:`save`); the rounds so far."""
+        from fedlgr.shell.run import checkpoint as ckpt
+        from fedlgr.shell.run.resume import restored_rounds
+
+        self.load_state_dict(state["server"])
+        ckpt.set_rng_states(state["rng"][0])
+        return restored_rounds(state, self.fields)
+
+
+def _upload_state(res: TrainRes) -> dict:
+    u = res.usage
+    return {
+        "client": res.client,
+        "weights": res.weights,
+        "n_samples": res.n_samples,
+        "samples": res.samples,
+        "loss": res.loss,
+        "usage": [u.cpu_s, u.wall_s, u.gpu_util, u.gpu_mem_mb, u.gpu_s],
+    }
+
+
+def _upload(state: dict) -> TrainRes:
+    from fedlgr.core.meters.costs import Usage
+
+    return TrainRes(
+        state["client"],
+        state["weights"],
+        state["n_samples"],
+        state["samples"],
+        state["loss"],
+        Usage(*state["usage"]),
+    )
+
+
+def _fingerprint(public_key: bytes) -> str:
+    from cryptography.exceptions import UnsupportedAlgorithm
+
+    from fedlgr.shell.deploy.roster import fingerprint
+
+    try:
+        return fingerprint(public_key)
+    except (ValueError, TypeError, UnsupportedAlgorithm):
+        return "(none: no SuperNode authentication)"
+
+
+def config_of(context: Context) -> ExperimentConfig:
+    """The run's fedlgr config from ``flwr run --run-config 'config="..." overrides="..."'``."""
+    path = str(context.run_config.get("config", "")) or None
+    overrides = shlex.split(str(context.run_config.get("overrides", "")))
+    return load_config(path, overrides)
+
+
+@app.main()
+def main(grid: Grid, context: Context) -> None:
+    from fedlgr.shell.run.loop import run_rounds
+    from fedlgr.shell.run.recorder import Hooks, Recorder, Resumed
+
+    echo = functools.partial(print, flush=True)
+    config = config_of(context)
+    rounds = FlowerRounds(grid, config, echo)
+    resumed = None
+    resume = str(context.run_config.get("resume", ""))
+    if resume:  # fedlgr deploy run CONFIG --resume [RUN_ID]
+        from fedlgr.shell.run import owner
+        from fedlgr.shell.run.resume import find_checkpoint, load_checkpoint
+        from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
+
+        if not config.tracking.enabled:
+            raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
+        which = True if resume == "latest" else resume
+        run_id, path = find_checkpoint(config, which, open_client(tracking_uri(config)))
+        try:
+            state = load_checkpoint(config, run_id, path)
+        except BaseException:
+            owner.release(path.parent)
+            raise
+        folder = Path(state["path"]).parent
+        resumed = Resumed(
+            run_id, rounds.restore(state), state["elapsed"], folder, state["data_digest"]
+        )
+    tags = {"runtime": "flower", "flower.run_id": str(context.run_id)}
+    recorder = Recorder(
+        config,
+        Hooks(echo, on_start=rounds.started),
+        tags=tags,
+        what="robots behind a Flower SuperLink",
+        resumed=resumed,
+    )
+    run_rounds(rounds, config, recorder)

@@ -1,0 +1,234 @@
+"""The robot service: one long-lived process per robot that answers its Flower messages.
+
+Flower's SuperNode starts a fresh ClientApp process for every message. fedlgr's
+ClientApp (:mod:`.client_app`) is therefore thin - it imports no torch - and hands each
+message to this service over a Unix socket in the robot's state folder
+(``<state-dir>/robot.sock``, mode 0600). The service imports torch, loads the data and
+builds the client once, keeps them in memory between messages and rounds, and writes
+the private state to disk after every message (:mod:`.robot`). On a 2-core machine
+importing torch, torchvision and lightning costs ~13 CPU seconds, which every message
+would pay again; the service answers a fast-config message in 0.1-3 s (its log says),
+and what remains of an exchange is Flower's own process start and polling (~10-15 s).
+
+The first message starts the service (detached, logging to ``<state-dir>/robot.log``);
+it leaves after ``robot-idle-s`` seconds without a message (node-config, default 900).
+Messages are answered one at a time. The socket carries a JSON header and Flower's own
+protobuf encoding of the message content - nothing is pickled.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+DEFAULT_STATE_DIR = Path.home() / ".fedlgr" / "node-state"
+DEFAULT_IDLE_S = 900.0
+START_TIMEOUT_S = 300.0  # the service's first start imports torch and loads the data
+
+
+def state_dir(node_config: dict) -> Path:
+    return Path(str(node_config.get("state-dir", DEFAULT_STATE_DIR))).expanduser().absolute()
+
+
+def socket_path(folder: Path) -> Path:
+    """``folder/robot.sock``, or a short path under the temp folder when that is longer
+    than a Unix socket address may be."""
+    path = folder / "robot.sock"
+    if len(str(path)) < 100:
+        return path
+    digest = hashlib.sha256(str(folder).encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / f"fedlgr-robot-{digest}.sock"
+
+
+# ---------------------------------------------------------------------- the wire
+
+
+def _send(conn: socket.socket, header: dict, payload: bytes) -> None:
+    head = json.dumps(header).encode()
+    conn.sendall(struct.pack("!IQ", len(head), len(payload)) + head + payload)
+
+
+def _receive(conn: socket.socket) -> tuple[dict, bytes]:
+    sizes = _exactly(conn, struct.calcsize("!IQ"))
+    head_size, payload_size = struct.unpack("!IQ", sizes)
+    header = json.loads(_exactly(conn, head_size))
+    return header, _exactly(conn, payload_size)
+
+
+def _exactly(conn: socket.socket, n: int) -> bytes:
+    parts, left = [], n
+    while left:
+        chunk = conn.recv(min(left, 1 << 20))
+        if not chunk:
+            raise ConnectionError("the robot service closed the connection")
+        parts.append(chunk)
+        left -= len(chunk)
+    return b"".join(parts)
+
+
+def encode(content) -> bytes:
+    from flwr.common.serde import recorddict_to_proto
+
+    return recorddict_to_proto(content).SerializeToString()
+
+
+def decode(data: bytes):
+    from flwr.common.serde import recorddict_from_proto
+    from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
+
+    return recorddict_from_proto(ProtoRecordDict.FromString(data))
+
+
+# ---------------------------------------------------------------------- ClientApp side
+
+
+def ask(kind: str, run_id: int, node_config: dict, content):
+    """The robot service's reply content to one message (starting the service if none
+    answers). A failure on the robot raises ``RuntimeError`` with its message."""
+    folder = state_dir(node_config)
+    path = socket_path(folder)
+    header = {"kind": kind, "run_id": int(run_id), "node_config": dict(node_config)}
+    payload = encode(content)
+    try:
+        conn = _connect(path)
+    except OSError:
+        start(folder, node_config)
+        conn = _connect(path, wait=START_TIMEOUT_S)
+    with conn:
+        _send(conn, header, payload)
+        reply, data = _receive(conn)
+    if not reply.get("ok"):
+        raise RuntimeError(reply.get("error", "the robot service failed"))
+    return decode(data)
+
+
+def _connect(path: Path, wait: float = 0.0) -> socket.socket:
+    deadline = time.monotonic() + wait
+    while True:
+        conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            conn.connect(str(path))
+            return conn
+        except OSError:
+            conn.close()
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.2)
+
+
+def start(folder: Path, node_config: dict) -> None:
+    """Start the service for ``folder`` unless another ClientApp is starting it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    with (folder / "robot.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        with contextlib.suppress(OSError):
+            _connect(socket_path(folder)).close()
+            return  # started meanwhile
+        idle = str(float(node_config.get("robot-idle-s", DEFAULT_IDLE_S)))
+        log = (folder / "robot.log").open("ab")
+        subprocess.Popen(
+            [sys.executable, "-m", "fedlgr.shell.deploy.flower.service", str(folder), idle],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,  # outlives this ClientApp process
+        )
+        _connect(socket_path(folder), wait=START_TIMEOUT_S).close()
+
+
+# ---------------------------------------------------------------------- the service
+
+
+def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
+    """Answer messages on ``folder``'s socket until ``idle_s`` seconds pass without one."""
+    from fedlgr.shell.deploy.flower.robot import handle
+
+    path = socket_path(folder)
+    path.unlink(missing_ok=True)
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    old = os.umask(0o177)  # the socket is this user's only
+    try:
+        server.bind(str(path))
+    finally:
+        os.umask(old)
+    server.listen()
+    server.settimeout(idle_s)
+    (folder / "robot.pid").write_text(str(os.getpid()))
+    # SIGTERM (a supervisor's stop, a shutdown) leaves through the finally below: no stale
+    # robot.pid or robot.sock.
+    signal.signal(signal.SIGTERM, _leave)
+    print(f"robot service {os.getpid()} listening on {path}", flush=True)
+    try:
+        while True:
+            try:
+                conn, _ = server.accept()
+            except TimeoutError:
+                print(f"no message for {idle_s:g} s: leaving", flush=True)
+                return
+            with conn:
+                try:
+                    _answer(conn, handle)
+                except _Probe:  # start() checking that the service listens
+                    pass
+                except OSError as err:  # the ClientApp went away (its SuperNode was killed)
+                    print(f"could not answer: {err}", flush=True)
+    except _Stopped:
+        print("SIGTERM: leaving", flush=True)
+    finally:
+        server.close()
+        path.unlink(missing_ok=True)
+        (folder / "robot.pid").unlink(missing_ok=True)
+
+
+class _Probe(Exception):
+    """A connection closed before it sent a byte: a check that the service listens."""
+
+
+class _Stopped(Exception):
+    """SIGTERM."""
+
+
+def _leave(signum, frame) -> None:
+    raise _Stopped
+
+
+def _answer(conn: socket.socket, handle) -> None:
+    conn.settimeout(None)
+    first = conn.recv(1, socket.MSG_PEEK)
+    if not first:
+        raise _Probe
+    header, payload = _receive(conn)
+    print(f"run {header['run_id']}: {header['kind']} received", flush=True)
+    started = time.perf_counter()
+    try:
+        reply = handle(header["kind"], header["run_id"], header["node_config"], decode(payload))
+    except Exception as err:  # the robot's failure goes back to the server as the reply
+        traceback.print_exc()
+        _send(conn, {"ok": False, "error": reply_error(err)}, b"")
+        return
+    _send(conn, {"ok": True}, reply)
+    seconds = time.perf_counter() - started
+    print(f"run {header['run_id']}: {header['kind']} answered in {seconds:.1f} s", flush=True)
+
+
+def reply_error(err: Exception) -> str:
+    """What the server is told of a failure: its first line, at most 1000 characters (the
+    whole text and the traceback stay in the robot's log)."""
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[0][:1000] if lines else 'no message'}"
+
+
+if __name__ == "__main__":
+    serve(Path(sys.argv[1]), float(sys.argv[2]))

@@ -1,0 +1,279 @@
+"""fedlgr's round messages (:mod:`fedlgr.core.messages`) as Flower ``RecordDict``s.
+
+The tensors of a message travel as one Flower ``Array`` holding their raw bytes
+(``stype`` ``fedlgr.packed``, little-endian, C order, one after another) with an index
+of keys, dtypes and shapes (:func:`put_weights`): a message's tensor payload is exactly
+``numel x element size`` per tensor, so the bytes measured on the wire are what
+``cost/bytes_up`` and ``cost/bytes_down`` report. Numbers travel in ``ConfigRecord``s; the
+run's resolved config goes with every message, so a robot needs nothing from the server's
+machine.
+
+With ``deploy.evaluate=with_next_round`` a train message may carry the evaluation of the
+previous round (``evaluate``: that round's plan; ``global``: its new global tensors, which
+the robot scores and then trains on), and its reply the scores (``evaluated``): one
+exchange per round instead of two.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import torch
+from flwr.app import Array, ArrayRecord, ConfigRecord, RecordDict
+
+from fedlgr.core.messages import (
+    EvaluateIns,
+    EvaluateRes,
+    RoundPlan,
+    TrainIns,
+    TrainRes,
+    Weights,
+)
+from fedlgr.core.meters.costs import Usage
+from fedlgr.errors import FedlgrError
+
+PACKED = "fedlgr.packed"
+
+
+def put_weights(content: RecordDict, name: str, weights: Weights) -> None:
+    """``weights`` into ``content`` as one Flower ``Array`` (``name``: every tensor's raw
+    bytes, little-endian, C order, one after another) and its index (``name.index``: keys,
+    dtypes, shapes). One array, not one per tensor: Flower moves each ``Array`` of a message
+    as an object of its own, one HTTP request each way - ~260 for a MobileNetV2 root,
+    which cost 10-15 s per exchange (bench/README.md, "Flower rounds")."""
+    keys, dtypes, ndims, dims, parts = [], [], [], [], []
+    for key, tensor in weights.items():
+        data = tensor.detach().cpu().contiguous().numpy()
+        keys.append(key)
+        dtypes.append(data.dtype.newbyteorder("<").str)
+        ndims.append(data.ndim)
+        dims.extend(int(d) for d in data.shape)
+        parts.append(data.astype(data.dtype.newbyteorder("<"), copy=False).tobytes())
+    blob = b"".join(parts)
+    array = Array(dtype="uint8", shape=(len(blob),), stype=PACKED, data=blob)
+    content[name] = ArrayRecord({"tensors": array})
+    content[f"{name}.index"] = ConfigRecord(
+        {"keys": keys, "dtypes": dtypes, "ndims": ndims, "dims": dims}
+    )
+
+
+def get_weights(content: RecordDict, name: str, device: torch.device | str = "cpu") -> Weights:
+    array = content.array_records[name]["tensors"]
+    if array.stype != PACKED:
+        raise ValueError(f"{name}: unexpected encoding {array.stype!r}")
+    index = content.config_records[f"{name}.index"]
+    out, offset, at = {}, 0, 0
+    dims = list(index["dims"])
+    for key, dtype, ndim in zip(index["keys"], index["dtypes"], index["ndims"], strict=True):
+        shape = tuple(dims[at : at + int(ndim)])
+        at += int(ndim)
+        kind = np.dtype(dtype)
+        count = math.prod(shape)
+        data = np.frombuffer(array.data, dtype=kind, count=count, offset=offset)
+        offset += count * kind.itemsize
+        out[key] = torch.from_numpy(data.reshape(shape).astype(kind.newbyteorder("="))).to(device)
+    if offset != len(array.data):
+        raise ValueError(f"{name}: {len(array.data)} bytes for tensors of {offset}")
+    return out
+
+
+def payload_bytes(content: RecordDict) -> int:
+    """Bytes of tensor data in a message: what the robot's link carries for the model."""
+    return sum(len(a.data) for record in content.array_records.values() for a in record.values())
+
+
+def _plan_record(plan: RoundPlan, config_yaml: str | None = None) -> ConfigRecord:
+    record = {
+        "round": plan.round,
+        "task": plan.task,
+        "first_of_task": plan.first_of_task,
+        "last_of_task": plan.last_of_task,
+    }
+    if config_yaml is not None:
+        record["config"] = config_yaml
+    return ConfigRecord(record)
+
+
+def _round_plan(p: ConfigRecord) -> RoundPlan:
+    return RoundPlan(
+        int(p["round"]), int(p["task"]), bool(p["first_of_task"]), bool(p["last_of_task"])
+    )
+
+
+def _plan(content: RecordDict) -> tuple[RoundPlan, str]:
+    p = content.config_records["plan"]
+    return _round_plan(p), str(p["config"])
+
+
+def _usage_record(usage: Usage | None) -> ConfigRecord:
+    if usage is None:
+        return ConfigRecord({"present": False})
+    return ConfigRecord(
+        {
+            "present": True,
+            "cpu_s": usage.cpu_s,
+            "wall_s": usage.wall_s,
+            "gpu_util": math.nan if usage.gpu_util is None else float(usage.gpu_util),
+            "gpu_mem_mb": math.nan if usage.gpu_mem_mb is None else float(usage.gpu_mem_mb),
+            "gpu_s": math.nan if usage.gpu_s is None else float(usage.gpu_s),
+        }
+    )
+
+
+def _usage(record: ConfigRecord) -> Usage | None:
+    if not record["present"]:
+        return None
+    gpu, mem, span = (float(record[k]) for k in ("gpu_util", "gpu_mem_mb", "gpu_s"))
+    return Usage(
+        float(record["cpu_s"]),
+        float(record["wall_s"]),
+        None if math.isnan(gpu) else gpu,
+        None if math.isnan(mem) else mem,
+        None if math.isnan(span) else span,
+    )
+
+
+# ---------------------------------------------------------------------- train
+
+
+def slot(content: RecordDict) -> int | None:
+    """The client slot the server gives the robot (from the roster; None: the robot's
+    own ``--client``, a run without a roster)."""
+    plan = content.config_records["plan"]
+    return int(plan["client"]) if "client" in plan else None
+
+
+RUN_KEY = re.compile(r"[A-Za-z0-9_-]{1,64}")  # an MLflow run id (32 hex digits), a Flower one
+
+
+def run_key(content: RecordDict) -> str:
+    """The run the robot keeps its state under ("": the Flower run's). It names a folder
+    on the robot (``<state-dir>/run-<key>``), so anything but a run id is refused: a
+    server must not choose where a robot writes (``../..``, an absolute path)."""
+    key = str(content.config_records["plan"].get("run", ""))
+    if key and not RUN_KEY.fullmatch(key):
+        raise FedlgrError(
+            f"the server's run key {key[:80]!r} is not a run id (1 to 64 letters, digits, - "
+            "or _): refused, nothing written"
+        )
+    return key
+
+
+def stamp_run(content: RecordDict, run: str) -> RecordDict:
+    """Name the run (its MLflow id) in a message: a resumed run is a new Flower run."""
+    if run:
+        content.config_records["plan"]["run"] = run
+    return content
+
+
+def _with_slot(content: RecordDict, client: int | None) -> RecordDict:
+    if client is not None:
+        content.config_records["plan"]["client"] = int(client)
+    return content
+
+
+def encode_train_ins(
+    ins: TrainIns,
+    config_yaml: str,
+    evaluate: EvaluateIns | None = None,
+    client: int | None = None,
+) -> RecordDict:
+    """The round's training; with ``evaluate``, first the previous round's evaluation of
+    its global tensors (which the robot then trains on: ``ins.weights`` must be None);
+    ``client``: the robot's slot."""
+    content = _with_slot(RecordDict({"plan": _plan_record(ins.plan, config_yaml)}), client)
+    if evaluate is not None:
+        if ins.weights is not None:
+            raise ValueError("a train message with an evaluation carries one set of tensors")
+        content["evaluate"] = _plan_record(evaluate.plan)
+        put_weights(content, "global", evaluate.weights)
+    elif ins.weights is not None:
+        put_weights(content, "global", ins.weights)
+    return content
+
+
+def decode_train_ins(content: RecordDict) -> tuple[TrainIns, EvaluateIns | None, str]:
+    plan, config_yaml = _plan(content)
+    weights = get_weights(content, "global") if "global" in content else None
+    if "evaluate" in content:
+        evaluate = EvaluateIns(_round_plan(content.config_records["evaluate"]), weights)
+        return TrainIns(plan, None), evaluate, config_yaml
+    return TrainIns(plan, weights), None, config_yaml
+
+
+def encode_train_res(res: TrainRes, evaluated: EvaluateRes | None = None) -> RecordDict:
+    report = ConfigRecord(
+        {
+            "client": res.client,
+            "n_samples": res.n_samples,
+            "samples": res.samples,
+            "loss": float(res.loss),
+        }
+    )
+    content = RecordDict({"report": report, "usage": _usage_record(res.usage)})
+    put_weights(content, "shared", res.weights)
+    if evaluated is not None:
+        for name, record in _evaluate_records(evaluated).items():
+            content[f"evaluated.{name}"] = record
+    return content
+
+
+def decode_train_res(content: RecordDict, device: torch.device | str = "cpu") -> TrainRes:
+    r = content.config_records["report"]
+    return TrainRes(
+        int(r["client"]),
+        get_weights(content, "shared", device),
+        int(r["n_samples"]),
+        int(r["samples"]),
+        float(r["loss"]),
+        _usage(content.config_records["usage"]) or Usage(),
+    )
+
+
+def decode_evaluated(content: RecordDict) -> EvaluateRes | None:
+    """The previous round's scores a train reply carries (None: it carries none)."""
+    if "evaluated.report" not in content:
+        return None
+    return _evaluate_res(content, "evaluated.")
+
+
+# ---------------------------------------------------------------------- evaluate
+
+
+def encode_evaluate_ins(
+    ins: EvaluateIns, config_yaml: str, client: int | None = None
+) -> RecordDict:
+    content = RecordDict({"plan": _plan_record(ins.plan, config_yaml)})
+    put_weights(content, "global", ins.weights)
+    return _with_slot(content, client)
+
+
+def decode_evaluate_ins(content: RecordDict) -> tuple[EvaluateIns, str]:
+    plan, config_yaml = _plan(content)
+    return EvaluateIns(plan, get_weights(content, "global")), config_yaml
+
+
+def _evaluate_records(res: EvaluateRes) -> dict[str, ConfigRecord]:
+    return {
+        "report": ConfigRecord({"client": res.client, "scores": [float(s) for s in res.scores]}),
+        "figures": ConfigRecord({k: float(v) for k, v in res.figures.items()}),
+        "usage": _usage_record(res.usage),
+    }
+
+
+def _evaluate_res(content: RecordDict, prefix: str = "") -> EvaluateRes:
+    records = content.config_records
+    r = records[f"{prefix}report"]
+    figures = {k: float(v) for k, v in records[f"{prefix}figures"].items()}
+    scores = [float(s) for s in r["scores"]]
+    return EvaluateRes(int(r["client"]), scores, figures, _usage(records[f"{prefix}usage"]))
+
+
+def encode_evaluate_res(res: EvaluateRes) -> RecordDict:
+    return RecordDict(dict(_evaluate_records(res)))
+
+
+def decode_evaluate_res(content: RecordDict) -> EvaluateRes:
+    return _evaluate_res(content)

@@ -1,0 +1,149 @@
+"""``fedlgr report``: the paper's Tables I-IV and plots, regenerated from what MLflow holds.
+
+:func:`make_report` reads the finished runs of an experiment or a sweep
+(:mod:`~fedlgr.shell.report.runs`), builds the tables (:mod:`~fedlgr.shell.report.tables`, pure),
+writes each as ``tableN.md``, ``.tex`` and ``.csv`` (:mod:`~fedlgr.shell.report.render`) next to
+the PNGs (:mod:`~fedlgr.shell.report.plots`), and logs the folder back to MLflow under
+``report/``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fedlgr.errors import broken_link
+from fedlgr.shell.report.runs import ReportError, RunRecord
+from fedlgr.shell.tracking.server import mask_password
+
+__all__ = ["ReportError", "ReportResult", "RunRecord", "default_out", "make_report"]
+
+TITLES = {
+    "table1": "FL results",
+    "table2": "FCL results",
+    "table3": "FL costs",
+    "table4": "FCL costs",
+}
+BENCHMARK = {"table1": "FL", "table2": "FCL", "table3": "FL", "table4": "FCL"}
+
+
+@dataclass
+class ReportResult:
+    out: Path
+    source: str
+    uri: str
+    runs: int
+    tables: list[tuple[str, int]] = field(default_factory=list)  # (name, runs)
+    plots: list[str] = field(default_factory=list)
+    logged_to: str | None = None  # the MLflow run holding the report
+    notes: list[str] = field(default_factory=list)  # said once: the study, repeats left out
+
+    def summary(self) -> str:
+        s = "s" if self.runs != 1 else ""
+        lines = [*self.notes]
+        uri = mask_password(self.uri)
+        lines.append(f"Report on {self.runs} finished run{s} of {self.source} ({uri}):")
+        for name, runs in self.tables:
+            s = "s" if runs != 1 else ""
+            title = f"{name} ({TITLES[name]})"
+            lines.append(f"  {title:<22} {name}.md/.tex/.csv from {runs} run{s}")
+        written = {BENCHMARK[name] for name, _ in self.tables}
+        for benchmark in sorted({"FL", "FCL"} - written):
+            names = [n for n, b in BENCHMARK.items() if b == benchmark]
+            lines.append(f"  {' and '.join(names)}: not written, no finished {benchmark} runs")
+        lines.append(f"  plots: {', '.join(self.plots) or 'none (no data)'}")
+        where = f"written to {self.out}"
+        if self.logged_to:
+            where += f"; logged to MLflow run {self.logged_to} under report/"
+        lines.append(where)
+        return "\n".join(lines)
+
+
+def default_out(name: str) -> Path:
+    """``reports/<experiment or sweep name>``."""
+    from fedlgr.shell.report.runs import safe_name
+
+    return Path("reports") / safe_name(name)
+
+
+def _check_folder(out: Path) -> None:
+    """Refuse a report folder (``--out``) that is empty, a file or lies under one."""
+    if str(out) in ("", "."):
+        raise ReportError(
+            "--out names the current folder ('' or .): name a folder of its own for the "
+            "report's tables and plots (default: reports/NAME)"
+        )
+    if why := broken_link(out):  # was "cannot create the report folder (File exists)"
+        raise ReportError(f"{out}: {why}; the report (--out) is a folder")  # (c113, c114)
+    existing = next((p for p in (out, *out.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        # /dev/null, a FIFO was "is a file" (the tenth fault sweep, d36-d38, d142)
+        kind = "a file" if existing.is_file() else "a device, pipe or socket"
+        where = f"is {kind}" if existing == out else f"lies under {existing}, {kind}"
+        raise ReportError(
+            f"{out}: {where}; the report (--out) is a folder of tables and plots: "
+            "name a new or existing folder"
+        )
+
+
+def make_report(
+    uri: str,
+    *,
+    experiment: str | None = None,
+    sweep: str | None = None,
+    study: str | None = None,
+    out: Path | None = None,
+    dataset: str | None = None,
+    modality: str | None = None,
+    where: dict[str, str] | None = None,
+    log: bool = True,
+) -> ReportResult:
+    """Write the tables and plots of ``experiment`` or one study of ``sweep`` to ``out``
+    (default ``reports/<experiment>`` or ``reports/sweeps/<sweep>/<study>-<parent run>``,
+    a sub-folder per filter) and, with ``log``, log them to MLflow.
+
+    Each cell averages replicates only (:mod:`~fedlgr.shell.report.cells`): repeats of one seed
+    count once, runs of other settings in one cell are refused (narrow them with
+    ``where``, e.g. ``{"federated.rounds": "20"}``)."""
+    from fedlgr.shell.report.cells import best_per_cell, check_cells, newest_per_seed
+    from fedlgr.shell.report.plots import write_plots
+    from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
+    from fedlgr.shell.report.runs import log_report, metric_histories, open_store, select_runs
+    from fedlgr.shell.report.tables import build_tables
+
+    if out is not None:  # before reading the store: a wrong --out fails at once
+        _check_folder(Path(out))
+    client = open_store(uri)
+    selection = select_runs(
+        client,
+        uri,
+        experiment=experiment,
+        sweep=sweep,
+        study=study,
+        dataset=dataset,
+        modality=modality,
+        where=where,
+    )
+    records, repeats = newest_per_seed(selection.records)
+    if selection.objective:  # a sweep's best setting per cell
+        records = best_per_cell(records, selection.objective)
+    check_cells(records, selection.source)
+    notes = [*selection.notes, *([repeats] if repeats else [])]
+    if out is None:
+        out = selection.folder or default_out(selection.name)
+    out = Path(out)
+    _check_folder(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ReportError(f"{out}: cannot create the report folder ({err.strerror})") from err
+    result = ReportResult(out, selection.source, uri, len(records), notes=notes)
+    for table in build_tables(records, selection.source, notes):
+        for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
+            (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
+        result.tables.append((table.name, table.runs))
+    histories = {m: metric_histories(client, records, m) for m in ("test/rmse", "test/pcc")}
+    result.plots = write_plots(records, histories, out)
+    if log:
+        result.logged_to = log_report(selection, out, len(records))
+    return result

@@ -1,0 +1,169 @@
+"""A :class:`~fedlgr.shell.report.tables.Table` as Markdown, LaTeX and CSV.
+
+Markdown and LaTeX follow the paper: the best value of a column **bold** (``\\textbf``),
+the second-best [bracketed], a missing value "—"; Tables III/IV add the FedRoot reduction
+as "(▼ 86.6%)". The CSV holds the same values unrounded and unmarked, a missing value
+empty, with one ``... reduction %`` column after each FedRoot cost column.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from itertools import groupby
+
+from fedlgr.shell.report.tables import Cell, Column, Table
+
+MISSING = "—"
+ARROWS = {True: " ▼", False: " ▲", None: ""}
+TEX_ARROWS = {True: r" $\blacktriangledown$", False: r" $\blacktriangle$", None: ""}
+
+
+# --------------------------------------------------------------------------- Markdown
+
+
+def to_markdown(table: Table) -> str:
+    headers = [table.row_header] + [_md_header(c) for c in table.columns]
+    lines = [f"## Table {table.number}: {table.caption}", ""]
+    for block in table.blocks:
+        lines += [f"**{block.title}**", "", _md_row(headers)]
+        lines.append(_md_row(["---"] + ["---:"] * len(table.columns)))
+        for label, cells in block.rows:
+            label = _md_escape(label) + ARROWS[table.row_direction]
+            lines.append(_md_row([label] + [_md_cell(c) for c in cells]))
+        lines.append("")
+    for note in table.notes:  # separate paragraphs
+        lines += [note, ""]
+    return "\n".join(lines)
+
+
+def _md_header(column: Column) -> str:
+    return _md_escape(" · ".join(column.header)) + ARROWS[column.lower_is_better]
+
+
+def _md_cell(cell: Cell) -> str:
+    if cell.value is None:
+        return MISSING
+    text = {"best": "**{}**", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
+    return text + _md_escape(cell.detail()) + _reduction(cell, "(▼ {:.1f}%)", "(▲ {:.1f}%)")
+
+
+def _md_row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _md_escape(text: str) -> str:
+    return text.replace("|", r"\|")
+
+
+def _reduction(cell: Cell, down: str, up: str) -> str:
+    if cell.reduction is None:
+        return ""
+    return " " + (down if cell.reduction >= 0 else up).format(abs(cell.reduction))
+
+
+# --------------------------------------------------------------------------- LaTeX
+
+
+def to_latex(table: Table) -> str:
+    """A ``table*`` with booktabs rules (needs ``\\usepackage{booktabs,amssymb}``)."""
+    columns = table.columns
+    width = len(columns) + 1
+    spec = "l|" + "|".join("c" * len(list(g)) for _, g in groupby(columns, key=_group))
+    lines = [
+        f"% Table {table.number}, written by fedlgr report; needs booktabs and amssymb.",
+        r"\begin{table*}[t]",
+        r"\centering",
+        rf"\caption{{{_tex(table.caption)}}}",
+        rf"\label{{tab:{table.name}}}",
+        rf"\begin{{tabular}}{{{spec}}}\toprule",
+    ]
+    depth = max(len(c.header) for c in columns)
+    for level in range(depth - 1):
+        spans = [
+            (key, len(list(g))) for key, g in groupby(columns, key=lambda c: c.header[: level + 1])
+        ]
+        cells, done = [""], 0
+        for key, n in spans:
+            done += n
+            rule = "|" if done < len(columns) else ""
+            cells.append(rf"\multicolumn{{{n}}}{{c{rule}}}{{\textit{{{_tex(key[-1])}}}}}")
+        lines.append(" & ".join(cells) + r"\\")
+    heads = [_tex(c.header[-1]) + TEX_ARROWS[c.lower_is_better] for c in columns]
+    lines.append(" & ".join([_tex(table.row_header), *heads]) + r"\\\midrule")
+    for k, block in enumerate(table.blocks):
+        lines.append(rf"\multicolumn{{{width}}}{{c}}{{\textit{{{_tex(block.title)}}}}}\\\midrule")
+        for label, cells in block.rows:
+            label = _tex(label) + TEX_ARROWS[table.row_direction]
+            lines.append(" & ".join([label, *map(_tex_cell, cells)]) + r"\\")
+        lines.append(r"\bottomrule" if k == len(table.blocks) - 1 else r"\midrule")
+    lines.append(r"\end{tabular}")
+    lines += [r"\par\smallskip{\footnotesize " + _tex_note(n) + "}" for n in table.notes]
+    lines += [r"\end{table*}", ""]
+    return "\n".join(lines)
+
+
+def _group(column: Column) -> str:
+    return column.group
+
+
+def _tex_cell(cell: Cell) -> str:
+    if cell.value is None:
+        return MISSING
+    text = {"best": r"\textbf{{{}}}", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
+    text += _tex(cell.detail("\N{PLUS-MINUS SIGN}")).replace("\N{PLUS-MINUS SIGN}", r"$\pm$")
+    return text + _reduction(
+        cell, r"($\blacktriangledown$~{:.1f}\%)", r"($\blacktriangle$~{:.1f}\%)"
+    )
+
+
+def _tex_note(note: str) -> str:
+    """A Markdown note in LaTeX: **bold** as \\textbf, `code` as plain text, the arrows."""
+    parts = _tex(note.replace("`", "")).split("**")
+    text = "".join(rf"\textbf{{{p}}}" if k % 2 else p for k, p in enumerate(parts))
+    return text.replace("▼", r"$\blacktriangledown$").replace("▲", r"$\blacktriangle$")
+
+
+_TEX_SPECIAL = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "$": r"\$",
+    "#": r"\#",
+    "_": r"\_",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+}
+
+
+def _tex(text: str) -> str:
+    return "".join(_TEX_SPECIAL.get(ch, ch) for ch in text)
+
+
+# --------------------------------------------------------------------------- CSV
+
+
+def to_csv(table: Table) -> str:
+    header = [table.block_header, table.row_header.lower()]
+    for column in table.columns:
+        header += [column.key, f"{column.key} std", f"{column.key} n"]
+        if column.reduces:
+            header.append(f"{column.key} reduction %")
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    for block in table.blocks:
+        for label, cells in block.rows:
+            row = [block.title, label]
+            for column, cell in zip(table.columns, cells, strict=True):
+                row += [_number(cell.value), _number(cell.std), str(cell.runs)]
+                if column.reduces:
+                    row.append(_number(cell.reduction))
+            writer.writerow(row)
+    return buffer.getvalue()
+
+
+def _number(value: float | None) -> str:
+    return "" if value is None else repr(float(value))

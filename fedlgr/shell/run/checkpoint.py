@@ -1,0 +1,289 @@
+"""Per-round checkpoints of a run: where they live, how they are written and read.
+
+Where: one folder per MLflow run, ``<root>/<run_id>/round-0003.ckpt``, where ``root`` is
+``tracking.checkpoint_dir`` if set, else ``checkpoints/`` next to a local sqlite store
+(``sqlite:///runs/mlflow.db`` -> ``runs/checkpoints/``), else ``checkpoints/`` in the
+working directory (a remote ``mlflow server``). The run's tag ``fedlgr.checkpoints``
+records the folder. Not an MLflow artifact: a checkpoint is rewritten every round and
+must replace its predecessor atomically (an artifact upload can neither be renamed into
+place nor deleted through MLflow's API), and a remote server would receive the full model
+of every client every round.
+
+How: rank 0 writes the whole run's state (every client of every process) to a temporary
+name in the folder itself and renames it into place, so a kill during the write leaves
+the previous checkpoint intact (and the temporary, removed at the next start); it keeps
+the newest ``tracking.keep_checkpoints`` and removes the folder when the run finishes.
+The run's owner holds a lock in the folder (:mod:`fedlgr.shell.run.owner`). Files are read
+with ``weights_only=True``: only tensors and plain Python values, never code (numpy
+arrays are stored as tensors).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from fedlgr.errors import FedlgrError, not_a_folder
+from fedlgr.shell.config import ExperimentConfig, flatten
+
+FORMAT = 1
+PATTERN = re.compile(r"round-(\d+)\.ckpt")
+ROOT = "checkpoints"  # the folder of runs' folders, unless tracking.checkpoint_dir names one
+# Settings a resumed run may change: they do not touch a number the run computes.
+SAFE_KEYS = frozenset(
+    {
+        "runtime.progress",
+        "runtime.timeout_s",
+        "tracking.uri",
+        "tracking.checkpoint",
+        "tracking.keep_checkpoints",
+        "tracking.checkpoint_dir",
+        "tracking.system_metrics",
+        "tracking.system_metrics_s",
+        "data.cache_dir",
+    }
+)
+
+
+def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
+    """The folder that holds the runs' checkpoint folders (see the module docstring)."""
+    if config.tracking.checkpoint_dir:
+        given = Path(config.tracking.checkpoint_dir).expanduser()
+        # resolve() followed a dangling link and the run made its target; a link to
+        # /dev/null was "cannot make the checkpoint folder /dev/null (File exists)" (the
+        # ninth fault sweep, c118, c69)
+        if why := not_a_folder(given):
+            raise FedlgrError(f"tracking.checkpoint_dir={config.tracking.checkpoint_dir}: {why}")
+        return given.resolve()
+    if tracking_uri.startswith("sqlite:///"):
+        return Path(tracking_uri.removeprefix("sqlite:///")).expanduser().resolve().parent / ROOT
+    return Path(ROOT).resolve()
+
+
+def checkpoints(folder: Path) -> list[Path]:
+    """The complete checkpoints in ``folder``, oldest round first (temporary files of an
+    interrupted write are not checkpoints)."""
+    if not folder.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in folder.iterdir() if (m := PATTERN.fullmatch(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
+
+
+def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) -> Path | None:
+    """Write ``state`` as round ``round_``'s checkpoint (rank 0; every process must call
+    this: they wait for rank 0's write); keep the newest ``keep``. ``fabric`` None: a
+    process of its own (the Flower ServerApp).
+
+    Not ``Fabric.save``: its atomic write (Lightning's ``_atomic_save``, an fsspec
+    transaction) stages the file in ``$TMPDIR`` and moves it into place, so a kill during
+    the write leaves a file of the checkpoint's size there, and a full disk there fails a
+    run whose checkpoint folder has room. The state is plain tensors and values (no
+    wrapped modules), which ``torch.save`` writes as Fabric would."""
+    path = folder / f"round-{round_:04d}.ckpt"
+    error = ""
+    rank, world = (0, 1) if fabric is None else (fabric.global_rank, fabric.world_size)
+    if rank == 0:
+        try:
+            _write_atomically(path, encode(state))
+        except (OSError, RuntimeError) as err:  # torch.save wraps a failed write in the latter
+            error = f"cannot write checkpoint {path}: {_io_reason(err)}"
+    if world > 1:
+        error = fabric.broadcast(error, src=0)
+    if error:
+        raise FedlgrError(
+            f"{error}; free space or choose another folder (tracking.checkpoint_dir=...), "
+            "then --resume (the checkpoints before it are intact)"
+        )
+    if rank != 0:
+        return None
+    for old in checkpoints(folder)[:-keep]:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def _io_reason(err: BaseException) -> str:
+    """The operating system's reason inside ``err`` ("No space left on device")."""
+    seen = err
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror
+        seen = seen.__cause__ or seen.__context__
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__
+
+
+def _write_atomically(path: Path, state: Any) -> None:
+    """``torch.save`` to a temporary name in ``path``'s own folder, then rename: a kill
+    leaves the previous file intact and the temporary where the next start removes it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(temporary, "wb") as handle:
+            torch.save(state, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def remove_temporaries(folder: Path) -> list[Path]:
+    """Remove what interrupted writes left in ``folder``; the files removed."""
+    if not folder.is_dir():
+        return []
+    stale = [p for p in folder.iterdir() if TEMPORARY.fullmatch(p.name)]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
+def write(path: Path, state: dict[str, Any]) -> Path:
+    """Write ``state`` to ``path`` atomically, without Fabric (one process: a robot's
+    private state between Flower messages); ``load`` reads it back."""
+    _write_atomically(path, encode({"format": FORMAT, **state}))
+    return path
+
+
+RUN_KEYS = ("run_id", "round", "config", "server", "clients", "rng", "rows", "elapsed")
+
+
+def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A checkpoint's state; a clear error for a file that is not a whole checkpoint
+    (``required``: the keys it must hold, e.g. ``RUN_KEYS`` for a run's checkpoint)."""
+    start_over = (
+        f"delete it to resume from the previous checkpoint in {path.parent}, or start the run "
+        "over without --resume"
+    )
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        if "Weights only load failed" in reason:
+            reason = "it holds objects other than tensors and plain values"
+        raise FedlgrError(
+            f"{path}: not a readable fedlgr checkpoint ({reason[:200]}); {start_over}"
+        ) from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise FedlgrError(
+            f"{path}: not a fedlgr checkpoint of format {FORMAT} (found {found!r}); {start_over}"
+        )
+    if missing := [k for k in required if k not in state]:
+        missed = ", ".join(missing)
+        raise FedlgrError(f"{path}: an incomplete checkpoint (no {missed}); {start_over}")
+    return decode(state)
+
+
+def remove(folder: Path, ours: bool = False) -> None:
+    """Remove a run's checkpoint folder, and the folder of runs' folders if that is left
+    empty and ``ours`` - fedlgr's own ``checkpoints/``, not a ``tracking.checkpoint_dir``
+    the user made (an empty one was removed, and a link to it left leading nowhere: the
+    tenth and eleventh fault sweeps, d190, d196, e92, e93): a finished run leaves nothing
+    of its own behind."""
+    shutil.rmtree(folder, ignore_errors=True)
+    if ours and folder.parent.name == ROOT:
+        with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile
+            folder.parent.rmdir()
+
+
+# --------------------------------------------------------------------------- the config
+
+
+# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
+# its checkpoint's values for them (``resume.adopt_settings``), so that it computes the
+# same numbers; they are not part of the fingerprint a run is found by.
+MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
+
+
+def fingerprint(config: ExperimentConfig) -> str:
+    """A hash of every setting that changes the run's numbers (``SAFE_KEYS`` excluded, and
+    the machine-chosen thread settings, which a resume adopts): ``--resume`` without a run
+    id, and a sweep's retried trial, look for an unfinished run with the same one."""
+    skip = SAFE_KEYS | set(MACHINE_CHOSEN)
+    items = sorted((k, v) for k, v in flatten(config).items() if k not in skip)
+    return hashlib.sha256(repr(items).encode()).hexdigest()[:16]
+
+
+def differences(saved: dict[str, str], now: dict[str, str]) -> list[str]:
+    """``key (checkpoint A, now B)`` for every setting that differs, safe keys aside."""
+    keys = sorted((saved.keys() | now.keys()) - SAFE_KEYS)
+    return [
+        f"{k} (checkpoint {saved.get(k, 'unset')}, now {now.get(k, 'unset')})"
+        for k in keys
+        if saved.get(k) != now.get(k)
+    ]
+
+
+# --------------------------------------------------------------------------- encoding
+
+_ARRAY = "__ndarray__"
+
+
+def encode(value: Any) -> Any:
+    """numpy arrays -> ``{"__ndarray__": tensor}``, numpy scalars -> Python numbers, so
+    that ``torch.load(weights_only=True)`` reads the file back."""
+    if isinstance(value, np.ndarray):
+        return {_ARRAY: torch.from_numpy(np.ascontiguousarray(value))}
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {k: encode(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(encode(v) for v in value)
+    return value
+
+
+def decode(value: Any) -> Any:
+    if isinstance(value, dict):
+        if value.keys() == {_ARRAY}:
+            return value[_ARRAY].numpy()
+        return {k: decode(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(decode(v) for v in value)
+    return value
+
+
+def rng_states() -> dict[str, Any]:
+    """The process-wide generators (Python, numpy, torch CPU and CUDA)."""
+    import random
+
+    return {
+        "python": random.getstate(),
+        "numpy": np.random.get_state(),
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+    }
+
+
+def set_rng_states(state: dict[str, Any]) -> None:
+    import random
+
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if state["cuda"] and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def to_device(value, device: torch.device):
+    """``value`` with every tensor moved to ``device`` (dicts, lists, tuples walked)."""
+    if isinstance(value, torch.Tensor):
+        # Generator states are CPU byte tensors whatever the device; keep them there.
+        return value if value.dtype == torch.uint8 else value.to(device)
+    if isinstance(value, dict):
+        return {k: to_device(v, device) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(to_device(v, device) for v in value)
+    return value

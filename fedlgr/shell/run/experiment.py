@@ -1,0 +1,287 @@
+"""Run one experiment in our processes: Fabric's set-up and launch, the data, the
+in-process :class:`~fedlgr.core.in_process.Orchestrator` (restored from a checkpoint
+when the run resumes), then the round loop (:func:`fedlgr.shell.run.loop.run_rounds`),
+recorded by a :class:`~fedlgr.shell.run.recorder.Recorder`.
+
+``run_experiment(config)`` returns an :class:`ExperimentResult` in the process that
+called it (rank 0). Multi-process runs use Fabric's launchers: ``runtime.launcher=ddp``
+re-runs the current command once per extra process (what ``fedlgr run`` uses; several
+nodes via ``fabric run`` / torchrun, which start the processes themselves), ``ddp_spawn``
+spawns them from Python.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import functools
+import time
+from pathlib import Path
+
+from fedlgr.core.client import pool as concurrency
+from fedlgr.core.in_process import Orchestrator
+from fedlgr.shell.config import ExperimentConfig
+from fedlgr.shell.console import Progress
+from fedlgr.shell.machine import available_cores, torch_threads
+from fedlgr.shell.run.loop import run_rounds
+from fedlgr.shell.run.recorder import Hooks, Recorder, Resumed
+from fedlgr.shell.run.result import ExperimentResult
+
+
+def make_fabric(config: ExperimentConfig):
+    from lightning.fabric import Fabric
+    from lightning.fabric.strategies import DDPStrategy
+
+    rt = config.runtime
+    accelerator = "cuda" if rt.accelerator == "gpu" else rt.accelerator
+    if accelerator == "cuda":
+        import torch
+
+        from fedlgr.errors import FedlgrError
+
+        if not torch.cuda.is_available():
+            raise FedlgrError(
+                f"runtime.accelerator={rt.accelerator}: no CUDA GPU on this machine "
+                "(torch.cuda.is_available() is False); use runtime.accelerator=auto or cpu"
+            )
+    strategy = "auto"
+    if rt.world_size > 1:
+        # Models are never wrapped in DDP (clients train independently); buffers must
+        # not be broadcast between processes either.
+        timeout = datetime.timedelta(seconds=rt.timeout_s)
+        strategy = (
+            DDPStrategy(start_method="spawn", broadcast_buffers=False, timeout=timeout)
+            if rt.launcher == "ddp_spawn"
+            else DDPStrategy(broadcast_buffers=False, timeout=timeout)
+        )
+    return Fabric(
+        accelerator=accelerator,
+        devices=rt.devices,
+        num_nodes=rt.num_nodes,
+        strategy=strategy,
+        precision=config.train.precision,
+    )
+
+
+def run_experiment(
+    config: ExperimentConfig,
+    *,
+    parent_run_id: str | None = None,
+    tags: dict[str, str] | None = None,
+    echo=None,
+    on_round=None,
+    on_start=None,
+    resume: str | bool | None = None,
+    show_runs: bool = True,
+) -> ExperimentResult | None:
+    """Run ``config`` end to end; the result in rank 0, ``None`` in other processes.
+
+    ``resume``: a run id, or True for the latest unfinished run of this config, to
+    continue from its last checkpoint inside the same MLflow run. ``on_start(run_id)``
+    (rank 0) is called once the MLflow run exists. ``on_round(round, metrics)`` (rank 0,
+    after each round is logged and checkpointed; a resumed run first calls it again for
+    the rounds it restored) may raise to stop the run, e.g. a sweep's
+    pruner: the run is then ended KILLED if the exception has ``mlflow_status =
+    "KILLED"``, FAILED otherwise, keeping what was logged. ``show_runs``: print at the
+    end where to see the run in MLflow's UI."""
+    from fedlgr.shell.tracking.mlflow_run import tracking_uri
+    from fedlgr.shell.tracking.server import check_reachable
+
+    if config.tracking.enabled:  # before any work: an unreachable server fails at once
+        check_reachable(tracking_uri(config))
+    from lightning.fabric.connector import _is_using_cli
+
+    echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
+    fabric = make_fabric(config)
+    hooks = Hooks(echo, on_round, on_start, show_runs)
+    if config.runtime.world_size == 1 or _is_using_cli():
+        return _main(fabric, config, parent_run_id, tags, hooks, resume)
+    return _launch(fabric, config, parent_run_id, tags, hooks, resume)
+
+
+def _launch(fabric, config: ExperimentConfig, *args):
+    """``fabric.launch(_main, ...)``. While the processes join (torch's rendezvous, which
+    blocks in C++ where Python's signal handlers never run) SIGTERM and Ctrl-C keep their
+    default action, ending the process at once: no MLflow run exists yet. A process that
+    waits ``runtime.timeout_s`` for the others in vain is one line."""
+    import signal
+
+    from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
+
+    from fedlgr.errors import FedlgrError
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    for number in handlers:
+        signal.signal(number, signal.SIG_DFL)
+
+    started: list[bool] = []
+
+    def joined(fabric, *rest):
+        started.append(True)
+        for number, handler in handlers.items():
+            signal.signal(number, handler)
+        return _main(fabric, *rest)
+
+    rt = config.runtime
+    try:
+        return fabric.launch(joined, config, *args)
+    except (DistStoreError, DistNetworkError) as err:  # the latter: a process that joins
+        if started:  # mid-run: a peer is gone
+            raise FedlgrError(_peer_message(fabric, err)) from None
+        import os
+
+        where = f"{os.environ.get('MASTER_ADDR', '127.0.0.1')}:{os.environ.get('MASTER_PORT', '?')}"
+        way_out = (
+            "start the other nodes' processes (same command, their NODE_RANK) or check "
+            "MASTER_ADDR/MASTER_PORT"
+            if rt.num_nodes > 1
+            else "this machine's processes start slowly when it is busy: raise runtime.timeout_s"
+        )
+        raise FedlgrError(
+            f"runtime.num_nodes={rt.num_nodes}, runtime.devices={rt.devices}: not every process "
+            f"joined within runtime.timeout_s={rt.timeout_s:g} s at {where} "
+            f"({_one_line(err)}); {way_out}"
+        ) from None
+    except RuntimeError as err:  # after DistStoreError, one of its kind
+        if not (isinstance(err, DistBackendError) or _peer_lost(err)):
+            raise
+        raise FedlgrError(_peer_message(fabric, err)) from None
+    finally:
+        for number, handler in handlers.items():
+            if signal.getsignal(number) is signal.SIG_DFL:
+                signal.signal(number, handler)
+
+
+def _resume_point(
+    fabric, config: ExperimentConfig, resume, adopt: frozenset[str] = frozenset()
+) -> tuple[str, dict] | None:
+    """Rank 0 finds the run and its checkpoint; every process then reads it (one machine,
+    or a checkpoint folder every node can reach). A refusal is raised in every process."""
+    from fedlgr.errors import FedlgrError
+    from fedlgr.shell.run.resume import find_checkpoint, load_checkpoint
+    from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
+
+    if not resume:
+        return None
+    if not config.tracking.enabled:
+        raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
+    found: tuple[str, str] | str = ""
+    if fabric.global_rank == 0:
+        try:
+            run_id, path = find_checkpoint(config, resume, open_client(tracking_uri(config)))
+            found = (run_id, str(path))
+        except FedlgrError as err:
+            found = str(err)
+    if fabric.world_size > 1:
+        found = fabric.broadcast(found, src=0)
+    if isinstance(found, str):
+        raise FedlgrError(found)
+    run_id, path = found
+    try:
+        return run_id, load_checkpoint(config, run_id, Path(path), adopt)
+    except BaseException:
+        from fedlgr.shell.run import owner
+
+        owner.release(Path(path).parent)  # claimed by find_checkpoint (rank 0)
+        raise
+
+
+def _main(
+    fabric, config: ExperimentConfig, parent_run_id, tags, hooks: Hooks, resume=None
+) -> ExperimentResult | None:
+    import torch
+    from lightning.fabric import seed_everything
+
+    from fedlgr.shell.data.dataset import load_scenes
+    from fedlgr.shell.data.splits import make_split
+    from fedlgr.shell.run.resume import MACHINE_CHOSEN, adopt_settings, restore
+
+    chosen, share = config.runtime.threads, None
+    # What this launch leaves to the machine: a resumed run takes its own values instead.
+    left = {"runtime.threads": chosen, "runtime.workers": config.runtime.workers}
+    left["runtime.concurrency"] = None if config.runtime.concurrency == "auto" else "set"
+    machine = frozenset(k for k in MACHINE_CHOSEN if left[k] is None)
+    if fabric.device.type == "cpu":
+        # Results depend on the thread count (the order of floating-point sums): the
+        # effective count goes into the config, its params and its checkpoints.
+        local_world = fabric.world_size // config.runtime.num_nodes
+        threads = torch_threads(config, local_world)
+        share = None if chosen is not None else max(1, available_cores() // local_world)
+        torch.set_num_threads(threads)
+        config = dataclasses.replace(
+            config, runtime=dataclasses.replace(config.runtime, threads=threads)
+        )
+    # How this process's clients train, made explicit (recorded like the thread count).
+    local_clients = len(range(fabric.global_rank, config.data.clients, fabric.world_size))
+    config = concurrency.resolve(config, fabric.device, local_clients)
+    seed_everything(config.seed, verbose=False)
+    start = time.perf_counter()
+    point = _resume_point(fabric, config, resume, machine)
+    if point is not None and machine:
+        config = adopt_settings(config, point[1]["config"], machine)
+        if fabric.device.type == "cpu" and config.runtime.threads:
+            torch.set_num_threads(config.runtime.threads)
+    show = fabric.global_rank == 0 and config.runtime.progress
+    with Progress("decoding images", "img", show) as bar:  # only when not cached yet
+        scenes = load_scenes(config.data, progress=bar)
+    split = make_split(scenes.table, config.data)
+    orchestrator = Orchestrator(fabric, config, scenes, split)
+    resumed = None
+    if point is not None:
+        state = point[1]
+        resumed = Resumed(
+            point[0],
+            restore(fabric, orchestrator, state),
+            state["elapsed"],
+            Path(state["path"]).parent,
+            state.get("data_digest", ""),
+        )
+    processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
+    recorder = Recorder(
+        config,
+        hooks,
+        rank0=fabric.global_rank == 0,
+        tags=tags,
+        parent_run_id=parent_run_id,
+        what=f"{len(split.train)} training / {len(split.test)} test scenes{processes}, "
+        + _threads_text(config, share),
+        resumed=resumed,
+        start=start,
+    )
+    return run_rounds(orchestrator, config, recorder)
+
+
+def _threads_text(config: ExperimentConfig, share: int | None) -> str:
+    """The header's account of the torch threads each process uses, and why when the
+    default chose fewer than the process's ``share`` of the cores (others are busy)."""
+    import torch
+
+    rt = config.runtime
+    threads = torch.get_num_threads()
+    text = f"{threads} torch thread{'s' if threads != 1 else ''}"
+    if share is not None and threads < share:
+        text += f" (of {share} cores: the others are busy; runtime.threads to choose)"
+    if rt.concurrency == "threads" and rt.workers > 1:
+        text += f", {rt.workers} clients side by side"
+    return text
+
+
+def _peer_message(fabric, err: BaseException) -> str:
+    return (
+        f"another process of this {fabric.world_size}-process run ended during an exchange "
+        f"({_one_line(err)}); its own output says why (killed, or an error); the run is "
+        "ended FAILED and --resume continues it from its last checkpoint"
+    )
+
+
+def _peer_lost(err: BaseException) -> bool:
+    """A collective failed because another process of the run is gone (gloo's words)."""
+    text = str(err)
+    return "gloo" in text and any(
+        w in text for w in ("Connection reset by peer", "Connection closed by peer", "Read error")
+    )
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__

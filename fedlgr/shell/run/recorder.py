@@ -1,0 +1,311 @@
+"""What a run records while the round loop (:func:`fedlgr.shell.run.loop.run_rounds`)
+runs it: the :class:`Recorder`.
+
+In rank 0, with ``tracking.enabled``, it opens the run's MLflow run (a new one, or the
+resumed run's), logs each round's metrics with the FCL forgetting figures, tags the
+clients that dropped out (``fedlgr.missing``), and at the end saves results.csv, the
+curves and the cost summary and ends the run FINISHED. It checkpoints every
+``tracking.checkpoint`` rounds and after the last one (every process takes part, rank 0
+writes), owns the checkpoint folder while the run goes on, and removes it once the run
+has finished. A run that raises - a round's error, Ctrl-C or SIGTERM, a hook that stops
+it (a sweep's pruner) - keeps what it had and is ended FAILED, or KILLED. In rank 0 it
+also says on the console what the run does, and tells the caller's :class:`Hooks`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from fedlgr.core.forgetting import ForgettingTracker
+from fedlgr.core.messages import RoundPlan
+from fedlgr.core.records import RoundLog
+from fedlgr.core.schedule import Schedule
+from fedlgr.shell.config import ExperimentConfig
+from fedlgr.shell.run import owner
+from fedlgr.shell.run.checkpoint import checkpoint_root, checkpoints, remove, remove_temporaries
+from fedlgr.shell.run.result import ExperimentResult
+from fedlgr.shell.tracking.context import data_digest, run_name
+from fedlgr.shell.tracking.mlflow_run import Tracker, tracking_uri
+from fedlgr.shell.tracking.plots import curves_png
+from fedlgr.shell.tracking.server import runs_hint
+
+Metrics = dict[str, float]
+# ``save(folder, rounds, run_id, elapsed, keep, digest)``: a runtime's checkpoint writer
+# (:meth:`fedlgr.shell.run.loop.Rounds.save`).
+Save = Callable[[Path | None, list[RoundLog], str | None, float, int, str], object]
+
+
+@dataclass
+class Hooks:
+    """What the caller of a run hears of it (rank 0)."""
+
+    echo: Callable[[str], object]  # a console line (``print``)
+    # after each round is logged and checkpointed (a resumed run first repeats the rounds
+    # it restored); raising stops the run: KILLED if the exception has ``mlflow_status =
+    # "KILLED"`` (a sweep's pruner), FAILED otherwise
+    on_round: Callable[[int, Metrics], object] | None = None
+    on_start: Callable[[str], object] | None = None  # the MLflow run's id, once it exists
+    show_runs: bool = True  # say at the end where to see the run in MLflow's UI
+
+
+@dataclass
+class Resumed:
+    """A run picked up again from its last checkpoint."""
+
+    run_id: str
+    rounds: list[RoundLog]
+    elapsed: float
+    folder: Path | None = None  # the checkpoint folder it was resumed from (this process owns it)
+    digest: str = ""  # of the data it trains on (checked against the checkpoint's)
+
+
+class Recorder:
+    """One run's records: :meth:`recording` around the round loop, :meth:`record`,
+    :meth:`checkpoint` (when :meth:`checkpoint_due`) and :meth:`tell` for each round,
+    :meth:`summary` after it. ``start``: when the run's work began (``perf_counter``;
+    default: now); ``what``: the header's account of the runtime."""
+
+    def __init__(
+        self,
+        config: ExperimentConfig,
+        hooks: Hooks,
+        *,
+        rank0: bool = True,
+        tags: dict[str, str] | None = None,
+        parent_run_id: str | None = None,
+        what: str = "",
+        resumed: Resumed | None = None,
+        start: float | None = None,
+    ):
+        self.config, self.hooks, self.rank0 = config, hooks, rank0
+        self.tags, self.parent_run_id, self.what = tags, parent_run_id, what
+        self.resumed = resumed
+        self.start = time.perf_counter() if start is None else start
+        self.elapsed = resumed.elapsed if resumed is not None else 0.0  # before this launch
+        self.result = ExperimentResult(config)
+        self.forgetting = ForgettingTracker(list(config.continual.tasks))
+        self.tracker: Tracker | None = None  # rank 0, tracking.enabled
+        self.folder: Path | None = None  # the run's checkpoint folder (with the tracker)
+        self.old = resumed.folder if resumed is not None else None  # where its checkpoints were
+        # every process checkpoints (rank 0 writes): every ``every`` rounds, 0: never
+        self.every = config.tracking.checkpoint if config.tracking.enabled else 0
+        self.total = 0  # rounds in the schedule
+        self.missed: list[str] = []  # "round 2: client 1" (fedlgr.missing)
+
+    def say(self, text: str) -> None:
+        """A console line (rank 0)."""
+        if self.rank0:
+            self.hooks.echo(text)
+
+    # ------------------------------------------------------------------ the run
+
+    @contextlib.contextmanager
+    def recording(self, steps: Schedule) -> Iterator[ExperimentResult]:
+        """The run around the rounds of ``steps``: restores a resumed run's rounds, opens
+        the MLflow run and says what the run does; the result (its rounds so far) goes to
+        the loop. At the end, the artifacts and FINISHED; on an exception the failure
+        record. Checkpoints left behind are removed once they are of no use."""
+        self.total = len(steps)
+        replayed = self._restore(steps)
+        self._open()
+        self._announce()
+        try:  # from here on the MLflow run exists: whatever happens, it is ended
+            self._start(replayed)
+            yield self.result
+            self._finish()
+        except BaseException as err:
+            if self.tracker is not None:
+                self._record_failure(self.tracker, err)
+            raise
+        finally:
+            self._clean_up()
+
+    def _restore(self, steps: Schedule) -> list[tuple[int, Metrics]]:
+        """A resumed run's rounds and after-task figures; each restored round's metrics."""
+        replayed: list[tuple[int, Metrics]] = []
+        if self.resumed is None:
+            return replayed
+        self.result.rounds = self.resumed.rounds
+        for log, plan in zip(self.result.rounds, steps, strict=False):
+            metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
+            if plan.last_of_task:  # the "after task" figures, as they were computed then
+                metrics.update(self.forgetting.end_of_task(log, plan.task))
+            replayed.append((log.round, metrics))
+        self.result.after_tasks = self.forgetting.after
+        return replayed
+
+    def _open(self) -> None:
+        """The MLflow run (rank 0, tracking.enabled); where its checkpoints go."""
+        config, resumed = self.config, self.resumed
+        if not (self.rank0 and config.tracking.enabled):
+            return
+        run_id = resumed.run_id if resumed is not None else None
+        if config.tracking.checkpoint:  # before the MLflow run exists
+            try:
+                owner.check_folder(checkpoint_root(config, tracking_uri(config)))
+            except BaseException:
+                owner.release(resumed.folder if resumed is not None else None)
+                raise
+        digest = (resumed.digest if resumed is not None else "") or data_digest(config)
+        try:
+            tracker = Tracker(config, self.tags, self.parent_run_id, run_id=run_id, digest=digest)
+        except BaseException:
+            owner.release(self.old)
+            raise
+        self.tracker = tracker
+        self.folder = checkpoint_root(config, tracking_uri(config)) / str(tracker.run_id)
+        self.result.run_id, self.result.data_digest = tracker.run_id, digest
+
+    def _announce(self) -> None:
+        config = self.config
+        tasks = list(config.continual.tasks)
+        plan = (
+            f"{len(tasks)} tasks ({', '.join(tasks)}) x {config.continual.rounds_per_task} rounds"
+            if tasks
+            else f"{config.federated.rounds} rounds"
+        )
+        self.say(
+            f"{run_name(config)}: {plan} x {config.train.epochs} local epochs, "
+            f"{config.data.clients} clients" + (f", {self.what}" if self.what else "")
+        )
+        if self.resumed is not None:
+            done = len(self.result.rounds)
+            self.say(f"resuming run {self.resumed.run_id} after round {done} of {self.total}")
+
+    def _start(self, replayed: list[tuple[int, Metrics]]) -> None:
+        """Own the checkpoint folder, tell ``on_start``; show the restored rounds again."""
+        tracker = self.tracker
+        if tracker is not None:
+            if self.every and self.folder is not None:
+                owner.claim(self.folder, str(tracker.run_id))  # this process owns the run
+                remove_temporaries(self.folder)  # of a write a kill cut short
+                tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(self.folder))
+            if self.hooks.on_start is not None:
+                self.hooks.on_start(str(tracker.run_id))
+        # A run killed after a checkpoint but before ``on_round`` saw that round (e.g. a
+        # sweep's report to Optuna) would lose it: the restored rounds are shown again (a
+        # sweep ignores the repeats).
+        for round_, metrics in replayed:
+            self.tell(round_, metrics)
+
+    def _finish(self) -> None:
+        """The run's time; its artifacts, summary and description; FINISHED."""
+        result = self.result
+        result.seconds = self.elapsed + time.perf_counter() - self.start
+        tracker = self.tracker
+        if tracker is None:
+            return
+        name = run_name(self.config)
+        tracker.save_results(result.rows(), curves_png(result.rows(), name))
+        tracker.log_summary(result.cost_means(), len(result.rounds))
+        heading = f"{name} after {self.total} rounds ({result.seconds:.0f} s)"
+        tracker.describe(heading, result.summary())
+        tracker.finish()
+
+    def _clean_up(self) -> None:
+        """A finished run needs no checkpoint; one that ended before its first checkpoint
+        leaves no empty folder. Either way the folders are released."""
+        tracker, folder, old = self.tracker, self.folder, self.old
+        ours = not self.config.tracking.checkpoint_dir  # its root is fedlgr's checkpoints/
+        if tracker is not None and getattr(tracker, "finished", False):
+            if self.every and folder is not None:
+                remove(folder, ours)
+            if old is not None:  # also when resumed with tracking.checkpoint=0
+                remove(old)
+        elif folder is not None and self.every and not checkpoints(folder) and folder != old:
+            remove(folder, ours)  # ended before its first checkpoint: only its lock file
+        owner.release(folder)
+        owner.release(old)
+
+    # ------------------------------------------------------------------ each round
+
+    def record(self, plan: RoundPlan, log: RoundLog) -> Metrics:
+        """The round ``plan`` has run: its log joins the result; its metrics (forgetting
+        and after-task figures too) are logged to MLflow, and returned."""
+        self.result.rounds.append(log)
+        metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
+        if plan.last_of_task:
+            metrics.update(self.forgetting.end_of_task(log, plan.task))
+            self.result.after_tasks = self.forgetting.after
+        tracker = self.tracker
+        if tracker is not None:
+            if log.initial:  # federated.server_eval: the initial model, at step 0
+                tracker.log_initial(log.initial)
+            tracker.log_round(plan.round, metrics)
+            if log.missing:  # robots that dropped out (fedlgr deploy)
+                self.missed.append(f"round {plan.round}: client {', '.join(map(str, log.missing))}")
+                tracker.client.set_tag(tracker.run_id, "fedlgr.missing", "; ".join(self.missed))
+        return metrics
+
+    def checkpoint_due(self, round_: int) -> bool:
+        """Every ``tracking.checkpoint`` rounds, and after the last one."""
+        return bool(self.every) and (round_ % self.every == 0 or round_ == self.total)
+
+    def checkpoint(self, save: Save) -> None:
+        """Checkpoint the rounds so far through the runtime's ``save`` (every process);
+        a resumed run's checkpoints in a folder no longer its own are removed."""
+        result = self.result
+        spent = self.elapsed + time.perf_counter() - self.start
+        keep = self.config.tracking.keep_checkpoints
+        save(self.folder, result.rounds, result.run_id, spent, keep, result.data_digest)
+        old, folder = self.old, self.folder
+        if old is not None and old != folder and folder is not None:
+            remove(old)  # moved (tracking.checkpoint_dir changed): the old one is stale
+            self.say(f"checkpoints moved from {old} to {folder}")
+            self.old = None
+
+    def tell(self, round_: int, metrics: Metrics) -> None:
+        """The caller's ``on_round`` (rank 0), which may raise to stop the run."""
+        if self.hooks.on_round is not None and self.rank0:
+            self.hooks.on_round(round_, metrics)
+
+    # ------------------------------------------------------------------ the end
+
+    def summary(self) -> ExperimentResult | None:
+        """Say the run's summary, and where to see it in MLflow's UI; the result in rank 0,
+        None in other processes."""
+        if not self.rank0:
+            return None
+        result = self.result
+        self.say(f"\n{run_name(self.config)} after {self.total} rounds ({result.seconds:.0f} s):")
+        self.say(result.summary())
+        tracker = self.tracker
+        if tracker is not None and self.hooks.show_runs:
+            hint = runs_hint(tracker.uri, tracker.experiment_id)
+            if hint:
+                self.say(hint)
+        return result
+
+    def _record_failure(self, tracker: Tracker, err: BaseException) -> None:
+        """Keep what the run had (results.csv, curves, costs) and end it KILLED or FAILED.
+        Every step may fail on its own (a diverged run's NaNs, a store gone away): the run
+        is still ended, and the original error is what the user sees."""
+        result = self.result
+        name = run_name(tracker.config)
+        steps = [
+            ("results.csv", lambda: tracker.save_results(result.rows(), None)),
+            ("curves.png", lambda: tracker.save_results([], curves_png(result.rows(), name))),
+            ("cost summary", lambda: tracker.log_summary(result.cost_means(), len(result.rounds))),
+        ]
+        if result.rounds:
+            for what, action in steps:
+                try:
+                    action()
+                except Exception as problem:  # reported; never raised over err
+                    self.say(f"(while failing: could not record {what}: {_one_line(problem)})")
+        killed = isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
+        try:
+            tracker.fail(interrupted=killed)
+        except Exception as problem:
+            self.say(
+                f"(while failing: could not end MLflow run {tracker.run_id}: {_one_line(problem)})"
+            )
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__

@@ -1,0 +1,190 @@
+"""What a run returns: every round's rows, the after-task figures, and the summary that
+``fedlgr run`` prints at the end (the same for every runtime)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from fedlgr.core.records import RoundLog
+from fedlgr.shell.config import ExperimentConfig
+from fedlgr.shell.console import table
+
+
+@dataclass
+class ExperimentResult:
+    config: ExperimentConfig
+    rounds: list[RoundLog] = field(default_factory=list)
+    run_id: str | None = None
+    data_digest: str = ""  # of the data the run trained on (recorded in its checkpoints)
+    seconds: float = 0.0
+    after_tasks: list[dict[str, float]] = field(default_factory=list)  # FCL: per finished task
+
+    @property
+    def final(self) -> RoundLog:
+        return self.rounds[-1]
+
+    def rows(self) -> list[dict[str, object]]:
+        return [row for r in self.rounds for row in r.rows()]
+
+    def final_metrics(self) -> dict[str, float]:
+        """Everything the run logged, as it stood at the end: the last round's metrics, the
+        after-task summaries and the run-level costs (what a sweep's objective reads)."""
+        out = dict(self.final.metrics()) if self.rounds else {}
+        for after in self.after_tasks:
+            out.update(after)
+        out.update(self.cost_means())
+        return out
+
+    def cost_means(self) -> dict[str, float]:
+        """Per client per round, averaged over clients and rounds (Tables III/IV):
+        ``mean/cost/cpu_s``, ``mean/cost/wall_s``, ``mean/cost/bytes_up``, ... (GPU ones
+        only where measured); the server's per round, and the paper's CPU figure
+        (``mean/cost/paper_cpu_s``), where the server measured itself."""
+        import numpy as np
+
+        out = {}
+        for name, key in (
+            ("cpu_s", "cpu_s"),
+            ("wall_s", "wall_s"),
+            ("gpu_util", "gpu_util"),
+            ("gpu_mem_mb", "gpu_mem_mb"),
+            ("gpu_s", "gpu_s"),
+            ("bytes_up", "bytes_up"),
+            ("bytes_down", "bytes_down"),
+        ):
+            column = np.concatenate([r.column(name) for r in self.rounds]) if self.rounds else []
+            if len(column) and not np.isnan(column).all():
+                out[f"mean/cost/{key}"] = float(np.nanmean(column))
+        server = [r.server for r in self.rounds if "cost/server_cpu_s" in r.server]
+        if server and len(server) == len(self.rounds):
+            cpu = sum(s["cost/server_cpu_s"] for s in server)
+            out["mean/cost/server_cpu_s"] = cpu / len(server)
+            out["mean/cost/server_wall_s"] = sum(s["cost/server_wall_s"] for s in server) / len(
+                server
+            )
+            # The paper's "CPU per client per round" (Tables III/IV): the CPU of the process
+            # that ran the server - its aggregation and, for full-model methods, its
+            # evaluation of the global model - divided by clients x rounds; the clients'
+            # own training was not in it (docs/methods.md, "Table III and IV: what the
+            # paper measured").
+            out["mean/cost/paper_cpu_s"] = cpu / (len(self.rounds[0].table) * len(server))
+        return out
+
+    def summary(self) -> str:
+        """Final per-client scores; costs averaged over all rounds (as Table III reports them);
+        FCL: the scores after each task and the forgetting too."""
+        import numpy as np
+
+        last = self.final
+        scores = ["test_loss", "test_rmse", "test_pcc"]
+        costs = ["cpu_s", "wall_s", "bytes_up"]
+        # Over the rounds a client took part in (a robot that dropped out has NaN rows).
+        per_round = {n: np.stack([r.column(n) for r in self.rounds]) for n in costs}
+        rows = [
+            [
+                f"client {c}",
+                *(float(last.column(n)[c]) for n in scores),
+                *(_nanmean(per_round[n][:, c]) for n in costs),
+            ]
+            for c in range(len(last.table))
+        ]
+        rows.append(
+            ["mean", *(last.mean(n) for n in scores), *(_nanmean(per_round[n]) for n in costs)]
+        )
+        for row in rows:
+            row[-1] = _human_bytes(row[-1])
+        headers = ["client", "loss", "RMSE", "PCC", "CPU s/round", "wall s/round", "upload/round"]
+        text = table(headers, rows)
+        if self.after_tasks:
+            text += "\n\n" + self.task_summary()
+        for section in (self.replay_fidelity(), self.latent_drift()):
+            if section:
+                text += "\n\n" + section
+        return text
+
+    def latent_drift(self) -> str:
+        """FedLGR: the root's latent drift after each round of a later task, mean over
+        clients (docs/fedlgr.md, "How FedLGR works here")."""
+        names = {
+            "drift": "current scenes",
+            "drift_residual": "after the map",
+            "drift_past": "past scenes (true)",
+            "drift_past_residual": "past, after the map",
+        }
+        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        # Columns nothing was measured in (no compensation: no residuals) are left out.
+        present = [
+            n for n in present if any(log.mean(f"lgr_{n}") is not None for log in self.rounds)
+        ]
+        rows = []
+        for log in self.rounds:
+            values = [log.mean(f"lgr_{n}") for n in present]
+            if any(v is not None for v in values):
+                rows.append(
+                    [f"round {log.round} ({log.task})", *("-" if v is None else v for v in values)]
+                )
+        if not rows:
+            return ""
+        headers = ["", *(names[n] for n in present)]
+        return "latent drift since the task's start (FD, 0 = none):\n" + table(headers, rows)
+
+    def replay_fidelity(self) -> str:
+        """FedLGR: the replay's fidelity at each task end, mean over clients (docs/fedlgr.md)."""
+        names = {"fd_latent": "FD latents", "recon_mse": "recon MSE (held-out)"}
+        names |= {"fd_labels": "FD labeller outputs", "vae_epochs": "VAE epochs kept"}
+        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        rows = []
+        for log in self.rounds:
+            values = [log.mean(f"lgr_{n}") for n in present]
+            if any(v is not None for v in values):
+                rows.append(
+                    [
+                        f"end of {log.task} (round {log.round})",
+                        *("-" if v is None else v for v in values),
+                    ]
+                )
+        if not rows:
+            return ""
+        headers = ["", *(names[n] for n in present)]
+        return "replay fidelity (0 = the real latents):\n" + table(headers, rows)
+
+    def task_summary(self) -> str:
+        """After each task: scores on all tasks seen so far, and each past task's forgetting
+        (positive: forgotten; loss/RMSE now - then, PCC then - now)."""
+        tasks = list(self.config.continual.tasks)
+        rows = []
+        for k, after in enumerate(self.after_tasks):
+            seen = "+".join(tasks[: k + 1])
+            row = [
+                f"after {tasks[k]}",
+                seen,
+                *(after[f"after_task{k + 1}/test/{m}"] for m in ("loss", "rmse", "pcc")),
+            ]
+            forgot = [
+                f"{t}: RMSE {after[f'after_task{k + 1}/forgetting/{t}/rmse']:+.3f} "
+                f"PCC {after[f'after_task{k + 1}/forgetting/{t}/pcc']:+.3f}"
+                for t in tasks[:k]
+            ]
+            rows.append([*row, "; ".join(forgot) or "-"])
+        return table(["task", "tested on", "loss", "RMSE", "PCC", "forgetting"], rows)
+
+
+def _nanmean(values) -> float:
+    """The mean of the values that are not NaN (NaN when there are none, without numpy's
+    warning)."""
+    import numpy as np
+
+    present = np.asarray(values, dtype=float)
+    present = present[~np.isnan(present)]
+    return float(present.mean()) if present.size else math.nan
+
+
+def _human_bytes(n: float | None) -> str:
+    if n is None or math.isnan(n):
+        return "-"
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)

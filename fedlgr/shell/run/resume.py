@@ -1,0 +1,297 @@
+"""A running experiment's checkpoints, and picking a run up again (``fedlgr run --resume``).
+
+A checkpoint holds everything the next round depends on, so that a resumed run computes
+bit for bit what the uninterrupted run would have (on CPU, for the same thread count):
+every client's model, optimiser, plug-in state (CL importance, rehearsal memory, FedLGR's
+generator and labeller, FedDistill's teacher) and batch/augmentation generators; the
+server's global tensors and strategy state (FedOpt's moments); each process's global RNG
+states; the rows of every round so far; the resolved config; the MLflow run id. Files,
+their place and atomic writing: :mod:`fedlgr.shell.run.checkpoint`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from fedlgr import __version__
+from fedlgr.core.in_process import Orchestrator
+from fedlgr.core.records import RoundLog
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.config import ExperimentConfig, flatten
+from fedlgr.shell.run import checkpoint as ckpt
+from fedlgr.shell.run.checkpoint import to_device
+
+CPU = torch.device("cpu")
+
+
+def _gather(fabric, part: dict) -> list[dict] | None:
+    """Every process's ``part`` on rank 0 (None elsewhere). Fabric's collectives move
+    tensors only; client states are nested dicts, hence torch.distributed's object
+    gather (gloo on CPU, the backend Fabric set up otherwise)."""
+    if fabric.world_size == 1:
+        return [part]
+    import torch.distributed as dist
+
+    parts = [None] * fabric.world_size if fabric.global_rank == 0 else None
+    dist.gather_object(part, parts, dst=0)
+    return parts
+
+
+def save_checkpoint(
+    fabric,
+    folder: Path | None,
+    orchestrator: Orchestrator,
+    rounds: list[RoundLog],
+    run_id: str | None,
+    elapsed: float,
+    keep: int,
+    digest: str = "",
+) -> Path | None:
+    """Checkpoint the run after its last round in ``rounds`` (every process calls this;
+    rank 0 writes)."""
+    state = orchestrator.state_dict()
+    part = {"clients": to_device(state["clients"], CPU), "rng": ckpt.rng_states()}
+    parts = _gather(fabric, part)
+    whole: dict[str, Any] = {}
+    if parts is not None:
+        clients = {i: c for p in parts for i, c in p["clients"].items()}
+        rng = [p["rng"] for p in parts]  # per process
+        whole = checkpoint_state(
+            orchestrator.config, run_id, rounds, state["server"], clients, rng, elapsed, digest
+        )
+    target = folder if folder is not None else Path(".")  # only rank 0's folder is used
+    return ckpt.save(fabric, target, rounds[-1].round, whole, keep)
+
+
+def checkpoint_state(
+    config: ExperimentConfig,
+    run_id: str | None,
+    rounds: list[RoundLog],
+    server: dict,
+    clients: dict,
+    rng: list,
+    elapsed: float,
+    digest: str,
+) -> dict[str, Any]:
+    """A run's checkpoint after its last round in ``rounds`` (every runtime's)."""
+    return {
+        "format": ckpt.FORMAT,
+        "fedlgr": __version__,
+        "run_id": run_id,
+        "round": rounds[-1].round,
+        "config": flatten(config),
+        "server": to_device(server, CPU),
+        "clients": clients,
+        "rng": rng,
+        "rows": [
+            {
+                "round": r.round,
+                "task": r.task,
+                "table": r.table,
+                "seconds": r.seconds,
+                "missing": list(r.missing),
+                "server": r.server,
+                "initial": r.initial,
+            }
+            for r in rounds
+        ],
+        "elapsed": elapsed,
+        "data_digest": digest,  # a resume on other data is refused
+    }
+
+
+def restore(fabric, orchestrator: Orchestrator, state: dict[str, Any]) -> list[RoundLog]:
+    """Load ``state`` into the orchestrator and this process's RNGs; the rounds so far."""
+    orchestrator.load_state_dict(state)
+    ckpt.set_rng_states(state["rng"][fabric.global_rank])
+    return restored_rounds(state, orchestrator.fields)
+
+
+def restored_rounds(state: dict[str, Any], fields) -> list[RoundLog]:
+    """A checkpoint's rounds (``missing``: robots that dropped out; none before fedlgr
+    recorded them)."""
+    return [
+        RoundLog(
+            r["round"],
+            r["task"],
+            fields,
+            np.asarray(r["table"]),
+            r["seconds"],
+            tuple(r.get("missing", ())),
+            dict(r.get("server", {})),
+            dict(r.get("initial", {})),
+        )
+        for r in state["rows"]
+    ]
+
+
+# --------------------------------------------------------------------------- which run
+
+
+def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tuple[str, Path]:
+    """The run to resume (``resume``: its id, or True for the latest unfinished run of
+    this config) and its newest checkpoint; dead RUNNING runs are marked KILLED, a live
+    one is refused."""
+    from fedlgr.shell.run import owner
+    from fedlgr.shell.tracking.mlflow_run import dead_reason, experiment_id, tracking_uri
+
+    uri = tracking_uri(config)
+    if resume is True:
+        run = _latest_unfinished(config, client, experiment_id(client, config.tracking.experiment))
+    else:
+        try:
+            run = client.get_run(str(resume))
+        except Exception:
+            raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
+    run_id = run.info.run_id
+    folder = checkpoint_folder(run, config)
+    for _ in range(3):  # a resume under way may move the run's checkpoints meanwhile
+        if folder.is_dir():
+            break
+        run = client.get_run(run_id)
+        if (moved := checkpoint_folder(run, config)) == folder:
+            break
+        folder = moved
+    if run.info.status == "FINISHED":
+        raise FedlgrError(
+            f"--resume: run {run_id} has finished; there is nothing to resume"
+            + remove_leftover(folder, run_id)
+        )
+    if not ckpt.checkpoints(folder):
+        if folder.is_dir():  # e.g. the folder a live owner moved its checkpoints to
+            owner.claim(folder, run_id)  # refused, naming that owner
+            owner.release(folder)
+        raise FedlgrError(
+            f"--resume: run {run_id} has no checkpoint in {folder} (it stopped before its first "
+            "checkpoint, or tracking.checkpoint=0); start it over without --resume"
+        )
+    owner.claim(folder, run_id)  # from here on no other process can resume it too
+    try:
+        run = client.get_run(run_id)  # as it is now that we own it: its last owner has ended
+        if run.info.status == "FINISHED":
+            raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
+        if run.info.status == "RUNNING":
+            reason = dead_reason(run)
+            if reason is None:
+                tags = run.data.tags
+                raise FedlgrError(
+                    f"--resume: run {run_id} is still running (process "
+                    f"{tags.get('fedlgr.pid')} on {tags.get('fedlgr.host')}); stop it first, "
+                    "or wait until it ends"
+                )
+            client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
+            client.set_terminated(run_id, "KILLED")
+        found = ckpt.checkpoints(folder)
+        if not found:
+            raise FedlgrError(f"--resume: run {run_id}'s checkpoints in {folder} are gone")
+    except BaseException:
+        owner.release(folder)
+        raise
+    return run_id, found[-1]
+
+
+def remove_leftover(folder: Path, run_id: str) -> str:
+    """Remove the checkpoint folder a finished run left behind (killed between its end and
+    the folder's removal); what was done, as a clause for a message ("" if nothing)."""
+    from fedlgr.shell.run import owner
+
+    if not folder.is_dir():
+        return ""
+    try:
+        owner.claim(folder, run_id)  # an owner still finishing it removes the folder itself
+    except FedlgrError:
+        return ""
+    size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+    owner.release(folder)
+    ckpt.remove(folder)
+    return f" (removed the checkpoint folder it left behind, {folder}: {size / 2**20:.0f} MB)"
+
+
+def checkpoint_folder(run, config: ExperimentConfig) -> Path:
+    """Where ``run`` keeps its checkpoints: where this config puts them (next to the store,
+    or under ``tracking.checkpoint_dir``) if they are there - a store moved or copied with
+    its checkpoints, a folder named on the command line - else the run's tag."""
+    from fedlgr.shell.tracking.mlflow_run import tracking_uri
+
+    here = ckpt.checkpoint_root(config, tracking_uri(config)) / run.info.run_id
+    tagged = run.data.tags.get("fedlgr.checkpoints")
+    if not tagged or ckpt.checkpoints(here):
+        return here
+    return Path(tagged)
+
+
+def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
+    query = (
+        f"tags.`fedlgr.config_hash` = '{ckpt.fingerprint(config)}' "
+        "and attributes.status != 'FINISHED'"
+    )
+    runs = client.search_runs([experiment], query, order_by=["attributes.start_time DESC"])
+    if not runs:
+        # A run of this config that another launch just finished is named: two launches
+        # resuming at once are told which run the other one finished.
+        finished = client.search_runs(
+            [experiment],
+            f"tags.`fedlgr.config_hash` = '{ckpt.fingerprint(config)}'",
+            order_by=["attributes.start_time DESC"],
+            max_results=1,
+        )
+        newest = f" (run {finished[0].info.run_id} has finished)" if finished else ""
+        raise FedlgrError(
+            f"--resume: no unfinished run of this config in MLflow experiment "
+            f"{config.tracking.experiment!r}{newest}; give a run id (--resume RUN_ID), or "
+            "start the run without --resume"
+        )
+    return runs[0]
+
+
+MACHINE_CHOSEN = ckpt.MACHINE_CHOSEN
+
+
+def load_checkpoint(
+    config: ExperimentConfig, run_id: str, path: Path, adopt: frozenset[str] = frozenset()
+) -> dict[str, Any]:
+    """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``; settings
+    in ``adopt`` (this launch left them to the machine) are not compared: the run's own
+    values are taken (:func:`adopt_settings`)."""
+    from fedlgr.shell.tracking.context import data_digest
+
+    state = ckpt.load(path, ckpt.RUN_KEYS)
+    if state["run_id"] != run_id:
+        raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")
+    saved = {k: v for k, v in state["config"].items() if k not in adopt}
+    changed = ckpt.differences(saved, {k: v for k, v in flatten(config).items() if k not in adopt})
+    if changed:
+        more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
+        shown = "; ".join(changed[:5]) + more
+        raise FedlgrError(
+            f"--resume: the config differs from run {run_id}'s checkpoint in {shown}; resume "
+            "with the run's own settings, or start a new run without --resume"
+        )
+    saved_digest = state.get("data_digest", "")  # "" in checkpoints of older fedlgr
+    if saved_digest and (now := data_digest(config)) != saved_digest:
+        raise FedlgrError(
+            f"--resume: the data in data.path={config.data.path} is not the data run {run_id} "
+            f"trained on (dataset digest {now}, the checkpoint's {saved_digest}); resume on "
+            "the run's own data, or start a new run without --resume"
+        )
+    return {**state, "path": str(path)}
+
+
+def adopt_settings(
+    config: ExperimentConfig, saved: dict[str, str], keys: frozenset[str]
+) -> ExperimentConfig:
+    """``config`` with the checkpoint's values (``saved``: its flattened config) of the
+    machine-chosen settings ``keys``."""
+    changes: dict[str, Any] = {}
+    for key in keys:
+        value = saved.get(key)
+        if value is None or value == "None":
+            continue
+        name = key.removeprefix("runtime.")
+        changes[name] = int(value) if name in ("threads", "workers") else value
+    return dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **changes))

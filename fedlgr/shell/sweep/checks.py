@@ -1,0 +1,164 @@
+"""What a sweep checks before its first trial trains: every trial's config loads, the
+objective is a metric its runs log, and the data is there.
+
+A grid of up to :data:`EXHAUSTIVE` points is checked point by point. A larger grid, and a
+TPE space, is checked one parameter at a time: each value of each parameter (a range: its
+two ends) with every other parameter at its first value - for each base config, when the
+space chooses it (``config``). A 400,000-point grid of 60 values then costs about 60
+config loads (~25 ms each), not 400,000; a combination that only fails together fails
+in its trial, with its error in the trial table.
+"""
+
+from __future__ import annotations
+
+import difflib
+import itertools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from fedlgr.errors import ConfigError
+from fedlgr.shell.config import ExperimentConfig
+from fedlgr.shell.sweep.spec import CONFIG_KEY, Param, SweepSpec
+
+EXHAUSTIVE = 64  # grids up to this size have every point's config built
+
+
+def probe_points(spec: SweepSpec) -> list[dict[str, Any]]:
+    """The trial points whose configs are checked (see the module's docstring)."""
+    if spec.sampler == "grid" and spec.n_trials <= EXHAUSTIVE:
+        return list(spec.grid_points())
+    chooser = next((p for p in spec.params if p.name == CONFIG_KEY), None)
+    points = []
+    for base in _values(chooser) if chooser else [None]:
+        first = {p.name: base if p is chooser else _values(p)[0] for p in spec.params}
+        points.append(first)
+        for p in spec.params:
+            if p is not chooser:
+                points += [{**first, p.name: v} for v in _values(p)[1:]]
+    return points
+
+
+def _data_points(spec: SweepSpec) -> list[dict[str, Any]]:
+    """A point for each combination of the values that choose the data (``data.path``,
+    ``config``), the other parameters at their first value."""
+    choosers = [p for p in spec.params if p.name in (CONFIG_KEY, "data.path")]
+    first = {p.name: _values(p)[0] for p in spec.params}
+    return [
+        {**first, **dict(zip([p.name for p in choosers], combo, strict=True))}
+        for combo in itertools.product(*(_values(p) for p in choosers))
+    ]
+
+
+def _values(p: Param) -> list[Any]:
+    """A grid's or choices' values; a range's ends (as Optuna fits them to its step)."""
+    if p.values:
+        return list(p.values)
+    d = p.distribution()
+    return [d.low, d.high]
+
+
+def _load(spec: SweepSpec, point: dict[str, Any]) -> ExperimentConfig:
+    """The config of the trial at ``point``. A ``data.path`` left to the user (``???`` in
+    the MANNERS-DB presets) is filled with a placeholder."""
+    from fedlgr.shell.config import load_config
+
+    base, overrides = spec.trial_config_args(point)
+    try:
+        return load_config(base, overrides)
+    except ConfigError as err:
+        if "data.path: no value" not in str(err):
+            raise ConfigError(f"{spec.path}: trial {point}: {err}") from err
+        return load_config(base, [*overrides, "data.path=/path/to/manners-db"])
+
+
+def tracking_experiment(spec: SweepSpec) -> str:
+    """The MLflow experiment its trials' configs name: what a ``tracking.experiment=NAME``
+    override (the sweep file's or the command line's) sets, resolved and checked as in a
+    trial's config."""
+    return _load(spec, {p.name: _values(p)[0] for p in spec.params}).tracking.experiment
+
+
+def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) -> None:
+    """Every probed trial's config must load and log the objective's metric, so that a
+    typo in a key or in the metric's name fails now rather than in every trial."""
+    points = probe_points(spec)
+    if spec.sampler == "grid" and spec.n_trials > EXHAUSTIVE:
+        echo(
+            f"sweep {spec.name}: checking its {spec.n_trials:,}-point grid one parameter at "
+            f"a time ({len(points)} configs); the points are built as trials take them"
+        )
+    logged_by_some = False
+    for point in points:
+        logged = run_metrics(_load(spec, point))
+        if spec.metric in logged:
+            logged_by_some = True
+            continue
+        if logged_by_some:
+            raise ConfigError(
+                f"{spec.path}: objective.metric: {spec.metric} is not logged by the runs of "
+                f"trial {point}"
+            )
+        shown = sorted(m for m in logged if "/client" not in m)
+        close = difflib.get_close_matches(spec.metric, shown, n=1)
+        hint = f" - did you mean {close[0]}?" if close else ""
+        examples = [m for m in shown if m.endswith(("test/rmse", "test/pcc"))][:4]
+        raise ConfigError(
+            f"{spec.path}: objective.metric: {spec.metric} is not a metric these runs log"
+            f"{hint} (they log e.g. {', '.join(examples)}, mean/cost/cpu_s)"
+        )
+
+
+def run_metrics(config: ExperimentConfig) -> set[str]:
+    """The metric names a run of ``config`` can end with - the names a sweep's objective
+    reads from :meth:`ExperimentResult.final_metrics`: the last round's fields (the
+    round's record schema, :func:`fedlgr.core.records.make_fields`, the plugins'
+    fields too) as means and per client, the FCL "after task k" figures
+    (:class:`fedlgr.core.forgetting.ForgettingTracker`) and the cost means. Built
+    from the config alone: nothing trains."""
+    from fedlgr.core.forgetting import METRICS
+    from fedlgr.core.records import COST_FIELDS, client_key, make_fields, method_fields
+    from fedlgr.core.schedule import ALL
+
+    tasks = list(config.continual.tasks)
+    names = {"round/seconds", "round/missing_clients"}
+    # The server's own cost (in-process runtimes), and its evaluation where it runs one.
+    server = ("cost/server_cpu_s", "cost/server_wall_s")
+    names.update([*server, *(f"mean/{k}" for k in server), "mean/cost/paper_cpu_s"])
+    if config.federated.server_evaluates:
+        names.update(f"server/test/{m}" for m in METRICS)
+        names.update(f"server/task/{t}/{m}" for t in tasks for m in METRICS)
+    for field in make_fields(tasks or [ALL]) + method_fields(config):
+        names.add(field.key)
+        names.update(client_key(field.key, c) for c in range(config.data.clients))
+    for k in range(len(tasks)):
+        prefix = f"after_task{k + 1}"
+        names.update(f"{prefix}/test/{m}" for m in METRICS)
+        names.update(f"{prefix}/task/{t}/{m}" for t in tasks[: k + 1] for m in METRICS)
+        names.update(f"{prefix}/forgetting/{t}/{m}" for t in tasks[:k] for m in METRICS)
+    names.update(f"mean/{f.key}" for f in COST_FIELDS if f.key.startswith("cost/"))
+    return names
+
+
+def check_data(spec: SweepSpec) -> None:
+    """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start
+    rather than fail each of its trials on it. (:func:`~fedlgr.shell.sweep.spec.load_sweep`
+    does not ask this, so that a sweep file can be checked without its data.)"""
+    from fedlgr.shell.config import load_config
+
+    seen: set[Path] = set()
+    for point in _data_points(spec):
+        base, overrides = spec.trial_config_args(point)
+        try:
+            path = Path(load_config(base, overrides).data.path)
+        except ConfigError as err:  # data.path left unset (???) by a MANNERS-DB preset
+            raise ConfigError(f"{spec.path}: {err}") from err
+        if path in seen:
+            continue
+        seen.add(path)
+        if not path.is_dir():
+            what = "a file, not the dataset folder" if path.exists() else "no such folder"
+            raise ConfigError(
+                f"{spec.path}: data.path={path}: {what}; set data.path=DIR in the sweep's "
+                "overrides or on the command line"
+            )

@@ -1,0 +1,461 @@
+"""Sweep files: what a sweep varies, over which base config, towards which objective.
+
+A sweep file (``sweeps/NAME.yaml``)::
+
+    description: EWC's lambda, FedAvg and FedRoot (Table II's EWC rows)
+    base: experiment/table2/clients2_noaug.yaml   # under conf/, or a path
+    overrides: [continual.rounds_per_task=5]      # fixed for every trial
+    objective: {metric: test/rmse, direction: minimize}
+    space:
+      method: [FedAvg-EWC, FedRoot-EWC]           # a list: a grid of values
+      continual.ewc.lambda_: [1, 10, 100, 1000]
+
+Each key of ``space`` is a config key (``key=value`` as on the command line); the special
+key ``config`` chooses the base config file itself (for grids over the paper's presets). A
+list is a grid of values; ``{low, high}`` (optionally ``log: true`` or a ``step``) is a
+range and ``{choices: [...]}`` a categorical, both for TPE; each is checked as Optuna would
+take it when the file loads, and every trial's config and the objective with it
+(:mod:`fedlgr.shell.sweep.checks`). ``sampler`` is ``grid`` when every parameter is a list
+(Optuna's ``GridSampler``: every combination once), ``tpe`` otherwise (``TPESampler``;
+``trials`` then says how many). The objective's metric is any metric a run
+logs, read after the last round (``test/rmse`` = the final mean RMSE, after the last task
+for FCL; ``after_task1/test/pcc``, ``mean/cost/cpu_s``, ...). ``pruner`` (``median`` |
+``none``) stops hopeless trials from their per-round values; on by default for TPE, off
+for grids (a grid wants every point measured).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from fedlgr.errors import ConfigError, not_a_file
+from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, check_interpolations, yaml_reason
+
+CONFIG_KEY = "config"  # the space key that chooses the base config file
+DIRECTIONS = ("minimize", "maximize")
+SAMPLERS = ("grid", "tpe")
+PRUNERS = ("median", "none")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One searched setting: a grid (``values``), a range (``low``/``high``) or categorical
+    choices (``values`` with ``categorical``) for TPE."""
+
+    name: str
+    values: tuple[Any, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    step: float | None = None
+    categorical: bool = False
+
+    @property
+    def is_grid(self) -> bool:
+        return bool(self.values) and not self.categorical
+
+    def distribution(self):
+        """Optuna's distribution for this parameter."""
+        from optuna.distributions import (
+            CategoricalDistribution,
+            FloatDistribution,
+            IntDistribution,
+        )
+
+        if self.values:
+            return CategoricalDistribution(list(self.values))
+        integer_step = self.step is None or float(self.step).is_integer()
+        if isinstance(self.low, int) and isinstance(self.high, int) and integer_step:
+            return IntDistribution(self.low, self.high, log=self.log, step=int(self.step or 1))
+        return FloatDistribution(float(self.low), float(self.high), log=self.log, step=self.step)
+
+    def suggest(self, trial) -> Any:
+        """Draw this parameter for an Optuna trial (grid points come from GridSampler)."""
+        from optuna.distributions import CategoricalDistribution, IntDistribution
+
+        d = self.distribution()
+        if isinstance(d, CategoricalDistribution):
+            return trial.suggest_categorical(self.name, d.choices)
+        if isinstance(d, IntDistribution):
+            return trial.suggest_int(self.name, d.low, d.high, step=d.step, log=d.log)
+        return trial.suggest_float(self.name, d.low, d.high, step=d.step, log=d.log)
+
+    def size(self) -> int | None:
+        """How many distinct values the parameter can take; None for a continuous range."""
+        from optuna.distributions import CategoricalDistribution, IntDistribution
+
+        d = self.distribution()
+        if isinstance(d, CategoricalDistribution):
+            return len(d.choices)
+        if isinstance(d, IntDistribution):
+            return (d.high - d.low) // d.step + 1
+        if d.step is None:
+            return None
+        return round((d.high - d.low) / d.step) + 1  # Optuna has fitted high to the step
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    name: str
+    path: Path | None
+    base: Path | None
+    params: tuple[Param, ...]
+    metric: str = "test/rmse"
+    direction: str = "minimize"
+    sampler: str = "grid"
+    trials: int | None = None  # TPE: how many; grid: the grid's size
+    pruner: str = "none"
+    prune_warmup_rounds: int = 2
+    seed: int = 0
+    overrides: tuple[str, ...] = ()
+    experiment: str = ""
+    description: str = ""
+    heartbeat_s: int = 30  # a trial whose worker is silent for 2 heartbeats is retried
+
+    @property
+    def grid(self) -> dict[str, list[Any]]:
+        """GridSampler's search space (grid sweeps)."""
+        return {p.name: list(p.values) for p in self.params}
+
+    def grid_points(self) -> Iterator[dict[str, Any]]:
+        """Every point of the grid, built one at a time (a grid can hold millions)."""
+        names = [p.name for p in self.params]
+        for combo in itertools.product(*(p.values for p in self.params)):
+            yield dict(zip(names, combo, strict=True))
+
+    def space_size(self) -> int | None:
+        """How many distinct points the space holds; None when a range is continuous."""
+        sizes = [p.size() for p in self.params]
+        return None if None in sizes else math.prod(sizes)
+
+    @property
+    def n_trials(self) -> int:
+        if self.sampler == "grid":
+            return math.prod(len(p.values) for p in self.params)
+        return int(self.trials or 0)
+
+    def search_space(self) -> dict[str, Any]:
+        """Optuna distributions per parameter (what the trials are drawn from)."""
+        return {p.name: p.distribution() for p in self.params}
+
+    def trial_config_args(self, params: dict[str, Any]) -> tuple[Path | None, list[str]]:
+        """The base config file and ``key=value`` overrides of a trial with ``params``."""
+        base = self.base
+        overrides = list(self.overrides)
+        for name, value in params.items():
+            if name == CONFIG_KEY:
+                base = resolve_config(value, self.path)
+            else:
+                overrides.append(f"{name}={_as_override(value)}")
+        return base, overrides
+
+
+def _as_override(value: Any) -> str:
+    if value is None:  # a grid's null (YAML): the setting's "unset", e.g. lgr_train_blocks
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_as_override(v) for v in value) + "]"
+    return str(value)
+
+
+def resolve_config(name: str | Path, sweep_path: Path | None = None) -> Path:
+    """A base config named relative to ``conf/`` (``experiment/table1/clients2_noaug.yaml``),
+    to the sweep file, or as a path."""
+    candidates = (Path(name), CONF_DIR / name, *([sweep_path.parent / name] if sweep_path else []))
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate.resolve()
+    for candidate in candidates:  # a FIFO was "no such file" (the tenth fault sweep, d88)
+        if why := not_a_file(candidate):
+            raise ConfigError(f"config {name}: {candidate} is {why}")
+    raise ConfigError(f"config {name}: no such file (looked in ., conf/ and next to the sweep)")
+
+
+def find_sweep(name: str | Path) -> Path:
+    """``sweeps/ewc.yaml``, ``ewc.yaml`` or ``ewc`` -> the sweep file."""
+    path = Path(name)
+    for candidate in (path, SWEEPS_DIR / path, SWEEPS_DIR / f"{path}.yaml"):
+        if candidate.is_file():
+            return candidate
+    # a broken link (u53) or a path under a FIFO or a file (e148) was "no such file"
+    if not path.exists() and (why := not_a_file(path)):
+        raise ConfigError(f"sweep {name}: {why}")
+    if path.exists() and not path.is_dir():  # /dev/zero, a FIFO (seventh fault sweep)
+        raise ConfigError(f"sweep {name}: not a regular file (a device, pipe or socket)")
+    known = ", ".join(sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml")))
+    raise ConfigError(f"sweep {name}: no such file; shipped sweeps: {known}")
+
+
+def load_sweep(
+    path: str | Path,
+    overrides: list[str] | tuple[str, ...] = (),
+    echo: Callable[[str], None] = print,
+) -> SweepSpec:
+    """Read and check a sweep file - every parameter, the configs its trials make and the
+    objective's metric, before anything trains; ``overrides`` (``key=value``) apply to
+    every trial; ``echo`` says so before a long check (a large grid)."""
+    from fedlgr.shell.sweep.checks import check_trial_configs, tracking_experiment
+
+    path = find_sweep(path)
+    raw = read_sweep_file(path)
+
+    def fail(key: str, message: str) -> ConfigError:
+        return ConfigError(f"{path}: {key}: {message}")
+
+    known = {
+        "name",
+        "description",
+        "base",
+        "overrides",
+        "objective",
+        "space",
+        "sampler",
+        "trials",
+        "pruner",
+        "prune_warmup_rounds",
+        "seed",
+        "experiment",
+        "heartbeat_s",
+    }
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        from fedlgr.shell.config import SETTING_NAME
+
+        if not SETTING_NAME.fullmatch(str(unknown[0])):  # a text file: its text is not echoed
+            raise ConfigError(
+                f"{path}: not a sweep file: its top level is not `setting: value` lines "
+                f"({', '.join(sorted(known))})"
+            )
+        raise fail(unknown[0], f"unknown setting; known: {', '.join(sorted(known))}")
+    space = raw.get("space")
+    if not isinstance(space, dict) or not space:
+        raise fail("space", "needs at least one parameter (key: [values] or key: {low, high})")
+    params = tuple(_param(name, value, fail) for name, value in space.items())
+    all_grid = all(p.is_grid for p in params)
+    sampler = raw.get("sampler", "grid" if all_grid else "tpe")
+    if sampler not in SAMPLERS:
+        raise fail("sampler", f"{sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    if sampler == "grid" and not all_grid:
+        ranges = [p.name for p in params if not p.is_grid]
+        raise fail("sampler", f"grid needs a list of values for every parameter, not {ranges}")
+    points = math.prod(len(p.values) for p in params) if sampler == "grid" else 0
+    if points > MAX_GRID_POINTS:
+        raise fail(
+            "space",
+            f"a {points:,}-point grid; at most {MAX_GRID_POINTS:,} (Optuna's GridSampler "
+            f"holds every point in memory, ~{points * (56 + 8 * len(params)) / 1e9:,.0f} GB "
+            "here, and each point is a trial): fewer values, or sampler: tpe with trials: N",
+        )
+    trials = raw.get("trials")
+    if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
+        raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
+    objective = raw.get("objective") or {}
+    if not isinstance(objective, dict) or not isinstance(objective.get("metric", ""), str):
+        raise fail("objective", "expected {metric: NAME, direction: minimize|maximize}")
+    extra = sorted(set(objective) - {"metric", "direction"})
+    if extra:
+        raise fail(f"objective.{extra[0]}", "unknown setting; known: metric, direction")
+    direction = objective.get("direction", "minimize")
+    if direction not in DIRECTIONS:
+        raise fail("objective.direction", f"{direction!r}; choose minimize or maximize")
+    pruner = raw.get("pruner", "median" if sampler == "tpe" else "none")
+    if pruner not in PRUNERS:
+        raise fail("pruner", f"{pruner!r}; choose one of {', '.join(PRUNERS)}")
+    base = raw.get("base")
+    base_path = resolve_config(base, path) if base else None
+    fixed = raw.get("overrides") or []
+    if not isinstance(fixed, list) or not all(isinstance(o, str) and "=" in o for o in fixed):
+        raise fail("overrides", "expected a list of key=value strings")
+    name = str(raw.get("name") or path.stem)
+    spec = SweepSpec(
+        name=name,
+        path=path.resolve(),
+        base=base_path,
+        params=params,
+        metric=objective.get("metric", "test/rmse"),
+        direction=direction,
+        sampler=sampler,
+        trials=trials,
+        pruner=pruner,
+        prune_warmup_rounds=_integer(raw, "prune_warmup_rounds", 2, 0, fail),
+        seed=_integer(raw, "seed", 0, None, fail),
+        overrides=(*fixed, *overrides),
+        experiment=str(raw.get("experiment") or f"sweep-{name}"),
+        description=str(raw.get("description", "")),
+        heartbeat_s=_integer(raw, "heartbeat_s", 30, 1, fail),
+    )
+    if spec.heartbeat_s > MAX_HEARTBEAT_S:
+        raise fail("heartbeat_s", f"{spec.heartbeat_s} is above {MAX_HEARTBEAT_S} (one day)")
+    _check_overrides(spec, len(fixed))
+    check_trial_configs(spec, echo)
+    if any(o.split("=", 1)[0].strip() == "tracking.experiment" for o in spec.overrides):
+        # An override names the experiment: it wins over the file's ``experiment``.
+        spec = replace(spec, experiment=tracking_experiment(spec))
+    return spec
+
+
+def _check_overrides(spec: SweepSpec, in_file: int) -> None:
+    """Refuse what a trial would drop without a word (the eleventh fault sweep): a setting
+    given twice in the file's ``overrides:`` (the last won, e168), or an override - in the
+    file or on the command line - of a setting the space varies (each trial set its own,
+    e162, e163). The command line's overrides may change the file's: that is their use."""
+    swept = {p.name for p in spec.params}
+    seen: dict[str, str] = {}
+    for k, override in enumerate(spec.overrides):
+        key = override.split("=", 1)[0].strip()
+        where = "its overrides:" if k < in_file else "the command line"
+        if key in swept:
+            raise ConfigError(
+                f"sweep {spec.name}: {override!r} ({where}) sets {key}, which its space: "
+                f"varies, each trial its own value; drop it, or take {key} out of space:"
+            )
+        if k < in_file and key in seen:
+            raise ConfigError(
+                f"sweep {spec.name}: its overrides: set {key} twice ({seen[key]!r}, "
+                f"{override!r}); keep one"
+            )
+        seen[key] = override
+
+
+def read_sweep_file(path: Path) -> dict[str, Any]:
+    """The settings of a sweep file as a dict, ``${...}`` resolved; a file that is not YAML
+    (with the line where YAML says), repeats a key or is not a mapping is one ConfigError
+    naming the file."""
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        top = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if top is not None and not isinstance(top, dict):
+            kind = "list" if isinstance(top, list) else type(top).__name__  # not its text
+            raise ConfigError(
+                f"{path}: a sweep file is a mapping of settings (base, objective, space, ...), "
+                f"not a {kind}"
+            )
+        # OmegaConf's loader also refuses a key given twice, which safe_load lets pass.
+        raw = {}
+        if top:
+            node = OmegaConf.load(path)
+            # The config files' rule: ${setting} references and ${oc.env:FEDLGR_*} only.
+            check_interpolations(path, node)
+            raw = OmegaConf.to_container(node, resolve=True)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}{_yaml_problem(err)}") from err
+    except OmegaConfBaseException as err:  # e.g. ${...} that names nothing
+        key = f"{err.full_key}: " if getattr(err, "full_key", None) else ""
+        raise ConfigError(f"{path}: {key}{str(err).splitlines()[0]}") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path}: cannot read the sweep file: {err}") from err
+    except RecursionError:  # thousands of nested levels
+        raise ConfigError(f"{path}: nested too deeply to be a sweep file") from None
+    return raw
+
+
+def _yaml_problem(err) -> str:
+    """``, line L, column C: not valid YAML: PROBLEM (CONTEXT from line ...)``."""
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    if "YAML node expansion" in problem:  # OmegaConf's limit on one file's nodes
+        return f": {yaml_reason(Exception(problem))}; give a long list as low/high/step"
+    mark = getattr(err, "problem_mark", None)
+    where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    context, start = getattr(err, "context", None), getattr(err, "context_mark", None)
+    if context and start is not None:
+        problem += f" ({context} from line {start.line + 1}, column {start.column + 1})"
+    elif context:
+        problem += f" ({context})"
+    return f"{where}: not valid YAML: {problem}"
+
+
+MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
+MAX_GRID_POINTS = 1_000_000  # GridSampler lists every point (a tuple each) up front
+
+
+def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail) -> int:
+    value = raw.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise fail(key, f"expected a whole number, not {value!r}")
+    if minimum is not None and value < minimum:
+        raise fail(key, f"{value} is below {minimum}")
+    return value
+
+
+#: Settings each trial's config gets from the sweep, whatever the space says.
+SET_BY_THE_SWEEP = {
+    "tracking.uri": "--tracking-uri",
+    "tracking.experiment": "the sweep's experiment, sweep-NAME",
+    "tracking.run_name": "its method and point",
+}
+
+
+def _param(name: str, value: Any, fail) -> Param:
+    """One ``space`` entry, checked as Optuna would take it (a grid, choices or a range)."""
+    key = f"space.{name}"
+    if name in SET_BY_THE_SWEEP:  # it had no effect (the seventh fault sweep, w10b)
+        raise fail(key, f"set by the sweep for every trial ({SET_BY_THE_SWEEP[name]}), not swept")
+    if isinstance(value, list):
+        return Param(name, values=_values(value, key, "grid", fail))
+    if not isinstance(value, dict):
+        raise fail(key, f"expected a list (grid) or {{low, high}} / {{choices}}, not {value!r}")
+    if "choices" in value:
+        extra = sorted(set(value) - {"choices"})
+        if extra:
+            raise fail(key, f"unknown setting(s) {extra} next to choices (a list of values)")
+        choices = value["choices"]
+        if not isinstance(choices, list):
+            raise fail(key, f"choices: expected a list of values, not {choices!r}")
+        return Param(name, values=_values(choices, key, "choices", fail), categorical=True)
+    extra = sorted(set(value) - {"low", "high", "log", "step"})
+    if extra:
+        raise fail(key, f"unknown range setting(s) {extra}; use low, high, log, step")
+    if "low" not in value or "high" not in value:
+        raise fail(key, "a range needs low and high (or use a list for a grid)")
+    low, high, log, step = value["low"], value["high"], value.get("log", False), value.get("step")
+    for setting, number in (("low", low), ("high", high)):
+        if isinstance(number, bool) or not isinstance(number, int | float):
+            raise fail(key, f"{setting} must be a number, not {number!r}")
+        if not math.isfinite(number):
+            raise fail(key, f"{setting} must be a finite number, not {number}")
+    if low >= high:
+        raise fail(key, f"low ({low}) must be below high ({high})")
+    if not isinstance(log, bool):
+        raise fail(key, f"log: expected true or false, not {log!r}")
+    if log and low <= 0:
+        raise fail(key, "a log range needs low > 0")
+    if step is not None:
+        number = not isinstance(step, bool) and isinstance(step, int | float)
+        if not number or not math.isfinite(step) or step <= 0:
+            raise fail(key, f"step must be a number above 0, not {step!r}")
+        if log:
+            raise fail(key, "step and log: true cannot go together (Optuna draws either)")
+        if step > high - low:
+            raise fail(key, f"step ({step}) is larger than the range ({low} to {high})")
+    param = Param(name, low=low, high=high, log=log, step=step)
+    try:
+        param.distribution()  # anything else Optuna refuses
+    except ValueError as err:
+        raise fail(key, str(err).splitlines()[0]) from err
+    return param
+
+
+def _values(values: list[Any], key: str, what: str, fail) -> tuple[Any, ...]:
+    """A grid's or choices' values: numbers, strings, booleans or null, each once."""
+    if not values:
+        raise fail(key, f"an empty {what}")
+    seen: list[Any] = []
+    for v in values:
+        if not (v is None or isinstance(v, str | int | float | bool)):
+            raise fail(key, f"{what} values must be numbers, strings or booleans, not {v!r}")
+        if isinstance(v, float) and math.isnan(v):
+            raise fail(key, f"{what} values cannot be .nan (it equals no value, not even itself)")
+        if any(type(v) is type(u) and v == u for u in seen):
+            raise fail(key, f"{v!r} is listed twice")
+        seen.append(v)
+    return tuple(values)

@@ -1,0 +1,202 @@
+"""Run a sweep as an Optuna study: resumable, parallel, pruned, tracked in MLflow.
+
+The study lives in an Optuna RDB storage (``sqlite:///optuna.db`` in the working directory
+by default; a PostgreSQL/MySQL URL lets several machines share one study). Every worker -
+this process, the ``--workers N`` extra processes it starts, or ``fedlgr sweep`` run again
+elsewhere on the same storage - runs trials one at a time until the study is done:
+
+* every parameter, every trial's config and the objective's metric are checked before
+  the first trial (:mod:`fedlgr.shell.sweep.checks`);
+* a grid is done when every point has finished (complete, pruned or failed); a TPE study
+  when ``trials`` trials have - or when its space has no point left that has not run
+  (a finite space smaller than ``trials``, or a sampler that keeps proposing old points:
+  :func:`fedlgr.shell.sweep.trials.no_new_point`), which it says in one line;
+* a trial that raises is recorded FAILED with its error (user attr ``error``, the
+  end-of-sweep table, tag ``fedlgr.error`` of its MLflow run or ``trial.N.error`` of the
+  parent) and the sweep goes on; a sweep whose every trial failed ends its parent run
+  FAILED (and ``fedlgr sweep`` exits 1); Ctrl-C or SIGTERM (:mod:`fedlgr.shell.signals`)
+  re-queues the running trial, so the next launch redoes it, and ends the parent run
+  KILLED;
+* a worker that dies (killed, machine lost) stops sending heartbeats; after two missed
+  heartbeats another worker (or the next launch) marks its trial FAILED and re-queues it
+  (:mod:`fedlgr.shell.sweep.storage`) - also a trial killed before it drew its parameters,
+  which never sent one;
+* the data must be there: a sweep whose ``data.path`` is not a folder does not start;
+* with parallel workers Optuna's GridSampler can hand a point out twice (LIBRARY-NOTES);
+  a trial whose point an earlier trial already covers is skipped (PRUNED, user attr
+  ``duplicate_of``) before it trains.
+
+The console: the ``--workers`` helpers' output comes through this process, each worker's
+lines prefixed ``[wK]``; the table at the end is printed once, by this process, with
+interrupted trials as ``INTERRUPTED`` and why; a relaunched study with nothing left to
+run says so in one line.
+
+MLflow: one parent run per sweep (tag ``fedlgr.kind=sweep``: the study's settings and, at
+the end, the best trial and its params - logged once, by the process that started the
+``--workers``) and one child run per trial - the same run as
+``fedlgr run`` - tagged ``sweep`` and ``trial`` and linked with ``parent_run_id`` (the
+active-run stack is thread-local, so ``nested=True`` is not used).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from fedlgr.shell.signals import Terminated
+from fedlgr.shell.sweep.checks import check_data
+from fedlgr.shell.sweep.spec import SweepSpec
+from fedlgr.shell.sweep.trials import all_failed, counts, nothing_left, ran, summary
+from fedlgr.shell.sweep.worker import DEFAULT_STORAGE, Worker
+from fedlgr.shell.tracking.server import mask_password
+
+
+@dataclass
+class SweepResult:
+    study: Any
+    parent_run_id: str
+    done: bool
+    failure: str | None = None  # every trial failed: how many, and the first error
+
+
+def run_sweep(
+    spec: SweepSpec,
+    *,
+    storage: str = DEFAULT_STORAGE,
+    study_name: str | None = None,
+    workers: int = 1,
+    tracking_uri: str | None = None,
+    cli_overrides: list[str] | None = None,
+    worker_id: int = 0,
+    echo: Callable[..., None] = print,
+    settings_changed: bool = False,
+) -> SweepResult:
+    """Run (or resume) the sweep with ``workers`` processes: this one and ``workers - 1``
+    ``fedlgr sweep`` subprocesses on the same storage. Refuses to start (ConfigError)
+    when a trial's ``data.path`` is not a folder."""
+    check_data(spec)
+    if workers > 1:  # the helpers' lines are echoed from threads: one line at a time
+        echo = serialised(echo)
+    worker = Worker(
+        spec,
+        storage,
+        study_name=study_name,
+        tracking_uri=tracking_uri,
+        worker=worker_id,
+        echo=prefixed(echo, "[w0] ") if workers > 1 else echo,
+        settings_changed=settings_changed,
+    )
+    _, running, waiting = counts(worker.study, spec)
+    total, size = spec.n_trials, spec.space_size()
+    echo(
+        f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
+        f"study {worker.study.study_name!r} in {mask_password(storage)} "
+        # done: trials that finished (a grid's total - todo counted its running ones, u80)
+        f"({ran(worker.study)} done, {running} running, {waiting} queued); "
+        f"MLflow experiment {worker.experiment!r}, "
+        f"parent run {worker.parent_run_id}"
+    )
+    if worker.moved and worker_id == 0:
+        echo(worker.moved)
+    if spec.sampler == "tpe" and size is not None and size < total:
+        echo(f"sweep {spec.name}: its space has {size} distinct points: it stops once each has run")
+    if not worker.left_to_run():
+        if worker_id > 0:
+            return SweepResult(worker.study, worker.parent_run_id, True)
+        best = worker.finish_parent()
+        echo(nothing_left(worker.study, spec, best))
+        return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
+    helpers, relays = [], []
+    for k in range(1, workers):
+        command = [
+            sys.executable,
+            "-m",
+            "fedlgr",
+            "sweep",
+            str(spec.path),
+            *(cli_overrides or []),
+            "--storage",
+            storage,
+            "--study",
+            worker.study.study_name,
+            "--tracking-uri",
+            worker.tracking_uri,
+            "--worker-id",
+            str(k),
+        ]
+        # Its output comes through this process, each line prefixed with its worker.
+        process = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            errors="replace",
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},  # lines as they come, not in blocks
+        )
+        helpers.append(process)
+        relays.append(relay(process, f"[w{k}] ", echo))
+    try:
+        done = worker.run()
+    except Terminated:
+        # SIGTERM may have reached this process alone (docker stop, timeout): pass it on
+        # (a worker that had it already ignores the second one).
+        for process in helpers:
+            process.terminate()
+        raise
+    finally:
+        for process in helpers:
+            try:
+                process.wait()
+            except KeyboardInterrupt:
+                process.terminate()
+        for thread in relays:
+            thread.join(timeout=5)  # its last lines, before the table
+    if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
+        return SweepResult(worker.study, worker.parent_run_id, done)
+    best = worker.finish_parent() if done else None
+    echo("\n" + summary(worker.study, spec, best))
+    from fedlgr.shell.tracking.server import runs_hint
+
+    echo(runs_hint(worker.tracking_uri, worker.experiment_id))
+    failure = all_failed(worker.study) if done else None
+    return SweepResult(worker.study, worker.parent_run_id, done, failure)
+
+
+def serialised(echo: Callable[..., None]) -> Callable[..., None]:
+    """``echo`` that one thread at a time may call, so lines never mix mid-line."""
+    lock = threading.Lock()
+
+    def say(*args: object, **kwargs: Any) -> None:
+        with lock:
+            echo(*args, **kwargs)
+
+    return say
+
+
+def prefixed(echo: Callable[..., None], prefix: str) -> Callable[..., None]:
+    """``echo`` with ``prefix`` before each non-empty line: two workers' lines interleave,
+    and the prefix tells them apart."""
+
+    def say(*args: object, **kwargs: Any) -> None:
+        text = " ".join(map(str, args))
+        echo("\n".join(prefix + line if line else line for line in text.split("\n")), **kwargs)
+
+    return say
+
+
+def relay(process: subprocess.Popen, prefix: str, echo: Callable[..., None]) -> threading.Thread:
+    """A thread that echoes a helper worker's output line by line, each with ``prefix``."""
+
+    def pump() -> None:
+        for line in process.stdout:
+            echo(prefix + line.rstrip("\n") if line.strip() else "")
+        process.stdout.close()
+
+    thread = threading.Thread(target=pump, name=f"relay {prefix.strip()}", daemon=True)
+    thread.start()
+    return thread

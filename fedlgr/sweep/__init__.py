@@ -1,6 +1,0 @@
-"""Sweeps: Optuna studies over fedlgr configs, tracked in MLflow (``fedlgr sweep``)."""
-
-from fedlgr.sweep.spec import SweepSpec, find_sweep, load_sweep
-from fedlgr.sweep.study import DEFAULT_STORAGE, run_sweep
-
-__all__ = ["DEFAULT_STORAGE", "SweepSpec", "find_sweep", "load_sweep", "run_sweep"]
