@@ -13,7 +13,8 @@ import pytest
 import yaml
 from PIL import Image
 
-from fedlgr.shell.cli import build_parser, main, shipped_sweeps
+from fedlgr.shell.cli import build_parser, main
+from fedlgr.shell.cli.sweep import shipped_sweeps
 from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, load_config, to_plain
 from fedlgr.shell.console import Progress, duration
 from tests.support.runs import FAST

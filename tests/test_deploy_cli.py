@@ -19,8 +19,8 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.x509.verification import PolicyBuilder, Store, VerificationError
 from flwr.common.config import parse_config_args
 
-from fedlgr.shell.cli import deploy as deploy_cli
 from fedlgr.shell.cli import main
+from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.deploy.credentials import make_node_key
 from fedlgr.shell.deploy.flower import APP_DIR
 
@@ -147,7 +147,7 @@ def test_superlink_command_has_tls_and_node_auth(certs, capsys):
     assert cmd[-2:] == ["--isolation", "process"]  # fedlgr's executor runs the ServerApps
     assert "--root-certificates" in lines[1] and "fedlgr.shell.deploy.flower.executor" in lines[1]
     del lines[1]
-    assert cmd[0] == str(deploy_cli._flower("flower-superlink"))
+    assert cmd[0] == str(launch.flower_command("flower-superlink"))
     assert option(cmd, "--ssl-ca-certfile") == str(certs / "ca.pem")
     assert option(cmd, "--ssl-certfile") == str(certs / "server.pem")
     assert option(cmd, "--ssl-keyfile") == str(certs / "server.key")
@@ -411,7 +411,13 @@ def test_run_command(tmp_path, fake_flwr, monkeypatch, capsys):
     odd = ['tracking.run_name=it\'s a "run"', "data.path=C:\\robots\\data"]
     assert main(["deploy", "run", *items, *odd, "--print-command"]) == 0
     cmd = printed(capsys)
-    assert cmd[:5] == [str(deploy_cli._flower("flwr")), "run", str(APP_DIR), "robots", "--stream"]
+    assert cmd[:5] == [
+        str(launch.flower_command("flwr")),
+        "run",
+        str(APP_DIR),
+        "robots",
+        "--stream",
+    ]
     run_config = parse_config_args([option(cmd, "--run-config")])  # as flwr reads it
     assert run_config["config"] == str(tmp_path / "conf.yaml")
     overrides = ["method=FedRootAvg", *odd]
@@ -436,7 +442,7 @@ def fake_flwr(tmp_path, monkeypatch):
         "'status': status, 'status-details': details}]}))\n"
     )
     script.chmod(0o755)
-    monkeypatch.setattr(deploy_cli, "_flower", lambda name: script)
+    monkeypatch.setattr(launch, "flower_command", lambda name: script)
     home = tmp_path / "flwr-home"  # what fedlgr deploy connect robots ... writes
     home.mkdir()
     (home / "config.toml").write_text(

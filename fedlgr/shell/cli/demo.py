@@ -17,21 +17,68 @@ latents drift in Task 2 and replay protects circle only in part (bench/README.md
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from fedlgr.shell.config import CONF_DIR
+from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.config import CONF_DIR, load_config
 from fedlgr.shell.console import Progress, table
+from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
+from fedlgr.shell.tracking.server import check_tracking, runs_hint
 
+DEFAULT_DATA = Path("data/manners-synth")
 DEMO_CONFIG = CONF_DIR / "experiment" / "demo.yaml"
 FCL_CONFIG = CONF_DIR / "experiment" / "demo_fcl.yaml"
 METHODS = ("FedAvg", "FedRootAvg")
 FCL_METHODS = ("FedRoot-FT", "FedLGR")
+FEATURES_FCL = ["data.modality=features", "model.root=mlp", "continual.rounds_per_task=8"]
+
+
+def add_parser(verbs: Verbs) -> None:
+    parser = verbs.add_parser(
+        "demo",
+        help="the main job: FedAvg vs FedRootAvg on the embedded synthetic data",
+        description="Synthesise the living room if absent, then train FedAvg and FedRootAvg on "
+        "it (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.",
+    )
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder")
+    parser.add_argument("--scenes", type=int, default=1000, help="scenes to synthesise if absent")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the data and the runs")
+    parser.add_argument(
+        "--tracking-uri",
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)",
+    )
+    parser.add_argument(
+        "--fcl",
+        action="store_true",
+        help="show forgetting instead: FedRoot "
+        "without a CL method vs FedLGR, circle then arrow (see --modality)",
+    )
+    parser.add_argument(
+        "--modality",
+        choices=["features", "image"],
+        default="features",
+        help="--fcl: the descriptors (MLP root, about 35 s) or the images "
+        "(a root pretrained once, about 4 minutes)",
+    )
+    parser.add_argument(
+        "--pretrain-scenes",
+        type=int,
+        default=2000,
+        help="--fcl: scenes (of another seed) the root is pretrained on",
+    )
+    parser.add_argument(
+        "--pretrain-images",
+        type=int,
+        default=16000,
+        help="--fcl: augmented images the root is pretrained on",
+    )
+    parser.set_defaults(run=demo)
 
 
 def demo(args: argparse.Namespace) -> int:
-    from fedlgr.shell.tracking.server import check_tracking
-
     check_tracking(args.tracking_uri, args.overrides)  # before loading torch
-    from fedlgr.shell.config import load_config
+    # lazy: PIL and numpy, torch and Fabric (after the tracking check, which takes a second)
     from fedlgr.shell.data.synth import synthesize
     from fedlgr.shell.run.experiment import run_experiment
 
@@ -72,11 +119,8 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
-FEATURES_FCL = ["data.modality=features", "model.root=mlp", "continual.rounds_per_task=8"]
-
-
 def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
-    from fedlgr.shell.config import load_config
+    # lazy: torch and Fabric
     from fedlgr.shell.pretrain import synthetic_root
     from fedlgr.shell.run.experiment import run_experiment
 
@@ -111,9 +155,6 @@ def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
 
 def print_runs_hint(results) -> None:
     """Where to compare the runs in MLflow's UI (link, and how to start it)."""
-    from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
-    from fedlgr.shell.tracking.server import runs_hint
-
     tracked = [r for r in results if r.run_id]
     if tracked:
         uri = tracking_uri(tracked[0].config)

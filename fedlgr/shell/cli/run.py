@@ -5,6 +5,51 @@ from __future__ import annotations
 
 import argparse
 
+from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.config import find_config, load_config, to_yaml
+from fedlgr.shell.data.config import check_data_path
+from fedlgr.shell.signals import terminate_as_interrupt
+from fedlgr.shell.tracking.mlflow_run import tracking_uri
+from fedlgr.shell.tracking.server import check_reachable
+
+
+def add_parser(verbs: Verbs) -> None:
+    parser = verbs.add_parser(
+        "run",
+        help="run one experiment from a config and key=value overrides",
+        description="Run one federated experiment, tracked in MLflow. CONFIG is a YAML file "
+        "(e.g. conf/experiment/table1/clients2_noaug.yaml); overrides are key=value, e.g. "
+        "method=FedRootAvg data.path=/path/to/manners-db federated.rounds=5.",
+    )
+    parser.add_argument(
+        "items",
+        nargs="*",
+        metavar="CONFIG|key=value",
+        help="a config file (a path, or a name in conf/ such as debug/fast.yaml), then "
+        "overrides such as federated.rounds=5 (without a config: the defaults)",
+    )
+    parser.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved config (file, includes and overrides) as YAML and exit "
+        "without running; settings resolved at start (runtime.threads, runtime.concurrency, "
+        "...) show as given",
+    )
+    parser.add_argument(
+        "--tracking-uri",
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI "
+        "or sqlite:///mlflow.db with artifacts in mlruns/)",
+    )
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const=True,
+        metavar="RUN_ID",
+        help="continue an interrupted run from its last checkpoint, in the same MLflow run: "
+        "RUN_ID, or (without one) the latest unfinished run of the same config",
+    )
+    parser.set_defaults(run=run)
+
 
 def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]:
     """The first item without ``=`` is the config file; the rest are overrides."""
@@ -14,8 +59,7 @@ def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]
 
 def resume_hint(config, run_id: str) -> str:
     """How to go on with interrupted run ``run_id``: ``--resume`` if it left a checkpoint."""
-    from fedlgr.shell.run.checkpoint import checkpoint_root, checkpoints
-    from fedlgr.shell.tracking.mlflow_run import tracking_uri
+    from fedlgr.shell.run.checkpoint import checkpoint_root, checkpoints  # lazy: torch
 
     if checkpoints(checkpoint_root(config, tracking_uri(config)) / run_id):
         return (
@@ -29,8 +73,6 @@ def resume_hint(config, run_id: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fedlgr.shell.config import find_config, load_config, to_yaml
-
     path, overrides = split_config_and_overrides(args.items)
     if args.tracking_uri:
         overrides.append(f"tracking.uri={args.tracking_uri}")
@@ -38,17 +80,11 @@ def run(args: argparse.Namespace) -> int:
     if args.print_config:
         print(to_yaml(config), end="")
         return 0
-    from fedlgr.shell.data.config import check_data_path
-
     check_data_path(config.data.path)  # before torch's import (~12 s), as is the next check
     if config.tracking.enabled:  # before torch's import (~12 s): an unreachable URI fails now
-        from fedlgr.shell.tracking.mlflow_run import tracking_uri
-        from fedlgr.shell.tracking.server import check_reachable
-
         check_reachable(tracking_uri(config))
 
-    from fedlgr.shell.run.experiment import run_experiment
-    from fedlgr.shell.signals import terminate_as_interrupt
+    from fedlgr.shell.run.experiment import run_experiment  # lazy: torch and Fabric
 
     started: list[str] = []  # the MLflow run's id, once it exists
     with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C

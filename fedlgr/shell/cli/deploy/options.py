@@ -1,0 +1,106 @@
+"""What the ``fedlgr deploy`` sub-verbs share on their command line: how a sub-verb is
+declared, the ``--insecure`` and ``--print-command`` options, and the checks of the paths
+and addresses they are given, made before Flower starts (Flower would fail later, or in a
+traceback)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from fedlgr.errors import FedlgrError, not_a_file, not_a_folder
+from fedlgr.shell.cli.parser import Verbs
+
+
+def add_sub_verb(
+    subs: Verbs,
+    name: str,
+    summary: str,
+    func: Callable[[argparse.Namespace], int],
+    description: str | None = None,
+) -> argparse.ArgumentParser:
+    """The parser of ``fedlgr deploy NAME``, which runs ``func``."""
+    parser = subs.add_parser(name, help=summary, description=description or summary)
+    parser.set_defaults(run=func)
+    return parser
+
+
+def add_insecure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--insecure", action="store_true", help="no TLS, no authentication: test machines only"
+    )
+
+
+def add_print_command(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--print-command", action="store_true", help="print Flower's command line and stop"
+    )
+
+
+def absolute(path: Path | str) -> Path:
+    return Path(os.path.abspath(os.path.expanduser(path)))
+
+
+def existing(path: Path | None, option: str, maker: str) -> Path:
+    """``option``'s file, which ``maker`` wrote: absolute, and a file that exists."""
+    if path is None:
+        raise FedlgrError(f"{option} is required (made by {maker}), or --insecure")
+    path = absolute(path)
+    if why := not_a_file(path):
+        raise FedlgrError(f"{option}: {path} is {why} (made by {maker})")
+    if not path.is_file():
+        raise FedlgrError(f"{option}: {path} does not exist (made by {maker})")
+    return path
+
+
+def certificates(path: Path | None) -> Path:
+    """``--ca``: an existing file of PEM certificates."""
+    from fedlgr.shell.deploy.credentials import check_certificates  # lazy: cryptography
+
+    path = existing(path, "--ca", "fedlgr deploy certs")
+    check_certificates(path)
+    return path
+
+
+def no_ca(args: argparse.Namespace) -> None:
+    if args.ca is not None:
+        raise FedlgrError("--insecure turns TLS off: drop --ca (or drop --insecure)")
+
+
+def address(given: str) -> None:
+    """``--superlink HOST:PORT``."""
+    host, _, port = given.rpartition(":")
+    if not host or not port.isdigit():
+        raise FedlgrError(f"--superlink {given!r}: expected HOST:PORT, e.g. 10.0.0.5:9092")
+    if not 1 <= int(port) <= 65535:
+        raise FedlgrError(f"--superlink {given!r}: a port is 1 to 65535")
+
+
+def own_folder(folder: Path, option: str, make: bool) -> Path:
+    """A folder the robot writes (``--state-dir``, ``--cache-dir``), checked before Flower
+    starts rather than when a run's first message arrives, since a path such as ``/proc/x``
+    or a private key's file would otherwise be taken: an existing folder it can write in, or
+    one it can make - made here, and with ``--print-command`` (``make`` False) made and
+    removed again, as only trying tells (root may write anywhere by its permissions, yet not
+    in /proc)."""
+    path = absolute(folder)
+    if why := not_a_folder(path):  # a file there is named as such, not as "cannot make it"
+        raise FedlgrError(f"{option} {path}: {why}")
+    if not path.exists():
+        above = next(p for p in path.parents if p.exists())
+        if not above.is_dir():
+            raise FedlgrError(f"{option} {path}: {above} is a file, not a folder")
+        made = [p for p in (path, *path.parents) if not p.exists()]  # the deepest first
+        try:
+            path.mkdir(parents=True)
+        except OSError as err:
+            raise FedlgrError(f"{option} {path}: cannot make it ({err.strerror})") from None
+        if not make:
+            for part in made:
+                part.rmdir()
+            path = above  # what must be writable
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise FedlgrError(f"{option} {absolute(folder)}: cannot write in {path}")
+    return absolute(folder)

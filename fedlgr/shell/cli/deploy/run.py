@@ -1,0 +1,147 @@
+"""``fedlgr deploy run CONFIG [key=value ...]``: submit fedlgr's app to the SuperLink with
+``flwr run``, stream its log, and exit 0 only if the Flower run completed."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shlex
+import subprocess
+import time
+from pathlib import Path
+
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.cli.deploy import launch
+from fedlgr.shell.cli.deploy.options import absolute, add_print_command, add_sub_verb
+from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.config import load_config
+from fedlgr.shell.deploy.flower import APP_DIR
+
+STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
+
+
+def add_parser(subs: Verbs) -> None:
+    parser = add_sub_verb(
+        subs,
+        "run",
+        "submit a run with flwr run, stream its log and exit 0 only if it completed",
+        run,
+        "Run fedlgr's app on the SuperLink: CONFIG (made absolute) must exist at that path on "
+        "the SuperLink's machine; key=value overrides as in fedlgr run.",
+    )
+    parser.add_argument("config", metavar="CONFIG", help="the config file (as in fedlgr run)")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    parser.add_argument(
+        "--federation",
+        metavar="NAME",
+        help="the SuperLink connection (fedlgr deploy connect NAME; default: flwr's default)",
+    )
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="latest",
+        metavar="RUN_ID",
+        help="continue an interrupted Flower run (its MLflow id; default: the latest "
+        "unfinished run of this config) from its newest checkpoint, in the same MLflow run",
+    )
+    add_print_command(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    flwr = launch.flower_command("flwr")
+    config = absolute(args.config)
+    run_config = (
+        f"config={launch.toml_string(str(config))} "
+        f"overrides={launch.toml_string(shlex.join(args.overrides))}"
+    )
+    if args.resume:
+        run_config += f" resume={launch.toml_string(args.resume)}"
+    link = [args.federation] if args.federation else []
+    cmd = [str(flwr), "run", str(APP_DIR), *link, "--stream", "--run-config", run_config]
+    _check_connection(args.federation)  # with --print-command too: the command must work
+    print(shlex.join(cmd), flush=True)
+    if args.print_command:
+        return 0
+    _check_config(config, args.overrides)
+    env = {**launch.flower_env(flwr), "PYTHONUNBUFFERED": "1"}
+    run_id = _stream(cmd, env, link)
+    row = _final_status(flwr, link, run_id, env)
+    if row["status"] != "finished:completed":
+        details = " ".join(str(row.get("status-details") or "no details").split())
+        raise FedlgrError(f"Flower run {run_id} ended {row['status']}: {details}")
+    print(f"fedlgr: Flower run {run_id} finished:completed")
+    return 0
+
+
+def _check_connection(name: str | None) -> None:
+    """The SuperLink ``flwr run`` will submit to must be one ``fedlgr deploy connect``
+    named: with none, flwr 1.41 writes its own config, whose default ``local`` starts a
+    simulation SuperLink and SuperExec of its own in the background - left running after
+    the run fails, with the app installed under ``~/.flwr``."""
+    path, config = launch.flower_config()
+    links = config.get("superlink", {})
+    chosen = name or links.get("default")
+    entry = links.get(chosen) if isinstance(chosen, str) else None
+    if not isinstance(entry, dict) or entry.get("address", ":local:") == ":local:":
+        which = f"--federation {name}" if name else "the default connection"
+        raise FedlgrError(
+            f"{which}: no SuperLink connection of that name in {path} (flwr would start a "
+            "local simulation of its own); add one with fedlgr deploy connect NAME "
+            "--superlink HOST:PORT --ca ca.pem"
+        )
+
+
+def _check_config(config: Path, overrides: list[str]) -> None:
+    """The config and its roster, loaded here, in a second, rather than on the server after
+    the run was submitted and its ServerApp started (~40 s): a typo is the commonest
+    mistake. Runs are submitted on the SuperLink's machine, where the ServerApp reads them."""
+    if not config.is_file():
+        print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
+        return
+    from fedlgr.shell.deploy.roster import roster_of  # lazy: cryptography and yaml
+
+    roster_of(load_config(config, overrides))
+
+
+def _stream(cmd: list[str], env: dict[str, str], link: list[str]) -> str:
+    """Run ``flwr run``, its output passed on line by line; the id of the run it started."""
+    run_id = None
+    with subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    ) as proc:
+        try:
+            for line in proc.stdout:
+                print(line, end="", flush=True)
+                found = re.search(r"Successfully started run (\d+)", line)
+                run_id = run_id or (found and found.group(1))
+        except KeyboardInterrupt:
+            if run_id:
+                stop = shlex.join(["flwr", "stop", run_id, *link])
+                print(f"fedlgr: run {run_id} goes on on the SuperLink; {stop} stops it")
+            raise
+    if proc.returncode != 0 or run_id is None:
+        raise FedlgrError(f"flwr run failed (exit {proc.returncode}); its output is above")
+    return run_id
+
+
+def _final_status(flwr: Path, link: list[str], run_id: str, env: dict[str, str]) -> dict:
+    """Run ``run_id``'s row from ``flwr ls`` once its status is ``finished:...``, or as it
+    stands after :data:`STATUS_WAIT_S`."""
+    deadline = time.monotonic() + STATUS_WAIT_S
+    while True:
+        ls = subprocess.run(
+            [str(flwr), "ls", *link, "--run-id", run_id, "--format", "json"],
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+        try:
+            listed = json.loads(ls.stdout[ls.stdout.index("{") :])
+            [row] = listed["runs"]
+        except (ValueError, KeyError) as err:
+            detail = " ".join((ls.stdout + ls.stderr).split())[-300:]
+            raise FedlgrError(f"flwr ls --run-id {run_id}: no status ({err}): {detail}") from None
+        if row["status"].startswith("finished") or time.monotonic() > deadline:
+            return row
+        time.sleep(1)

@@ -1,0 +1,250 @@
+"""``fedlgr deploy supernode``: a robot's SuperNode (it runs the ClientApp on the robot's
+data), its options checked here, in one line each, before Flower starts."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from fedlgr.errors import ConfigError, FedlgrError, not_a_file, not_a_folder
+from fedlgr.shell.cli.deploy import launch
+from fedlgr.shell.cli.deploy.options import (
+    absolute,
+    add_insecure,
+    add_print_command,
+    add_sub_verb,
+    address,
+    certificates,
+    existing,
+    no_ca,
+    own_folder,
+)
+from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.config import MAX_PER_MACHINE
+from fedlgr.shell.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
+
+SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machine
+
+
+def add_parser(subs: Verbs) -> None:
+    parser = add_sub_verb(
+        subs,
+        "supernode",
+        "start a robot's SuperNode (runs the ClientApp on its data)",
+        supernode,
+        "Replace this process with flower-supernode, connected to the SuperLink over TLS with "
+        "the robot's registered key; the ClientApp reads the robot's data folder.",
+    )
+    _add_connection(parser)
+    _add_data(parser)
+    _add_service(parser)
+    add_insecure(parser)
+    add_print_command(parser)
+
+
+def _add_connection(parser: argparse.ArgumentParser) -> None:
+    """Where the SuperLink is and how the robot proves who it is."""
+    parser.add_argument(
+        "--superlink", required=True, metavar="HOST:PORT", help="the SuperLink's fleet API"
+    )
+    parser.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
+    parser.add_argument("--key", type=Path, metavar="KEY", help="the robot's private node key")
+
+
+def _add_data(parser: argparse.ArgumentParser) -> None:
+    """What the robot trains on, and the folders and files of its own."""
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="MANNERS-DB layout")
+    parser.add_argument(
+        "--own-data",
+        action="store_true",
+        help="the robot's own data: all of --data is its shard, split into its own train and "
+        "test scenes by data.seed (default: --data holds the whole dataset and the robot "
+        "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
+    )
+    parser.add_argument(
+        "--client",
+        type=int,
+        metavar="K",
+        help="the client slot this robot expects; the roster decides, and a run whose roster "
+        "gives its key another slot is refused by the robot (default: whatever the roster says)",
+    )
+    parser.add_argument("--state-dir", type=Path, metavar="DIR", help="private state between runs")
+    parser.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
+    parser.add_argument(
+        "--weights",
+        type=Path,
+        metavar="FILE",
+        help="this robot's copy of the root weights file, for runs whose model.weights is a "
+        "file (a robot never reads a path the server names)",
+    )
+    parser.add_argument("--threads", type=int, metavar="N", help="torch threads")
+
+
+def _add_service(parser: argparse.ArgumentParser) -> None:
+    """How the SuperNode keeps in touch with the SuperLink, and how it runs the apps."""
+    parser.add_argument(
+        "--max-retries", type=int, metavar="N", help="give up after N failed connections"
+    )
+    parser.add_argument(
+        "--max-wait-time", type=float, metavar="S", help="give up after S seconds of trying"
+    )
+    parser.add_argument(
+        "--idle-s",
+        type=float,
+        metavar="S",
+        help="the robot service (which keeps data and models loaded between messages) "
+        "leaves after S seconds without a message (default 900)",
+    )
+    parser.add_argument(
+        "--poll-s",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (default "
+        "%(default)s; Flower's own is 3, which every round waited out)",
+    )
+    parser.add_argument(
+        "--heartbeat-s",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="the heartbeat interval this robot declares, 10 to 1800 (default %(default)g, "
+        "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
+        "restarted SuperNode, after two intervals",
+    )
+    parser.add_argument(
+        "--cold-apps",
+        action="store_true",
+        help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
+        "default they are forked from a process that has imported them",
+    )
+    parser.add_argument(
+        "--port", type=int, default=SUPERNODE_PORT, help="its local API (default %(default)s)"
+    )
+
+
+def supernode(args: argparse.Namespace) -> int:
+    from fedlgr.shell.data.ratings import read_ratings  # lazy: numpy
+
+    launch.flower_command("flower-supernode")  # Flower is installed here
+    data = _check_options(args)
+    cmd = _launcher(args) + _credentials(args)
+    # A broken ratings file is found now, in one line, not when the first run's first
+    # message reaches the robot (the images are decoded then, at the run's image size).
+    read_ratings(data)
+    settings = _node_config(args, data)
+    cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(args.port)]
+    cmd += _retries(args)
+    return launch.exec_flower(cmd, args)
+
+
+def _check_options(args: argparse.Namespace) -> Path:
+    """The options Flower would take as they are, checked; the absolute ``--data`` folder."""
+    address(args.superlink)
+    if args.client is not None and args.client < 0:
+        raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
+    if args.threads is not None and not 1 <= args.threads <= MAX_PER_MACHINE:
+        raise FedlgrError(
+            f"--threads {args.threads}: 1 to {MAX_PER_MACHINE} (runtime.threads' bound)"
+        )
+    data = absolute(args.data)
+    if why := not_a_folder(data):  # a file or a loop there is named, not "no such folder"
+        raise FedlgrError(f"--data {data}: {why} (the robot's dataset, MANNERS-DB layout)")
+    if not data.is_dir():
+        raise FedlgrError(f"--data {data}: no such folder (the robot's dataset, MANNERS-DB layout)")
+    for option, value, (low, high) in (
+        ("--poll-s", args.poll_s, POLL_RANGE),
+        ("--heartbeat-s", args.heartbeat_s, HEARTBEAT_RANGE),
+    ):
+        if not low <= value <= high:  # NaN too
+            raise FedlgrError(f"{option} {value}: must be between {low:g} and {high:g} seconds")
+    return data
+
+
+def _launcher(args: argparse.Namespace) -> list[str]:
+    """flower-supernode, its idle poll shortened, its heartbeat as chosen and its ClientApps
+    forked from a warm process (fedlgr/shell/deploy/flower/supernode.py and executor.py say
+    why)."""
+    cmd = [sys.executable, "-m", "fedlgr.shell.deploy.flower.supernode"]
+    cmd += ["--poll-s", str(args.poll_s), "--heartbeat-s", f"{args.heartbeat_s:g}"]
+    if not args.cold_apps:
+        cmd += ["--warm-apps", f"127.0.0.1:{args.port}"]
+    return [*cmd, "--superlink", args.superlink]
+
+
+def _credentials(args: argparse.Namespace) -> list[str]:
+    """TLS with the deployment's CA and the robot's node key, or ``--insecure``."""
+    if args.insecure:
+        no_ca(args)
+        if args.key is not None:
+            raise FedlgrError(
+                "--insecure turns TLS off, and SuperNode authentication needs TLS: drop --key "
+                "(or drop --insecure)"
+            )
+        return ["--insecure"]
+    from fedlgr.shell.deploy.credentials import check_node_key  # lazy: cryptography
+
+    cmd = ["--root-certificates", str(certificates(args.ca))]
+    key = existing(args.key, "--key", "fedlgr deploy node-key DIR NAME")
+    check_node_key(key)
+    return [*cmd, "--auth-supernode-private-key", str(key)]
+
+
+def _node_config(args: argparse.Namespace, data: Path) -> list[str]:
+    """The ClientApp's ``key=value`` settings (``--node-config``), its folders made."""
+    settings = [f"data-path={launch.toml_string(str(data))}"]
+    if args.client is not None:
+        settings.append(f"client={args.client}")
+    if args.own_data:
+        settings.append("own-data=true")
+    for name, folder in (("state-dir", args.state_dir), ("cache-dir", args.cache_dir)):
+        if folder is not None:
+            own = own_folder(folder, f"--{name}", make=not args.print_command)
+            settings.append(f"{name}={launch.toml_string(str(own))}")
+    if args.weights is not None:
+        settings.append(f"weights={launch.toml_string(str(_weights(args.weights)))}")
+    if args.threads is not None:
+        settings.append(f"threads={args.threads}")
+    if args.idle_s is not None:
+        if not args.idle_s > 0:
+            raise FedlgrError(f"--idle-s {args.idle_s}: must be > 0")
+        settings.append(f"robot-idle-s={args.idle_s}")
+    return settings
+
+
+def _weights(given: Path) -> Path:
+    """``--weights``: a file holding a model's state dict, checked by its content too, since
+    any readable file (a system file, say) would otherwise be taken as the root weights."""
+    from fedlgr.core.models.scholar import file_state_dict  # lazy: torch
+
+    weights = absolute(given)
+    if why := not_a_file(weights):  # a folder or a loop there is named, not "no such file"
+        raise FedlgrError(f"--weights {weights}: {why}")
+    if not weights.is_file():
+        raise FedlgrError(
+            f"--weights {weights}: no such file (this robot's copy of the root weights "
+            "a run's model.weights names)"
+        )
+    try:
+        file_state_dict(weights)
+    except ConfigError as err:
+        said = str(err).replace(f"model.weights={weights}", f"--weights {weights}")
+        raise FedlgrError(said) from None
+    return weights
+
+
+def _retries(args: argparse.Namespace) -> list[str]:
+    """``--max-retries`` and ``--max-wait-time`` for Flower, each 0 or more."""
+    for option, value in (
+        ("--max-retries", args.max_retries),
+        ("--max-wait-time", args.max_wait_time),
+    ):
+        if value is not None and not value >= 0:  # NaN too
+            raise FedlgrError(f"{option} {value}: must be 0 or more")
+    cmd = []
+    if args.max_retries is not None:
+        cmd += ["--max-retries", str(args.max_retries)]
+    if args.max_wait_time is not None:
+        cmd += ["--max-wait-time", str(args.max_wait_time)]
+    return cmd
