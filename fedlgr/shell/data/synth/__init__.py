@@ -120,7 +120,7 @@ MAX_SCENES = 1_000_000
 
 def _prepare(out: Path, force: bool) -> None:
     csv_path, images = out / "all_data.csv", out / "images"
-    if why := not_a_folder(out):  # a link was "cannot write there (File exists)" (c112)
+    if why := not_a_folder(out):  # a dangling link or a file is named as what it is
         raise DataError(f"{out}: {why}")
     if out.exists() and any(out.iterdir()):
         if not force:

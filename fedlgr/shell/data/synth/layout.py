@@ -180,12 +180,42 @@ def _free_spot(rng, taken, obstacles, spacing=0.07, lo=0.1, hi=0.9, tries=40):
 
 
 def sample_layout(rng: np.random.Generator) -> Layout:
-    """Draw one living-room scene. All randomness comes from ``rng``."""
+    """Draw one living-room scene. All randomness comes from ``rng``, in this order (a
+    seed's scenes depend on it): furniture, robot, people on the sofa, a conversation
+    group, people standing about, animals, speaker, music, style."""
     sofa, sofa_side = _sofa(rng)
     tx, ty = rng.uniform(0.3, 0.6, size=2)
     table = (float(tx), float(ty), float(tx) + 0.16, float(ty) + 0.1)
     furniture = (sofa, table)
+    robot_x, robot_y, heading, mode, zone = _robot(rng, furniture)
+    taken = [(robot_x, robot_y)]  # where everyone stands so far; each step adds its own
+    people = _sofa_people(rng, sofa, sofa_side, taken)
+    group, members = _group(rng, robot_x, robot_y, furniture, taken)
+    people += members
+    people += _standing_people(rng, furniture, taken)
+    animals = _animals(rng, furniture, taken)
+    speaker = (float(rng.choice([0.08, 0.92])), float(rng.choice([0.08, 0.92])))
+    music = bool(rng.random() < 0.35)
+    return Layout(
+        robot_x=robot_x,
+        robot_y=robot_y,
+        robot_heading=heading,
+        mode=mode,
+        zone=zone,
+        sofa=sofa,
+        sofa_side=sofa_side,
+        table=table,
+        speaker=speaker,
+        music=music,
+        people=tuple(people),
+        animals=tuple(animals),
+        group=group,
+        style=_style(rng, len(people)),
+    )
 
+
+def _robot(rng: np.random.Generator, furniture) -> tuple[float, float, float, str, float]:
+    """The robot's place, heading, mode and zone (work radius or arrow length)."""
     robot_x, robot_y = _free_spot(rng, [], furniture, lo=0.15, hi=0.85)
     mode = "circle" if rng.random() < 0.5 else "arrow"
     zone = float(rng.uniform(0.12, 0.32) if mode == "circle" else rng.uniform(0.2, 0.45))
@@ -194,13 +224,15 @@ def sample_layout(rng: np.random.Generator) -> Layout:
         tip_x, tip_y = robot_x + zone * math.cos(heading), robot_y + zone * math.sin(heading)
         if mode == "circle" or (0.08 <= tip_x <= 0.92 and 0.08 <= tip_y <= 0.92):
             break
-    taken = [(robot_x, robot_y)]
-    people: list[Person] = []
+    return robot_x, robot_y, heading, mode, zone
 
-    # People on the sofa, facing into the room.
+
+def _sofa_people(rng: np.random.Generator, sofa, sofa_side: str, taken: list) -> list[Person]:
+    """0-3 people on the sofa, facing into the room."""
     into_room = {"top": math.pi / 2, "bottom": -math.pi / 2, "left": 0.0, "right": math.pi}[
         sofa_side
     ]
+    people = []
     n_sofa = int(rng.choice(4, p=[0.4, 0.3, 0.2, 0.1]))
     for k in range(n_sofa):
         t = (k + 0.5) / 3
@@ -220,41 +252,55 @@ def sample_layout(rng: np.random.Generator) -> Layout:
             )
         )
         taken.append((x, y))
+    return people
 
-    # A conversation group: a cluster with a radius, everyone facing its centre.
-    group = None
-    if rng.random() < 0.45:
-        size = int(rng.integers(2, MAX_GROUP + 1))
-        radius = float(rng.uniform(0.06, 0.14))
-        if rng.random() < 0.25:  # sometimes the robot stands inside the group
-            a, r = rng.uniform(-math.pi, math.pi), rng.uniform(0, 0.6 * radius)
-            gx, gy = robot_x + r * math.cos(a), robot_y + r * math.sin(a)
-        else:
-            gx, gy = _free_spot(rng, taken, furniture, spacing=radius + 0.06, lo=0.2, hi=0.8)
-        group = Group(float(np.clip(gx, 0.18, 0.82)), float(np.clip(gy, 0.18, 0.82)), radius)
-        start = rng.uniform(-math.pi, math.pi)
-        for k in range(size):
-            a = start + 2 * math.pi * k / size + rng.normal(0, 0.2)
-            x, y = group.x + radius * math.cos(a), group.y + radius * math.sin(a)
-            people.append(
-                Person(
-                    x,
-                    y,
-                    wrap(a + math.pi + rng.normal(0, 0.2)),
-                    in_group=True,
-                    child=bool(rng.random() < 0.15),
-                )
+
+def _group(
+    rng: np.random.Generator, robot_x: float, robot_y: float, furniture, taken: list
+) -> tuple[Group | None, list[Person]]:
+    """Maybe a conversation group: a cluster with a radius, everyone facing its centre."""
+    if rng.random() >= 0.45:
+        return None, []
+    size = int(rng.integers(2, MAX_GROUP + 1))
+    radius = float(rng.uniform(0.06, 0.14))
+    if rng.random() < 0.25:  # sometimes the robot stands inside the group
+        a, r = rng.uniform(-math.pi, math.pi), rng.uniform(0, 0.6 * radius)
+        gx, gy = robot_x + r * math.cos(a), robot_y + r * math.sin(a)
+    else:
+        gx, gy = _free_spot(rng, taken, furniture, spacing=radius + 0.06, lo=0.2, hi=0.8)
+    group = Group(float(np.clip(gx, 0.18, 0.82)), float(np.clip(gy, 0.18, 0.82)), radius)
+    members = []
+    start = rng.uniform(-math.pi, math.pi)
+    for k in range(size):
+        a = start + 2 * math.pi * k / size + rng.normal(0, 0.2)
+        x, y = group.x + radius * math.cos(a), group.y + radius * math.sin(a)
+        members.append(
+            Person(
+                x,
+                y,
+                wrap(a + math.pi + rng.normal(0, 0.2)),
+                in_group=True,
+                child=bool(rng.random() < 0.15),
             )
-            taken.append((x, y))
+        )
+        taken.append((x, y))
+    return group, members
 
-    # People standing about, some of them children.
+
+def _standing_people(rng: np.random.Generator, furniture, taken: list) -> list[Person]:
+    """0-3 people standing about, some of them children."""
+    people = []
     for _ in range(int(rng.choice(4, p=[0.3, 0.3, 0.25, 0.15]))):
         x, y = _free_spot(rng, taken, furniture)
         people.append(
             Person(x, y, float(rng.uniform(-math.pi, math.pi)), child=bool(rng.random() < 0.35))
         )
         taken.append((x, y))
+    return people
 
+
+def _animals(rng: np.random.Generator, furniture, taken: list) -> list[Animal]:
+    """0-2 dogs or cats."""
     animals = []
     for _ in range(int(rng.choice(3, p=[0.5, 0.3, 0.2]))):
         x, y = _free_spot(rng, taken, furniture, spacing=0.06)
@@ -262,24 +308,7 @@ def sample_layout(rng: np.random.Generator) -> Layout:
             Animal(x, y, float(rng.uniform(-math.pi, math.pi)), str(rng.choice(["dog", "cat"])))
         )
         taken.append((x, y))
-
-    speaker = (float(rng.choice([0.08, 0.92])), float(rng.choice([0.08, 0.92])))
-    return Layout(
-        robot_x=robot_x,
-        robot_y=robot_y,
-        robot_heading=heading,
-        mode=mode,
-        zone=zone,
-        sofa=sofa,
-        sofa_side=sofa_side,
-        table=table,
-        speaker=speaker,
-        music=bool(rng.random() < 0.35),
-        people=tuple(people),
-        animals=tuple(animals),
-        group=group,
-        style=_style(rng, len(people)),
-    )
+    return animals
 
 
 # --------------------------------------------------------------------------- descriptors
