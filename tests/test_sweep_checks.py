@@ -26,7 +26,7 @@ from fedlgr.errors import ConfigError
 from fedlgr.shell.cli import main
 from fedlgr.shell.sweep import load_sweep, run_sweep
 from fedlgr.shell.sweep.checks import run_metrics
-from fedlgr.shell.sweep.spec import Param
+from fedlgr.shell.sweep.space import Param
 from fedlgr.shell.sweep.trials import DUPLICATES_IN_A_ROW, counts, no_new_point
 from tests.support.runs import FAST
 

@@ -71,7 +71,7 @@ def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_di
     is alive on this machine is left to it; once that worker is dead, it is retried."""
     import threading
 
-    from fedlgr.shell.sweep.worker import OWNER
+    from fedlgr.shell.sweep.ownership import OWNER
     from fedlgr.shell.tracking.mlflow_run import process_started
 
     path = write_sweep(tmp_path, synth_dir, cache_dir, name="stopped")

@@ -17,9 +17,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from fedlgr.core.methods import plugin_metrics
+from fedlgr.core.metrics import COST_KEYS, SCORE_NAMES, client_key, round_keys
 from fedlgr.errors import ConfigError
+from fedlgr.shell import config as configs
 from fedlgr.shell.config import ExperimentConfig
-from fedlgr.shell.sweep.spec import CONFIG_KEY, Param, SweepSpec
+from fedlgr.shell.sweep.space import CONFIG_KEY, Param, SweepSpec
 
 EXHAUSTIVE = 64  # grids up to this size have every point's config built
 
@@ -61,15 +64,13 @@ def _values(p: Param) -> list[Any]:
 def _load(spec: SweepSpec, point: dict[str, Any]) -> ExperimentConfig:
     """The config of the trial at ``point``. A ``data.path`` left to the user (``???`` in
     the MANNERS-DB presets) is filled with a placeholder."""
-    from fedlgr.shell.config import load_config
-
     base, overrides = spec.trial_config_args(point)
     try:
-        return load_config(base, overrides)
+        return configs.load_config(base, overrides)
     except ConfigError as err:
         if "data.path: no value" not in str(err):
             raise ConfigError(f"{spec.path}: trial {point}: {err}") from err
-        return load_config(base, [*overrides, "data.path=/path/to/manners-db"])
+        return configs.load_config(base, [*overrides, "data.path=/path/to/manners-db"])
 
 
 def tracking_experiment(spec: SweepSpec) -> str:
@@ -111,32 +112,29 @@ def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) ->
 
 def run_metrics(config: ExperimentConfig) -> set[str]:
     """The metric names a run of ``config`` can end with - the names a sweep's objective
-    reads from :meth:`ExperimentResult.final_metrics`: the last round's fields (the
-    round's record schema, :func:`fedlgr.core.records.make_fields`, the plugins'
-    fields too) as means and per client, the FCL "after task k" figures
+    reads from :meth:`ExperimentResult.final_metrics`: the last round's figures (the
+    round's columns, :func:`fedlgr.core.metrics.round_keys`, what the method's plugins
+    measure too) as means and per client, the FCL "after task k" figures
     (:class:`fedlgr.core.forgetting.ForgettingTracker`) and the cost means. Built
     from the config alone: nothing trains."""
-    from fedlgr.core.forgetting import METRICS
-    from fedlgr.core.records import COST_FIELDS, client_key, make_fields, method_fields
-    from fedlgr.core.schedule import ALL
-
     tasks = list(config.continual.tasks)
-    names = {"round/seconds", "round/missing_clients"}
+    names = {"round/seconds", "round/missing_clients", "round/participants"}
     # The server's own cost (in-process runtimes), and its evaluation where it runs one.
     server = ("cost/server_cpu_s", "cost/server_wall_s")
     names.update([*server, *(f"mean/{k}" for k in server), "mean/cost/paper_cpu_s"])
     if config.federated.server_evaluates:
-        names.update(f"server/test/{m}" for m in METRICS)
-        names.update(f"server/task/{t}/{m}" for t in tasks for m in METRICS)
-    for field in make_fields(tasks or [ALL]) + method_fields(config):
-        names.add(field.key)
-        names.update(client_key(field.key, c) for c in range(config.data.clients))
+        names.update(f"server/test/{m}" for m in SCORE_NAMES)
+        names.update(f"server/task/{t}/{m}" for t in tasks for m in SCORE_NAMES)
+    plugins = plugin_metrics(config.federated.strategy, config.continual.method)
+    for key in round_keys(tasks, plugins):
+        names.add(key)
+        names.update(client_key(key, c) for c in range(config.data.clients))
     for k in range(len(tasks)):
         prefix = f"after_task{k + 1}"
-        names.update(f"{prefix}/test/{m}" for m in METRICS)
-        names.update(f"{prefix}/task/{t}/{m}" for t in tasks[: k + 1] for m in METRICS)
-        names.update(f"{prefix}/forgetting/{t}/{m}" for t in tasks[:k] for m in METRICS)
-    names.update(f"mean/{f.key}" for f in COST_FIELDS if f.key.startswith("cost/"))
+        names.update(f"{prefix}/test/{m}" for m in SCORE_NAMES)
+        names.update(f"{prefix}/task/{t}/{m}" for t in tasks[: k + 1] for m in SCORE_NAMES)
+        names.update(f"{prefix}/forgetting/{t}/{m}" for t in tasks[:k] for m in SCORE_NAMES)
+    names.update(f"mean/{key}" for key in COST_KEYS)
     return names
 
 
@@ -144,13 +142,11 @@ def check_data(spec: SweepSpec) -> None:
     """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start
     rather than fail each of its trials on it. (:func:`~fedlgr.shell.sweep.spec.load_sweep`
     does not ask this, so that a sweep file can be checked without its data.)"""
-    from fedlgr.shell.config import load_config
-
     seen: set[Path] = set()
     for point in _data_points(spec):
         base, overrides = spec.trial_config_args(point)
         try:
-            path = Path(load_config(base, overrides).data.path)
+            path = Path(configs.load_config(base, overrides).data.path)
         except ConfigError as err:  # data.path left unset (???) by a MANNERS-DB preset
             raise ConfigError(f"{spec.path}: {err}") from err
         if path in seen:

@@ -1,4 +1,5 @@
-"""Sweep files: what a sweep varies, over which base config, towards which objective.
+"""Sweep files: what a sweep varies, over which base config, towards which objective;
+:func:`load_sweep` reads and checks one into a :class:`~fedlgr.shell.sweep.space.SweepSpec`.
 
 A sweep file (``sweeps/NAME.yaml``)::
 
@@ -26,156 +27,43 @@ for grids (a grid wants every point measured).
 
 from __future__ import annotations
 
-import itertools
 import math
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import ConfigError, not_a_file
-from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, check_interpolations, yaml_reason
+import yaml
 
-CONFIG_KEY = "config"  # the space key that chooses the base config file
+from fedlgr.errors import ConfigError, not_a_file
+from fedlgr.shell.config import SETTING_NAME, SWEEPS_DIR, check_interpolations, yaml_reason
+from fedlgr.shell.sweep.checks import check_trial_configs, tracking_experiment
+from fedlgr.shell.sweep.space import Param, SweepSpec, resolve_config
+
 DIRECTIONS = ("minimize", "maximize")
 SAMPLERS = ("grid", "tpe")
 PRUNERS = ("median", "none")
+MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
+MAX_GRID_POINTS = 1_000_000  # GridSampler lists every point (a tuple each) up front
+#: The settings a sweep file may have at its top level.
+KNOWN = (
+    "name",
+    "description",
+    "base",
+    "overrides",
+    "objective",
+    "space",
+    "sampler",
+    "trials",
+    "pruner",
+    "prune_warmup_rounds",
+    "seed",
+    "experiment",
+    "heartbeat_s",
+)
 
-
-@dataclass(frozen=True)
-class Param:
-    """One searched setting: a grid (``values``), a range (``low``/``high``) or categorical
-    choices (``values`` with ``categorical``) for TPE."""
-
-    name: str
-    values: tuple[Any, ...] = ()
-    low: float | None = None
-    high: float | None = None
-    log: bool = False
-    step: float | None = None
-    categorical: bool = False
-
-    @property
-    def is_grid(self) -> bool:
-        return bool(self.values) and not self.categorical
-
-    def distribution(self):
-        """Optuna's distribution for this parameter."""
-        from optuna.distributions import (
-            CategoricalDistribution,
-            FloatDistribution,
-            IntDistribution,
-        )
-
-        if self.values:
-            return CategoricalDistribution(list(self.values))
-        integer_step = self.step is None or float(self.step).is_integer()
-        if isinstance(self.low, int) and isinstance(self.high, int) and integer_step:
-            return IntDistribution(self.low, self.high, log=self.log, step=int(self.step or 1))
-        return FloatDistribution(float(self.low), float(self.high), log=self.log, step=self.step)
-
-    def suggest(self, trial) -> Any:
-        """Draw this parameter for an Optuna trial (grid points come from GridSampler)."""
-        from optuna.distributions import CategoricalDistribution, IntDistribution
-
-        d = self.distribution()
-        if isinstance(d, CategoricalDistribution):
-            return trial.suggest_categorical(self.name, d.choices)
-        if isinstance(d, IntDistribution):
-            return trial.suggest_int(self.name, d.low, d.high, step=d.step, log=d.log)
-        return trial.suggest_float(self.name, d.low, d.high, step=d.step, log=d.log)
-
-    def size(self) -> int | None:
-        """How many distinct values the parameter can take; None for a continuous range."""
-        from optuna.distributions import CategoricalDistribution, IntDistribution
-
-        d = self.distribution()
-        if isinstance(d, CategoricalDistribution):
-            return len(d.choices)
-        if isinstance(d, IntDistribution):
-            return (d.high - d.low) // d.step + 1
-        if d.step is None:
-            return None
-        return round((d.high - d.low) / d.step) + 1  # Optuna has fitted high to the step
-
-
-@dataclass(frozen=True)
-class SweepSpec:
-    name: str
-    path: Path | None
-    base: Path | None
-    params: tuple[Param, ...]
-    metric: str = "test/rmse"
-    direction: str = "minimize"
-    sampler: str = "grid"
-    trials: int | None = None  # TPE: how many; grid: the grid's size
-    pruner: str = "none"
-    prune_warmup_rounds: int = 2
-    seed: int = 0
-    overrides: tuple[str, ...] = ()
-    experiment: str = ""
-    description: str = ""
-    heartbeat_s: int = 30  # a trial whose worker is silent for 2 heartbeats is retried
-
-    @property
-    def grid(self) -> dict[str, list[Any]]:
-        """GridSampler's search space (grid sweeps)."""
-        return {p.name: list(p.values) for p in self.params}
-
-    def grid_points(self) -> Iterator[dict[str, Any]]:
-        """Every point of the grid, built one at a time (a grid can hold millions)."""
-        names = [p.name for p in self.params]
-        for combo in itertools.product(*(p.values for p in self.params)):
-            yield dict(zip(names, combo, strict=True))
-
-    def space_size(self) -> int | None:
-        """How many distinct points the space holds; None when a range is continuous."""
-        sizes = [p.size() for p in self.params]
-        return None if None in sizes else math.prod(sizes)
-
-    @property
-    def n_trials(self) -> int:
-        if self.sampler == "grid":
-            return math.prod(len(p.values) for p in self.params)
-        return int(self.trials or 0)
-
-    def search_space(self) -> dict[str, Any]:
-        """Optuna distributions per parameter (what the trials are drawn from)."""
-        return {p.name: p.distribution() for p in self.params}
-
-    def trial_config_args(self, params: dict[str, Any]) -> tuple[Path | None, list[str]]:
-        """The base config file and ``key=value`` overrides of a trial with ``params``."""
-        base = self.base
-        overrides = list(self.overrides)
-        for name, value in params.items():
-            if name == CONFIG_KEY:
-                base = resolve_config(value, self.path)
-            else:
-                overrides.append(f"{name}={_as_override(value)}")
-        return base, overrides
-
-
-def _as_override(value: Any) -> str:
-    if value is None:  # a grid's null (YAML): the setting's "unset", e.g. lgr_train_blocks
-        return "null"
-    if isinstance(value, bool):
-        return str(value).lower()
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_as_override(v) for v in value) + "]"
-    return str(value)
-
-
-def resolve_config(name: str | Path, sweep_path: Path | None = None) -> Path:
-    """A base config named relative to ``conf/`` (``experiment/table1/clients2_noaug.yaml``),
-    to the sweep file, or as a path."""
-    candidates = (Path(name), CONF_DIR / name, *([sweep_path.parent / name] if sweep_path else []))
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate.resolve()
-    for candidate in candidates:  # a FIFO was "no such file" (the tenth fault sweep, d88)
-        if why := not_a_file(candidate):
-            raise ConfigError(f"config {name}: {candidate} is {why}")
-    raise ConfigError(f"config {name}: no such file (looked in ., conf/ and next to the sweep)")
+#: ``fail(key, message)``: the ConfigError naming the sweep file and its setting ``key``.
+Fail = Callable[[str, str], ConfigError]
 
 
 def find_sweep(name: str | Path) -> Path:
@@ -184,10 +72,10 @@ def find_sweep(name: str | Path) -> Path:
     for candidate in (path, SWEEPS_DIR / path, SWEEPS_DIR / f"{path}.yaml"):
         if candidate.is_file():
             return candidate
-    # a broken link (u53) or a path under a FIFO or a file (e148) was "no such file"
+    # a dangling link, or a path under a FIFO or a file, is named as what it is
     if not path.exists() and (why := not_a_file(path)):
         raise ConfigError(f"sweep {name}: {why}")
-    if path.exists() and not path.is_dir():  # /dev/zero, a FIFO (seventh fault sweep)
+    if path.exists() and not path.is_dir():  # a device or a FIFO is there but is no file
         raise ConfigError(f"sweep {name}: not a regular file (a device, pipe or socket)")
     known = ", ".join(sorted(p.stem for p in SWEEPS_DIR.glob("*.yaml")))
     raise ConfigError(f"sweep {name}: no such file; shipped sweeps: {known}")
@@ -201,85 +89,28 @@ def load_sweep(
     """Read and check a sweep file - every parameter, the configs its trials make and the
     objective's metric, before anything trains; ``overrides`` (``key=value``) apply to
     every trial; ``echo`` says so before a long check (a large grid)."""
-    from fedlgr.shell.sweep.checks import check_trial_configs, tracking_experiment
-
     path = find_sweep(path)
     raw = read_sweep_file(path)
 
     def fail(key: str, message: str) -> ConfigError:
         return ConfigError(f"{path}: {key}: {message}")
 
-    known = {
-        "name",
-        "description",
-        "base",
-        "overrides",
-        "objective",
-        "space",
-        "sampler",
-        "trials",
-        "pruner",
-        "prune_warmup_rounds",
-        "seed",
-        "experiment",
-        "heartbeat_s",
-    }
-    unknown = sorted(set(raw) - known)
-    if unknown:
-        from fedlgr.shell.config import SETTING_NAME
-
-        if not SETTING_NAME.fullmatch(str(unknown[0])):  # a text file: its text is not echoed
-            raise ConfigError(
-                f"{path}: not a sweep file: its top level is not `setting: value` lines "
-                f"({', '.join(sorted(known))})"
-            )
-        raise fail(unknown[0], f"unknown setting; known: {', '.join(sorted(known))}")
-    space = raw.get("space")
-    if not isinstance(space, dict) or not space:
-        raise fail("space", "needs at least one parameter (key: [values] or key: {low, high})")
-    params = tuple(_param(name, value, fail) for name, value in space.items())
-    all_grid = all(p.is_grid for p in params)
-    sampler = raw.get("sampler", "grid" if all_grid else "tpe")
-    if sampler not in SAMPLERS:
-        raise fail("sampler", f"{sampler!r}; choose one of {', '.join(SAMPLERS)}")
-    if sampler == "grid" and not all_grid:
-        ranges = [p.name for p in params if not p.is_grid]
-        raise fail("sampler", f"grid needs a list of values for every parameter, not {ranges}")
-    points = math.prod(len(p.values) for p in params) if sampler == "grid" else 0
-    if points > MAX_GRID_POINTS:
-        raise fail(
-            "space",
-            f"a {points:,}-point grid; at most {MAX_GRID_POINTS:,} (Optuna's GridSampler "
-            f"holds every point in memory, ~{points * (56 + 8 * len(params)) / 1e9:,.0f} GB "
-            "here, and each point is a trial): fewer values, or sampler: tpe with trials: N",
-        )
-    trials = raw.get("trials")
-    if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
-        raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
-    objective = raw.get("objective") or {}
-    if not isinstance(objective, dict) or not isinstance(objective.get("metric", ""), str):
-        raise fail("objective", "expected {metric: NAME, direction: minimize|maximize}")
-    extra = sorted(set(objective) - {"metric", "direction"})
-    if extra:
-        raise fail(f"objective.{extra[0]}", "unknown setting; known: metric, direction")
-    direction = objective.get("direction", "minimize")
-    if direction not in DIRECTIONS:
-        raise fail("objective.direction", f"{direction!r}; choose minimize or maximize")
-    pruner = raw.get("pruner", "median" if sampler == "tpe" else "none")
-    if pruner not in PRUNERS:
-        raise fail("pruner", f"{pruner!r}; choose one of {', '.join(PRUNERS)}")
+    _check_top_level(raw, path, fail)
+    params = _space(raw, fail)
+    sampler = _sampler(raw, params, fail)
+    trials = _trials(raw, sampler, fail)
+    metric, direction = _objective(raw, fail)
+    pruner = _pruner(raw, sampler, fail)
     base = raw.get("base")
     base_path = resolve_config(base, path) if base else None
-    fixed = raw.get("overrides") or []
-    if not isinstance(fixed, list) or not all(isinstance(o, str) and "=" in o for o in fixed):
-        raise fail("overrides", "expected a list of key=value strings")
+    fixed = _fixed_overrides(raw, fail)
     name = str(raw.get("name") or path.stem)
     spec = SweepSpec(
         name=name,
         path=path.resolve(),
         base=base_path,
         params=params,
-        metric=objective.get("metric", "test/rmse"),
+        metric=metric,
         direction=direction,
         sampler=sampler,
         trials=trials,
@@ -301,11 +132,92 @@ def load_sweep(
     return spec
 
 
+def _check_top_level(raw: dict[str, Any], path: Path, fail: Fail) -> None:
+    """Every top-level key is a sweep setting; a text file that is no settings at all is
+    refused without echoing its text."""
+    unknown = sorted(set(raw) - set(KNOWN))
+    if not unknown:
+        return
+    if not SETTING_NAME.fullmatch(str(unknown[0])):
+        raise ConfigError(
+            f"{path}: not a sweep file: its top level is not `setting: value` lines "
+            f"({', '.join(sorted(KNOWN))})"
+        )
+    raise fail(unknown[0], f"unknown setting; known: {', '.join(sorted(KNOWN))}")
+
+
+def _space(raw: dict[str, Any], fail: Fail) -> tuple[Param, ...]:
+    """The ``space:`` parameters, each checked as Optuna would take it."""
+    space = raw.get("space")
+    if not isinstance(space, dict) or not space:
+        raise fail("space", "needs at least one parameter (key: [values] or key: {low, high})")
+    return tuple(_param(name, value, fail) for name, value in space.items())
+
+
+def _sampler(raw: dict[str, Any], params: tuple[Param, ...], fail: Fail) -> str:
+    """``grid`` when every parameter is a list of values, ``tpe`` otherwise; a grid must fit
+    in memory, as GridSampler lists all its points."""
+    all_grid = all(p.is_grid for p in params)
+    sampler = raw.get("sampler", "grid" if all_grid else "tpe")
+    if sampler not in SAMPLERS:
+        raise fail("sampler", f"{sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    if sampler == "grid" and not all_grid:
+        ranges = [p.name for p in params if not p.is_grid]
+        raise fail("sampler", f"grid needs a list of values for every parameter, not {ranges}")
+    points = math.prod(len(p.values) for p in params) if sampler == "grid" else 0
+    if points > MAX_GRID_POINTS:
+        raise fail(
+            "space",
+            f"a {points:,}-point grid; at most {MAX_GRID_POINTS:,} (Optuna's GridSampler "
+            f"holds every point in memory, ~{points * (56 + 8 * len(params)) / 1e9:,.0f} GB "
+            "here, and each point is a trial): fewer values, or sampler: tpe with trials: N",
+        )
+    return sampler
+
+
+def _trials(raw: dict[str, Any], sampler: str, fail: Fail) -> int | None:
+    """How many trials a TPE sweep runs (a grid runs each of its points)."""
+    trials = raw.get("trials")
+    if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
+        raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
+    return trials
+
+
+def _objective(raw: dict[str, Any], fail: Fail) -> tuple[str, str]:
+    """The objective's metric and direction."""
+    objective = raw.get("objective") or {}
+    if not isinstance(objective, dict) or not isinstance(objective.get("metric", ""), str):
+        raise fail("objective", "expected {metric: NAME, direction: minimize|maximize}")
+    extra = sorted(set(objective) - {"metric", "direction"})
+    if extra:
+        raise fail(f"objective.{extra[0]}", "unknown setting; known: metric, direction")
+    direction = objective.get("direction", "minimize")
+    if direction not in DIRECTIONS:
+        raise fail("objective.direction", f"{direction!r}; choose minimize or maximize")
+    return objective.get("metric", "test/rmse"), direction
+
+
+def _pruner(raw: dict[str, Any], sampler: str, fail: Fail) -> str:
+    """``median`` by default for TPE; none for a grid, which wants every point measured."""
+    pruner = raw.get("pruner", "median" if sampler == "tpe" else "none")
+    if pruner not in PRUNERS:
+        raise fail("pruner", f"{pruner!r}; choose one of {', '.join(PRUNERS)}")
+    return pruner
+
+
+def _fixed_overrides(raw: dict[str, Any], fail: Fail) -> list[str]:
+    """The file's ``overrides:``, the ``key=value`` settings every trial gets."""
+    fixed = raw.get("overrides") or []
+    if not isinstance(fixed, list) or not all(isinstance(o, str) and "=" in o for o in fixed):
+        raise fail("overrides", "expected a list of key=value strings")
+    return fixed
+
+
 def _check_overrides(spec: SweepSpec, in_file: int) -> None:
-    """Refuse what a trial would drop without a word (the eleventh fault sweep): a setting
-    given twice in the file's ``overrides:`` (the last won, e168), or an override - in the
-    file or on the command line - of a setting the space varies (each trial set its own,
-    e162, e163). The command line's overrides may change the file's: that is their use."""
+    """Refuse what a trial would drop without a word: a setting given twice in the file's
+    ``overrides:`` (the last would win), or an override - in the file or on the command
+    line - of a setting the space varies (each trial would set its own). The command
+    line's overrides may change the file's: that is their use."""
     swept = {p.name for p in spec.params}
     seen: dict[str, str] = {}
     for k, override in enumerate(spec.overrides):
@@ -328,7 +240,7 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
     """The settings of a sweep file as a dict, ``${...}`` resolved; a file that is not YAML
     (with the line where YAML says), repeats a key or is not a mapping is one ConfigError
     naming the file."""
-    import yaml
+    # lazy: omegaconf (~0.5 s), only when a sweep file is read
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -374,11 +286,7 @@ def _yaml_problem(err) -> str:
     return f"{where}: not valid YAML: {problem}"
 
 
-MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
-MAX_GRID_POINTS = 1_000_000  # GridSampler lists every point (a tuple each) up front
-
-
-def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail) -> int:
+def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail: Fail) -> int:
     value = raw.get(key, default)
     if isinstance(value, bool) or not isinstance(value, int):
         raise fail(key, f"expected a whole number, not {value!r}")
@@ -395,10 +303,10 @@ SET_BY_THE_SWEEP = {
 }
 
 
-def _param(name: str, value: Any, fail) -> Param:
+def _param(name: str, value: Any, fail: Fail) -> Param:
     """One ``space`` entry, checked as Optuna would take it (a grid, choices or a range)."""
     key = f"space.{name}"
-    if name in SET_BY_THE_SWEEP:  # it had no effect (the seventh fault sweep, w10b)
+    if name in SET_BY_THE_SWEEP:  # the sweep sets it for every trial: swept, it does nothing
         raise fail(key, f"set by the sweep for every trial ({SET_BY_THE_SWEEP[name]}), not swept")
     if isinstance(value, list):
         return Param(name, values=_values(value, key, "grid", fail))
@@ -445,7 +353,7 @@ def _param(name: str, value: Any, fail) -> Param:
     return param
 
 
-def _values(values: list[Any], key: str, what: str, fail) -> tuple[Any, ...]:
+def _values(values: list[Any], key: str, what: str, fail: Fail) -> tuple[Any, ...]:
     """A grid's or choices' values: numbers, strings, booleans or null, each once."""
     if not values:
         raise fail(key, f"an empty {what}")

@@ -9,15 +9,28 @@ copy, so two workers that notice the same dead trial queue it once.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import os
+import sqlite3
 import warnings
 from pathlib import Path
 from typing import Any
 
 from fedlgr.errors import FedlgrError, exception_chain, not_a_file
-from fedlgr.shell.sweep.spec import SweepSpec
+from fedlgr.shell.sweep.space import SweepSpec
+from fedlgr.shell.tracking.mlflow_run import StoreError, open_lock_file, store_lock
+from fedlgr.shell.tracking.server import (
+    CONNECT_TIMEOUT_S,
+    check_database,
+    in_memory_sqlite,
+    mask_password,
+    masked_text,
+    server_database,
+)
+
+DEFAULT_STORAGE = "sqlite:///optuna.db"
 
 
 class RetryStaleTrial:
@@ -27,6 +40,7 @@ class RetryStaleTrial:
     study never counted, and the retry makes the point's result."""
 
     def __init__(self) -> None:
+        # lazy: optuna (~1 s), not needed to check a sweep file
         from optuna.storages import RetryHeartbeatStaleTrialCallback
 
         # The copy keeps the rounds the trial reported: a retry that resumes its run from
@@ -66,6 +80,7 @@ def fail_and_retry(study, retry: RetryStaleTrial, trial_id: int) -> bool:
     """Set the RUNNING trial ``trial_id`` FAILED and queue a copy of it - only when this
     call's FAIL reached the storage (another worker, or Optuna itself, may have finished
     the trial first). True if a copy was queued."""
+    # lazy: optuna (~1 s), not needed to check a sweep file
     import optuna
     from optuna.trial import TrialState
 
@@ -95,8 +110,6 @@ def open_study(
     :func:`fedlgr.shell.tracking.server.database_lock`). A storage that cannot hold the study
     is one :class:`FedlgrError` line naming it, its password masked
     (:func:`check_storage`)."""
-    from fedlgr.shell.tracking.mlflow_run import store_lock
-
     path = check_storage(storage)
     with store_lock(storage):
         if path is not None:
@@ -110,7 +123,7 @@ LOCK_WAIT_S = 5.0  # another process's write that takes longer than this is not 
 
 def sqlite_path(storage: str) -> Path | None:
     """The file of an sqlite storage URL; None for a server database or an in-memory one."""
-    from sqlalchemy.engine import make_url
+    from sqlalchemy.engine import make_url  # lazy: sqlalchemy (~1 s), for a storage only
 
     url = make_url(storage)
     database = url.database or ""
@@ -128,9 +141,7 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
     that does not exist (:func:`fedlgr.shell.tracking.server.check_database`). ``make``:
     create the sqlite file's folder and lock file (else only look). The sqlite file, for
     sqlite."""
-    from sqlalchemy.exc import ArgumentError
-
-    from fedlgr.shell.tracking.server import check_database, mask_password, server_database
+    from sqlalchemy.exc import ArgumentError  # lazy: sqlalchemy (~1 s), for a storage only
 
     def fail(problem: str) -> FedlgrError:
         return FedlgrError(f"--storage {mask_password(storage)}: {problem}")
@@ -143,8 +154,6 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         path = sqlite_path(storage)
     except ArgumentError as err:
         raise fail("not a database URL (e.g. sqlite:///optuna.db or postgresql://HOST/DB)") from err
-    from fedlgr.shell.tracking.server import in_memory_sqlite
-
     if in_memory_sqlite(storage):
         raise fail(
             "an in-memory sqlite database keeps nothing (the study is lost when the sweep "
@@ -154,8 +163,10 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         return None
     if path.is_dir():
         raise fail(f"{path} is a folder, not an sqlite file")
-    if why := not_a_file(path):  # a link: "cannot open" after a minute (a60, a79); a
-        raise fail(f"{path} is {why}")  # device: /dev/null.lock was made (c16, c17, c135)
+    # A dangling link would fail after a minute's wait, and a device would get a lock file
+    # made beside it (/dev/null.lock): both are refused at once.
+    if why := not_a_file(path):
+        raise fail(f"{path} is {why}")
     if not make:
         folder = next(p for p in path.absolute().parents if p.exists())
         if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
@@ -168,8 +179,6 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise fail(f"cannot create the folder {path.parent}: {err.strerror or err}") from err
-    from fedlgr.shell.tracking.mlflow_run import StoreError, open_lock_file
-
     try:  # the lock file store_lock keeps beside it: the folder takes new files
         os.close(open_lock_file(Path(f"{path}.lock"), f"--storage {storage}"))
     except StoreError as err:
@@ -194,9 +203,6 @@ def _wait_for_writes(path: Path, storage: str) -> None:
     """Wait up to :data:`LOCK_WAIT_S` for another process's write to the sqlite file to
     end (a sweep's workers write for milliseconds): one that holds it longer is named,
     instead of the minute Optuna's connections wait (``timeout: 60``)."""
-    import contextlib
-    import sqlite3
-
     if not (path.is_file() and path.stat().st_size):
         return
     try:
@@ -211,12 +217,9 @@ def _wait_for_writes(path: Path, storage: str) -> None:
 def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
     """One line for an error of the study's storage (Optuna's ``StorageInternalError``,
     SQLAlchemy's and sqlite's errors); None for any other error."""
-    import sqlite3
-
+    # lazy: optuna and sqlalchemy (~1 s), not needed to check a sweep file
     import optuna
     from sqlalchemy.exc import SQLAlchemyError
-
-    from fedlgr.shell.tracking.server import mask_password, masked_text
 
     internal = optuna.exceptions.StorageInternalError
     storage_kinds = internal | SQLAlchemyError | sqlite3.Error
@@ -251,10 +254,9 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
 def _open_study(
     spec: SweepSpec, storage: str, study_name: str | None, worker: int, settings_changed: bool
 ):
+    # lazy: optuna (~1 s), not needed to check a sweep file
     import optuna
     from optuna.storages import RDBStorage
-
-    from fedlgr.shell.tracking.server import mask_password, masked_text
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # no INFO line per study/trial
     try:
@@ -309,8 +311,6 @@ def _engine_kwargs(storage: str) -> dict[str, Any]:
     """SQLAlchemy's settings for the storage's engine: sqlite waits up to a minute for
     another worker's write; a database server is given up on when it does not answer
     (a lost server would otherwise hang the worker on the network's own timeout)."""
-    from fedlgr.shell.tracking.server import CONNECT_TIMEOUT_S
-
     if storage.startswith("sqlite"):
         return {"connect_args": {"timeout": 60}}
     if storage.lower().startswith(("postgresql:", "postgresql+")):
@@ -352,8 +352,6 @@ def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = Fals
                 f"{key} (study: {before.get(key, 'not set')}, now: {after.get(key, 'not set')})"
             )
     if differences:
-        from fedlgr.shell.tracking.server import mask_password
-
         raise FedlgrError(
             f"study {study.study_name!r} in {mask_password(storage)} was run with other settings: "
             f"{'; '.join(differences)}. Its trials would count as trials of these settings: "
@@ -366,7 +364,7 @@ def _as_dict(overrides: list[str]) -> dict[str, str]:
     that change no number (``tracking.*``, ``data.cache_dir``) left out, and how trials
     run (``--workers`` sets the threads per trial: a relaunch with other workers or on
     another machine goes on with the study)."""
-    from fedlgr.shell.run.checkpoint import MACHINE_CHOSEN, SAFE_KEYS
+    from fedlgr.shell.run.checkpoint import MACHINE_CHOSEN, SAFE_KEYS  # lazy: torch (~5 s)
 
     pairs = dict(o.split("=", 1) for o in overrides)
     return {

@@ -50,10 +50,11 @@ from typing import Any
 
 from fedlgr.shell.signals import Terminated
 from fedlgr.shell.sweep.checks import check_data
-from fedlgr.shell.sweep.spec import SweepSpec
+from fedlgr.shell.sweep.space import SweepSpec
+from fedlgr.shell.sweep.storage import DEFAULT_STORAGE
 from fedlgr.shell.sweep.trials import all_failed, counts, nothing_left, ran, summary
-from fedlgr.shell.sweep.worker import DEFAULT_STORAGE, Worker
-from fedlgr.shell.tracking.server import mask_password
+from fedlgr.shell.sweep.worker import Worker
+from fedlgr.shell.tracking.server import mask_password, runs_hint
 
 
 @dataclass
@@ -91,80 +92,108 @@ def run_sweep(
         echo=prefixed(echo, "[w0] ") if workers > 1 else echo,
         settings_changed=settings_changed,
     )
-    _, running, waiting = counts(worker.study, spec)
-    total, size = spec.n_trials, spec.space_size()
-    echo(
-        f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
-        f"study {worker.study.study_name!r} in {mask_password(storage)} "
-        # done: trials that finished (a grid's total - todo counted its running ones, u80)
-        f"({ran(worker.study)} done, {running} running, {waiting} queued); "
-        f"MLflow experiment {worker.experiment!r}, "
-        f"parent run {worker.parent_run_id}"
-    )
-    if worker.moved and worker_id == 0:
-        echo(worker.moved)
-    if spec.sampler == "tpe" and size is not None and size < total:
-        echo(f"sweep {spec.name}: its space has {size} distinct points: it stops once each has run")
+    _announce(worker, worker_id, echo)
     if not worker.left_to_run():
-        if worker_id > 0:
-            return SweepResult(worker.study, worker.parent_run_id, True)
-        best = worker.finish_parent()
-        echo(nothing_left(worker.study, spec, best))
-        return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
-    helpers, relays = [], []
-    for k in range(1, workers):
-        command = [
-            sys.executable,
-            "-m",
-            "fedlgr",
-            "sweep",
-            str(spec.path),
-            *(cli_overrides or []),
-            "--storage",
-            storage,
-            "--study",
-            worker.study.study_name,
-            "--tracking-uri",
-            worker.tracking_uri,
-            "--worker-id",
-            str(k),
-        ]
-        # Its output comes through this process, each line prefixed with its worker.
-        process = subprocess.Popen(
-            command,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            errors="replace",
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},  # lines as they come, not in blocks
-        )
-        helpers.append(process)
-        relays.append(relay(process, f"[w{k}] ", echo))
-    try:
-        done = worker.run()
-    except Terminated:
-        # SIGTERM may have reached this process alone (docker stop, timeout): pass it on
-        # (a worker that had it already ignores the second one).
-        for process in helpers:
-            process.terminate()
-        raise
-    finally:
-        for process in helpers:
-            try:
-                process.wait()
-            except KeyboardInterrupt:
-                process.terminate()
-        for thread in relays:
-            thread.join(timeout=5)  # its last lines, before the table
+        return _nothing_left(worker, worker_id, echo)
+    helpers = [_start_helper(worker, k, cli_overrides, echo) for k in range(1, workers)]
+    done = _run_with_helpers(worker, helpers)
     if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
         return SweepResult(worker.study, worker.parent_run_id, done)
     best = worker.finish_parent() if done else None
     echo("\n" + summary(worker.study, spec, best))
-    from fedlgr.shell.tracking.server import runs_hint
-
-    echo(runs_hint(worker.tracking_uri, worker.experiment_id))
+    echo(runs_hint(worker.parent.tracking_uri, worker.parent.experiment_id))
     failure = all_failed(worker.study) if done else None
     return SweepResult(worker.study, worker.parent_run_id, done, failure)
+
+
+def _announce(worker: Worker, worker_id: int, echo: Callable[..., None]) -> None:
+    """The sweep's first lines: what it runs, where its study and runs are, how far it is."""
+    spec = worker.spec
+    _, running, waiting = counts(worker.study, spec)
+    total, size = spec.n_trials, spec.space_size()
+    echo(
+        f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
+        f"study {worker.study.study_name!r} in {mask_password(worker.storage)} "
+        # done: the trials that finished, not a grid's total less its open points (which
+        # counts the running ones)
+        f"({ran(worker.study)} done, {running} running, {waiting} queued); "
+        f"MLflow experiment {worker.experiment!r}, "
+        f"parent run {worker.parent_run_id}"
+    )
+    if worker.parent.moved and worker_id == 0:
+        echo(worker.parent.moved)
+    if spec.sampler == "tpe" and size is not None and size < total:
+        echo(f"sweep {spec.name}: its space has {size} distinct points: it stops once each has run")
+
+
+def _nothing_left(worker: Worker, worker_id: int, echo: Callable[..., None]) -> SweepResult:
+    """A relaunched study with nothing left to run: the first process ends its parent run
+    and says so in one line."""
+    if worker_id > 0:
+        return SweepResult(worker.study, worker.parent_run_id, True)
+    best = worker.finish_parent()
+    echo(nothing_left(worker.study, worker.spec, best))
+    return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
+
+
+@dataclass
+class _Helper:
+    """A ``--workers`` helper process and the thread that relays its output."""
+
+    process: subprocess.Popen
+    relay: threading.Thread
+
+
+def _start_helper(
+    worker: Worker, k: int, cli_overrides: list[str] | None, echo: Callable[..., None]
+) -> _Helper:
+    """Worker ``k``: ``fedlgr sweep`` on the same study, store and experiment; its output
+    comes through this process, each line prefixed with its worker."""
+    command = [
+        sys.executable,
+        "-m",
+        "fedlgr",
+        "sweep",
+        str(worker.spec.path),
+        *(cli_overrides or []),
+        "--storage",
+        worker.storage,
+        "--study",
+        worker.study.study_name,
+        "--tracking-uri",
+        worker.parent.tracking_uri,
+        "--worker-id",
+        str(k),
+    ]
+    process = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        errors="replace",
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},  # lines as they come, not in blocks
+    )
+    return _Helper(process, relay(process, f"[w{k}] ", echo))
+
+
+def _run_with_helpers(worker: Worker, helpers: list[_Helper]) -> bool:
+    """Run this process's worker; then wait for the helpers, and their last lines."""
+    try:
+        return worker.run()
+    except Terminated:
+        # SIGTERM may have reached this process alone (docker stop, timeout): pass it on
+        # (a worker that had it already ignores the second one).
+        for helper in helpers:
+            helper.process.terminate()
+        raise
+    finally:
+        for helper in helpers:
+            try:
+                helper.process.wait()
+            except KeyboardInterrupt:
+                helper.process.terminate()
+        for helper in helpers:
+            helper.relay.join(timeout=5)  # its last lines, before the table
 
 
 def serialised(echo: Callable[..., None]) -> Callable[..., None]:

@@ -6,10 +6,17 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from fedlgr.shell.sweep.spec import SweepSpec
+from fedlgr.shell.console import table
+from fedlgr.shell.sweep.space import SweepSpec
 
 # A sampler whose last draws were all points already run has, by all signs, no new one.
 DUPLICATES_IN_A_ROW = 50
+
+
+def one_line(err: BaseException) -> str:
+    """``Type: first line of the message``: how a trial's error is recorded and shown."""
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
 def same_point(a: dict[str, Any], b: dict[str, Any]) -> bool:
@@ -28,7 +35,7 @@ def point_key(spec: SweepSpec, params: dict[str, Any]) -> tuple | None:
 def _split(trials):
     """(running, waiting, finished) trials; finished leaves out skipped duplicates and the
     failed trials that were queued again (their copy stands for them)."""
-    from optuna.trial import TrialState
+    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
 
     retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
     running = [t for t in trials if t.state == TrialState.RUNNING]
@@ -109,7 +116,7 @@ def nothing_left(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
 
 def all_failed(study) -> str | None:
     """When every trial that ran failed: how many, and the first one's error."""
-    from optuna.trial import TrialState
+    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
 
     finished = _split(study.get_trials(deepcopy=False))[2]
     if not finished or any(t.state != TrialState.FAIL for t in finished):
@@ -127,7 +134,7 @@ def ran(study) -> int:
 def duplicate_of(study, number: int, params: dict[str, Any]) -> int | None:
     """An earlier trial that covers the same grid point (running or finished without
     failing), if any: GridSampler can hand a point out twice to parallel workers."""
-    from optuna.trial import TrialState
+    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
 
     for t in study.get_trials(deepcopy=False):
         if t.number >= number or "duplicate_of" in t.user_attrs:
@@ -148,7 +155,7 @@ def interruption(trial, trials) -> str | None:
     """Why a FAILED trial was cut off rather than failing on its own, or None: Ctrl-C or
     SIGTERM (user attr ``interrupted``, set by its worker), or a worker that died (killed,
     machine lost: no error recorded and a copy queued); with the copy that re-runs it."""
-    from optuna.trial import TrialState
+    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
 
     if trial.state != TrialState.FAIL or trial.user_attrs.get("error"):
         return None
@@ -195,8 +202,6 @@ def summary(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
     """The table a sweep ends with: a row per trial (skipped duplicates left out), the best
     one marked ``*`` in a column of its own, interrupted trials as ``INTERRUPTED`` with
     why; errors longer than the column below it."""
-    from fedlgr.shell.console import table
-
     rows, errors = [], []
     for row in trial_table(study):
         if "duplicate_of" in row:

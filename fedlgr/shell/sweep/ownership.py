@@ -1,0 +1,137 @@
+"""Which process runs which trial, and what becomes of a trial whose process is gone.
+
+A worker claims each trial it runs (:data:`OWNER`: its host, pid and start time) and
+Optuna's heartbeats say which trials are still being run. A trial whose worker died
+(silent for two heartbeats), was killed before it drew its parameters, or was
+interrupted is set FAILED and queued again (:mod:`fedlgr.shell.sweep.storage`) - unless
+its worker is alive on this machine, merely stopped.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from collections.abc import Callable
+from datetime import datetime, timedelta
+
+from fedlgr.shell.sweep.space import SweepSpec
+from fedlgr.shell.sweep.storage import RetryStaleTrial, fail_and_retry, retry_failed
+from fedlgr.shell.tracking.mlflow_run import process_alive, process_started
+
+#: A trial's system attribute naming the process that runs it: [host, pid, start time].
+OWNER = "fedlgr_owner"
+
+
+def this_process() -> list:
+    return [socket.gethostname(), os.getpid(), process_started(os.getpid())]
+
+
+def alive_here(owner) -> bool:
+    """Whether ``owner`` (:data:`OWNER`) is a live process on this machine - the same
+    process, not a later one given its pid (the start time tells them apart); a zombie
+    is not alive (as for a run's process: :func:`~fedlgr.shell.tracking.mlflow_run.dead_reason`)."""
+    if not isinstance(owner, list) or len(owner) != 3 or owner[0] != socket.gethostname():
+        return False
+    return str(owner[1]).isdigit() and process_alive(int(owner[1]), str(owner[2]))
+
+
+class TrialOwnership:
+    """The trials of one worker's study: the one it holds, and those of other workers that
+    died or were interrupted, which it queues again."""
+
+    def __init__(
+        self,
+        spec: SweepSpec,
+        study,
+        retry: RetryStaleTrial,
+        worker: int,
+        echo: Callable[..., None],
+    ):
+        self.spec, self.study, self.retry, self.worker, self.echo = spec, study, retry, worker, echo
+        self.held: int | None = None  # the storage id of the trial this worker runs
+        self.waited_for: set[int] = set()  # trials of live workers here, said once
+
+    def claim(self, trial) -> None:
+        """Make ``trial`` this worker's: its worker number, its owner, and a new try."""
+        self.held = trial._trial_id
+        trial.set_user_attr("worker", self.worker)
+        self.study._storage.set_trial_system_attr(trial._trial_id, OWNER, this_process())
+        if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
+            trial.set_user_attr("interrupted", False)
+
+    def release(self) -> None:
+        self.held = None
+
+    def requeue_held(self) -> None:
+        """Queue this worker's trial again, after an interrupt, so the next launch redoes it
+        (as for a worker that died). Optuna has recorded the trial FAILED - or left it
+        RUNNING, if the interrupt hit its own bookkeeping - and a finished trial takes no
+        new attributes, so what says it was re-queued is the copy's ``retry_history``."""
+        if self.held is not None and not fail_and_retry(self.study, self.retry, self.held):
+            retry_failed(self.study, self.retry, self.held)
+
+    def recover(self) -> None:
+        """Queue again the trials of workers that died or were interrupted."""
+        # lazy: optuna (~1 s), not needed to check a sweep file
+        import optuna
+
+        self._keep_live_owners()
+        optuna.storages.fail_stale_trials(self.study)  # dead workers' trials: re-queued
+        self._fail_unborn_trials()
+        self._retry_interrupted_trials()
+
+    def someone_is_drawing(self) -> bool:
+        """Another worker has started a trial but not yet drawn its parameters."""
+        return any(not t.params for t in self._running())
+
+    def _running(self) -> list:
+        # lazy: optuna (~1 s), not needed to check a sweep file
+        from optuna.trial import TrialState
+
+        return self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+
+    def _keep_live_owners(self) -> None:
+        """A trial whose worker is alive on this machine is never declared dead by its
+        heartbeat: its worker may be stopped (Ctrl-Z, ``kill -STOP``, a suspended VM)
+        with its heartbeat stale, and would then go on with a trial Optuna has failed and
+        re-queued (two workers on one run, and ``ValueError: Cannot tell a FAIL trial``).
+        Its heartbeat is recorded here for it; a dead worker's, or one on another machine,
+        is left to Optuna's heartbeat."""
+        storage = self.study._storage
+        for t in self._running():
+            if alive_here(t.system_attrs.get(OWNER)):
+                storage.record_heartbeat(t._trial_id)
+                if t.number not in self.waited_for and t._trial_id != self.held:
+                    self.waited_for.add(t.number)
+                    pid = t.system_attrs[OWNER][1]
+                    self.echo(
+                        f"sweep {self.spec.name}: trial {t.number} belongs to process {pid} "
+                        "on this machine, which is alive: it is left to that process (if it "
+                        f"is stopped, `kill -CONT {pid}` lets it go on)"
+                    )
+
+    def _fail_unborn_trials(self) -> None:
+        """A worker killed between creating a trial and drawing its parameters leaves a
+        RUNNING trial with no params and no heartbeat, which Optuna never fails: fail it
+        once it is older than the heartbeat grace period (a live trial draws its
+        parameters within milliseconds) and queue it again. GridSampler has already given
+        it a point (system attr ``grid_id``) and counts a failed trial's point as visited,
+        so without the retry - whose copy keeps ``grid_id`` - that point would come back
+        only by chance."""
+        limit = datetime.now() - timedelta(seconds=2 * self.spec.heartbeat_s + 10)
+        for t in self._running():
+            if not t.params and t.datetime_start is not None and t.datetime_start < limit:
+                fail_and_retry(self.study, self.retry, t._trial_id)
+
+    def _retry_interrupted_trials(self) -> None:
+        """Queue any interrupted trial whose worker could not queue it (a second Ctrl-C
+        during the first one's clean-up): its point would otherwise count as done."""
+        # lazy: optuna (~1 s), not needed to check a sweep file
+        from optuna.trial import TrialState
+
+        trials = self.study.get_trials(deepcopy=False)
+        retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+        for t in trials:
+            interrupted = t.state == TrialState.FAIL and t.user_attrs.get("interrupted")
+            if interrupted and t.number not in retried:
+                retry_failed(self.study, self.retry, t._trial_id)

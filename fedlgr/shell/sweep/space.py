@@ -1,0 +1,157 @@
+"""A sweep as the code holds it once its file is read (:mod:`fedlgr.shell.sweep.spec`): the
+settings it searches (:class:`Param`, each as the Optuna distribution its values are drawn
+from) and what it is run with (:class:`SweepSpec`), down to the config file and
+``key=value`` overrides of each trial."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fedlgr.errors import ConfigError, not_a_file
+from fedlgr.shell.config import CONF_DIR
+
+CONFIG_KEY = "config"  # the space key that chooses the base config file
+
+
+@dataclass(frozen=True)
+class Param:
+    """One searched setting: a grid (``values``), a range (``low``/``high``) or categorical
+    choices (``values`` with ``categorical``) for TPE."""
+
+    name: str
+    values: tuple[Any, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    step: float | None = None
+    categorical: bool = False
+
+    @property
+    def is_grid(self) -> bool:
+        return bool(self.values) and not self.categorical
+
+    def distribution(self):
+        """Optuna's distribution for this parameter."""
+        # lazy: optuna (~1 s); a grid's sweep file is read and checked without it
+        from optuna.distributions import (
+            CategoricalDistribution,
+            FloatDistribution,
+            IntDistribution,
+        )
+
+        if self.values:
+            return CategoricalDistribution(list(self.values))
+        integer_step = self.step is None or float(self.step).is_integer()
+        if isinstance(self.low, int) and isinstance(self.high, int) and integer_step:
+            return IntDistribution(self.low, self.high, log=self.log, step=int(self.step or 1))
+        return FloatDistribution(float(self.low), float(self.high), log=self.log, step=self.step)
+
+    def suggest(self, trial) -> Any:
+        """Draw this parameter for an Optuna trial (grid points come from GridSampler)."""
+        # lazy: optuna (~1 s); a grid's sweep file is read and checked without it
+        from optuna.distributions import CategoricalDistribution, IntDistribution
+
+        d = self.distribution()
+        if isinstance(d, CategoricalDistribution):
+            return trial.suggest_categorical(self.name, d.choices)
+        if isinstance(d, IntDistribution):
+            return trial.suggest_int(self.name, d.low, d.high, step=d.step, log=d.log)
+        return trial.suggest_float(self.name, d.low, d.high, step=d.step, log=d.log)
+
+    def size(self) -> int | None:
+        """How many distinct values the parameter can take; None for a continuous range."""
+        # lazy: optuna (~1 s); a grid's sweep file is read and checked without it
+        from optuna.distributions import CategoricalDistribution, IntDistribution
+
+        d = self.distribution()
+        if isinstance(d, CategoricalDistribution):
+            return len(d.choices)
+        if isinstance(d, IntDistribution):
+            return (d.high - d.low) // d.step + 1
+        if d.step is None:
+            return None
+        return round((d.high - d.low) / d.step) + 1  # Optuna has fitted high to the step
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    name: str
+    path: Path | None
+    base: Path | None
+    params: tuple[Param, ...]
+    metric: str = "test/rmse"
+    direction: str = "minimize"
+    sampler: str = "grid"
+    trials: int | None = None  # TPE: how many; grid: the grid's size
+    pruner: str = "none"
+    prune_warmup_rounds: int = 2
+    seed: int = 0
+    overrides: tuple[str, ...] = ()
+    experiment: str = ""
+    description: str = ""
+    heartbeat_s: int = 30  # a trial whose worker is silent for 2 heartbeats is retried
+
+    @property
+    def grid(self) -> dict[str, list[Any]]:
+        """GridSampler's search space (grid sweeps)."""
+        return {p.name: list(p.values) for p in self.params}
+
+    def grid_points(self) -> Iterator[dict[str, Any]]:
+        """Every point of the grid, built one at a time (a grid can hold millions)."""
+        names = [p.name for p in self.params]
+        for combo in itertools.product(*(p.values for p in self.params)):
+            yield dict(zip(names, combo, strict=True))
+
+    def space_size(self) -> int | None:
+        """How many distinct points the space holds; None when a range is continuous."""
+        sizes = [p.size() for p in self.params]
+        return None if None in sizes else math.prod(sizes)
+
+    @property
+    def n_trials(self) -> int:
+        if self.sampler == "grid":
+            return math.prod(len(p.values) for p in self.params)
+        return int(self.trials or 0)
+
+    def search_space(self) -> dict[str, Any]:
+        """Optuna distributions per parameter (what the trials are drawn from)."""
+        return {p.name: p.distribution() for p in self.params}
+
+    def trial_config_args(self, params: dict[str, Any]) -> tuple[Path | None, list[str]]:
+        """The base config file and ``key=value`` overrides of a trial with ``params``."""
+        base = self.base
+        overrides = list(self.overrides)
+        for name, value in params.items():
+            if name == CONFIG_KEY:
+                base = resolve_config(value, self.path)
+            else:
+                overrides.append(f"{name}={_as_override(value)}")
+        return base, overrides
+
+
+def _as_override(value: Any) -> str:
+    if value is None:  # a grid's null (YAML): the setting's "unset", e.g. lgr_train_blocks
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_as_override(v) for v in value) + "]"
+    return str(value)
+
+
+def resolve_config(name: str | Path, sweep_path: Path | None = None) -> Path:
+    """A base config named relative to ``conf/`` (``experiment/table1/clients2_noaug.yaml``),
+    to the sweep file, or as a path."""
+    candidates = (Path(name), CONF_DIR / name, *([sweep_path.parent / name] if sweep_path else []))
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate.resolve()
+    for candidate in candidates:  # a FIFO or a dangling link is there: say what it is
+        if why := not_a_file(candidate):
+            raise ConfigError(f"config {name}: {candidate} is {why}")
+    raise ConfigError(f"config {name}: no such file (looked in ., conf/ and next to the sweep)")
