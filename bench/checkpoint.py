@@ -2,9 +2,10 @@
 
 Side by side in one process: one round of the demo config (conf/experiment/demo.yaml:
 2 clients, half-width MobileNetV2, 128 px, augmented) and the checkpoint written after it
-(``fedlgr.shell.run.resume.save_checkpoint``: gather, Fabric save to a temporary file,
-rename), best of ``--repeats``; then the checkpoint of the full-width MobileNetV2 with 2
-and 10 clients (after one short round, so that every Adam state exists): seconds and MB.
+(``fedlgr.shell.run.life.RunLife.checkpoint``: the runtime's state gathered, written to a
+temporary file in the folder, renamed), best of ``--repeats``; then the checkpoint of the
+full-width MobileNetV2 with 2 and 10 clients (after one short round, so that every Adam
+state exists): seconds and MB.
 Target: the demo's checkpoint costs under 5% of its round.
 """
 
@@ -48,10 +49,14 @@ def setup(tmp: str, overrides: list[str]):
 
 def timed_checkpoint(fabric, orchestrator, log, folder: Path) -> tuple[float, float]:
     """Seconds to write the checkpoint, and its size in MB."""
-    from fedlgr.shell.run.resume import save_checkpoint
+    from fedlgr.shell.run import checkpoint as ckpt
+    from fedlgr.shell.run.life import checkpoint_state
+    from fedlgr.shell.run.result import ExperimentResult
 
     start = time.perf_counter()
-    path = save_checkpoint(fabric, folder, orchestrator, [log], "bench", 0.0, keep=1)
+    result = ExperimentResult(orchestrator.config, [log], run_id="bench")
+    whole = checkpoint_state(orchestrator.config, result, orchestrator.state_dict(), 0.0)
+    path = ckpt.save(fabric, folder, log.round, whole, keep=1)
     seconds = time.perf_counter() - start
     return seconds, path.stat().st_size / 1e6
 

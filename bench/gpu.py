@@ -88,7 +88,8 @@ def one_round(overrides: list[str], device) -> tuple[float, list]:
     start = time.perf_counter()
     trained = side.train(TrainIns(RoundPlan(1, 0, True, True)))
     seconds = time.perf_counter() - start
-    return sum(t.samples for t in trained) / seconds, [t.usage for t in trained]
+    samples = sum(t.figures["train/samples"] for t in trained)
+    return samples / seconds, [t.figures for t in trained]
 
 
 def concurrency(tmp: str, args, device, clients_list) -> dict:
@@ -120,13 +121,13 @@ def concurrency(tmp: str, args, device, clients_list) -> dict:
                 a / b for a, b in zip(rates[mode], rates["sequential"], strict=True)
             )
         for mode, usage in usages.items():
-            spans = [u.gpu_s for u in usage if u.gpu_s is not None]
+            spans = [u["cost/gpu_s"] for u in usage if "cost/gpu_s" in u]
             if spans:
                 fig[f"{mode}_gpu_s_per_client"] = statistics.mean(spans)
-            util = [u.gpu_util for u in usage if u.gpu_util is not None]
+            util = [u["cost/gpu_util"] for u in usage if "cost/gpu_util" in u]
             if util:
                 fig[f"{mode}_nvml_util_pct"] = statistics.mean(util)
-            mem = [u.gpu_mem_mb for u in usage if u.gpu_mem_mb is not None]
+            mem = [u["cost/gpu_mem_mb"] for u in usage if "cost/gpu_mem_mb" in u]
             if mem:
                 fig[f"{mode}_peak_mem_mb_per_client"] = max(mem)
         print(f"  {clients} clients, one round of {args.epochs} epochs at {args.size} px:")

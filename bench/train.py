@@ -132,8 +132,8 @@ def train_img_per_s(side) -> tuple[float, float]:
     start = time.perf_counter()
     trained = side.train(TrainIns(RoundPlan(1, 0, True, True)))
     seconds = time.perf_counter() - start
-    samples = sum(t.samples for t in trained)
-    return samples / seconds, statistics.mean(t.usage.cpu_s for t in trained)
+    samples = sum(t.figures["train/samples"] for t in trained)
+    return samples / seconds, statistics.mean(t.figures["cost/cpu_s"] for t in trained)
 
 
 def main() -> int:

@@ -160,13 +160,18 @@ def test_batched_client_side_trains_what_sequential_training_trains(synth_dir, c
             c.data = {t: Float64Data(b) for t, b in c.data.items()}
         trained[mode] = side.train(TrainIns(RoundPlan(1, 0, True, True)))
     for seq, bat in zip(trained["sequential"], trained["batched"], strict=True):
-        assert (bat.client, bat.n_samples, bat.samples) == (seq.client, seq.n_samples, seq.samples)
-        assert bat.loss == pytest.approx(seq.loss, rel=1e-9)
+        b, s = bat.figures, seq.figures
+        assert (bat.client, bat.n_samples, b["train/samples"]) == (
+            seq.client,
+            seq.n_samples,
+            s["train/samples"],
+        )
+        assert b["train/loss"] == pytest.approx(s["train/loss"], rel=1e-9)
         assert bat.weights.keys() == seq.weights.keys()
         assert all(k.startswith("root.") for k in bat.weights)  # FedRoot: the root alone
         for key in bat.weights:
             assert_close_f64(bat.weights[key], seq.weights[key])
-        assert bat.usage.cpu_s > 0 and bat.usage.wall_s > 0
+        assert b["cost/cpu_s"] > 0 and b["cost/wall_s"] > 0
     moved = [k for k, v in trained["batched"][0].weights.items() if k in before]
     assert any(
         not torch.allclose(trained["batched"][0].weights[k].float(), before[k].float())

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from fedlgr.core.meters.costs import Usage, measure
+from fedlgr.core.metrics import combine, shared_out
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config, read_run, results_csv
 
@@ -50,24 +51,22 @@ def test_measure_takes_gpu_seconds_from_its_timer_and_none_without_one():
 
 
 def test_gpu_seconds_add_up_and_are_shared_by_samples():
-    both = Usage(1.0, 2.0, 50.0, 10.0, 0.5) + Usage(3.0, 2.0, 100.0, 30.0, 1.5)
-    assert (both.cpu_s, both.wall_s, both.gpu_util, both.gpu_mem_mb, both.gpu_s) == (
-        4.0,
-        4.0,
-        75.0,
-        30.0,
-        2.0,
+    names = ("cpu_s", "wall_s", "gpu_util", "gpu_mem_mb", "gpu_s")
+
+    def costs(figures: dict[str, float]) -> tuple:
+        return tuple(figures.get(f"cost/{n}") for n in names)
+
+    both = combine(
+        Usage(1.0, 2.0, 50.0, 10.0, 0.5).figures(), Usage(3.0, 2.0, 100.0, 30.0, 1.5).figures()
     )
-    assert (Usage(1.0, 1.0) + Usage(1.0, 1.0, gpu_s=0.5)).gpu_s == 0.5
-    assert (Usage(1.0, 1.0) + Usage(1.0, 1.0)).gpu_s is None
-    part = Usage(4.0, 2.0, 80.0, 12.0, 2.0).share(0.25)  # a stacked client's quarter
-    assert (part.cpu_s, part.wall_s, part.gpu_util, part.gpu_mem_mb, part.gpu_s) == (
-        1.0,
-        2.0,
-        80.0,
-        12.0,
-        0.5,
+    assert costs(both) == (4.0, 4.0, 75.0, 30.0, 2.0)
+    assert (
+        combine(Usage(1.0, 1.0).figures(), Usage(1.0, 1.0, gpu_s=0.5).figures())["cost/gpu_s"]
+        == 0.5
     )
+    assert "cost/gpu_s" not in combine(Usage(1.0, 1.0).figures(), Usage(1.0, 1.0).figures())
+    part = shared_out(Usage(4.0, 2.0, 80.0, 12.0, 2.0).figures(), 0.25)  # a stacked client's
+    assert costs(part) == (1.0, 2.0, 80.0, 12.0, 0.5)
 
 
 def test_a_clients_gpu_seconds_reach_results_csv_and_mlflow(

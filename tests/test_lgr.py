@@ -471,10 +471,12 @@ def test_lgr_settings_reach_the_plugin():
     (lgr,) = [p for p in continual_plugins(config.continual, 1, 0) if isinstance(p, LatentReplay)]
     assert (lgr.schedule, lgr.replay, lgr.beta, lgr.patience) == ("joint", "stored", 0.5, 7)
     assert (lgr.holdout, lgr.root_epochs, lgr.vae_epochs) == (0.0, 2, 11)
+    # A bad value is refused where the config is loaded, naming the setting (the plugin
+    # trusts the config it is given).
     with pytest.raises(
         ConfigError, match=r"continual\.lgr\.schedule=.bogus.: must be one of two_phase, joint"
     ):
-        LatentReplay(schedule="bogus")
+        load_config(None, ["method=FedLGR", "continual.lgr.schedule=bogus"])
 
 
 # --------------------------------------------------------------------------- 5, 8. tracked runs

@@ -19,12 +19,16 @@ from fedlgr.core.messages import (
     nbytes,
 )
 from fedlgr.core.meters.costs import Usage
-from fedlgr.core.records import COST_FIELDS
 from fedlgr.core.server.side import ServerSide
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import load_config
 from fedlgr.shell.deploy.flower import wire
 from tests.support.runs import FAST
+
+
+def trained_figures(samples: int, loss: float, usage: Usage) -> dict[str, float]:
+    """What a client's training reports, by name."""
+    return {"train/loss": loss, "train/samples": float(samples), **usage.figures()}
 
 
 @pytest.fixture
@@ -58,13 +62,13 @@ def test_nothing_but_the_shared_tensors_may_cross(config, synth_dir):
         side.evaluate(EvaluateIns(RoundPlan(1), {**res.weights, **top}))
     server = ServerSide(config)
     with pytest.raises(FedlgrError, match=r"client 1's upload: \['top.net.1.weight'\] outside"):
-        server.aggregate([TrainRes(1, {**res.weights, **top}, 10, 10, 1.0)])
+        server.aggregate([TrainRes(1, {**res.weights, **top}, 10)])
 
 
 def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):
     server = ServerSide(config)
-    scores = [0.5] * (len(server.fields) - len(COST_FIELDS))  # every field but the costs
-    trained = TrainRes(0, {}, 12, 24, 0.25, Usage(1.5, 2.0, None, None))
+    scores = {k: 0.5 for k in server.round_keys if k.startswith(("test/", "task/"))}
+    trained = TrainRes(0, {}, 12, trained_figures(24, 0.25, Usage(1.5, 2.0, None, None)))
     row = server.row(trained, EvaluateRes(0, scores), bytes_up=100, bytes_down=300)
     log = server.round_log(RoundPlan(2), server.table({0: row}), 3.0, missing=(1,))
     assert log.column("bytes_up").tolist()[0] == 100 and log.column("cpu_s")[0] == 1.5
@@ -82,12 +86,13 @@ def test_the_summary_averages_a_robot_s_costs_over_the_rounds_it_took_part_in(co
     from fedlgr.shell.run.result import ExperimentResult
 
     server = ServerSide(config)
-    scores = [0.5] * (len(server.fields) - len(COST_FIELDS))
+    scores = {k: 0.5 for k in server.round_keys if k.startswith(("test/", "task/"))}
     result = ExperimentResult(config)
     for round_, present in ((1, (0, 1)), (2, (0,)), (3, (0, 1))):
         rows = {}
         for c in present:
-            trained = TrainRes(c, {}, 12, 24, 0.25, Usage(1.0 + c + round_, 2.0, None, None))
+            usage = Usage(1.0 + c + round_, 2.0, None, None)
+            trained = TrainRes(c, {}, 12, trained_figures(24, 0.25, usage))
             rows[c] = server.row(trained, EvaluateRes(c, scores), 1000 * (c + 1), 300)
         missing = tuple(c for c in (0, 1) if c not in present)
         result.rounds.append(server.round_log(RoundPlan(round_), server.table(rows), 1.0, missing))
@@ -108,7 +113,7 @@ def test_the_wire_carries_tensors_as_their_raw_bytes():
         "root.bn.running_var": torch.rand(5, dtype=torch.float64),
         "root.half": torch.randn(2, 2).half(),
     }
-    res = TrainRes(1, weights, 10, 20, 0.5, Usage(1.0, 2.0, 30.0, None))
+    res = TrainRes(1, weights, 10, trained_figures(20, 0.5, Usage(1.0, 2.0, 30.0, None)))
     content = wire.encode_train_res(res)
     assert wire.payload_bytes(content) == nbytes(weights) == 48 + 40 + 8
     # one Flower Array for all the tensors: Flower moves each Array as an object of its
@@ -119,8 +124,14 @@ def test_the_wire_carries_tensors_as_their_raw_bytes():
         torch.equal(back.weights[k], v) and back.weights[k].dtype == v.dtype
         for k, v in weights.items()
     )
-    assert (back.client, back.n_samples, back.samples, back.loss) == (1, 10, 20, 0.5)
-    assert back.usage == Usage(1.0, 2.0, 30.0, None)
+    figures = back.figures
+    assert (back.client, back.n_samples, figures["train/samples"], figures["train/loss"]) == (
+        1,
+        10,
+        20,
+        0.5,
+    )
+    assert figures == {**res.figures, "cost/gpu_util": 30.0} and "cost/gpu_mem_mb" not in figures
 
     ins, evaluate, text = wire.decode_train_ins(
         wire.encode_train_ins(TrainIns(RoundPlan(3, 1, True, False)), "seed: 1")
@@ -132,10 +143,10 @@ def test_the_wire_carries_tensors_as_their_raw_bytes():
     )
     assert list(ins.weights) == list(weights)
 
-    evaluated = EvaluateRes(0, [1.0, math.nan], {"lgr_fd_latent": 2.5}, None)
+    evaluated = EvaluateRes(0, {"test/loss": 1.0, "test/rmse": math.nan, "lgr/fd_latent": 2.5})
     back = wire.decode_evaluate_res(wire.encode_evaluate_res(evaluated))
-    assert back.scores[0] == 1.0 and math.isnan(back.scores[1])
-    assert back.figures == {"lgr_fd_latent": 2.5} and back.usage is None
+    assert back.figures["test/loss"] == 1.0 and math.isnan(back.figures["test/rmse"])
+    assert back.figures["lgr/fd_latent"] == 2.5 and len(back.figures) == 3
 
 
 def test_one_message_carries_a_round_s_evaluation_and_the_next_round_s_training():
@@ -157,8 +168,11 @@ def test_one_message_carries_a_round_s_evaluation_and_the_next_round_s_training(
             TrainIns(RoundPlan(3), weights), "", EvaluateIns(RoundPlan(2), weights)
         )
 
-    trained = TrainRes(1, weights, 10, 20, 0.5, Usage(1.0, 2.0, None, None))
-    evaluated = EvaluateRes(1, [0.25, 0.5], {"lgr_fd_latent": 2.5}, Usage(3.0, 4.0, None, None))
+    trained = TrainRes(1, weights, 10, trained_figures(20, 0.5, Usage(1.0, 2.0, None, None)))
+    task_end = Usage(3.0, 4.0, None, None).figures()
+    evaluated = EvaluateRes(
+        1, {"test/loss": 0.25, "test/rmse": 0.5, "lgr/fd_latent": 2.5, **task_end}
+    )
     reply = wire.encode_train_res(trained, evaluated)
     assert wire.payload_bytes(reply) == nbytes(weights)
     assert wire.decode_train_res(reply).n_samples == 10

@@ -17,20 +17,21 @@ def test_scores_by_hand():
     pred = torch.tensor([[1.0, 8.0], [2.0, 6.0], [3.0, 4.0], [5.0, 2.0]])
     s = regression_scores(pred, target)
     # Column 0: errors 0,0,0,1 -> MSE 0.25; column 1: 6,2,-2,-6 -> MSE 20.
-    assert s.mse.tolist() == pytest.approx([0.25, 20.0])
-    assert s.rmse.tolist() == pytest.approx([0.5, math.sqrt(20.0)])
-    assert s.pcc[1].item() == pytest.approx(-1.0)
-    assert s.pcc[0].item() == pytest.approx(0.9827076, abs=1e-6)  # corr([1,2,3,5],[1,2,3,4])
-    assert s.loss == pytest.approx(10.125)
-    assert s.mean_rmse == pytest.approx((0.5 + math.sqrt(20.0)) / 2)  # not the RMSE of all errors
+    assert s["loss"].tolist() == pytest.approx([0.25, 20.0])  # per action: MSE
+    assert s["rmse"].tolist() == pytest.approx([0.5, math.sqrt(20.0)])
+    assert s["pcc"][1].item() == pytest.approx(-1.0)
+    assert s["pcc"][0].item() == pytest.approx(0.9827076, abs=1e-6)  # corr([1,2,3,5],[1,2,3,4])
+    assert s.mean("loss") == pytest.approx(10.125)
+    # not the RMSE of all errors
+    assert s.mean("rmse") == pytest.approx((0.5 + math.sqrt(20.0)) / 2)
 
 
 def test_constant_prediction_has_zero_pcc_not_nan():
     target = torch.tensor([[1.0, 2.0], [2.0, 3.0], [4.0, 1.0]])
     for value in (0.0, 3.1):
         s = regression_scores(torch.full((3, 2), value), target)
-        assert s.pcc.tolist() == [0.0, 0.0]
-        assert not torch.isnan(s.mse).any()
+        assert s["pcc"].tolist() == [0.0, 0.0]
+        assert not torch.isnan(s["loss"]).any()
 
 
 def test_batch_compat_mode_averages_per_batch():
@@ -40,10 +41,10 @@ def test_batch_compat_mode_averages_per_batch():
     whole = regression_scores(pred, target)
     compat = regression_scores(pred, target, batch_compat=True)
     by_hand = torch.stack(
-        [regression_scores(pred[i : i + 16], target[i : i + 16]).pcc for i in (0, 16, 32)]
+        [regression_scores(pred[i : i + 16], target[i : i + 16])["pcc"] for i in (0, 16, 32)]
     )
-    assert compat.pcc.tolist() == pytest.approx(by_hand.mean(0).tolist(), abs=1e-6)
-    assert compat.mean_pcc != pytest.approx(whole.mean_pcc, abs=1e-4)
+    assert compat["pcc"].tolist() == pytest.approx(by_hand.mean(0).tolist(), abs=1e-6)
+    assert compat.mean("pcc") != pytest.approx(whole.mean("pcc"), abs=1e-4)
 
 
 def test_measure_counts_cpu_seconds_of_this_process():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -14,6 +15,7 @@ from fedlgr.core.methods import STRATEGIES, AvgMSettings, OptSettings
 from fedlgr.core.scope import batchnorm_keys, shared_keys
 from fedlgr.core.server.aggregate import weighted_mean
 from fedlgr.core.strategies import FedAvg, Strategy, build_strategy
+from fedlgr.core.strategies.base import participants
 from fedlgr.core.strategies.fedavgm import FedAvgM
 from fedlgr.core.strategies.fedbn import FedBN
 from fedlgr.core.strategies.fedopt import FedOpt
@@ -199,3 +201,26 @@ def test_every_registered_strategy_builds_with_its_settings_and_names_its_plugin
         )
         plugins = strategy.client_plugins(0)
         assert [type(p) for p in plugins] == list(strategy.client_plugin_types)
+
+
+# --------------------------------------------------------------------------- who trains
+
+
+def test_partial_participation_draws_the_round_s_clients_from_the_seed():
+    """``federated.fraction``: max(1, round(fraction x clients)) clients a round, drawn
+    without replacement from the run's seed and the round - the same draw whoever asks
+    (every runtime, a resumed run) - and every client at fraction 1."""
+    assert participants(1, 4, 1.0, seed=0) == [0, 1, 2, 3]
+    draws = {r: participants(r, 10, 0.3, seed=0) for r in range(1, 6)}
+    # what seed 0 picks: numpy's default_rng([seed, round, 0x5E1EC7]).choice, sorted
+    assert draws[1] == sorted(
+        int(c) for c in np.random.default_rng([0, 1, 0x5E1EC7]).choice(10, 3, replace=False)
+    )
+    assert all(len(d) == 3 == len(set(d)) and d == sorted(d) for d in draws.values())
+    assert len({tuple(d) for d in draws.values()}) > 1  # not the same clients every round
+    assert draws == {r: participants(r, 10, 0.3, seed=0) for r in range(1, 6)}  # reproducible
+    assert [participants(r, 10, 0.3, seed=1) for r in range(1, 6)] != list(draws.values())
+    assert participants(1, 10, 0.01, seed=0) != [] and len(participants(1, 10, 0.01, 0)) == 1
+    assert len(participants(2, 10, 0.25, seed=3)) == round(2.5) == 2  # Python's round
+    strategy = FedAvg(FederatedConfig(fraction=0.3))
+    assert strategy.select(4, 10, seed=0) == draws[4]  # the strategy's hook draws them

@@ -4,20 +4,24 @@
 tasks seen so far (the paper: after Task 1 on circle, after Task 2 on circle + arrow), and
 on each task's scenes. The forgetting of a past task j, at any later point, is per client
 its score now minus its score just after task j was learnt, averaged over clients, with a
-sign that makes positive mean forgotten: loss and RMSE now - then, PCC then - now.
+sign that makes positive mean forgotten: a score where lower is better (loss, RMSE) now -
+then, one where higher is better (PCC) then - now. Every score of
+:data:`fedlgr.core.metrics.SCORES` is followed.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from fedlgr.core.metrics import SCORES
 from fedlgr.core.records import RoundLog
 
-METRICS = ("loss", "rmse", "pcc")
+METRICS = tuple(s.name for s in SCORES)
+_SIGN = {s.name: -1.0 if s.higher_is_better else 1.0 for s in SCORES}
 
 
 def _sign(metric: str) -> float:
-    return -1.0 if metric == "pcc" else 1.0
+    return _SIGN[metric]
 
 
 class ForgettingTracker:
@@ -33,17 +37,17 @@ class ForgettingTracker:
             if task == log.task:
                 continue
             for m in METRICS:
-                now = log.column(f"task_{task}_{m}")
+                now = log.column(f"task/{task}/{m}")
                 out[f"forgetting/{task}/{m}"] = float(np.mean(_sign(m) * (now - then[m])))
         return out
 
     def end_of_task(self, log: RoundLog, k: int) -> dict[str, float]:
         """Record task k as learnt; the "after task k+1" summary metrics."""
-        self.learnt[log.task] = {m: log.column(f"task_{log.task}_{m}").copy() for m in METRICS}
+        self.learnt[log.task] = {m: log.column(f"task/{log.task}/{m}").copy() for m in METRICS}
         prefix = f"after_task{k + 1}"
-        out = {f"{prefix}/test/{m}": log.mean(f"test_{m}") for m in METRICS}
+        out = {f"{prefix}/test/{m}": log.mean(f"test/{m}") for m in METRICS}
         for task in self.tasks[: k + 1]:
-            out.update({f"{prefix}/task/{task}/{m}": log.mean(f"task_{task}_{m}") for m in METRICS})
+            out.update({f"{prefix}/task/{task}/{m}": log.mean(f"task/{task}/{m}") for m in METRICS})
         out.update({f"{prefix}/{k}": v for k, v in self.forgetting(log).items()})
         self.after.append(out)
         return out

@@ -1,8 +1,8 @@
 """The Fabric-based federated round orchestrator (SPEC 4.3): both sides in our processes.
 
-:class:`Orchestrator` runs the round loop's rounds (a :class:`fedlgr.shell.run.loop.Rounds`;
-Fabric's set-up and launch: :mod:`fedlgr.shell.run.experiment`). In each round every
-client trains its local model for E epochs on its shard of the current task, uploads the
+:class:`Orchestrator` is a runtime's rounds (:class:`fedlgr.core.rounds.Rounds`; Fabric's
+set-up and launch: :mod:`fedlgr.shell.run.experiment`). In each round every client the
+strategy chose trains its local model for E epochs on its shard of the current task, uploads the
 tensors its strategy and scope share, the server aggregates (sample-weighted mean, then the
 strategy's server update), every client downloads the new global tensors, at a task's last
 round ends the task (importance, memories, generators: plugins' ``on_task_end``), and
@@ -22,20 +22,23 @@ are per client, so both modes compute the same numbers.
 from __future__ import annotations
 
 import time
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
+import torch.distributed as dist
 
 from fedlgr.core.client.side import ClientSide
-from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes, nbytes
+from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes, Weights, nbytes
 from fedlgr.core.records import RoundLog
+from fedlgr.core.rounds import EpochProgress
 from fedlgr.core.server.evaluate import ServerEvaluation, serve_round
 from fedlgr.core.server.side import ServerSide
-from fedlgr.shell.config import ExperimentConfig
-from fedlgr.shell.data.dataset import Scenes
-from fedlgr.shell.data.splits import FederatedSplit
-from fedlgr.shell.run.checkpoint import to_device
-from fedlgr.shell.run.loop import EpochProgress
+from fedlgr.core.state import rng_states, set_rng_states, to_device
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config import ExperimentConfig
+    from fedlgr.shell.data.dataset import Scenes
+    from fedlgr.shell.data.splits import FederatedSplit
 
 
 class Orchestrator:
@@ -45,9 +48,10 @@ class Orchestrator:
         self.rank, self.world = fabric.global_rank, fabric.world_size
         self.server = ServerSide(config).to(self.device)
         mine = [s.client for s in split.clients if s.client % self.world == self.rank]
+        self.indices = set(mine)
         self.client_side = ClientSide(config, scenes, split, mine, self.device, fabric.autocast)
+        self.config = self.client_side.config  # its runtime settings resolved
         self.clients = self.client_side.clients
-        self.fields = self.server.fields
         # federated.server_eval: rank 0, which logs, scores the global model.
         self.server_eval = (
             ServerEvaluation(config, self.client_side.test)
@@ -55,26 +59,27 @@ class Orchestrator:
             else None
         )
 
-    def aggregate(self, trained: list[TrainRes]) -> None:
-        """Sample-weighted mean over all clients of all processes, then the server update."""
-        sums, total = self.server.sums(trained)
-        if self.world > 1:
-            # One collective for everything: the flattened sums and the sample count.
+    def aggregate(self, trained: list[TrainRes], senders: int | None = None) -> None:
+        """Sample-weighted mean over the trained clients of all processes, their plugins'
+        payloads summed, then the server update; ``senders``: how many clients trained in
+        all processes (default: those of ``trained``, one process)."""
+        senders = len(trained) if senders is None else senders
+        sums, total, payloads = self.server.sums(trained)
+        if self.world > 1:  # one collective for everything
             like = self.server.global_weights
-            parts = [
-                sums.get(k, torch.zeros_like(like[k], dtype=torch.float64)).flatten()
-                for k in self.server.keys
-            ]
+            template = self.server.strategy.payload_template()
             flat = torch.cat(
-                [*parts, torch.tensor([total], dtype=torch.float64, device=self.device)]
+                [
+                    *_parts(sums, like, self.server.keys),
+                    *_parts(payloads, template, sorted(template)),
+                    torch.tensor([total], dtype=torch.float64, device=self.device),
+                ]
             )
             flat = self.fabric.all_reduce(flat, reduce_op="sum")
-            total, offset = float(flat[-1]), 0
-            for k in self.server.keys:
-                size = like[k].numel()
-                sums[k] = flat[offset : offset + size].view_as(like[k])
-                offset += size
-        self.server.update(sums, total)
+            total = float(flat[-1])
+            offset = _unflatten(flat, sums, like, self.server.keys, 0)
+            _unflatten(flat, payloads, template, sorted(template), offset)
+        self.server.update(sums, total, payloads, senders)
 
     @property
     def local_clients(self) -> int:
@@ -82,57 +87,100 @@ class Orchestrator:
         return len(self.clients)
 
     def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
-        """One round of ``plan``: every client trains, the server aggregates, every client
-        evaluates the new global tensors. ``progress(client, epoch)`` after each local epoch
-        of this process's clients."""
+        """One round of ``plan``: the clients the strategy chose train, the server
+        aggregates, every client evaluates the new global tensors. ``progress(client,
+        epoch)`` after each local epoch of this process's clients."""
         start = time.perf_counter()
         round_, task = plan.round, plan.task
+        chosen = self.server.chosen(plan)
         # Our clients start from the initial model and keep every download: they always
         # hold the global tensors (round 1's initial ones are billed in ``bytes_down``).
-        trained = self.client_side.train(self.server.train_ins(plan), progress)
+        ins = {c: self.server.train_ins(plan, c) for c in chosen if c in self.indices}
+        trained = {t.client: t for t in self.client_side.train(ins, progress)}
         # The server's work - aggregation, its update, its evaluation - is its own cost,
         # never a client's.
         server, initial = serve_round(
-            self.server, self.server_eval, round_, task, lambda: self.aggregate(trained)
+            self.server,
+            self.server_eval,
+            round_,
+            task,
+            lambda: self.aggregate(list(trained.values()), len(chosen)),
         )
         evaluated = self.client_side.evaluate(EvaluateIns(plan, self.server.global_weights))
-        down = self.server.bytes_down(round_)
-        rows = {
-            t.client: self.server.row(t, e, nbytes(t.weights), down)
-            for t, e in zip(trained, evaluated, strict=True)
-        }
+        rows = {}
+        for e in evaluated:  # a chosen client moves its payloads too
+            t = trained.get(e.client)
+            if t is None:
+                rows[e.client] = self.server.row(None, e, 0, self.server.bytes_down(round_, False))
+            else:
+                up = nbytes(t.weights) + nbytes(t.payload)
+                down = self.server.bytes_down(round_) + nbytes(ins[e.client].payload)
+                rows[e.client] = self.server.row(t, e, up, down)
         # Rows of other processes are zero here: the sum over processes fills them in.
-        table = self.server.table(rows, fill=0.0)
+        table = torch.from_numpy(self.server.table(rows, fill=0.0))
         if self.world > 1:
             table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
-        log = self.server.round_log(plan, table, time.perf_counter() - start)
+        seconds = time.perf_counter() - start
+        log = self.server.round_log(plan, table.numpy(), seconds, participants=chosen)
         log.server, log.initial = server, initial
         return log
 
-    # ------------------------------------------------------------------ checkpoints
-
-    def save(
-        self,
-        folder: Path | None,
-        rounds: list[RoundLog],
-        run_id: str | None,
-        elapsed: float,
-        keep: int,
-        digest: str = "",
-    ) -> Path | None:
-        """Checkpoint the run after its last round in ``rounds``: every process's clients,
-        gathered to rank 0, which writes (:func:`fedlgr.shell.run.resume.save_checkpoint`)."""
-        from fedlgr.shell.run.resume import save_checkpoint
-
-        return save_checkpoint(self.fabric, folder, self, rounds, run_id, elapsed, keep, digest)
+    # ------------------------------------------------------------------ state
 
     def state_dict(self) -> dict:
-        """This process's part of the run's state: the server's (global tensors, strategy
-        state; the same in every process) and its own clients'."""
-        return {"server": self.server.state_dict(), "clients": self.client_side.state_dict()}
+        """The run's state after a round, whole in rank 0 (every process calls this: its
+        clients' states and random generators are gathered there): the server's (global
+        tensors, strategy state; the same in every process), every client's, and each
+        process's random generators. Other processes get an empty dict."""
+        part = {
+            "clients": to_device(self.client_side.state_dict(), CPU),
+            "rng": rng_states(),
+        }
+        parts = _gather(self.fabric, part)
+        if parts is None:
+            return {}
+        return {
+            "server": to_device(self.server.state_dict(), CPU),
+            "clients": {i: c for p in parts for i, c in p["clients"].items()},
+            "rng": [p["rng"] for p in parts],  # per process
+        }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore a checkpoint's server state and this process's clients (``state`` holds
-        every client of every process)."""
+        """Restore a checkpoint's server state, this process's clients (``state`` holds
+        every client of every process) and this process's random generators."""
         self.server.load_state_dict(state["server"], self.device)
-        self.client_side.load_state_dict(to_device(state["clients"], self.device))
+        mine = {i: s for i, s in state["clients"].items() if i in self.indices}
+        self.client_side.load_state_dict(to_device(mine, self.device))
+        set_rng_states(state["rng"][self.rank])
+
+
+CPU = torch.device("cpu")
+
+
+def _parts(sums: Weights, like: Weights, keys: list[str]) -> list[torch.Tensor]:
+    """``sums`` flattened in ``keys`` order (zeros for a key this process has no sum of:
+    none of its clients trained)."""
+    return [
+        sums.get(k, torch.zeros_like(like[k], dtype=torch.float64)).flatten().to(torch.float64)
+        for k in keys
+    ]
+
+
+def _unflatten(flat: torch.Tensor, out: Weights, like: Weights, keys: list[str], at: int) -> int:
+    """Read ``keys``' sums back from ``flat`` from offset ``at`` into ``out``; the offset after."""
+    for k in keys:
+        size = like[k].numel()
+        out[k] = flat[at : at + size].view(like[k].shape)
+        at += size
+    return at
+
+
+def _gather(fabric, part: dict) -> list[dict] | None:
+    """Every process's ``part`` on rank 0 (None elsewhere). Fabric's collectives move
+    tensors only; client states are nested dicts, hence torch.distributed's object
+    gather (gloo on CPU, the backend Fabric set up otherwise)."""
+    if fabric.world_size == 1:
+        return [part]
+    parts = [None] * fabric.world_size if fabric.global_rank == 0 else None
+    dist.gather_object(part, parts, dst=0)
+    return parts

@@ -1,11 +1,13 @@
 """What the server and the clients say to each other in one round: the only boundary
 between the two sides, the same in every runtime.
 
-A round is two exchanges. **Train**: the server sends the round's plan (and the global
-tensors, where the client does not already hold them); each client trains and uploads
-its shared tensors, its sample count and what the training cost. **Evaluate**: the server
-sends the new global tensors; each client takes them, ends the task at a task's last
-round (importance, memories, generators) and reports its scores on its test scenes.
+A round is two exchanges. **Train**: the strategy chooses the round's clients; the server
+sends each its plan (with the global tensors where the client does not already hold
+them, and the strategy's payload for that client, e.g. SCAFFOLD's control variate); each
+trains and uploads its shared tensors, its sample count, its plugins' payload and its
+figures (training loss, costs) by name. **Evaluate**: the server sends the new global
+tensors; every client - chosen or not - takes them, ends the task at a task's last round
+(importance, memories, generators) and reports its scores on its test scenes by name.
 
 In one process (``fedlgr.core.in_process``) these objects are passed by
 reference; in Fabric's multi-process mode the same objects are built in every process
@@ -19,7 +21,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from fedlgr.core.meters.costs import Usage
+from fedlgr.core.metrics import Figures
 from fedlgr.errors import FedlgrError
 
 Weights = dict[str, torch.Tensor]
@@ -40,6 +42,9 @@ class RoundPlan:
 class TrainIns:
     plan: RoundPlan
     weights: Weights | None = None  # None: the client holds the current global tensors
+    # What the strategy sends this client besides the weights (SCAFFOLD: the server's
+    # control variate), read by the strategy's plugin on the client.
+    payload: Weights = field(default_factory=dict)
 
 
 @dataclass
@@ -47,9 +52,11 @@ class TrainRes:
     client: int
     weights: Weights  # the shared tensors, nothing else (see ``check_shared``)
     n_samples: int  # aggregation weight: the client's training scenes of the task
-    samples: int  # samples trained on, all epochs, rehearsal included
-    loss: float  # mean task loss over the round
-    usage: Usage = field(default_factory=Usage)
+    # train/loss, train/samples and the training's costs (cost/*), by key
+    figures: Figures = field(default_factory=dict)
+    # What the strategy's plugins send the server besides the weights (SCAFFOLD: the
+    # change of the client's control variate).
+    payload: Weights = field(default_factory=dict)
 
 
 @dataclass
@@ -61,9 +68,9 @@ class EvaluateIns:
 @dataclass
 class EvaluateRes:
     client: int
-    scores: list[float]  # the score fields, in ``fedlgr.core.fields`` order
-    figures: dict[str, float] = field(default_factory=dict)  # plugins' task-end figures
-    usage: Usage | None = None  # the end of the task's cost, when there is one
+    # Its scores (test/*, task/*), its plugins' figures (<plugin>/<name>) and, at a task's
+    # end, what ending the task cost (cost/*), by key.
+    figures: Figures = field(default_factory=dict)
 
 
 def nbytes(weights: Weights) -> int:

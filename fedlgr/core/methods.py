@@ -13,28 +13,51 @@ and a conf yaml (docs/development.md, "Adding a method").
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 from fedlgr.errors import ConfigError
-from fedlgr.shell.data.config import betas as check_betas
-from fedlgr.shell.data.config import check_numbers, choice, nonnegative, positive
-from fedlgr.shell.data.config import epochs as check_epochs
 
 
 class Settings:
-    """Base of a method's settings (a frozen dataclass): checks its own values, naming
-    each by its full setting (``section`` is set when the method is registered)."""
+    """Base of a method's settings (a frozen dataclass). Each field declares the values it
+    takes (:func:`setting`); the config checks them where it is loaded, naming each by its
+    full setting (``continual.lgr.hidden``)."""
 
-    section: ClassVar[str] = ""
 
-    def __post_init__(self) -> None:
-        check_numbers(f"{self.section}.", self)
-        self.check(f"{self.section}.")
+@dataclass(frozen=True)
+class Bounds:
+    """The values a method's setting takes: ``least <= value <= most``, ``above < value <
+    below`` (each bound optional), one of ``choices``, or a ``kind`` with its own rule
+    (``epochs``: a count of epochs; ``betas``: Adam's two decay rates)."""
 
-    def check(self, at: str) -> None:
-        """Refuse bad values; ``at`` is the section's prefix (``continual.lgr.``)."""
+    least: float | None = None
+    most: float | None = None
+    above: float | None = None
+    below: float | None = None
+    choices: tuple[str, ...] = ()
+    kind: str = ""
+    reason: str = ""  # said after the bound when a value breaks it
+
+
+def setting(default: Any, **bounds: Any) -> Any:
+    """A settings field with its default and its :class:`Bounds`."""
+    return field(default=default, metadata={"bounds": Bounds(**bounds)})
+
+
+def declared(**fields: Any) -> type[Settings]:
+    """A method's settings declared in its registry entry: a frozen dataclass of
+    ``fields``, each made with :func:`setting` (``declared(lr=setting(1.0, above=0))``),
+    named after the method when it is registered."""
+    spec = [(name, type(f.default), f) for name, f in fields.items()]
+    return dataclasses.make_dataclass("Settings", spec, bases=(Settings,), frozen=True)
+
+
+def bounds(field_: Any) -> Bounds:
+    """The bounds a settings field declares (none: any value of its type)."""
+    return field_.metadata.get("bounds", Bounds())
 
 
 @dataclass(frozen=True)
@@ -48,7 +71,8 @@ class Method:
     settings: type[Settings] | None = None  # under federated.<key> / continual.<key>
     uses: str | None = None  # another method's settings section (EWC-Online uses ewc's)
     scopes: tuple[str, ...] = ("full", "root")  # the aggregation scopes it works with
-    names: dict[tuple[str, str], str] = field(default_factory=dict)  # (strategy, scope) -> name
+    # (strategy, scope) -> its name where it is not the scope's prefix + suffix (FedLGR)
+    names: dict[tuple[str, str], str] = field(default_factory=dict)
     in_paper: bool = True  # a row of the paper's tables (else a report shows it where it ran)
 
     def load(self) -> Any:
@@ -69,8 +93,8 @@ def _register(family: str, *methods: Method) -> dict[str, Method]:
     for m in methods:
         if m.key in table:
             raise ValueError(f"{family}.{m.key} registered twice")
-        if m.settings is not None:
-            m.settings.section = f"{family}.{m.key}"
+        if m.settings is not None and m.settings.__name__ == "Settings":  # declared()
+            m.settings.__name__ = m.settings.__qualname__ = f"{m.suffix}Settings"
         table[m.key] = m
     return table
 
@@ -80,33 +104,21 @@ def _register(family: str, *methods: Method) -> dict[str, Method]:
 
 @dataclass(frozen=True)
 class ProxSettings(Settings):
-    mu: float = 0.01  # client loss + mu/2 ||w - w_global||^2
-
-    def check(self, at: str) -> None:
-        nonnegative(f"{at}mu", self.mu)
+    mu: float = setting(0.01, least=0)  # client loss + mu/2 ||w - w_global||^2
 
 
 @dataclass(frozen=True)
 class OptSettings(Settings):
     """FedAdam's server optimiser: x <- x + lr m / (sqrt(v) + tau)."""
 
-    lr: float = 0.01
-    betas: tuple[float, float] = (0.9, 0.99)
-    tau: float = 1e-3
-
-    def check(self, at: str) -> None:
-        if self.lr <= 0 or self.tau <= 0:
-            raise ConfigError(f"{at}lr and {at}tau must be > 0")
-        check_betas(f"{at}betas", self.betas)
+    lr: float = setting(0.01, above=0)
+    betas: tuple[float, float] = setting((0.9, 0.99), kind="betas")
+    tau: float = setting(1e-3, above=0)
 
 
 @dataclass(frozen=True)
 class DistillSettings(Settings):
-    weight: float = 0.5  # weight of the teacher term in the student loss
-
-    def check(self, at: str) -> None:
-        if not 0.0 <= self.weight <= 1.0:
-            raise ConfigError(f"{at}weight={self.weight}: must be in 0..1")
+    weight: float = setting(0.5, least=0, most=1)  # weight of the teacher term in the student loss
 
 
 @dataclass(frozen=True)
@@ -115,14 +127,8 @@ class AvgMSettings(Settings):
     default keeps Hsu et al.'s effective learning rate lr / (1 - momentum) at 1: lr 1 with
     momentum 0.9 diverged on the demo (docs/methods.md)."""
 
-    momentum: float = 0.9
-    lr: float = 0.1
-
-    def check(self, at: str) -> None:
-        if not 0.0 <= self.momentum < 1.0:
-            raise ConfigError(f"{at}momentum={self.momentum}: must be in [0, 1)")
-        if self.lr <= 0:
-            raise ConfigError(f"{at}lr={self.lr}: must be > 0")
+    momentum: float = setting(0.9, least=0, below=1)
+    lr: float = setting(0.1, above=0)
 
 
 STRATEGY = "fedlgr.core.strategies"
@@ -151,124 +157,79 @@ STRATEGIES = _register(
 class EWCSettings(Settings):
     """EWC and EWC-Online: lambda_ * sum F (theta - theta*)^2."""
 
-    lambda_: float = 100.0
-    fisher: str = "empirical"  # empirical: gradients of the MSE to the labels | model
-    gamma: float = 0.9  # EWC-Online: decay of the running Fisher
-
-    def check(self, at: str) -> None:
-        nonnegative(f"{at}lambda_", self.lambda_)
-        choice(f"{at}fisher", self.fisher, ("empirical", "model"))
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ConfigError(f"{at}gamma={self.gamma}: must be in 0..1")
+    lambda_: float = setting(100.0, least=0)
+    # empirical: gradients of the MSE to the labels | model
+    fisher: str = setting("empirical", choices=("empirical", "model"))
+    gamma: float = setting(0.9, least=0, most=1)  # EWC-Online: decay of the running Fisher
 
 
 @dataclass(frozen=True)
 class SISettings(Settings):
-    c: float = 1.0  # penalty coefficient
-    xi: float = 0.1  # damping
-
-    def check(self, at: str) -> None:
-        nonnegative(f"{at}c", self.c)
-        nonnegative(f"{at}xi", self.xi)
+    c: float = setting(1.0, least=0)  # penalty coefficient
+    xi: float = setting(0.1, least=0)  # damping
 
 
 @dataclass(frozen=True)
 class MASSettings(Settings):
-    lambda_: float = 1.0  # penalty coefficient
-
-    def check(self, at: str) -> None:
-        nonnegative(f"{at}lambda_", self.lambda_)
+    lambda_: float = setting(1.0, least=0)  # penalty coefficient
 
 
 @dataclass(frozen=True)
 class NRSettings(Settings):
-    memory: int = 100  # scenes kept per client (all past tasks together)
-    replay_ratio: float = 0.5  # memory samples added per current sample in a batch
-
-    def check(self, at: str) -> None:
-        nonnegative(f"{at}memory", self.memory)
-        nonnegative(f"{at}replay_ratio", self.replay_ratio)
+    memory: int = setting(100, least=0)  # scenes kept per client (all past tasks together)
+    replay_ratio: float = setting(0.5, least=0)  # memory samples per current sample in a batch
 
 
 @dataclass(frozen=True)
 class LwFSettings(Settings):
     """LwF for regression: loss + alpha * mean (f(x) - f_start(x))^2 from the second task."""
 
-    alpha: float = 1.0
-
-    def check(self, at: str) -> None:
-        nonnegative(f"{at}alpha", self.alpha)
+    alpha: float = setting(1.0, least=0)
 
 
 @dataclass(frozen=True)
 class LGRSettings(Settings):
-    """FedLGR's latent generative replay (docs/fedlgr.md)."""
+    """FedLGR's latent generative replay (docs/fedlgr.md). ``replay_layer=freeze`` has a
+    rule across settings, checked with the config: it needs ``train_blocks`` >= 1,
+    ``schedule=joint`` and no compensation."""
 
-    schedule: str = "two_phase"  # two_phase (top, then root) | joint (one pass)
-    replay: str = "generator"  # generator | stored (the oracle: real past latents kept)
+    # two_phase (top, then root) | joint (one pass)
+    schedule: str = setting("two_phase", choices=("two_phase", "joint"))
+    # generator | stored (the oracle: real past latents kept)
+    replay: str = setting("generator", choices=("generator", "stored"))
     freeze_root_bn: bool = True  # root BatchNorm statistics frozen from task 2
-    hidden: int = 512  # the VAE's hidden width
-    latent: int = 16  # the VAE's latent size
-    epochs: int = 300  # the VAE's most epochs at the end of each task
-    patience: int = 20  # ... stop after this many epochs without held-out gain (0: never)
-    holdout: float = 0.2  # ... share of a task's latents held out (none under 10 latents)
-    batch_size: int = 32
-    lr: float = 1e-3  # the generator's learning rate
-    beta: float = 4.0  # weight of the VAE's KL term
-    sampler: str = "posterior"  # VAE codes from a Gaussian fitted to the training codes | prior
-    lr_root: float = 1e-5  # the root's learning rate from the second task on (lr_R)
-    root_epochs: int | None = 1  # two_phase: root epochs per round (None: train.epochs)
-    replay_ratio: float = 4.0  # pseudo-samples per real sample when training the top
+    hidden: int = setting(512, least=1)  # the VAE's hidden width
+    latent: int = setting(16, least=1)  # the VAE's latent size
+    epochs: int = setting(300, kind="epochs")  # the VAE's most epochs at the end of each task
+    # ... stop after this many epochs without held-out gain (0: never)
+    patience: int = setting(20, least=0)
+    # ... share of a task's latents held out (none under 10 latents)
+    holdout: float = setting(0.2, least=0, below=1)
+    batch_size: int = setting(32, least=1)
+    lr: float = setting(1e-3, least=0)  # the generator's learning rate
+    beta: float = setting(4.0, least=0)  # weight of the VAE's KL term
+    # VAE codes from a Gaussian fitted to the training codes | prior
+    sampler: str = setting("posterior", choices=("posterior", "prior"))
+    lr_root: float = setting(1e-5, least=0)  # the root's learning rate from task 2 on (lr_R)
+    # two_phase: root epochs per round (None: train.epochs)
+    root_epochs: int | None = setting(1, least=0, kind="epochs")
+    replay_ratio: float = setting(4.0, least=0)  # pseudo-samples per real sample for the top
     # Keeping replayed latents valid while the root learns (docs/fedlgr.md): none |
     # compensate | distill | compensate+distill. The defaults (distill at weight 10, the
     # last root block trained) are sweeps/fedlgr_drift_image.yaml's and
     # sweeps/fedlgr_distill_image.yaml's best point; none + train_blocks null is the paper's.
-    drift: str = "distill"
-    compensate_ridge: float = 1.0  # compensate: ridge of the drift map (x mean eigenvalue)
-    distill_weight: float = 10.0  # distill: weight of the root's latent distillation term
-    train_blocks: int | None = 1  # from task 2 only the root's last k blocks train (null: all)
-    replay_layer: str = "latent"  # latent (the root's output) | freeze (the k blocks' input)
-
-    def check(self, at: str) -> None:
-        choice(f"{at}schedule", self.schedule, ("two_phase", "joint"))
-        choice(f"{at}replay", self.replay, ("generator", "stored"))
-        choice(f"{at}sampler", self.sampler, ("posterior", "prior"))
-        choice(f"{at}drift", self.drift, ("none", "compensate", "distill", "compensate+distill"))
-        choice(f"{at}replay_layer", self.replay_layer, ("latent", "freeze"))
-        if not 0.0 <= self.holdout < 1.0:
-            raise ConfigError(f"{at}holdout={self.holdout}: must be in [0, 1)")
-        if self.replay_layer == "freeze":
-            wrong = [
-                f"{at}{name}={value}"
-                for name, value, ok in (
-                    ("train_blocks", self.train_blocks, bool(self.train_blocks)),
-                    ("schedule", self.schedule, self.schedule == "joint"),
-                    ("drift", self.drift, "compensate" not in self.drift),
-                )
-                if not ok
-            ]
-            if wrong:
-                raise ConfigError(
-                    f"{at}replay_layer=freeze replays the activations entering the root's "
-                    "last train_blocks blocks, which train with the top on real and replayed "
-                    "ones together (no drift to compensate there): it needs train_blocks >= 1, "
-                    "schedule=joint and no compensation, not " + ", ".join(wrong)
-                )
-        for name in ("patience", "root_epochs", "train_blocks"):
-            value = getattr(self, name)
-            if value is not None and value < 0:
-                raise ConfigError(f"{at}{name}={value}: must be >= 0")
-        for name in ("hidden", "latent", "batch_size"):
-            positive(f"{at}{name}", getattr(self, name))
-        check_epochs(f"{at}epochs", self.epochs)
-        check_epochs(f"{at}root_epochs", self.root_epochs, least=0)
-        for name in ("replay_ratio", "lr", "lr_root", "beta", "distill_weight"):
-            nonnegative(f"{at}{name}", getattr(self, name))
-        if self.compensate_ridge <= 0:  # clients hold fewer scenes than latent features
-            raise ConfigError(
-                f"{at}compensate_ridge={self.compensate_ridge}: must be > 0 (the drift map "
-                "is fitted on a client's scenes, fewer than the root's features)"
-            )
+    drift: str = setting("distill", choices=("none", "compensate", "distill", "compensate+distill"))
+    # compensate: ridge of the drift map (x mean eigenvalue)
+    compensate_ridge: float = setting(
+        1.0,
+        above=0,
+        reason="the drift map is fitted on a client's scenes, fewer than the root's features",
+    )
+    distill_weight: float = setting(10.0, least=0)  # distill: weight of the latent distillation
+    # from task 2 only the root's last k blocks train (null: all)
+    train_blocks: int | None = setting(1, least=0)
+    # latent (the root's output) | freeze (the k blocks' input)
+    replay_layer: str = setting("latent", choices=("latent", "freeze"))
 
 
 CL = "fedlgr.core.continual"
@@ -300,7 +261,8 @@ def method_name(strategy: str, scope: str, continual: str | None = None) -> str:
     ``FedRootBN``; with a task schedule, Table II's ``FedAvg-EWC``, ``FedRoot-NR``,
     ``FedLGR`` (FedRoot + latent generative replay), and ``FedRoot-FT`` for training on the
     tasks in sequence with no continual-learning method (the forgetting baseline)."""
-    base = SCOPES[scope] + STRATEGIES[strategy].suffix
+    strategy_ = STRATEGIES[strategy]
+    base = strategy_.names.get((strategy, scope), SCOPES[scope] + strategy_.suffix)
     if continual is None:
         return base
     cl = CONTINUAL[continual]
@@ -318,6 +280,16 @@ FCL_METHODS = {
     for cl, m in CONTINUAL.items()
     if sc in m.scopes
 }
+
+
+def plugin_metrics(strategy: str, continual: str) -> list[str]:
+    """What a method's client plugins measure, ``<plugin>/<name>``: its strategy's (the
+    classes ``client_plugin_types`` names) and its continual-learning method's. Imports
+    their modules (torch)."""
+    types = list(STRATEGIES[strategy].load().client_plugin_types)
+    cl = CONTINUAL[continual]
+    types += [] if cl.target is None else [cl.load()]
+    return [f"{p.name}/{m}" for p in types for m in p.metric_names]
 
 
 def in_paper(name: str) -> bool:

@@ -10,10 +10,13 @@ never worked out from round numbers.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from typing import overload
+from typing import TYPE_CHECKING, overload
 
 from fedlgr.core.messages import RoundPlan
-from fedlgr.shell.config import ExperimentConfig
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config import ExperimentConfig
+
 
 ALL = "all"  # the single task of plain FL
 

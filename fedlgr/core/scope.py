@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from fedlgr.core.models.scholar import build_scholar
+from fedlgr.core.state import seeded_global_rng
 from fedlgr.core.strategies import Strategy
 
 SCOPE_PREFIX = {"full": "", "root": "root."}
@@ -47,8 +49,5 @@ def parameter_keys(model: nn.Module) -> set[str]:
 def initial_scholar(config) -> nn.Module:
     """The run's initial model: the same in every process, on every robot and on the
     server (seeded by ``config.seed``; the global RNG is left as it was)."""
-    from fedlgr.core.models.scholar import build_scholar
-    from fedlgr.shell.machine import seeded_global_rng
-
     with seeded_global_rng(config.seed):
         return build_scholar(config)

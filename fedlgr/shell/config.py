@@ -22,17 +22,18 @@ from typing import Any
 from fedlgr.core.data.columns import FEATURE_COLUMNS
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
 from fedlgr.errors import ConfigError, not_a_file
-from fedlgr.shell.data.config import (
-    DataConfig,
+from fedlgr.shell.checks.values import betas as _betas
+from fedlgr.shell.checks.values import (
     check_numbers,
     check_seed,
+    check_settings,
     format_bytes,
     machine_memory,
 )
-from fedlgr.shell.data.config import betas as _betas
-from fedlgr.shell.data.config import choice as _choice
-from fedlgr.shell.data.config import epochs as _epochs
-from fedlgr.shell.data.config import positive as _positive
+from fedlgr.shell.checks.values import choice as _choice
+from fedlgr.shell.checks.values import epochs as _epochs
+from fedlgr.shell.checks.values import positive as _positive
+from fedlgr.shell.data.config import DataConfig
 
 
 def _shipped(folder: str) -> Path:
@@ -158,6 +159,14 @@ def _with_sections(base: type, family: str, registry: dict) -> type:
     return made
 
 
+def _check_sections(config, family: str, registry: dict) -> None:
+    """Every registered method's settings in ``config`` (a ``federated`` or ``continual``
+    section), against the bounds their fields declare."""
+    for m in registry.values():
+        if m.settings is not None:
+            check_settings(f"{family}.{m.key}", getattr(config, m.key))
+
+
 @dataclass(frozen=True)
 class _FederatedConfig:
     """What is shared (scope), how it is aggregated (strategy, with each strategy's
@@ -170,9 +179,18 @@ class _FederatedConfig:
     # 1): server/test/*. off | on (full scope only: FedRoot keeps the top on the clients) |
     # auto (where the server holds a whole model: full-scope methods, as the paper's code).
     server_eval: str = "off"
+    # The share of the clients that train in each round (Flower's fraction_train): all at
+    # 1; else max(1, round(fraction x clients)) drawn from the run's seed each round. The
+    # others keep their state and are still evaluated.
+    fraction: float = 1.0
 
     def __post_init__(self) -> None:
         check_numbers("federated.", self)
+        if not 0.0 < self.fraction <= 1.0:
+            raise ConfigError(
+                f"federated.fraction={self.fraction}: must be in (0, 1] (the share of the "
+                "clients that train in a round; 1: all of them)"
+            )
         _choice("federated.strategy", self.strategy, tuple(STRATEGIES))
         _choice("federated.scope", self.scope, tuple(SCOPES))
         _rounds("federated.rounds", self.rounds)
@@ -180,6 +198,7 @@ class _FederatedConfig:
         value = SERVER_EVAL_ALIASES.get(str(self.server_eval).lower(), self.server_eval)
         object.__setattr__(self, "server_eval", value)
         _choice("federated.server_eval", self.server_eval, SERVER_EVAL)
+        _check_sections(self, "federated", STRATEGIES)
 
     @property
     def method(self) -> str:
@@ -349,6 +368,8 @@ class _ContinualConfig:
         _rounds("continual.rounds_per_task", self.rounds_per_task)
         if self.importance_batches is not None:
             _positive("continual.importance_batches", self.importance_batches)
+        _check_sections(self, "continual", CONTINUAL)
+        _check_replay_layer(self.lgr)
         if self.method != "none" and not self.tasks:
             raise ConfigError(
                 f"continual.method={self.method} needs a task schedule: set continual.tasks "
@@ -362,6 +383,31 @@ class _ContinualConfig:
 
 
 ContinualConfig = _with_sections(_ContinualConfig, "continual", CONTINUAL)
+
+
+def _check_replay_layer(lgr) -> None:
+    """``continual.lgr.replay_layer=freeze`` replays the activations entering the root's
+    last ``train_blocks`` blocks, which train with the top on real and replayed ones
+    together: there is no drift to compensate there."""
+    if lgr.replay_layer != "freeze":
+        return
+    at = "continual.lgr."
+    wrong = [
+        f"{at}{name}={value}"
+        for name, value, ok in (
+            ("train_blocks", lgr.train_blocks, bool(lgr.train_blocks)),
+            ("schedule", lgr.schedule, lgr.schedule == "joint"),
+            ("drift", lgr.drift, "compensate" not in lgr.drift),
+        )
+        if not ok
+    ]
+    if wrong:
+        raise ConfigError(
+            f"{at}replay_layer=freeze replays the activations entering the root's "
+            "last train_blocks blocks, which train with the top on real and replayed "
+            "ones together (no drift to compensate there): it needs train_blocks >= 1, "
+            "schedule=joint and no compensation, not " + ", ".join(wrong)
+        )
 
 
 @dataclass(frozen=True)

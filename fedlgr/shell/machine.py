@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import os
 import platform
-import threading
-from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -59,22 +56,6 @@ def busy_cores(sample_s: float = 0.25) -> float:
     mine = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     used = [percent[i] for i in mine if i < len(percent)] if mine else percent
     return min(load, sum(used) / 100)
-
-
-_global_rng = threading.Lock()
-
-
-@contextlib.contextmanager
-def seeded_global_rng(seed: int) -> Iterator[None]:
-    """torch's global CPU RNG seeded with ``seed`` inside the block and restored after it,
-    one thread at a time: for code that draws from it and takes no generator (a module's
-    ``reset_parameters``). Clients trained side by side (``runtime.concurrency=threads``)
-    would otherwise reseed it under each other's feet."""
-    import torch
-
-    with _global_rng, torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        yield
 
 
 def tune_allocator() -> bool:

@@ -7,12 +7,13 @@ any strategy and scope without per-combination code. A plugin instance belongs t
 client; everything it keeps is in ``state_dict()`` (in memory, so a resume feature can
 checkpoint it).
 
-Order of calls for one client: ``on_task_start`` (first round of a task) ->
+Order of calls for one client: ``on_task_start`` (the first round of a task the client
+trains in, or its end if it trained in none of the task's rounds) ->
 ``on_round_start`` -> ``epochs`` -> per batch: ``batch`` -> ``forward`` -> ``loss`` ->
 backward -> ``before_step`` -> optimiser step -> ``after_step`` -> ``on_round_end`` ->
-(upload, aggregation, download) -> ``round_metrics`` (every round, on the received model)
--> ``on_task_end`` (last round of a task, on the model the client goes on with) ->
-``task_metrics`` (logged with that round).
+``payload`` -> (upload, aggregation, download) -> ``round_metrics`` (every round, on the
+received model) -> ``on_task_end`` (last round of a task, on the model the client goes on
+with) -> ``task_metrics`` (logged with that round).
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ class LocalContext:
     trained_samples: int = 0  # samples a plugin trained on outside the batch loop
     trained_loss: float = 0.0  # their summed task loss
     scaler: torch.amp.GradScaler | None = None  # the client's (client.backward / step)
+    # What the strategy sent this client for the round besides the global tensors
+    # (Strategy.payload: SCAFFOLD's control variate); empty when it sends nothing.
+    received: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def plain_batches(
         self, batch_size: int | None = None, batches: SceneBatches | None = None
@@ -123,6 +127,12 @@ class ClientPlugin:
 
     def on_round_end(self, ctx: LocalContext) -> None:
         """After the last local step of a round, before the upload."""
+
+    def payload(self, ctx: LocalContext) -> dict[str, torch.Tensor]:
+        """What this plugin sends the server with the round's upload, besides the shared
+        tensors (SCAFFOLD: the change of the client's control variate), read by its
+        strategy's ``take_payloads``; nothing by default."""
+        return {}
 
     def on_task_end(self, ctx: LocalContext) -> None:
         """After the last round of a task (aggregation included): importance, memories,

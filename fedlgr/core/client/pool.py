@@ -26,11 +26,13 @@ import dataclasses
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import torch
 
-from fedlgr.shell.config import ExperimentConfig
+if TYPE_CHECKING:
+    from fedlgr.shell.config import ExperimentConfig
+
 
 T = TypeVar("T")
 R = TypeVar("R")

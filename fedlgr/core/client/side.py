@@ -4,8 +4,9 @@
 under Fabric, one robot's on Flower - each with its data shard, model, optimiser and
 plugins (the strategy's client part, the CL method: importance, memories, FedLGR's
 generator and labeller). It answers the server's :mod:`messages`: ``train`` (take the
-global tensors if sent, train locally, upload the shared tensors) and ``evaluate`` (take
-the new global tensors, end the task at its last round, score on the test scenes). The
+global tensors if sent, train locally, upload the shared tensors; only the clients the
+strategy chose) and ``evaluate`` (every client: take the new global tensors, end the task
+at its last round, score on the test scenes). The
 top and every plugin's state stay here; what leaves is checked against the shared keys.
 """
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -33,13 +35,16 @@ from fedlgr.core.messages import (
 )
 from fedlgr.core.meters.costs import Usage, measure, process_cpu_seconds, share_process_cpu
 from fedlgr.core.meters.scores import regression_scores
+from fedlgr.core.metrics import Figures, shared_out
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import SCOPE_PREFIX, initial_scholar, shared_keys
 from fedlgr.core.strategies import build_strategy
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.config import ExperimentConfig
-from fedlgr.shell.data.dataset import Scenes
-from fedlgr.shell.data.splits import FederatedSplit
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config import ExperimentConfig
+    from fedlgr.shell.data.dataset import Scenes
+    from fedlgr.shell.data.splits import FederatedSplit
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -56,6 +61,7 @@ class ClientSide:
         device: torch.device,
         autocast=contextlib.nullcontext,
     ):
+        # How this process's clients train, made explicit (runtime.concurrency, workers)
         cfg = config = resolve(config, device, len(indices))
         self.config, self.scenes, self.split = config, scenes, split
         self.pool = ClientPool(cfg.runtime.workers, torch.get_num_threads(), device)
@@ -149,7 +155,9 @@ class ClientSide:
 
         self.pool.each_worker(step)
 
-    def context(self, client: Client, round_: int, task: int) -> LocalContext:
+    def context(
+        self, client: Client, round_: int, task: int, received: Weights | None = None
+    ) -> LocalContext:
         global_weights = {k: v for k, v in client.model.state_dict().items() if k in self.keys}
         return LocalContext(
             client.index,
@@ -166,43 +174,59 @@ class ClientSide:
             client.optimizer,
             seen=[client.data[t] for t in self.tasks[: task + 1]],
             scaler=client.scaler,
+            received=received or {},
         )
+
+    def start_task(self, client: Client, ctx: LocalContext) -> None:
+        """The plugins' ``on_task_start``, once per task: at the first round of the task
+        the client trains in (a strategy may not choose it in every round)."""
+        if client.started < ctx.task:
+            for plugin in client.plugins:
+                plugin.on_task_start(ctx)
+            client.started = ctx.task
 
     # ------------------------------------------------------------------ the messages
 
-    def train(self, ins: TrainIns, progress=None) -> list[TrainRes]:
-        """Every client's local training of the round, and what it uploads."""
-        cfg, plan = self.config, ins.plan
-        for client in self.clients:
-            if ins.weights is not None:
-                client.download(ins.weights)
-            client.task = self.tasks[plan.task]
+    def train(self, ins: TrainIns | dict[int, TrainIns], progress=None) -> list[TrainRes]:
+        """The local training of the round's chosen clients (``ins``: client -> its
+        message, for those of this side; one message: every client of this side), and
+        what they upload."""
+        cfg = self.config
+        if isinstance(ins, TrainIns):
+            ins = {c.index: ins for c in self.clients}
+        chosen = [c for c in self.clients if c.index in ins]
+        for client in chosen:
+            message = ins[client.index]
+            if message.weights is not None:
+                client.download(message.weights)
+            client.task = self.tasks[message.plan.task]
             if cfg.train.reset_optimizer:
                 client.optimizer = client.model.configure_optimizers()
         if cfg.runtime.concurrency == "batched":
-            return self._train_batched(plan, progress)
-        return self._side_by_side(lambda c: self._train_one(c, plan, progress))
+            return self._train_batched(chosen, ins, progress)
+        trained = self._side_by_side(lambda c: self._train_one(c, ins[c.index], progress), chosen)
+        for usage, res in trained:
+            res.figures.update(usage.figures())
+        return [res for _, res in trained]
 
-    def _side_by_side(self, work):
-        """``work(client)`` for every client, in the pool (``runtime.concurrency``); each
-        result's ``usage`` is measured in its own thread there, then given its share of
-        the process's CPU seconds (``share_process_cpu``)."""
-        if self.pool.workers == 1 or len(self.clients) == 1:
-            return [work(c) for c in self.clients]
+    def _side_by_side(self, work, clients: list[Client]) -> list[tuple[Usage | None, Any]]:
+        """``work(client) -> (usage, result)`` for every one of ``clients``, in the pool
+        (``runtime.concurrency``): each usage is measured in its own thread there, then given
+        its share of the process's CPU seconds (``share_process_cpu``); the costs are read
+        from the usages once this is done."""
+        if self.pool.workers == 1 or len(clients) <= 1:
+            return [work(c) for c in clients]
         start = process_cpu_seconds()
-        out = self.pool.map(work, self.clients)
-        usages = [r.usage if isinstance(r, TrainRes) else r[0] for r in out]
-        share_process_cpu([u for u in usages if u is not None], process_cpu_seconds() - start)
+        out = self.pool.map(work, clients)
+        share_process_cpu([u for u, _ in out if u is not None], process_cpu_seconds() - start)
         return out
 
-    def _train_one(self, client: Client, plan, progress) -> TrainRes:
-        cfg = self.config
-        ctx = self.context(client, plan.round, plan.task)
+    def _train_one(self, client: Client, ins: TrainIns, progress) -> tuple[Usage, TrainRes]:
+        cfg, plan = self.config, ins.plan
+        ctx = self.context(client, plan.round, plan.task, ins.payload)
         on_epoch = None if progress is None else (lambda e, c=client.index: progress(c, e))
         with measure(self.device, per_thread=self.pool.workers > 1) as usage:
-            if plan.first_of_task:
-                for plugin in client.plugins:
-                    plugin.on_task_start(ctx)
+            self.start_task(client, ctx)
             stats = train_locally(
                 client,
                 ctx,
@@ -213,22 +237,32 @@ class ClientSide:
                 on_epoch,
                 self.pool.stop,
             )
-        upload = self.upload(client)
-        return TrainRes(client.index, upload, client.n_samples, stats.samples, stats.loss, usage)
+        return usage, self.result(client, ctx, stats.figures)
 
-    def _train_batched(self, plan, progress) -> list[TrainRes]:
-        """All clients as one stacked model (``runtime.concurrency=batched``). The one
-        measured cost is shared out in proportion to the samples each client trained."""
-        from fedlgr.core.client.stacked import train_batched
+    def result(self, client: Client, ctx: LocalContext, figures: Figures) -> TrainRes:
+        """What ``client`` uploads after training: its shared tensors, its plugins'
+        payload, its figures (``usage``'s costs are added once they are final)."""
+        payload = {k: v for p in client.plugins for k, v in p.payload(ctx).items()}
+        return TrainRes(client.index, self.upload(client), client.n_samples, figures, payload)
+
+    def _train_batched(self, chosen: list[Client], ins, progress) -> list[TrainRes]:
+        """The chosen clients as one stacked model (``runtime.concurrency=batched``). The
+        one measured cost is shared out in proportion to the samples each client trained."""
+        from fedlgr.core.client.stacked import train_batched  # lazy: torch.func, when asked
 
         cfg = self.config
-        ctxs = [self.context(c, plan.round, plan.task) for c in self.clients]
+        ctxs = [
+            self.context(c, ins[c.index].plan.round, ins[c.index].plan.task, ins[c.index].payload)
+            for c in chosen
+        ]
+        for client, ctx in zip(chosen, ctxs, strict=True):
+            self.start_task(client, ctx)
         on_epoch = None
         if progress is not None:  # one call per epoch of all clients: one per client
-            on_epoch = lambda e: [progress(c.index, e) for c in self.clients]  # noqa: E731
+            on_epoch = lambda e: [progress(c.index, e) for c in chosen]  # noqa: E731
         with measure(self.device) as usage:
             stats = train_batched(
-                self.clients,
+                chosen,
                 ctxs,
                 cfg.train.epochs,
                 cfg.train.max_batches,
@@ -237,13 +271,10 @@ class ClientSide:
                 on_epoch,
             )
         total = max(sum(s.samples for s in stats), 1)
-        out = []
-        for client, s in zip(self.clients, stats, strict=True):
-            share = s.samples / total
-            mine = usage.share(share)
-            upload = self.upload(client)
-            out.append(TrainRes(client.index, upload, client.n_samples, s.samples, s.loss, mine))
-        return out
+        return [
+            self.result(c, ctx, s.figures | shared_out(usage.figures(), s.samples / total))
+            for c, ctx, s in zip(chosen, ctxs, stats, strict=True)
+        ]
 
     def upload(self, client: Client) -> Weights:
         weights = client.upload(self.keys)
@@ -259,10 +290,13 @@ class ClientSide:
         check_shared(ins.weights, self.keys, "the server's download", prefix)
         for client in self.clients:
             client.download(ins.weights)
-        ended = self._side_by_side(lambda c: self.finish_round(c, plan))
+        ended = self._side_by_side(lambda c: self.finish_round(c, plan), self.clients)
         predictions = self.predictions(ins.weights)
         return [
-            EvaluateRes(client.index, self.scores(pred, plan.task), figures, usage)
+            EvaluateRes(
+                client.index,
+                self.scores(pred, plan.task) | figures | ({} if usage is None else usage.figures()),
+            )
             for client, pred, (usage, figures) in zip(self.clients, predictions, ended, strict=True)
         ]
 
@@ -294,48 +328,45 @@ class ClientSide:
         state = client.model.state_dict()
         return all(torch.equal(state[k], received[k]) for k in self.root_keys)
 
-    def finish_round(self, client: Client, plan) -> tuple[Usage | None, dict[str, float]]:
+    def finish_round(self, client: Client, plan) -> tuple[Usage | None, Figures]:
         """The plugins' round figures on the received model, then, at a task's last
-        round, the task end (its usage and figures)."""
+        round, the task end (its usage, and its costs and figures)."""
         figures = {}
         if any(type(p).round_metrics is not ClientPlugin.round_metrics for p in client.plugins):
             ctx = self.context(client, plan.round, plan.task)
             figures = {  # outside any measurement: diagnostics are not the client's work
-                f"{p.name}_{k}": v for p in client.plugins for k, v in p.round_metrics(ctx).items()
+                f"{p.name}/{k}": v for p in client.plugins for k, v in p.round_metrics(ctx).items()
             }
         if not plan.last_of_task:
             return None, figures
         usage, ended = self.end_task(client, plan.round, plan.task)
         return usage, figures | ended
 
-    def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, dict[str, float]]:
-        """The plugins' ``on_task_end``, and what they measured then (``<plugin>_<name>``)."""
+    def end_task(self, client: Client, round_: int, task: int) -> tuple[Usage, Figures]:
+        """The plugins' ``on_task_end`` (after their ``on_task_start`` if the client trained
+        in none of the task's rounds), what it cost, and what they measured then
+        (``<plugin>/<name>``)."""
         ctx = self.context(client, round_, task)
         with measure(self.device, per_thread=self.pool.workers > 1) as usage:
+            self.start_task(client, ctx)
             for plugin in client.plugins:
                 plugin.on_task_end(ctx)
         figures = {  # outside the measurement: diagnostics are not the client's work
-            f"{p.name}_{k}": v for p in client.plugins for k, v in p.task_metrics(ctx).items()
+            f"{p.name}/{k}": v for p in client.plugins for k, v in p.task_metrics(ctx).items()
         }
         return usage, figures
 
-    def scores(self, pred: torch.Tensor, task: int) -> list[float]:
-        """The score fields of outputs ``pred``: all tasks seen so far, then each task."""
+    def scores(self, pred: torch.Tensor, task: int) -> Figures:
+        """The scores of outputs ``pred``: on every task seen so far (per action too),
+        then on each task's scenes (FCL)."""
         cfg = self.config.train
         seen = self.seen_rows[task]
         s = regression_scores(pred[seen], self.test_targets[seen], cfg.compat_batch_metrics)
-        values = [
-            s.loss,
-            s.mean_rmse,
-            s.mean_pcc,
-            *s.mse.tolist(),
-            *s.rmse.tolist(),
-            *s.pcc.tolist(),
-        ]
-        for rows in self.test_rows.values():
+        out = s.figures("test", per_action=True)
+        for name, rows in self.test_rows.items():
             t = regression_scores(pred[rows], self.test_targets[rows], cfg.compat_batch_metrics)
-            values += [t.loss, t.mean_rmse, t.mean_pcc]
-        return values
+            out |= t.figures(f"task/{name}")
+        return out
 
     # ------------------------------------------------------------------ private state
 

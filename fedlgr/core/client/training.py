@@ -17,6 +17,7 @@ from torch import nn
 
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.data.augment import SceneBatches
+from fedlgr.core.metrics import Figures
 from fedlgr.errors import FedlgrError
 
 
@@ -31,6 +32,7 @@ class Client:
     # Loss scaling for float16 autocast on a GPU (train.precision=16-mixed); None elsewhere
     # (bf16 and float32 have float32's exponent range: nothing underflows).
     scaler: torch.amp.GradScaler | None = None
+    started: int = -1  # the position of the last task whose start the plugins were told
 
     def __post_init__(self) -> None:
         self.task = self.task or next(iter(self.data))
@@ -53,6 +55,7 @@ class Client:
             "batches_rng": {t: b.generator.get_state() for t, b in self.data.items()},
             "task": self.task,
             "scaler": None if self.scaler is None else self.scaler.state_dict(),
+            "started": self.started,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -63,6 +66,8 @@ class Client:
         for t, rng in state["batches_rng"].items():
             self.data[t].generator.set_state(rng)
         self.task = state["task"]
+        # before it was kept, a client had started the task it was on
+        self.started = state.get("started", list(self.data).index(self.task))
         if self.scaler is not None and state.get("scaler"):
             self.scaler.load_state_dict(state["scaler"])
 
@@ -106,6 +111,7 @@ class Stopped(Exception):
 class LocalStats:
     samples: int = 0  # images (or feature rows) trained on, all epochs, rehearsal included
     loss: float = 0.0  # mean task loss over the round
+    figures: Figures = field(default_factory=dict)  # by key: train/loss, train/samples, ...
 
 
 def train_locally(
@@ -180,4 +186,4 @@ def round_stats(client: Client, ctx: LocalContext, total: torch.Tensor, seen: in
             "with FedOpt or FedAvgM the server's too, federated.opt.lr or federated.avgm.lr) "
             "or check the data for extreme values (fedlgr data check)"
         )
-    return LocalStats(seen, mean)
+    return LocalStats(seen, mean, {"train/loss": mean, "train/samples": float(seen)})

@@ -8,12 +8,16 @@ with every strategy and scope; their state is per client and strictly local.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from fedlgr.core.client.plugins import ClientPlugin
 from fedlgr.core.continual.batchnorm import FrozenRootStatistics
 from fedlgr.core.methods import CONTINUAL
-from fedlgr.shell.config import ContinualConfig
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config import ContinualConfig
 
 
 def _seed(seed: int, client: int) -> int:

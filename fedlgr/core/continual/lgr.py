@@ -67,7 +67,7 @@ from fedlgr.core.continual.drift import DriftMap, drift_distance, fit_drift_map
 from fedlgr.core.continual.fidelity import replay_fidelity
 from fedlgr.core.methods import LGRSettings
 from fedlgr.core.models.generator import LatentVAE
-from fedlgr.shell.machine import seeded_global_rng
+from fedlgr.core.state import seeded_global_rng
 
 
 @torch.no_grad()
@@ -127,28 +127,6 @@ class LatentReplay(ClientPlugin):
         replay_layer: str = "latent",
         seed: int = 0,
     ):
-        # The same checks as the config's (continual.lgr.*), for a plugin built directly.
-        LGRSettings(
-            schedule=schedule,
-            replay=replay,
-            hidden=hidden,
-            latent=latent,
-            epochs=epochs,
-            patience=patience,
-            holdout=holdout,
-            batch_size=batch_size,
-            lr=lr,
-            beta=beta,
-            sampler=sampler,
-            lr_root=lr_root,
-            root_epochs=root_epochs,
-            replay_ratio=replay_ratio,
-            drift=drift,
-            compensate_ridge=compensate_ridge,
-            distill_weight=distill_weight,
-            train_blocks=train_blocks,
-            replay_layer=replay_layer,
-        )
         self.replay_layer = replay_layer
         self.schedule, self.replay = schedule, replay
         self.compensate, self.distill = "compensate" in drift, "distill" in drift

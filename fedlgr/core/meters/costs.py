@@ -28,34 +28,29 @@ from dataclasses import dataclass
 import psutil
 import torch
 
+from fedlgr.core.metrics import Figures
+
 SAMPLE_SECONDS = 0.05
 
 
 @dataclass
 class Usage:
+    """What a block of work cost, as :func:`measure` fills it in."""
+
     cpu_s: float = 0.0
     wall_s: float = 0.0
     gpu_util: float | None = None  # mean %, while training (device-wide, NVML)
     gpu_mem_mb: float | None = None  # peak allocated
     gpu_s: float | None = None  # the span of the client's work on its CUDA stream
 
-    def __add__(self, other: Usage) -> Usage:
-        """The cost of two consecutive pieces of work."""
-        gpu = None
-        if self.gpu_util is not None and other.gpu_util is not None:
-            seconds = max(self.wall_s + other.wall_s, 1e-9)
-            gpu = (self.gpu_util * self.wall_s + other.gpu_util * other.wall_s) / seconds
-        mem = max((m for m in (self.gpu_mem_mb, other.gpu_mem_mb) if m is not None), default=None)
-        spans = [s for s in (self.gpu_s, other.gpu_s) if s is not None]
-        gpu_s = sum(spans) if spans else None
-        return Usage(self.cpu_s + other.cpu_s, self.wall_s + other.wall_s, gpu, mem, gpu_s)
-
-    def share(self, fraction: float) -> Usage:
-        """A client's part of work done for several at once (stacked clients): its
-        fraction of the CPU and GPU seconds; the wall time and the device-wide figures are
-        everyone's."""
-        gpu_s = None if self.gpu_s is None else self.gpu_s * fraction
-        return Usage(self.cpu_s * fraction, self.wall_s, self.gpu_util, self.gpu_mem_mb, gpu_s)
+    def figures(self) -> Figures:
+        """The costs by their keys (:data:`fedlgr.core.metrics.COSTS`); the GPU ones only
+        where measured."""
+        out = {"cost/cpu_s": self.cpu_s, "cost/wall_s": self.wall_s}
+        for name in ("gpu_util", "gpu_mem_mb", "gpu_s"):
+            if (value := getattr(self, name)) is not None:
+                out[f"cost/{name}"] = float(value)
+        return out
 
 
 class StreamTimer:

@@ -1,54 +1,89 @@
-"""Test metrics (SPEC 5) with torchmetrics, over the whole test set.
+"""Test scores (SPEC 5) with torchmetrics, over the whole test set: every score of
+:data:`fedlgr.core.metrics.SCORES`, per action, by its name.
 
-Per action: MSE, RMSE and Pearson correlation; reported: their means over the 8 actions
-(``loss`` = mean MSE, ``rmse`` = mean of per-action RMSE, ``pcc`` = mean of per-action
-PCC). A constant prediction column has PCC 0, never NaN. ``batch_compat=True`` reproduces
-the reference code's biased figures: metrics per test batch of 16, averaged over batches.
+``loss`` is the per-action MSE, ``rmse`` its square root, ``pcc`` the Pearson
+correlation; a score is reported as its mean over the 8 actions (the mean of per-action
+RMSE is not the RMSE of the flattened data). A constant prediction column has PCC 0,
+never NaN. ``batch_compat=True`` reproduces the reference code's biased figures: scores
+per test batch of 16, averaged over batches.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
 
 import torch
 from torchmetrics.functional import mean_squared_error, pearson_corrcoef
 
+from fedlgr.core.data.columns import LABEL_SHORT_NAMES
+from fedlgr.core.metrics import SCORES, Figures
+
 COMPAT_BATCH = 16
 _CONSTANT = 1e-6  # a prediction column with a smaller standard deviation is constant
 
-
-@dataclass(frozen=True)
-class RegressionScores:
-    mse: torch.Tensor  # (8,) per action
-    rmse: torch.Tensor  # (8,)
-    pcc: torch.Tensor  # (8,)
-
-    @property
-    def loss(self) -> float:
-        return float(self.mse.mean())
-
-    @property
-    def mean_rmse(self) -> float:
-        return float(self.rmse.mean())
-
-    @property
-    def mean_pcc(self) -> float:
-        return float(self.pcc.mean())
+PerAction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (N, 8) x 2 -> (8,)
 
 
-def _scores(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    pred, target = pred.double(), target.double()
-    n = pred.shape[1]
-    mse = mean_squared_error(pred, target, num_outputs=n)
+def _mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return mean_squared_error(pred, target, num_outputs=pred.shape[1])
+
+
+def _rmse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return _mse(pred, target).sqrt()
+
+
+def _varies(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The actions whose prediction and target both vary: a constant column has no
+    correlation (torchmetrics would warn and give NaN, or a spurious ~1e-8 for a constant
+    non-zero float32 column)."""
     if len(pred) < 2:
-        return mse, mse.sqrt(), torch.zeros(n, dtype=pred.dtype)
-    # A constant column has no correlation: 0 (torchmetrics would warn and give NaN, or a
-    # spurious ~1e-8 for a constant non-zero float32 column).
-    varies = (pred.std(dim=0) >= _CONSTANT) & (target.std(dim=0) >= _CONSTANT)
-    pcc = torch.zeros(n, dtype=pred.dtype)
+        return torch.zeros(pred.shape[1], dtype=torch.bool)
+    return (pred.std(dim=0) >= _CONSTANT) & (target.std(dim=0) >= _CONSTANT)
+
+
+def _pcc(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    varies = _varies(pred, target)
+    pcc = torch.zeros(pred.shape[1], dtype=pred.dtype)
     if varies.any():
         pcc[varies] = pearson_corrcoef(pred[:, varies], target[:, varies]).reshape(-1)
-    return mse, mse.sqrt(), pcc
+    return pcc
+
+
+# Every score's per-action function, by the name it has in fedlgr.core.metrics.SCORES;
+# they take and give float64.
+PER_ACTION: dict[str, PerAction] = {"loss": _mse, "rmse": _rmse, "pcc": _pcc}
+
+
+class RegressionScores:
+    """Every score of some outputs, per action (``scores["rmse"]``: a (8,) float32 tensor)."""
+
+    def __init__(self, per_action: dict[str, torch.Tensor]):
+        self.per_action = per_action
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        return self.per_action[name]
+
+    def mean(self, name: str) -> float:
+        """The score ``name`` as reported: its mean over the actions."""
+        return float(self.per_action[name].mean())
+
+    def figures(self, prefix: str, per_action: bool = False) -> Figures:
+        """``{prefix/<score>: mean}`` (``test/rmse``), with ``per_action`` every score's
+        per-action figure too (``test/rmse/vacuum``, ``test/mse/vacuum``)."""
+        out = {f"{prefix}/{s.name}": self.mean(s.name) for s in SCORES}
+        if per_action:
+            for s in SCORES:
+                values = self.per_action[s.name].tolist()
+                out |= {
+                    f"{prefix}/{s.per_action}/{a}": v
+                    for a, v in zip(LABEL_SHORT_NAMES, values, strict=True)
+                }
+        return out
+
+
+def _scores(pred: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
+    pred, target = pred.double(), target.double()
+    return {s.name: PER_ACTION[s.name](pred, target) for s in SCORES}
 
 
 def regression_scores(
@@ -57,12 +92,11 @@ def regression_scores(
     """Scores of ``pred`` against ``target`` (both (N, 8)), whole-set or batch-averaged."""
     pred, target = pred.detach().cpu(), target.detach().cpu()
     if not batch_compat:
-        return RegressionScores(*(s.float() for s in _scores(pred, target)))
+        return RegressionScores({k: v.float() for k, v in _scores(pred, target).items()})
     per_batch = [
         _scores(pred[i : i + COMPAT_BATCH], target[i : i + COMPAT_BATCH])
         for i in range(0, len(pred), COMPAT_BATCH)
     ]
-    mse, rmse, pcc = (
-        torch.stack(parts).mean(dim=0).float() for parts in zip(*per_batch, strict=True)
+    return RegressionScores(
+        {s.name: torch.stack([b[s.name] for b in per_batch]).mean(dim=0).float() for s in SCORES}
     )
-    return RegressionScores(mse, rmse, pcc)

@@ -33,19 +33,11 @@ class ServerEvaluation:
         pred = predict(self.model, test.test_inputs, cfg.eval_batch_size, test.autocast)
         compat = cfg.compat_batch_metrics
         seen = test.seen_rows[task]
-        out = _named("server/test", regression_scores(pred[seen], test.test_targets[seen], compat))
+        out = regression_scores(pred[seen], test.test_targets[seen], compat).figures("server/test")
         for name, rows in test.test_rows.items():
             scores = regression_scores(pred[rows], test.test_targets[rows], compat)
-            out |= _named(f"server/task/{name}", scores)
+            out |= scores.figures(f"server/task/{name}")
         return out
-
-
-def _named(prefix: str, scores) -> dict[str, float]:
-    return {
-        f"{prefix}/loss": scores.loss,
-        f"{prefix}/rmse": scores.mean_rmse,
-        f"{prefix}/pcc": scores.mean_pcc,
-    }
 
 
 def serve_round(
@@ -63,24 +55,8 @@ def serve_round(
     with measure(device) as usage:
         aggregate()
         scores = evaluation.scores(server.global_weights, task) if evaluation else {}
-    usage = usage + before
-    return {"cost/server_cpu_s": usage.cpu_s, "cost/server_wall_s": usage.wall_s, **scores}, initial
-
-
-def server_evaluation(config) -> ServerEvaluation:
-    """For a server whose clients are elsewhere (a Flower ServerApp): its own copy of the
-    test scenes, read from ``data.path`` on the server's machine, split as the clients
-    split them."""
-    import torch
-
-    from fedlgr.core.evaluation import eval_set
-    from fedlgr.core.schedule import ALL
-    from fedlgr.shell.data.dataset import load_scenes
-    from fedlgr.shell.data.splits import make_split
-
-    scenes = load_scenes(config.data)
-    split = make_split(scenes.table, config.data)
-    tasks = list(config.continual.tasks) or [ALL]
-    channels_last = config.model.channels_last and scenes.images is not None
-    cpu = torch.device("cpu")
-    return ServerEvaluation(config, eval_set(scenes, split, tasks, cpu, channels_last))
+    cost = {
+        "cost/server_cpu_s": usage.cpu_s + before.cpu_s,
+        "cost/server_wall_s": usage.wall_s + before.wall_s,
+    }
+    return cost | scores, initial

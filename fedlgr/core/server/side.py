@@ -1,37 +1,37 @@
-"""The server side of a federation: the global tensors, aggregation, the strategy's server
-step, and the round's record.
+"""The server side of a federation: the global tensors, the strategy's choice of clients,
+aggregation, the strategy's server step, and the round's record.
 
 :class:`ServerSide` needs no data and no client: it builds the run's initial model to
-know the shared tensors, aggregates what the clients upload (sample-weighted mean, in
-float64, then ``Strategy.server_update``) and turns the clients' reports into a
-:class:`RoundLog` row per client - a client that did not report (a robot that dropped
-out) gets a row of NaN and is named in ``RoundLog.missing``.
+know the shared tensors, asks the strategy which clients train in a round and what each
+is sent (:meth:`train_ins`), aggregates what they upload (sample-weighted mean, in
+float64, then ``Strategy.server_update``; their plugins' payloads summed for
+``Strategy.take_payloads``) and turns the clients' figures into a :class:`RoundLog` row
+per client - a client that did not report (a robot that dropped out) has none and is
+named in ``RoundLog.missing``.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from fedlgr.core.messages import (
-    EvaluateRes,
-    RoundPlan,
-    TrainIns,
-    TrainRes,
-    Weights,
-    check_shared,
-    nbytes,
-)
-from fedlgr.core.records import RoundLog, make_fields, method_fields
+from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes, Weights, check_shared, nbytes
+from fedlgr.core.methods import plugin_metrics
+from fedlgr.core.metrics import Figures, combine, round_keys
+from fedlgr.core.records import RoundLog, table
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import SCOPE_PREFIX, initial_scholar, parameter_keys, shared_keys
 from fedlgr.core.server.aggregate import finish_mean, weighted_sum
+from fedlgr.core.state import to_device
 from fedlgr.core.strategies import build_strategy
-from fedlgr.shell.config import ExperimentConfig
-from fedlgr.shell.run.checkpoint import to_device
+
+if TYPE_CHECKING:
+    from fedlgr.core.messages import EvaluateRes
+    from fedlgr.shell.config import ExperimentConfig
 
 
 class ServerSide:
@@ -43,83 +43,106 @@ class ServerSide:
         initial = initial_scholar(cfg)
         self.keys = shared_keys(initial, cfg.federated.scope, self.strategy)
         self.prefix = SCOPE_PREFIX[cfg.federated.scope]
-        self.strategy.bind(self.keys, parameter_keys(initial))
         state = initial.state_dict()
         self.global_weights: Weights = {k: state[k].detach().clone() for k in self.keys}
+        self.strategy.bind(self.keys, parameter_keys(initial), self.global_weights)
         self.initial_bytes = nbytes(self.global_weights)
-        self.plugin_fields = method_fields(cfg)
-        self.fields = make_fields(self.tasks) + self.plugin_fields
+        # What the method's client plugins measure (every client has the same kinds).
+        self.plugin_keys = plugin_metrics(cfg.federated.strategy, cfg.continual.method)
+        self.round_keys = round_keys(self.tasks, self.plugin_keys)  # a round's columns
 
     def to(self, device: torch.device) -> ServerSide:
         self.global_weights = {k: v.to(device) for k, v in self.global_weights.items()}
         return self
 
-    def train_ins(self, plan: RoundPlan, holds_global: bool = True) -> TrainIns:
-        """The round's training message; the global tensors go along to a client that does
-        not hold them yet (round 1, or a robot that missed the last round)."""
-        return TrainIns(plan, None if holds_global else self.global_weights)
+    # ------------------------------------------------------------------ who trains
 
-    def bytes_down(self, round_: int) -> int:
+    def chosen(self, plan: RoundPlan) -> list[int]:
+        """The clients the strategy chooses to train in round ``plan`` (seeded)."""
+        return self.strategy.select(plan.round, self.config.data.clients, self.config.seed)
+
+    def train_ins(self, plan: RoundPlan, client: int, holds_global: bool = True) -> TrainIns:
+        """A chosen client's training message: the plan, the strategy's payload for it,
+        and the global tensors where the client does not hold them yet (round 1, or a
+        robot that missed the last round)."""
+        weights = None if holds_global else self.global_weights
+        return TrainIns(plan, weights, self.strategy.payload(client))
+
+    def bytes_down(self, round_: int, trained: bool = True) -> int:
         """What a client that took part in every round downloads in round ``round_``: the
-        new global tensors, and in round 1 the initial ones too."""
-        return nbytes(self.global_weights) + (self.initial_bytes if round_ == 1 else 0)
+        new global tensors, and in round 1, where it trained, the initial ones too."""
+        initial = self.initial_bytes if round_ == 1 and trained else 0
+        return nbytes(self.global_weights) + initial
 
     # ------------------------------------------------------------------ aggregation
 
-    def sums(self, results: Iterable[TrainRes]) -> tuple[Weights, float]:
-        """Sample-weighted sums of the uploads (float64), and the sum of the weights."""
+    def sums(self, results: Iterable[TrainRes]) -> tuple[Weights, float, Weights]:
+        """Sample-weighted sums of the uploads (float64), the sum of the weights, and the
+        plain sums of the plugins' payloads (float64)."""
         results = list(results)
         for r in results:
             check_shared(r.weights, self.keys, f"client {r.client}'s upload", self.prefix)
-        return weighted_sum(((r.n_samples, r.weights) for r in results), self.keys)
+        sums, total = weighted_sum(((r.n_samples, r.weights) for r in results), self.keys)
+        payload_keys = sorted({k for r in results for k in r.payload})
+        payloads, _ = weighted_sum(((1, r.payload) for r in results), payload_keys)
+        return sums, total, payloads
 
-    def update(self, sums: Weights, total: float) -> None:
-        """The next global tensors from the sums of every upload."""
+    def update(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
+        """The next global tensors from the sums of every upload of the round's
+        ``senders`` clients; the strategy takes in their payloads."""
         mean = finish_mean(sums, total, like=self.global_weights)
         self.global_weights = self.strategy.server_update(self.global_weights, mean)
+        self.strategy.take_payloads(payloads, senders, self.config.data.clients)
 
     def aggregate(self, results: Iterable[TrainRes]) -> None:
-        self.update(*self.sums(results))
+        results = list(results)
+        self.update(*self.sums(results), len(results))
 
     # ------------------------------------------------------------------ the record
 
     def row(
-        self, trained: TrainRes, evaluated: EvaluateRes, bytes_up: int, bytes_down: int
-    ) -> list[float]:
-        """One client's row of the round: its scores, its costs, its plugins' figures."""
-        usage = trained.usage if evaluated.usage is None else trained.usage + evaluated.usage
-        costs = [
-            trained.loss,
-            trained.samples,
-            usage.cpu_s,
-            usage.wall_s,
-            math.nan if usage.gpu_util is None else usage.gpu_util,
-            math.nan if usage.gpu_mem_mb is None else usage.gpu_mem_mb,
-            math.nan if usage.gpu_s is None else usage.gpu_s,
-            bytes_up,
-            bytes_down,
-        ]
-        measured = [evaluated.figures.get(f.name, math.nan) for f in self.plugin_fields]
-        return list(evaluated.scores) + costs + measured
+        self, trained: TrainRes | None, evaluated: EvaluateRes, bytes_up: int, bytes_down: int
+    ) -> Figures:
+        """One client's figures in the round: its training's (none where it was not
+        chosen), its scores and task end's, the bytes it moved."""
+        figures = (
+            evaluated.figures if trained is None else combine(trained.figures, evaluated.figures)
+        )
+        up = {} if trained is None else {"cost/bytes_up": float(bytes_up)}
+        return figures | up | {"cost/bytes_down": float(bytes_down)}
 
-    def table(self, rows: dict[int, list[float]], fill: float = math.nan) -> torch.Tensor:
-        """All clients' rows (clients x fields, float64); ``fill`` for the absent ones."""
-        table = torch.full((self.config.data.clients, len(self.fields)), fill, dtype=torch.float64)
-        for client, row in rows.items():
-            table[client] = torch.tensor(row, dtype=torch.float64)
-        return table
+    def table(self, rows: Mapping[int, Figures], fill: float = math.nan) -> np.ndarray:
+        """All clients' rows by the round's keys (clients x keys, float64): ``fill`` for
+        the clients that have none here (0 where processes add their tables up)."""
+        return table(self.round_keys, rows, self.config.data.clients, fill)
 
     def round_log(
-        self, plan: RoundPlan, table: torch.Tensor | np.ndarray, seconds: float, missing=()
+        self,
+        plan: RoundPlan,
+        table_: np.ndarray,
+        seconds: float,
+        missing: tuple[int, ...] = (),
+        participants: list[int] | None = None,
     ) -> RoundLog:
-        table = table.numpy() if isinstance(table, torch.Tensor) else table
-        return RoundLog(plan.round, self.tasks[plan.task], self.fields, table, seconds, missing)
+        """The round's record; ``participants`` (the clients that trained) is kept where the
+        strategy chose fewer than all."""
+        clients = self.config.data.clients
+        chosen = None if participants is None or len(participants) == clients else participants
+        return RoundLog(
+            plan.round,
+            self.tasks[plan.task],
+            self.round_keys,
+            table_,
+            seconds,
+            missing,
+            participants=None if chosen is None else tuple(chosen),
+        )
 
     # ------------------------------------------------------------------ checkpoints
 
     def state_dict(self) -> dict:
         return {"global": self.global_weights, "strategy": self.strategy.state_dict()}
 
-    def load_state_dict(self, state: dict, device: torch.device) -> None:
+    def load_state_dict(self, state: dict, device: torch.device | str) -> None:
         self.global_weights = {k: v.to(device) for k, v in state["global"].items()}
         self.strategy.load_state_dict(to_device(state["strategy"], device))

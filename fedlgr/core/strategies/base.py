@@ -1,20 +1,41 @@
 """The aggregation strategy interface, and FedAvg (McMahan et al. 2017).
 
-A strategy says which of the scope's tensors are exchanged (``shares``), what each client
-adds to its local training (``client_plugins``) and how the server turns the clients'
-sample-weighted mean into the next global weights (``server_update``). What is shared at
-all - the whole model or the root only - is the orthogonal *scope*
-(``fedlgr.core.scope``): FedRoot x every strategy are combinations, not a class
-each. Subclasses override only what differs (Flower's ``Strategy``).
+A strategy decides who trains and what travels, and how the server aggregates (Flower's
+``configure_fit`` / ``aggregate_fit``): which clients train in a round (``select``: all of
+them, or a seeded ``federated.fraction`` of them), what each chosen client is sent besides
+the global tensors (``payload``: per-client state such as SCAFFOLD's control variate),
+which of the scope's tensors are exchanged (``shares``), what each client adds to its
+local training (``client_plugins``), and how the server turns the clients'
+sample-weighted mean into the next global weights (``server_update``) and takes in what
+their plugins sent (``take_payloads``). What is shared at all - the whole model or the root
+only - is the orthogonal *scope* (``fedlgr.core.scope``): FedRoot x every strategy are
+combinations, not a class each. Subclasses override only what differs (Flower's
+``Strategy``).
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+import numpy as np
 import torch
 
 from fedlgr.core.client.plugins import ClientPlugin
 from fedlgr.core.messages import Weights
-from fedlgr.shell.config import FederatedConfig
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config import FederatedConfig
+
+
+def participants(round_: int, clients: int, fraction: float, seed: int) -> list[int]:
+    """The clients that train in round ``round_``: all of them at ``fraction`` 1, else
+    ``max(1, round(fraction * clients))`` drawn without replacement from the run's ``seed``
+    and the round (so a resumed run, and every runtime, draws the same), sorted."""
+    if fraction >= 1.0:
+        return list(range(clients))
+    k = max(1, round(fraction * clients))
+    rng = np.random.default_rng([seed, round_, 0x5E1EC7])
+    return sorted(int(c) for c in rng.choice(clients, size=k, replace=False))
 
 
 class Strategy:
@@ -25,10 +46,25 @@ class Strategy:
         self.config = config
         self.settings = config.settings  # federated.<strategy>: FedProx's mu, FedOpt's lr, ...
 
-    def bind(self, shared: list[str], parameters: set[str]) -> None:
-        """Called once by the server with the model's shared tensors' names and those that
-        are trainable parameters (not BatchNorm statistics): a server optimiser steps the
-        parameters only (:class:`ServerOptimizer`)."""
+    def bind(self, shared: list[str], parameters: set[str], initial: Weights | None = None) -> None:
+        """Called once by the server with the model's shared tensors' names, those that
+        are trainable parameters (not BatchNorm statistics: a server optimiser steps the
+        parameters only, :class:`ServerOptimizer`) and the initial global tensors."""
+
+    # ------------------------------------------------------------------ who trains
+
+    def select(self, round_: int, clients: int, seed: int) -> list[int]:
+        """The clients that train in round ``round_`` of ``clients`` (``federated.fraction``,
+        drawn from the run's ``seed``: :func:`participants`); the others keep their state
+        and are still evaluated."""
+        return participants(round_, clients, self.config.fraction, seed)
+
+    def payload(self, client: int) -> Weights:
+        """What a chosen client is sent besides the global tensors this round (read by this
+        strategy's plugin on the client); nothing by default."""
+        return {}
+
+    # ------------------------------------------------------------------ what is shared
 
     def shares(self, key: str, batchnorm: bool) -> bool:
         """Is this in-scope tensor exchanged? ``batchnorm``: it belongs to a BatchNorm layer."""
@@ -41,9 +77,20 @@ class Strategy:
         """What this strategy adds to a client's local training (one list per client)."""
         return []
 
+    # ------------------------------------------------------------------ aggregation
+
     def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
         """The next global weights from the clients' sample-weighted mean."""
         return mean
+
+    def payload_template(self) -> Weights:
+        """Zeros shaped like what a chosen client's plugins send (``payload``), so that
+        processes can add their sums up; nothing by default."""
+        return {}
+
+    def take_payloads(self, sums: Weights, senders: int, clients: int) -> None:
+        """What the round's clients' plugins sent, summed over the ``senders`` clients that
+        trained (of ``clients``); nothing is sent by default."""
 
     def state_dict(self) -> dict:
         """Server-side state (e.g. FedOpt's moments), for checkpoints."""
@@ -65,7 +112,7 @@ class ServerOptimizer(Strategy):
         super().__init__(config)
         self.trainable: set[str] = set()  # the shared parameters (bind)
 
-    def bind(self, shared: list[str], parameters: set[str]) -> None:
+    def bind(self, shared: list[str], parameters: set[str], initial: Weights | None = None) -> None:
         self.trainable = parameters & set(shared)
 
     def server_update(self, global_weights: Weights, mean: Weights) -> Weights:

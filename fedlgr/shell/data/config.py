@@ -2,25 +2,20 @@
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-import math
 import os
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedlgr.core.data.columns import USING_ARROW, USING_CIRCLE
 from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.values import check_numbers, check_seed, choice, format_bytes
 
 MODALITIES = ("image", "features")
 PARTITIONS = ("iid", "dirichlet")
 PARTITION_KEYS = ("task", "label")
 BAD_IMAGE_POLICIES = ("error", "skip")
-# Bounds on purpose (each message says why): numpy's and Lightning's seeding take 32-bit
-# seeds; the paper trains at 128 px with 10 copies of each scene per epoch.
-SEED_LIMIT = 2**32
+# Bounds on purpose (each message says why): the paper trains at 128 px with 10 copies of
+# each scene per epoch.
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 4096
 MAX_AUGMENT_COPIES = 1000
 
@@ -60,73 +55,6 @@ def cache_dir_setting(cache_dir: Path) -> str:
     """The name of the setting that chose ``cache_dir``, for error messages."""
     from_env = os.environ.get("FEDLGR_CACHE_DIR")
     return "FEDLGR_CACHE_DIR" if from_env and Path(from_env) == cache_dir else "data.cache_dir"
-
-
-# ------------------------------------------------------------------ checks for every section
-
-
-def check_numbers(prefix: str, settings) -> None:
-    """Refuse NaN and infinite floats, and floats where the field's type says ``int``, in
-    every field of the dataclass ``settings`` (``prefix`` + field name is the setting).
-
-    OmegaConf checks the types of what it loads, but lets ``.nan`` and ``.inf`` through and
-    code may build the dataclasses directly; a NaN slips past every ``value < 0`` test.
-    """
-    hints = _type_hints(type(settings))
-    for f in dataclasses.fields(settings):
-        value = getattr(settings, f.name)
-        problem = _number_problem(hints[f.name], value)
-        if problem is not None:
-            shown = list(value) if isinstance(value, tuple) else value
-            raise ConfigError(f"{prefix}{f.name}={shown}: {problem}")
-
-
-_type_hints = functools.cache(typing.get_type_hints)
-
-
-def _number_problem(hint, value) -> str | None:
-    origin = typing.get_origin(hint)
-    if origin in (typing.Union, types.UnionType):
-        options = [a for a in typing.get_args(hint) if a is not type(None)]
-        return None if value is None or len(options) != 1 else _number_problem(options[0], value)
-    if origin is tuple and isinstance(value, tuple | list):
-        args = typing.get_args(hint)
-        items = args[:1] * len(value) if args[1:] == (Ellipsis,) else args
-        problems = (_number_problem(a, v) for a, v in zip(items, value, strict=False))
-        return next((p for p in problems if p is not None), None)
-    if hint in (int, float) and isinstance(value, list | tuple | dict):
-        # OmegaConf does not type what a typed tuple holds: model.mlp_hidden=[[16]] was
-        # "'<' not supported between instances of 'list' and 'int'" (the eighth sweep, a24)
-        return "a list or mapping where a number goes"
-    if hint is int and isinstance(value, float):
-        return "must be an integer, not a float"
-    if isinstance(value, float) and not math.isfinite(value):
-        return "must be a finite number"
-    return None
-
-
-def check_seed(setting: str, value: int) -> None:
-    if not 0 <= value < SEED_LIMIT:
-        raise ConfigError(
-            f"{setting}={value}: must be in 0..{SEED_LIMIT - 1} (numpy's and Lightning's "
-            "seeding take 32-bit seeds)"
-        )
-
-
-def machine_memory() -> int:
-    """This machine's memory in bytes (``psutil.virtual_memory().total``)."""
-    import psutil
-
-    return psutil.virtual_memory().total
-
-
-def format_bytes(n: float) -> str:
-    """``3.2 GB``: decimal units, as ``free`` and ``df -H`` print them."""
-    units = ("B", "kB", "MB", "GB", "TB")
-    k = 0
-    while n >= 1000 and k < len(units) - 1:
-        n, k = n / 1000, k + 1
-    return f"{n:.0f} B" if k == 0 else f"{n:.1f} {units[k]}"
 
 
 @dataclass(frozen=True)
@@ -218,46 +146,6 @@ class DataConfig:
             raise ConfigError(f"data.tasks: task names must be unique, got {names}")
         if self.crop is not None:
             object.__setattr__(self, "crop", _crop(self.crop))
-
-
-def choice(setting: str, value: str, options: tuple[str, ...]) -> None:
-    if value not in options:
-        raise ConfigError(f"{setting}={value!r}: must be one of {', '.join(options)}")
-
-
-def positive(setting: str, value: int) -> None:
-    if value < 1:
-        raise ConfigError(f"{setting}={value}: must be >= 1")
-
-
-MAX_EPOCHS = 100_000
-
-
-def epochs(setting: str, value: int | None, least: int = 1) -> None:
-    """A count of epochs: ``least`` or more, and at most MAX_EPOCHS - a fixed bound (found
-    by the sixth fault sweep: a robot accepted 10**12 VAE epochs from its server, a run
-    that never ends; the paper's longest is 300)."""
-    if value is None:
-        return
-    if value < least:
-        raise ConfigError(f"{setting}={value}: must be >= {least}")
-    if value > MAX_EPOCHS:
-        raise ConfigError(
-            f"{setting}={value}: at most {MAX_EPOCHS} epochs (a fixed bound; the paper's "
-            "longest is the VAE's 300)"
-        )
-
-
-def nonnegative(setting: str, value: float) -> None:
-    if value < 0:
-        raise ConfigError(f"{setting}={value}: must be >= 0")
-
-
-def betas(setting: str, values) -> None:
-    """Adam's two decay rates, each in [0, 1) as torch.optim.Adam requires (found by the
-    fifth fault sweep: train.betas=[1.5,0.9] failed in torch after 13 s)."""
-    if len(values) != 2 or not all(0.0 <= b < 1.0 for b in values):
-        raise ConfigError(f"{setting}={list(values)}: two decay rates, each in [0, 1)")
 
 
 def _crop(crop) -> tuple[int | None, int | None, int | None, int | None]:

@@ -34,7 +34,7 @@ import torch
 from fedlgr.errors import FedlgrError, not_a_folder
 from fedlgr.shell.config import ExperimentConfig, flatten
 
-FORMAT = 1
+FORMAT = 2  # 2: a round's rows name their columns (keys) and participants
 PATTERN = re.compile(r"round-(\d+)\.ckpt")
 ROOT = "checkpoints"  # the folder of runs' folders, unless tracking.checkpoint_dir names one
 # Settings a resumed run may change: they do not touch a number the run computes.
@@ -252,38 +252,4 @@ def decode(value: Any) -> Any:
         return {k: decode(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return type(value)(decode(v) for v in value)
-    return value
-
-
-def rng_states() -> dict[str, Any]:
-    """The process-wide generators (Python, numpy, torch CPU and CUDA)."""
-    import random
-
-    return {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
-        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
-    }
-
-
-def set_rng_states(state: dict[str, Any]) -> None:
-    import random
-
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if state["cuda"] and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def to_device(value, device: torch.device):
-    """``value`` with every tensor moved to ``device`` (dicts, lists, tuples walked)."""
-    if isinstance(value, torch.Tensor):
-        # Generator states are CPU byte tensors whatever the device; keep them there.
-        return value if value.dtype == torch.uint8 else value.to(device)
-    if isinstance(value, dict):
-        return {k: to_device(v, device) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return type(value)(to_device(v, device) for v in value)
     return value

@@ -1,7 +1,8 @@
-"""Run one experiment in our processes: Fabric's set-up and launch, the data, the
-in-process :class:`~fedlgr.core.in_process.Orchestrator` (restored from a checkpoint
-when the run resumes), then the round loop (:func:`fedlgr.shell.run.loop.run_rounds`),
-recorded by a :class:`~fedlgr.shell.run.recorder.Recorder`.
+"""Run one experiment in our processes: Fabric's set-up and launch, the resume point, the
+runtime settings resolved once, the data, the in-process
+:class:`~fedlgr.core.in_process.Orchestrator`, and the run's life around its rounds
+(:class:`~fedlgr.shell.run.life.RunLife`: tracking, checkpoints, resume, the failure
+record).
 
 ``run_experiment(config)`` returns an :class:`ExperimentResult` in the process that
 called it (rank 0). Multi-process runs use Fabric's launchers: ``runtime.launcher=ddp``
@@ -15,35 +16,38 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import functools
+import os
+import signal
 import time
-from pathlib import Path
 
-from fedlgr.core.client import pool as concurrency
+import torch
+from lightning.fabric import Fabric, seed_everything
+from lightning.fabric.connector import _is_using_cli
+from lightning.fabric.strategies import DDPStrategy
+from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
+
 from fedlgr.core.in_process import Orchestrator
+from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import Progress
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.machine import available_cores, torch_threads
-from fedlgr.shell.run.loop import run_rounds
-from fedlgr.shell.run.recorder import Hooks, Recorder, Resumed
+from fedlgr.shell.run.life import Hooks, RunLife
 from fedlgr.shell.run.result import ExperimentResult
+from fedlgr.shell.run.resume import adopt_settings, left_to_machine, resume_point
+from fedlgr.shell.tracking.mlflow_run import tracking_uri
+from fedlgr.shell.tracking.server import check_reachable
 
 
 def make_fabric(config: ExperimentConfig):
-    from lightning.fabric import Fabric
-    from lightning.fabric.strategies import DDPStrategy
-
     rt = config.runtime
     accelerator = "cuda" if rt.accelerator == "gpu" else rt.accelerator
-    if accelerator == "cuda":
-        import torch
-
-        from fedlgr.errors import FedlgrError
-
-        if not torch.cuda.is_available():
-            raise FedlgrError(
-                f"runtime.accelerator={rt.accelerator}: no CUDA GPU on this machine "
-                "(torch.cuda.is_available() is False); use runtime.accelerator=auto or cpu"
-            )
+    if accelerator == "cuda" and not torch.cuda.is_available():
+        raise FedlgrError(
+            f"runtime.accelerator={rt.accelerator}: no CUDA GPU on this machine "
+            "(torch.cuda.is_available() is False); use runtime.accelerator=auto or cpu"
+        )
     strategy = "auto"
     if rt.world_size > 1:
         # Models are never wrapped in DDP (clients train independently); buffers must
@@ -84,13 +88,8 @@ def run_experiment(
     pruner: the run is then ended KILLED if the exception has ``mlflow_status =
     "KILLED"``, FAILED otherwise, keeping what was logged. ``show_runs``: print at the
     end where to see the run in MLflow's UI."""
-    from fedlgr.shell.tracking.mlflow_run import tracking_uri
-    from fedlgr.shell.tracking.server import check_reachable
-
     if config.tracking.enabled:  # before any work: an unreachable server fails at once
         check_reachable(tracking_uri(config))
-    from lightning.fabric.connector import _is_using_cli
-
     echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
     fabric = make_fabric(config)
     hooks = Hooks(echo, on_round, on_start, show_runs)
@@ -104,12 +103,6 @@ def _launch(fabric, config: ExperimentConfig, *args):
     blocks in C++ where Python's signal handlers never run) SIGTERM and Ctrl-C keep their
     default action, ending the process at once: no MLflow run exists yet. A process that
     waits ``runtime.timeout_s`` for the others in vain is one line."""
-    import signal
-
-    from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
-
-    from fedlgr.errors import FedlgrError
-
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     for number in handlers:
         signal.signal(number, signal.SIG_DFL)
@@ -128,8 +121,6 @@ def _launch(fabric, config: ExperimentConfig, *args):
     except (DistStoreError, DistNetworkError) as err:  # the latter: a process that joins
         if started:  # mid-run: a peer is gone
             raise FedlgrError(_peer_message(fabric, err)) from None
-        import os
-
         where = f"{os.environ.get('MASTER_ADDR', '127.0.0.1')}:{os.environ.get('MASTER_PORT', '?')}"
         way_out = (
             "start the other nodes' processes (same command, their NODE_RANK) or check "
@@ -152,95 +143,30 @@ def _launch(fabric, config: ExperimentConfig, *args):
                 signal.signal(number, handler)
 
 
-def _resume_point(
-    fabric, config: ExperimentConfig, resume, adopt: frozenset[str] = frozenset()
-) -> tuple[str, dict] | None:
-    """Rank 0 finds the run and its checkpoint; every process then reads it (one machine,
-    or a checkpoint folder every node can reach). A refusal is raised in every process."""
-    from fedlgr.errors import FedlgrError
-    from fedlgr.shell.run.resume import find_checkpoint, load_checkpoint
-    from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
-
-    if not resume:
-        return None
-    if not config.tracking.enabled:
-        raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
-    found: tuple[str, str] | str = ""
-    if fabric.global_rank == 0:
-        try:
-            run_id, path = find_checkpoint(config, resume, open_client(tracking_uri(config)))
-            found = (run_id, str(path))
-        except FedlgrError as err:
-            found = str(err)
-    if fabric.world_size > 1:
-        found = fabric.broadcast(found, src=0)
-    if isinstance(found, str):
-        raise FedlgrError(found)
-    run_id, path = found
-    try:
-        return run_id, load_checkpoint(config, run_id, Path(path), adopt)
-    except BaseException:
-        from fedlgr.shell.run import owner
-
-        owner.release(Path(path).parent)  # claimed by find_checkpoint (rank 0)
-        raise
-
-
 def _main(
     fabric, config: ExperimentConfig, parent_run_id, tags, hooks: Hooks, resume=None
 ) -> ExperimentResult | None:
-    import torch
-    from lightning.fabric import seed_everything
-
-    from fedlgr.shell.data.dataset import load_scenes
-    from fedlgr.shell.data.splits import make_split
-    from fedlgr.shell.run.resume import MACHINE_CHOSEN, adopt_settings, restore
-
-    chosen, share = config.runtime.threads, None
-    # What this launch leaves to the machine: a resumed run takes its own values instead.
-    left = {"runtime.threads": chosen, "runtime.workers": config.runtime.workers}
-    left["runtime.concurrency"] = None if config.runtime.concurrency == "auto" else "set"
-    machine = frozenset(k for k in MACHINE_CHOSEN if left[k] is None)
-    if fabric.device.type == "cpu":
-        # Results depend on the thread count (the order of floating-point sums): the
-        # effective count goes into the config, its params and its checkpoints.
-        local_world = fabric.world_size // config.runtime.num_nodes
-        threads = torch_threads(config, local_world)
-        share = None if chosen is not None else max(1, available_cores() // local_world)
-        torch.set_num_threads(threads)
-        config = dataclasses.replace(
-            config, runtime=dataclasses.replace(config.runtime, threads=threads)
-        )
-    # How this process's clients train, made explicit (recorded like the thread count).
-    local_clients = len(range(fabric.global_rank, config.data.clients, fabric.world_size))
-    config = concurrency.resolve(config, fabric.device, local_clients)
-    seed_everything(config.seed, verbose=False)
+    """One process's run: the resume point (a resumed run takes its own machine-chosen
+    settings), the runtime settings resolved once, the data, the in-process runtime and
+    the run's life around it."""
     start = time.perf_counter()
-    point = _resume_point(fabric, config, resume, machine)
-    if point is not None and machine:
-        config = adopt_settings(config, point[1]["config"], machine)
-        if fabric.device.type == "cpu" and config.runtime.threads:
-            torch.set_num_threads(config.runtime.threads)
+    left = left_to_machine(config)
+    resumed = resume_point(fabric, config, resume, left)
+    if resumed is not None and left:
+        config = adopt_settings(config, resumed.state["config"], left)
+    config, share = _threads(fabric, config)
+    seed_everything(config.seed, verbose=False)
     show = fabric.global_rank == 0 and config.runtime.progress
     with Progress("decoding images", "img", show) as bar:  # only when not cached yet
         scenes = load_scenes(config.data, progress=bar)
     split = make_split(scenes.table, config.data)
     orchestrator = Orchestrator(fabric, config, scenes, split)
-    resumed = None
-    if point is not None:
-        state = point[1]
-        resumed = Resumed(
-            point[0],
-            restore(fabric, orchestrator, state),
-            state["elapsed"],
-            Path(state["path"]).parent,
-            state.get("data_digest", ""),
-        )
+    config = orchestrator.config  # with how its clients train made explicit
     processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
-    recorder = Recorder(
+    life = RunLife(
         config,
         hooks,
-        rank0=fabric.global_rank == 0,
+        fabric=fabric,
         tags=tags,
         parent_run_id=parent_run_id,
         what=f"{len(split.train)} training / {len(split.test)} test scenes{processes}, "
@@ -248,14 +174,31 @@ def _main(
         resumed=resumed,
         start=start,
     )
-    return run_rounds(orchestrator, config, recorder)
+    return life.run(orchestrator)
+
+
+def _threads(fabric, config: ExperimentConfig) -> tuple[ExperimentConfig, int | None]:
+    """``config`` with this process's torch threads made explicit on CPU (results depend
+    on the thread count - the order of floating-point sums - so the effective count goes
+    into the config, its params and its checkpoints; how its clients train is made
+    explicit where they are placed, :class:`~fedlgr.core.client.side.ClientSide`). Also the
+    process's share of the cores where the default chose the threads (None where set)."""
+    share = None
+    if fabric.device.type == "cpu":
+        local_world = fabric.world_size // config.runtime.num_nodes
+        threads = torch_threads(config, local_world)
+        if config.runtime.threads is None:
+            share = max(1, available_cores() // local_world)
+        torch.set_num_threads(threads)
+        config = dataclasses.replace(
+            config, runtime=dataclasses.replace(config.runtime, threads=threads)
+        )
+    return config, share
 
 
 def _threads_text(config: ExperimentConfig, share: int | None) -> str:
     """The header's account of the torch threads each process uses, and why when the
     default chose fewer than the process's ``share`` of the cores (others are busy)."""
-    import torch
-
     rt = config.runtime
     threads = torch.get_num_threads()
     text = f"{threads} torch thread{'s' if threads != 1 else ''}"

@@ -6,6 +6,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
+from fedlgr.core.metrics import COST_KEYS, COSTS, SCORES
 from fedlgr.core.records import RoundLog
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import table
@@ -41,21 +44,11 @@ class ExperimentResult:
         ``mean/cost/cpu_s``, ``mean/cost/wall_s``, ``mean/cost/bytes_up``, ... (GPU ones
         only where measured); the server's per round, and the paper's CPU figure
         (``mean/cost/paper_cpu_s``), where the server measured itself."""
-        import numpy as np
-
         out = {}
-        for name, key in (
-            ("cpu_s", "cpu_s"),
-            ("wall_s", "wall_s"),
-            ("gpu_util", "gpu_util"),
-            ("gpu_mem_mb", "gpu_mem_mb"),
-            ("gpu_s", "gpu_s"),
-            ("bytes_up", "bytes_up"),
-            ("bytes_down", "bytes_down"),
-        ):
-            column = np.concatenate([r.column(name) for r in self.rounds]) if self.rounds else []
+        for key in COST_KEYS:
+            column = np.concatenate([r.column(key) for r in self.rounds]) if self.rounds else []
             if len(column) and not np.isnan(column).all():
-                out[f"mean/cost/{key}"] = float(np.nanmean(column))
+                out[f"mean/{key}"] = float(np.nanmean(column))
         server = [r.server for r in self.rounds if "cost/server_cpu_s" in r.server]
         if server and len(server) == len(self.rounds):
             cpu = sum(s["cost/server_cpu_s"] for s in server)
@@ -74,27 +67,31 @@ class ExperimentResult:
     def summary(self) -> str:
         """Final per-client scores; costs averaged over all rounds (as Table III reports them);
         FCL: the scores after each task and the forgetting too."""
-        import numpy as np
-
         last = self.final
-        scores = ["test_loss", "test_rmse", "test_pcc"]
-        costs = ["cpu_s", "wall_s", "bytes_up"]
+        scores = [f"test/{s.name}" for s in SCORES]
+        costs = [c for c in COSTS if c.summary]
         # Over the rounds a client took part in (a robot that dropped out has NaN rows).
-        per_round = {n: np.stack([r.column(n) for r in self.rounds]) for n in costs}
+        per_round = {c.key: np.stack([r.column(c.key) for r in self.rounds]) for c in costs}
         rows = [
             [
                 f"client {c}",
                 *(float(last.column(n)[c]) for n in scores),
-                *(_nanmean(per_round[n][:, c]) for n in costs),
+                *(_nanmean(per_round[cost.key][:, c]) for cost in costs),
             ]
             for c in range(len(last.table))
         ]
         rows.append(
-            ["mean", *(last.mean(n) for n in scores), *(_nanmean(per_round[n]) for n in costs)]
+            [
+                "mean",
+                *(last.mean(n) for n in scores),
+                *(_nanmean(per_round[cost.key]) for cost in costs),
+            ]
         )
         for row in rows:
-            row[-1] = _human_bytes(row[-1])
-        headers = ["client", "loss", "RMSE", "PCC", "CPU s/round", "wall s/round", "upload/round"]
+            for i, cost in enumerate(costs, start=1 + len(scores)):
+                if cost.key.startswith("cost/bytes"):
+                    row[i] = _human_bytes(row[i])
+        headers = ["client", *(s.label for s in SCORES), *(c.summary for c in costs)]
         text = table(headers, rows)
         if self.after_tasks:
             text += "\n\n" + self.task_summary()
@@ -112,14 +109,14 @@ class ExperimentResult:
             "drift_past": "past scenes (true)",
             "drift_past_residual": "past, after the map",
         }
-        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        present = [n for n in names if self.rounds and f"lgr/{n}" in self.rounds[0].keys]
         # Columns nothing was measured in (no compensation: no residuals) are left out.
         present = [
-            n for n in present if any(log.mean(f"lgr_{n}") is not None for log in self.rounds)
+            n for n in present if any(log.mean(f"lgr/{n}") is not None for log in self.rounds)
         ]
         rows = []
         for log in self.rounds:
-            values = [log.mean(f"lgr_{n}") for n in present]
+            values = [log.mean(f"lgr/{n}") for n in present]
             if any(v is not None for v in values):
                 rows.append(
                     [f"round {log.round} ({log.task})", *("-" if v is None else v for v in values)]
@@ -133,10 +130,10 @@ class ExperimentResult:
         """FedLGR: the replay's fidelity at each task end, mean over clients (docs/fedlgr.md)."""
         names = {"fd_latent": "FD latents", "recon_mse": "recon MSE (held-out)"}
         names |= {"fd_labels": "FD labeller outputs", "vae_epochs": "VAE epochs kept"}
-        present = [n for n in names if self.rounds and f"lgr_{n}" in self.rounds[0].column_names]
+        present = [n for n in names if self.rounds and f"lgr/{n}" in self.rounds[0].keys]
         rows = []
         for log in self.rounds:
-            values = [log.mean(f"lgr_{n}") for n in present]
+            values = [log.mean(f"lgr/{n}") for n in present]
             if any(v is not None for v in values):
                 rows.append(
                     [
@@ -159,22 +156,25 @@ class ExperimentResult:
             row = [
                 f"after {tasks[k]}",
                 seen,
-                *(after[f"after_task{k + 1}/test/{m}"] for m in ("loss", "rmse", "pcc")),
+                *(after[f"after_task{k + 1}/test/{s.name}"] for s in SCORES),
             ]
             forgot = [
-                f"{t}: RMSE {after[f'after_task{k + 1}/forgetting/{t}/rmse']:+.3f} "
-                f"PCC {after[f'after_task{k + 1}/forgetting/{t}/pcc']:+.3f}"
+                f"{t}: "
+                + " ".join(
+                    f"{s.label} {after[f'after_task{k + 1}/forgetting/{t}/{s.name}']:+.3f}"
+                    for s in SCORES
+                    if s.name != "loss"
+                )
                 for t in tasks[:k]
             ]
             rows.append([*row, "; ".join(forgot) or "-"])
-        return table(["task", "tested on", "loss", "RMSE", "PCC", "forgetting"], rows)
+        headers = ["task", "tested on", *(s.label for s in SCORES), "forgetting"]
+        return table(headers, rows)
 
 
 def _nanmean(values) -> float:
     """The mean of the values that are not NaN (NaN when there are none, without numpy's
     warning)."""
-    import numpy as np
-
     present = np.asarray(values, dtype=float)
     present = present[~np.isnan(present)]
     return float(present.mean()) if present.size else math.nan

@@ -1,12 +1,15 @@
-"""A running experiment's checkpoints, and picking a run up again (``fedlgr run --resume``).
+"""Picking a run up again (``fedlgr run --resume``): which run, its newest checkpoint,
+and whether it belongs to this config and data - all before the runtime is built, since
+a resumed run takes its own machine-chosen settings (thread counts).
 
 A checkpoint holds everything the next round depends on, so that a resumed run computes
 bit for bit what the uninterrupted run would have (on CPU, for the same thread count):
-every client's model, optimiser, plug-in state (CL importance, rehearsal memory, FedLGR's
-generator and labeller, FedDistill's teacher) and batch/augmentation generators; the
-server's global tensors and strategy state (FedOpt's moments); each process's global RNG
-states; the rows of every round so far; the resolved config; the MLflow run id. Files,
-their place and atomic writing: :mod:`fedlgr.shell.run.checkpoint`.
+the runtime's state (every client's model, optimiser, plug-in state - CL importance,
+rehearsal memory, FedLGR's generator and labeller, FedDistill's teacher - and
+batch/augmentation generators; the server's global tensors and strategy state; each
+process's global RNG states), the rows of every round so far, the resolved config, the
+MLflow run id (:func:`fedlgr.shell.run.life.checkpoint_state`). Files, their place and
+atomic writing: :mod:`fedlgr.shell.run.checkpoint`.
 """
 
 from __future__ import annotations
@@ -15,119 +18,53 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
-
-from fedlgr import __version__
-from fedlgr.core.in_process import Orchestrator
-from fedlgr.core.records import RoundLog
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig, flatten
 from fedlgr.shell.run import checkpoint as ckpt
-from fedlgr.shell.run.checkpoint import to_device
-
-CPU = torch.device("cpu")
-
-
-def _gather(fabric, part: dict) -> list[dict] | None:
-    """Every process's ``part`` on rank 0 (None elsewhere). Fabric's collectives move
-    tensors only; client states are nested dicts, hence torch.distributed's object
-    gather (gloo on CPU, the backend Fabric set up otherwise)."""
-    if fabric.world_size == 1:
-        return [part]
-    import torch.distributed as dist
-
-    parts = [None] * fabric.world_size if fabric.global_rank == 0 else None
-    dist.gather_object(part, parts, dst=0)
-    return parts
+from fedlgr.shell.run import owner
+from fedlgr.shell.run.life import Resumed
+from fedlgr.shell.tracking.context import data_digest
+from fedlgr.shell.tracking.mlflow_run import dead_reason, experiment_id, open_client, tracking_uri
 
 
-def save_checkpoint(
-    fabric,
-    folder: Path | None,
-    orchestrator: Orchestrator,
-    rounds: list[RoundLog],
-    run_id: str | None,
-    elapsed: float,
-    keep: int,
-    digest: str = "",
-) -> Path | None:
-    """Checkpoint the run after its last round in ``rounds`` (every process calls this;
-    rank 0 writes)."""
-    state = orchestrator.state_dict()
-    part = {"clients": to_device(state["clients"], CPU), "rng": ckpt.rng_states()}
-    parts = _gather(fabric, part)
-    whole: dict[str, Any] = {}
-    if parts is not None:
-        clients = {i: c for p in parts for i, c in p["clients"].items()}
-        rng = [p["rng"] for p in parts]  # per process
-        whole = checkpoint_state(
-            orchestrator.config, run_id, rounds, state["server"], clients, rng, elapsed, digest
-        )
-    target = folder if folder is not None else Path(".")  # only rank 0's folder is used
-    return ckpt.save(fabric, target, rounds[-1].round, whole, keep)
+def resume_point(
+    fabric, config: ExperimentConfig, resume: str | bool | None, adopt: frozenset[str] = frozenset()
+) -> Resumed | None:
+    """The run ``resume`` names (its id, or True: the latest unfinished run of this config)
+    and its checkpoint, or None without ``resume``. Rank 0 finds it; every process then
+    reads it (one machine, or a checkpoint folder every node can reach). A refusal is
+    raised in every process. ``fabric`` None: this process alone (the Flower server)."""
+    if not resume:
+        return None
+    if not config.tracking.enabled:
+        raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
+    found: tuple[str, str] | str = ""
+    if fabric is None or fabric.global_rank == 0:
+        try:
+            run_id, path = find_checkpoint(config, resume, open_client(tracking_uri(config)))
+            found = (run_id, str(path))
+        except FedlgrError as err:
+            found = str(err)
+    if fabric is not None and fabric.world_size > 1:
+        found = fabric.broadcast(found, src=0)
+    if isinstance(found, str):
+        raise FedlgrError(found)
+    run_id, path = found
+    try:
+        state = load_checkpoint(config, run_id, Path(path), adopt)
+    except BaseException:
+        owner.release(Path(path).parent)  # claimed by find_checkpoint (rank 0)
+        raise
+    return Resumed(run_id, state, Path(path).parent)
 
 
-def checkpoint_state(
-    config: ExperimentConfig,
-    run_id: str | None,
-    rounds: list[RoundLog],
-    server: dict,
-    clients: dict,
-    rng: list,
-    elapsed: float,
-    digest: str,
-) -> dict[str, Any]:
-    """A run's checkpoint after its last round in ``rounds`` (every runtime's)."""
-    return {
-        "format": ckpt.FORMAT,
-        "fedlgr": __version__,
-        "run_id": run_id,
-        "round": rounds[-1].round,
-        "config": flatten(config),
-        "server": to_device(server, CPU),
-        "clients": clients,
-        "rng": rng,
-        "rows": [
-            {
-                "round": r.round,
-                "task": r.task,
-                "table": r.table,
-                "seconds": r.seconds,
-                "missing": list(r.missing),
-                "server": r.server,
-                "initial": r.initial,
-            }
-            for r in rounds
-        ],
-        "elapsed": elapsed,
-        "data_digest": digest,  # a resume on other data is refused
-    }
-
-
-def restore(fabric, orchestrator: Orchestrator, state: dict[str, Any]) -> list[RoundLog]:
-    """Load ``state`` into the orchestrator and this process's RNGs; the rounds so far."""
-    orchestrator.load_state_dict(state)
-    ckpt.set_rng_states(state["rng"][fabric.global_rank])
-    return restored_rounds(state, orchestrator.fields)
-
-
-def restored_rounds(state: dict[str, Any], fields) -> list[RoundLog]:
-    """A checkpoint's rounds (``missing``: robots that dropped out; none before fedlgr
-    recorded them)."""
-    return [
-        RoundLog(
-            r["round"],
-            r["task"],
-            fields,
-            np.asarray(r["table"]),
-            r["seconds"],
-            tuple(r.get("missing", ())),
-            dict(r.get("server", {})),
-            dict(r.get("initial", {})),
-        )
-        for r in state["rows"]
-    ]
+def left_to_machine(config: ExperimentConfig) -> frozenset[str]:
+    """The machine-chosen settings (:data:`MACHINE_CHOSEN`) this launch leaves unset: a
+    resumed run takes its own values for them instead."""
+    rt = config.runtime
+    left = {"runtime.threads": rt.threads, "runtime.workers": rt.workers}
+    left["runtime.concurrency"] = None if rt.concurrency == "auto" else "set"
+    return frozenset(k for k in MACHINE_CHOSEN if left[k] is None)
 
 
 # --------------------------------------------------------------------------- which run
@@ -137,9 +74,6 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
     """The run to resume (``resume``: its id, or True for the latest unfinished run of
     this config) and its newest checkpoint; dead RUNNING runs are marked KILLED, a live
     one is refused."""
-    from fedlgr.shell.run import owner
-    from fedlgr.shell.tracking.mlflow_run import dead_reason, experiment_id, tracking_uri
-
     uri = tracking_uri(config)
     if resume is True:
         run = _latest_unfinished(config, client, experiment_id(client, config.tracking.experiment))
@@ -198,8 +132,6 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
 def remove_leftover(folder: Path, run_id: str) -> str:
     """Remove the checkpoint folder a finished run left behind (killed between its end and
     the folder's removal); what was done, as a clause for a message ("" if nothing)."""
-    from fedlgr.shell.run import owner
-
     if not folder.is_dir():
         return ""
     try:
@@ -216,8 +148,6 @@ def checkpoint_folder(run, config: ExperimentConfig) -> Path:
     """Where ``run`` keeps its checkpoints: where this config puts them (next to the store,
     or under ``tracking.checkpoint_dir``) if they are there - a store moved or copied with
     its checkpoints, a folder named on the command line - else the run's tag."""
-    from fedlgr.shell.tracking.mlflow_run import tracking_uri
-
     here = ckpt.checkpoint_root(config, tracking_uri(config)) / run.info.run_id
     tagged = run.data.tags.get("fedlgr.checkpoints")
     if not tagged or ckpt.checkpoints(here):
@@ -258,8 +188,6 @@ def load_checkpoint(
     """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``; settings
     in ``adopt`` (this launch left them to the machine) are not compared: the run's own
     values are taken (:func:`adopt_settings`)."""
-    from fedlgr.shell.tracking.context import data_digest
-
     state = ckpt.load(path, ckpt.RUN_KEYS)
     if state["run_id"] != run_id:
         raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")

@@ -29,12 +29,21 @@ import dataclasses
 import os
 from pathlib import Path
 
+import torch
 import yaml
+from lightning.fabric import seed_everything
 
+from fedlgr.core.client.side import ClientSide
+from fedlgr.core.state import to_device
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig, check_data, config_from_data, to_yaml
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import FederatedSplit, make_split
 from fedlgr.shell.deploy.flower import wire
-from fedlgr.shell.deploy.flower.service import encode, state_dir
+from fedlgr.shell.deploy.flower.link import encode, state_dir
+from fedlgr.shell.machine import torch_threads
+from fedlgr.shell.run import checkpoint as ckpt
+from fedlgr.shell.run.experiment import make_fabric
 
 _robots: dict[tuple[int | str, int], Robot] = {}  # (run, client): while the service lives
 SERVER = "the server's config"
@@ -56,15 +65,6 @@ class Robot:
     """One robot's client between messages: built once per process, state on disk."""
 
     def __init__(self, config: ExperimentConfig, client: int, folder: Path, own_data: bool = False):
-        import torch
-        from lightning.fabric import seed_everything
-
-        from fedlgr.core.client.side import ClientSide
-        from fedlgr.shell.data.dataset import load_scenes
-        from fedlgr.shell.data.splits import make_split
-        from fedlgr.shell.machine import torch_threads
-        from fedlgr.shell.run.experiment import make_fabric
-
         check_client(config, client)
         fabric = make_fabric(config)
         if fabric.device.type == "cpu":
@@ -76,7 +76,7 @@ class Robot:
         self.side = ClientSide(config, scenes, split, [client], fabric.device, fabric.autocast)
         self.client = self.side.clients[0]
         self.path = folder / f"client-{client}.ckpt"
-        self.started, self.ended = -1, -1  # the last task begun and ended
+        self.ended = -1  # the last task ended
         self.trained = -1  # the last round trained
         # The last message answered ([kind, round, round evaluated first or -1]) and the
         # reply (Flower's encoding): asked again - a server that died after this robot
@@ -84,21 +84,16 @@ class Robot:
         self.answered: list | None = None
         self.reply = b""
         if self.path.is_file():
-            from fedlgr.shell.run import checkpoint as ckpt
-
             state = ckpt.load(self.path)
-            self.side.load_state_dict(ckpt.to_device({client: state["client"]}, fabric.device))
-            self.started, self.ended = state["started"], state["ended"]
+            self.side.load_state_dict(to_device({client: state["client"]}, fabric.device))
+            self.ended = state["ended"]
             self.trained = state.get("trained", -1)
             self.answered, self.reply = state.get("answered"), state.get("reply", b"")
             print(f"client {client}: private state restored from {self.path}", flush=True)
 
     def save(self) -> None:
-        from fedlgr.shell.run import checkpoint as ckpt
-
         state = {
-            "client": ckpt.to_device(self.client.state_dict(), "cpu"),
-            "started": self.started,
+            "client": to_device(self.client.state_dict(), "cpu"),
             "ended": self.ended,
             "trained": self.trained,
             "answered": self.answered,
@@ -127,17 +122,15 @@ class Robot:
 
     def train(self, ins):
         """The round's training; a robot that missed a task's last round ends that task
-        first, and one that missed a task's first round begins it here."""
+        first (one that missed a task's first round begins it as it trains: ``ClientSide``
+        tells its plugins where a client starts a task)."""
         plan = ins.plan
         for task in range(self.ended + 1, plan.task):
-            if self.started >= task:
+            if self.client.started >= task:
                 self.client.task = self.side.tasks[task]
                 self.side.end_task(self.client, plan.round, task)
                 self.ended = task
-        if self.started < plan.task and not plan.first_of_task:
-            ins = dataclasses.replace(ins, plan=dataclasses.replace(plan, first_of_task=True))
         [res] = self.side.train(ins)
-        self.started = plan.task
         return res
 
     def evaluate(self, ins):
@@ -159,8 +152,6 @@ def own_split(table, config: ExperimentConfig, client: int):
     """A robot's own folder as its whole shard: its scenes split into train and test by
     ``data.seed`` and ``data.test_fraction``, its tasks as configured - the split of a
     one-client run, labelled ``client``."""
-    from fedlgr.shell.data.splits import FederatedSplit, make_split
-
     one = make_split(table, dataclasses.replace(config.data, clients=1))
     shard = dataclasses.replace(one.clients[0], client=client)
     return FederatedSplit(one.train, one.test, one.test_tasks, [shard])

@@ -2,10 +2,10 @@
 
 ``flwr run`` starts it on the SuperLink's machine with the app's run config: ``config``
 (a fedlgr config file on that machine; empty: the defaults) and ``overrides``
-(``key=value`` separated by spaces). It runs the schedule with the same round loop and
-recorder as ``fedlgr run`` (:func:`fedlgr.shell.run.loop.run_rounds`) - the same MLflow
-keys, artifacts and summary, plus the tag ``runtime=flower`` - over :class:`FlowerRounds`
-(a :class:`fedlgr.shell.run.loop.Rounds`), which speaks to the robots with
+(``key=value`` separated by spaces). It runs the schedule in the same run's life as
+``fedlgr run`` (:class:`fedlgr.shell.run.life.RunLife`) - the same MLflow keys, artifacts
+and summary, plus the tag ``runtime=flower`` - around :class:`FlowerRounds` (a runtime's
+:class:`fedlgr.core.rounds.Rounds`), which speaks to the robots with
 :mod:`fedlgr.shell.deploy.flower.wire` messages and aggregates with
 :class:`fedlgr.core.server.side.ServerSide`, the very code of the in-process runs.
 
@@ -15,15 +15,18 @@ training message, and one last evaluate message ends the run; ``separate`` sends
 and an evaluate message every round (what a robot reports for round r then does not wait
 for round r + 1).
 
+Who trains: the strategy chooses each round's clients (``federated.fraction``, with a
+roster); the robots of the others score the new global tensors but do not train.
+
 Drop-outs: each exchange waits ``deploy.round_timeout_s`` at most; the round aggregates
 the uploads that arrived if there are at least ``deploy.min_clients`` of them (default:
-half the robots, at least one), records the missing clients (NaN rows,
-``round/missing_clients``, tag ``fedlgr.missing``), and a robot that comes back is sent
-the global tensors with its next training message. A robot that drops out while it
-answers a combined message misses the evaluation of the round before too.
+half the robots, at least one; never more than the clients chosen), records the missing
+clients (NaN rows, ``round/missing_clients``, tag ``fedlgr.missing``), and a robot that
+comes back is sent the global tensors with its next training message. A robot that drops
+out while it answers a combined message misses the evaluation of the round before too.
 
 Checkpoints: what the server holds is checkpointed every ``tracking.checkpoint`` rounds as
-``fedlgr run`` does (:meth:`FlowerRounds.save`); ``fedlgr deploy run CONFIG --resume``
+``fedlgr run`` does (:meth:`FlowerRounds.state_dict`); ``fedlgr deploy run CONFIG --resume``
 continues the same MLflow run from the newest one. The robots keep their own state under
 the MLflow run's id, and a robot asked again what it last answered (the server died after
 it answered) sends the same reply again.
@@ -35,23 +38,32 @@ import functools
 import math
 import shlex
 import time
-from pathlib import Path
 
+import torch
+from cryptography.exceptions import UnsupportedAlgorithm
 from flwr.app import Context, Message, RecordDict
 from flwr.serverapp import Grid, ServerApp
 
+from fedlgr.core.evaluation import eval_set
 from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes
 from fedlgr.core.records import RoundLog
-from fedlgr.core.schedule import schedule
-from fedlgr.core.server.evaluate import serve_round, server_evaluation
+from fedlgr.core.rounds import EpochProgress
+from fedlgr.core.schedule import ALL, schedule
+from fedlgr.core.server.evaluate import ServerEvaluation, serve_round
 from fedlgr.core.server.side import ServerSide
+from fedlgr.core.state import rng_states, set_rng_states, to_device
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig, load_config, to_yaml
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.deploy.flower import wire
-from fedlgr.shell.deploy.roster import roster_of
-from fedlgr.shell.run.loop import EpochProgress
+from fedlgr.shell.deploy.roster import fingerprint, roster_of
+from fedlgr.shell.run.life import Hooks, RunLife
+from fedlgr.shell.run.resume import resume_point
+from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
 
 app = ServerApp()
+CPU = torch.device("cpu")
 POLL_S = 0.2  # how often the server asks the SuperLink for replies
 
 
@@ -62,14 +74,19 @@ def quorum(clients: int) -> int:
 
 
 class FlowerRounds:
-    """The rounds of :func:`fedlgr.shell.run.loop.run_rounds`, with the clients on the
+    """A run's rounds (:class:`fedlgr.core.rounds.Rounds`), with the clients on the
     robots."""
 
     def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
         self.grid, self.config, self.echo = grid, config, echo
         self.roster = roster_of(config)
         self.server = ServerSide(config)
-        self.fields = self.server.fields
+        if config.federated.fraction < 1 and self.roster is None:
+            raise FedlgrError(
+                f"federated.fraction={config.federated.fraction:g} on robots needs a roster "
+                "(deploy.roster): the server chooses clients, so it must know which robot "
+                "is which client"
+            )
         # federated.server_eval: the server scores the global model on its own copy of the
         # test scenes (data.path on the SuperLink's machine).
         self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
@@ -123,7 +140,7 @@ class FlowerRounds:
         self.tag("fedlgr.refused", "; ".join(f"node {n}: {w}" for n, w in self.refused.items()))
 
     def started(self, run_id: str) -> None:
-        """``on_start`` (:class:`fedlgr.shell.run.recorder.Hooks`): the MLflow run exists;
+        """``on_start`` (:class:`fedlgr.shell.run.life.Hooks`): the MLflow run exists;
         tags said before go to it."""
         self.run_id = run_id
         for key, value in self.tags.items():
@@ -132,8 +149,6 @@ class FlowerRounds:
     def tag(self, key: str, value: str) -> None:
         self.tags[key] = value
         if self.run_id is not None and self.config.tracking.enabled:
-            from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
-
             open_client(tracking_uri(self.config)).set_tag(self.run_id, key, value[:5000])
 
     def wait_for_robots(self) -> None:
@@ -162,15 +177,24 @@ class FlowerRounds:
 
     # ------------------------------------------------------------------ messages
 
-    def exchange(self, kind: str, contents: dict[int, RecordDict], round_: int, label: str = ""):
-        """Send ``contents`` (node -> message content); the replies that came back in
-        time, by node. Error replies (a robot's exception) are reported, not raised: a
-        robot whose SuperNode claims a slot the roster does not give it is refused."""
+    def exchange(
+        self,
+        kind: str,
+        contents: dict[int, RecordDict],
+        round_: int,
+        label: str = "",
+        kinds: dict[int, str] | None = None,
+    ):
+        """Send ``contents`` (node -> message content), each a message of type ``kind``
+        unless ``kinds`` names another for its node; the replies that came back in time,
+        by node. Error replies (a robot's exception) are reported, not raised: a robot
+        whose SuperNode claims a slot the roster does not give it is refused."""
+        kinds = kinds or {}
         messages = [
             Message(
                 wire.stamp_run(content, self.run_id or ""),
                 dst_node_id=node,
-                message_type=kind,
+                message_type=kinds.get(node, kind),
                 group_id=str(round_),
             )
             for node, content in contents.items()
@@ -217,89 +241,126 @@ class FlowerRounds:
         return 0
 
     def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
-        """One round: its training (or the uploads the previous round's exchange brought
-        back), aggregation, and its evaluation - with ``deploy.evaluate=with_next_round``
-        in the same exchange as the next round's training. ``progress`` is never called
-        (no client trains here)."""
+        """One round: the training of the clients the strategy chose (or the uploads the
+        previous round's exchange brought back), aggregation, and the evaluation of every
+        client - with ``deploy.evaluate=with_next_round`` in the same exchange as the next
+        round's training. ``progress`` is never called (no client trains here)."""
         if not self.joined:
             self.wait_for_robots()
         start = time.perf_counter()
-        round_, task = plan.round, plan.task
+        chosen = self.server.chosen(plan)
         if self.pending is not None and self.pending[0] == plan:
             _, trained, down, failures = self.pending
         else:
-            trained, down = self.train(plan)
+            trained, down = self.train(plan, chosen)
             failures = dict(self.failures)
         self.pending = None
-        if len(trained) < self.min_clients:
-            causes = "".join(f"; {self.name(n)}: {why}" for n, why in failures.items())
-            raise FedlgrError(
-                f"round {round_}: {len(trained)} of {self.config.data.clients} robots sent "
-                f"their update within deploy.round_timeout_s={self.config.deploy.round_timeout_s:g}"
-                f" (deploy.min_clients={self.min_clients}){causes}"
-            )
+        self.check_quorum(plan.round, trained, chosen, failures)
         # In client order, as in one process: the same sums to the last bit.
         server, initial = serve_round(
             self.server,
             self.server_eval,
-            round_,
-            task,
+            plan.round,
+            plan.task,
             lambda: self.server.aggregate(trained[c][1] for c in sorted(trained)),
         )
+        rows = self.evaluate(plan, chosen, trained, down)
+        missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
+        if missing:
+            self.record_missing(plan.round, missing, trained)
+        table = self.server.table(rows)
+        log = self.server.round_log(
+            plan, table, time.perf_counter() - start, missing, participants=chosen
+        )
+        log.server, log.initial = server, initial
+        return log
+
+    def check_quorum(self, round_: int, trained: dict, chosen: list[int], failures: dict) -> None:
+        """Enough uploads to aggregate: ``deploy.min_clients`` (at most the clients the
+        strategy chose)."""
+        needed = min(self.min_clients, len(chosen))
+        if len(trained) >= needed:
+            return
+        causes = "".join(f"; {self.name(n)}: {why}" for n, why in failures.items())
+        of = f"{len(chosen)} chosen" if len(chosen) < self.config.data.clients else ""
+        raise FedlgrError(
+            f"round {round_}: {len(trained)} of {of or self.config.data.clients} robots sent "
+            f"their update within deploy.round_timeout_s={self.config.deploy.round_timeout_s:g}"
+            f" (deploy.min_clients={self.min_clients}){causes}"
+        )
+
+    def evaluate(self, plan: RoundPlan, chosen: list[int], trained: dict, down: dict) -> dict:
+        """Every client's figures in round ``plan``: the robots that trained in it and those
+        the strategy did not choose score the new global tensors (a chosen robot that sent
+        nothing is missing); with ``with_next_round`` the next round's chosen robots train
+        in the same exchange."""
+        round_ = plan.round
         evaluate = EvaluateIns(plan, self.server.global_weights)
-        following_plan = self.next_plan(round_)
-        contents, received = {}, {}
+        following = self.next_plan(round_)
         serving = {node: client for client, (node, _, _) in trained.items()}
-        if following_plan is None:
-            kind = "evaluate"
-            for node in serving:
-                contents[node] = wire.encode_evaluate_ins(
-                    evaluate, self.config_yaml, self.slots.get(node)
-                )
-        else:
-            kind = "train"
-            for node in sorted({*self.online(), *(n for n in serving if n in self.slots)}):
-                slot = self.slots.get(node)
-                if node in serving:  # evaluates this round's tensors, then trains on them
-                    ins = self.server.train_ins(following_plan)
-                    contents[node] = wire.encode_train_ins(ins, self.config_yaml, evaluate, slot)
-                else:  # missed this round: trains the next one on the tensors it is sent
-                    ins = self.server.train_ins(following_plan, holds_global=False)
-                    contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
-        for node, content in contents.items():
-            received[node] = wire.payload_bytes(content)
-        rows, following = {}, {}
+        nodes = sorted({*self.online(), *(n for n in serving if n in self.slots)})
+        # the robots that trained, and those of clients the strategy did not choose
+        scoring = [n for n in nodes if n in serving or self.slots[n] not in (None, *chosen)]
+        contents, kinds = self.evaluation_messages(evaluate, following, scoring, nodes)
+        received = {node: wire.payload_bytes(content) for node, content in contents.items()}
+        kind = "evaluate" if following is None else "train"
+        label = kind if following is None else f"evaluate + round {round_ + 1} train"
+        rows, uploads = {}, {}
         self.holders = set()
-        label = kind if following_plan is None else f"evaluate + round {round_ + 1} train"
-        for node, reply in self.exchange(kind, contents, round_, label).items():
-            if kind == "evaluate":
+        for node, reply in self.exchange(kind, contents, round_, label, kinds).items():
+            if kinds.get(node, kind) == "evaluate":
                 res = wire.decode_evaluate_res(reply.content)
             else:
                 res = wire.decode_evaluated(reply.content)
-                self.keep_upload(following, node, reply, round_ + 1)
-            if res is not None and serving.get(node) == res.client:
-                self.holders.add(node)
-                _, upload, up = trained[res.client]
-                rows[res.client] = self.server.row(upload, res, up, down[node] + received[node])
-        if following_plan is not None:
+                self.keep_upload(uploads, node, reply, round_ + 1)
+            if res is None or node not in scoring:
+                continue
+            if serving.get(node, self.slots.get(node)) != res.client:
+                continue
+            self.holders.add(node)
+            upload = trained.get(res.client)
+            taken = down.get(node, 0) + received[node]
+            if upload is None:  # not chosen: it downloads to score
+                rows[res.client] = self.server.row(None, res, 0, taken)
+            else:
+                rows[res.client] = self.server.row(upload[1], res, upload[2], taken)
+        if following is not None:
             # what the next round's rows count as downloaded: nothing more for a robot that
-            # evaluated here (the tensors served both), the tensors for one that missed it
-            following_down = {
-                n: 0 if n in serving else received[n] for n, _, _ in following.values()
-            }
-            self.pending = (following_plan, following, following_down, dict(self.failures))
-        missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
-        if missing:
-            by_client = {c: self.name(n) for c, (n, _, _) in trained.items()}
-            by_client |= {s: self.names[n] for n, s in self.slots.items() if s is not None}
-            self.missed.append(
-                f"round {round_}: " + ", ".join(by_client.get(c, f"client {c}") for c in missing)
-            )
-            self.tag("fedlgr.missing_robots", "; ".join(self.missed))
-        seconds = time.perf_counter() - start
-        log = self.server.round_log(plan, self.server.table(rows), seconds, missing)
-        log.server, log.initial = server, initial
-        return log
+            # scored here (the tensors served both), the tensors for one that did not
+            following_down = {n: 0 if n in scoring else received[n] for n, _, _ in uploads.values()}
+            self.pending = (following, uploads, following_down, dict(self.failures))
+        return rows
+
+    def evaluation_messages(
+        self, evaluate: EvaluateIns, following: RoundPlan | None, scoring: list[int], nodes
+    ) -> tuple[dict[int, RecordDict], dict[int, str]]:
+        """The round's evaluation messages (``scoring``: the nodes that score it) and, with
+        ``following``, the next round's training for its chosen robots in the same
+        messages; the message type of each that is not the exchange's own."""
+        contents: dict[int, RecordDict] = {}
+        kinds: dict[int, str] = {}
+        chosen_next = set() if following is None else set(self.server.chosen(following))
+        for node in nodes:
+            slot = self.slots.get(node)
+            trains = following is not None and (slot is None or slot in chosen_next)
+            if node in scoring and not trains:
+                contents[node] = wire.encode_evaluate_ins(evaluate, self.config_yaml, slot)
+                kinds[node] = "evaluate"
+            elif node in scoring:  # scores this round's tensors, then trains on them
+                ins = self.server.train_ins(following, slot)
+                contents[node] = wire.encode_train_ins(ins, self.config_yaml, evaluate, slot)
+            elif trains:  # missed this round: trains the next one on the tensors it is sent
+                ins = self.server.train_ins(following, slot, holds_global=False)
+                contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
+        return contents, kinds
+
+    def record_missing(self, round_: int, missing: tuple[int, ...], trained: dict) -> None:
+        by_client = {c: self.name(n) for c, (n, _, _) in trained.items()}
+        by_client |= {s: self.names[n] for n, s in self.slots.items() if s is not None}
+        self.missed.append(
+            f"round {round_}: " + ", ".join(by_client.get(c, f"client {c}") for c in missing)
+        )
+        self.tag("fedlgr.missing_robots", "; ".join(self.missed))
 
     def next_plan(self, round_: int) -> RoundPlan | None:
         """The plan of the round after ``round_`` where its training goes with this
@@ -308,14 +369,17 @@ class FlowerRounds:
             return None
         return self.steps[round_]  # steps are 1-based rounds: this is round_ + 1
 
-    def train(self, plan: RoundPlan):
-        """A training exchange of its own (round 1, ``deploy.evaluate=separate``): the
-        uploads by client, and each node's bytes down."""
+    def train(self, plan: RoundPlan, chosen: list[int]):
+        """A training exchange of its own (round 1, ``deploy.evaluate=separate``) with the
+        robots of the ``chosen`` clients: the uploads by client, and each node's bytes down."""
         down: dict[int, int] = {}
         contents = {}
         for node in self.online():
-            ins = self.server.train_ins(plan, holds_global=node in self.holders)
-            contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=self.slots[node])
+            slot = self.slots[node]
+            if slot is not None and slot not in chosen:
+                continue
+            ins = self.server.train_ins(plan, slot, holds_global=node in self.holders)
+            contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
             down[node] = wire.payload_bytes(contents[node])
         trained: dict[int, tuple[int, TrainRes, int]] = {}  # client -> (node, upload, bytes)
         for node, reply in self.exchange("train", contents, plan.round).items():
@@ -341,9 +405,10 @@ class FlowerRounds:
     # ------------------------------------------------------------------ checkpoints
 
     def state_dict(self) -> dict:
-        """What the server holds between rounds: the global tensors, the strategy's state,
-        the uploads of the next round already trained (one exchange per round), which
-        robots hold the global tensors, and the drop-outs so far. The robots keep theirs."""
+        """What the server holds between rounds (the robots keep theirs): the global
+        tensors and the strategy's state, the uploads of the next round already trained
+        (one exchange per round), which robots hold the global tensors, the drop-outs so
+        far; and this process's random generators."""
         pending = None
         if self.pending is not None:
             plan, trained, down, failures = self.pending
@@ -354,85 +419,56 @@ class FlowerRounds:
                 "down": down,
                 "failures": failures,
             }
-        return {
-            "server": self.server.state_dict(),
+        server = {
+            "server": to_device(self.server.state_dict(), "cpu"),
             "pending": pending,
             "holders": sorted(self.holders),
             "missed": list(self.missed),
         }
+        return {"server": server, "clients": {}, "rng": [rng_states()]}
 
     def load_state_dict(self, state: dict) -> None:
-        self.server.load_state_dict(state["server"], "cpu")
-        self.holders = set(state["holders"])
-        self.missed = list(state["missed"])
-        pending = state["pending"]
+        held = state["server"]
+        self.server.load_state_dict(held["server"], "cpu")
+        self.holders = set(held["holders"])
+        self.missed = list(held["missed"])
+        pending = held["pending"]
         if pending is not None:
             trained = {
                 int(c): (n, _upload(res), b) for c, (n, res, b) in pending["uploads"].items()
             }
             plan = RoundPlan(*pending["plan"])
             self.pending = (plan, trained, dict(pending["down"]), dict(pending["failures"]))
-
-    def save(
-        self,
-        folder: Path | None,
-        rounds: list[RoundLog],
-        run_id: str | None,
-        elapsed: float,
-        keep: int,
-        digest: str = "",
-    ) -> Path | None:
-        """The run's checkpoint: what ``fedlgr run`` writes, with this server's state and
-        no clients (they are on the robots)."""
-        from fedlgr.shell.run import checkpoint as ckpt
-        from fedlgr.shell.run.resume import checkpoint_state
-
-        rng = [ckpt.rng_states()]
-        whole = checkpoint_state(
-            self.config, run_id, rounds, self.state_dict(), {}, rng, elapsed, digest
-        )
-        return ckpt.save(None, folder, rounds[-1].round, whole, keep)
-
-    def restore(self, state: dict) -> list[RoundLog]:
-        """Load a checkpoint (:meth:`save`); the rounds so far."""
-        from fedlgr.shell.run import checkpoint as ckpt
-        from fedlgr.shell.run.resume import restored_rounds
-
-        self.load_state_dict(state["server"])
-        ckpt.set_rng_states(state["rng"][0])
-        return restored_rounds(state, self.fields)
+        set_rng_states(state["rng"][0])
 
 
 def _upload_state(res: TrainRes) -> dict:
-    u = res.usage
     return {
         "client": res.client,
         "weights": res.weights,
         "n_samples": res.n_samples,
-        "samples": res.samples,
-        "loss": res.loss,
-        "usage": [u.cpu_s, u.wall_s, u.gpu_util, u.gpu_mem_mb, u.gpu_s],
+        "figures": dict(res.figures),
+        "payload": res.payload,
     }
 
 
 def _upload(state: dict) -> TrainRes:
-    from fedlgr.core.meters.costs import Usage
-
     return TrainRes(
-        state["client"],
-        state["weights"],
-        state["n_samples"],
-        state["samples"],
-        state["loss"],
-        Usage(*state["usage"]),
+        state["client"], state["weights"], state["n_samples"], state["figures"], state["payload"]
     )
 
 
+def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
+    """The server's own copy of the test scenes (``federated.server_eval``), read from
+    ``data.path`` on the SuperLink's machine and split as the robots split them."""
+    scenes = load_scenes(config.data)
+    split = make_split(scenes.table, config.data)
+    tasks = list(config.continual.tasks) or [ALL]
+    channels_last = config.model.channels_last and scenes.images is not None
+    return ServerEvaluation(config, eval_set(scenes, split, tasks, CPU, channels_last))
+
+
 def _fingerprint(public_key: bytes) -> str:
-    from cryptography.exceptions import UnsupportedAlgorithm
-
-    from fedlgr.shell.deploy.roster import fingerprint
-
     try:
         return fingerprint(public_key)
     except (ValueError, TypeError, UnsupportedAlgorithm):
@@ -448,38 +484,17 @@ def config_of(context: Context) -> ExperimentConfig:
 
 @app.main()
 def main(grid: Grid, context: Context) -> None:
-    from fedlgr.shell.run.loop import run_rounds
-    from fedlgr.shell.run.recorder import Hooks, Recorder, Resumed
-
     echo = functools.partial(print, flush=True)
     config = config_of(context)
     rounds = FlowerRounds(grid, config, echo)
-    resumed = None
-    resume = str(context.run_config.get("resume", ""))
-    if resume:  # fedlgr deploy run CONFIG --resume [RUN_ID]
-        from fedlgr.shell.run import owner
-        from fedlgr.shell.run.resume import find_checkpoint, load_checkpoint
-        from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
-
-        if not config.tracking.enabled:
-            raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
-        which = True if resume == "latest" else resume
-        run_id, path = find_checkpoint(config, which, open_client(tracking_uri(config)))
-        try:
-            state = load_checkpoint(config, run_id, path)
-        except BaseException:
-            owner.release(path.parent)
-            raise
-        folder = Path(state["path"]).parent
-        resumed = Resumed(
-            run_id, rounds.restore(state), state["elapsed"], folder, state["data_digest"]
-        )
+    resume = str(context.run_config.get("resume", ""))  # fedlgr deploy run --resume [RUN_ID]
+    resumed = resume_point(None, config, True if resume == "latest" else resume)
     tags = {"runtime": "flower", "flower.run_id": str(context.run_id)}
-    recorder = Recorder(
+    life = RunLife(
         config,
         Hooks(echo, on_start=rounds.started),
         tags=tags,
         what="robots behind a Flower SuperLink",
         resumed=resumed,
     )
-    run_rounds(rounds, config, recorder)
+    life.run(rounds)

@@ -20,75 +20,26 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import hashlib
-import json
 import os
 import signal
 import socket
-import struct
 import subprocess
 import sys
-import tempfile
 import time
 import traceback
 from pathlib import Path
 
-DEFAULT_STATE_DIR = Path.home() / ".fedlgr" / "node-state"
+from fedlgr.shell.deploy.flower.link import (
+    _receive,
+    _send,
+    decode,
+    encode,
+    socket_path,
+    state_dir,
+)
+
 DEFAULT_IDLE_S = 900.0
 START_TIMEOUT_S = 300.0  # the service's first start imports torch and loads the data
-
-
-def state_dir(node_config: dict) -> Path:
-    return Path(str(node_config.get("state-dir", DEFAULT_STATE_DIR))).expanduser().absolute()
-
-
-def socket_path(folder: Path) -> Path:
-    """``folder/robot.sock``, or a short path under the temp folder when that is longer
-    than a Unix socket address may be."""
-    path = folder / "robot.sock"
-    if len(str(path)) < 100:
-        return path
-    digest = hashlib.sha256(str(folder).encode()).hexdigest()[:16]
-    return Path(tempfile.gettempdir()) / f"fedlgr-robot-{digest}.sock"
-
-
-# ---------------------------------------------------------------------- the wire
-
-
-def _send(conn: socket.socket, header: dict, payload: bytes) -> None:
-    head = json.dumps(header).encode()
-    conn.sendall(struct.pack("!IQ", len(head), len(payload)) + head + payload)
-
-
-def _receive(conn: socket.socket) -> tuple[dict, bytes]:
-    sizes = _exactly(conn, struct.calcsize("!IQ"))
-    head_size, payload_size = struct.unpack("!IQ", sizes)
-    header = json.loads(_exactly(conn, head_size))
-    return header, _exactly(conn, payload_size)
-
-
-def _exactly(conn: socket.socket, n: int) -> bytes:
-    parts, left = [], n
-    while left:
-        chunk = conn.recv(min(left, 1 << 20))
-        if not chunk:
-            raise ConnectionError("the robot service closed the connection")
-        parts.append(chunk)
-        left -= len(chunk)
-    return b"".join(parts)
-
-
-def encode(content) -> bytes:
-    from flwr.common.serde import recorddict_to_proto
-
-    return recorddict_to_proto(content).SerializeToString()
-
-
-def decode(data: bytes):
-    from flwr.common.serde import recorddict_from_proto
-    from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
-
-    return recorddict_from_proto(ProtoRecordDict.FromString(data))
 
 
 # ---------------------------------------------------------------------- ClientApp side
@@ -153,7 +104,7 @@ def start(folder: Path, node_config: dict) -> None:
 
 def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
     """Answer messages on ``folder``'s socket until ``idle_s`` seconds pass without one."""
-    from fedlgr.shell.deploy.flower.robot import handle
+    from fedlgr.shell.deploy.flower.robot import handle  # lazy: torch, in the service only
 
     path = socket_path(folder)
     path.unlink(missing_ok=True)

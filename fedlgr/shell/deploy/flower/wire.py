@@ -4,8 +4,9 @@ The tensors of a message travel as one Flower ``Array`` holding their raw bytes
 (``stype`` ``fedlgr.packed``, little-endian, C order, one after another) with an index
 of keys, dtypes and shapes (:func:`put_weights`): a message's tensor payload is exactly
 ``numel x element size`` per tensor, so the bytes measured on the wire are what
-``cost/bytes_up`` and ``cost/bytes_down`` report. Numbers travel in ``ConfigRecord``s; the
-run's resolved config goes with every message, so a robot needs nothing from the server's
+``cost/bytes_up`` and ``cost/bytes_down`` report. Numbers travel in ``ConfigRecord``s, by
+name (a figure's key: ``test/rmse``, ``cost/cpu_s``); the run's resolved config goes
+with every message, so a robot needs nothing from the server's
 machine.
 
 With ``deploy.evaluate=with_next_round`` a train message may carry the evaluation of the
@@ -31,7 +32,7 @@ from fedlgr.core.messages import (
     TrainRes,
     Weights,
 )
-from fedlgr.core.meters.costs import Usage
+from fedlgr.core.metrics import Figures
 from fedlgr.errors import FedlgrError
 
 PACKED = "fedlgr.packed"
@@ -107,32 +108,18 @@ def _plan(content: RecordDict) -> tuple[RoundPlan, str]:
     return _round_plan(p), str(p["config"])
 
 
-def _usage_record(usage: Usage | None) -> ConfigRecord:
-    if usage is None:
-        return ConfigRecord({"present": False})
-    return ConfigRecord(
-        {
-            "present": True,
-            "cpu_s": usage.cpu_s,
-            "wall_s": usage.wall_s,
-            "gpu_util": math.nan if usage.gpu_util is None else float(usage.gpu_util),
-            "gpu_mem_mb": math.nan if usage.gpu_mem_mb is None else float(usage.gpu_mem_mb),
-            "gpu_s": math.nan if usage.gpu_s is None else float(usage.gpu_s),
-        }
-    )
+def _figures(record: ConfigRecord) -> Figures:
+    """Figures by key (scores, costs, plugins' figures), each a number."""
+    return {str(k): float(v) for k, v in record.items()}
 
 
-def _usage(record: ConfigRecord) -> Usage | None:
-    if not record["present"]:
-        return None
-    gpu, mem, span = (float(record[k]) for k in ("gpu_util", "gpu_mem_mb", "gpu_s"))
-    return Usage(
-        float(record["cpu_s"]),
-        float(record["wall_s"]),
-        None if math.isnan(gpu) else gpu,
-        None if math.isnan(mem) else mem,
-        None if math.isnan(span) else span,
-    )
+def _put_payload(content: RecordDict, payload: Weights) -> None:
+    if payload:
+        put_weights(content, "payload", payload)
+
+
+def _payload(content: RecordDict) -> Weights:
+    return get_weights(content, "payload") if "payload" in content.array_records else {}
 
 
 # ---------------------------------------------------------------------- train
@@ -184,6 +171,7 @@ def encode_train_ins(
     its global tensors (which the robot then trains on: ``ins.weights`` must be None);
     ``client``: the robot's slot."""
     content = _with_slot(RecordDict({"plan": _plan_record(ins.plan, config_yaml)}), client)
+    _put_payload(content, ins.payload)
     if evaluate is not None:
         if ins.weights is not None:
             raise ValueError("a train message with an evaluation carries one set of tensors")
@@ -197,23 +185,18 @@ def encode_train_ins(
 def decode_train_ins(content: RecordDict) -> tuple[TrainIns, EvaluateIns | None, str]:
     plan, config_yaml = _plan(content)
     weights = get_weights(content, "global") if "global" in content else None
+    payload = _payload(content)
     if "evaluate" in content:
         evaluate = EvaluateIns(_round_plan(content.config_records["evaluate"]), weights)
-        return TrainIns(plan, None), evaluate, config_yaml
-    return TrainIns(plan, weights), None, config_yaml
+        return TrainIns(plan, None, payload), evaluate, config_yaml
+    return TrainIns(plan, weights, payload), None, config_yaml
 
 
 def encode_train_res(res: TrainRes, evaluated: EvaluateRes | None = None) -> RecordDict:
-    report = ConfigRecord(
-        {
-            "client": res.client,
-            "n_samples": res.n_samples,
-            "samples": res.samples,
-            "loss": float(res.loss),
-        }
-    )
-    content = RecordDict({"report": report, "usage": _usage_record(res.usage)})
+    report = ConfigRecord({"client": res.client, "n_samples": res.n_samples})
+    content = RecordDict({"report": report, "figures": ConfigRecord(dict(res.figures))})
     put_weights(content, "shared", res.weights)
+    _put_payload(content, res.payload)
     if evaluated is not None:
         for name, record in _evaluate_records(evaluated).items():
             content[f"evaluated.{name}"] = record
@@ -226,9 +209,8 @@ def decode_train_res(content: RecordDict, device: torch.device | str = "cpu") ->
         int(r["client"]),
         get_weights(content, "shared", device),
         int(r["n_samples"]),
-        int(r["samples"]),
-        float(r["loss"]),
-        _usage(content.config_records["usage"]) or Usage(),
+        _figures(content.config_records["figures"]),
+        _payload(content),
     )
 
 
@@ -257,18 +239,15 @@ def decode_evaluate_ins(content: RecordDict) -> tuple[EvaluateIns, str]:
 
 def _evaluate_records(res: EvaluateRes) -> dict[str, ConfigRecord]:
     return {
-        "report": ConfigRecord({"client": res.client, "scores": [float(s) for s in res.scores]}),
-        "figures": ConfigRecord({k: float(v) for k, v in res.figures.items()}),
-        "usage": _usage_record(res.usage),
+        "report": ConfigRecord({"client": res.client}),
+        "figures": ConfigRecord(dict(res.figures)),
     }
 
 
 def _evaluate_res(content: RecordDict, prefix: str = "") -> EvaluateRes:
     records = content.config_records
-    r = records[f"{prefix}report"]
-    figures = {k: float(v) for k, v in records[f"{prefix}figures"].items()}
-    scores = [float(s) for s in r["scores"]]
-    return EvaluateRes(int(r["client"]), scores, figures, _usage(records[f"{prefix}usage"]))
+    client = int(records[f"{prefix}report"]["client"])
+    return EvaluateRes(client, _figures(records[f"{prefix}figures"]))
 
 
 def encode_evaluate_res(res: EvaluateRes) -> RecordDict:

@@ -1,32 +1,42 @@
-"""What a run records while the round loop (:func:`fedlgr.shell.run.loop.run_rounds`)
-runs it: the :class:`Recorder`.
+"""A run's life around a runtime's rounds: :class:`RunLife`.
 
-In rank 0, with ``tracking.enabled``, it opens the run's MLflow run (a new one, or the
-resumed run's), logs each round's metrics with the FCL forgetting figures, tags the
-clients that dropped out (``fedlgr.missing``), and at the end saves results.csv, the
-curves and the cost summary and ends the run FINISHED. It checkpoints every
-``tracking.checkpoint`` rounds and after the last one (every process takes part, rank 0
-writes), owns the checkpoint folder while the run goes on, and removes it once the run
-has finished. A run that raises - a round's error, Ctrl-C or SIGTERM, a hook that stops
-it (a sweep's pruner) - keeps what it had and is ended FAILED, or KILLED. In rank 0 it
-also says on the console what the run does, and tells the caller's :class:`Hooks`.
+A runtime (:class:`fedlgr.core.rounds.Rounds`: the in-process orchestrator, the Flower
+server's rounds) runs rounds and holds their state; everything else a run does is here,
+in one object: it walks the schedule (:func:`fedlgr.core.schedule.schedule`) and shows
+each round's line, opens the run's MLflow run (a new one, or the resumed run's) and logs
+each round's metrics with the FCL forgetting figures, tags the clients that dropped out
+(``fedlgr.missing``), checkpoints every ``tracking.checkpoint`` rounds and after the last
+one (the runtime's ``state_dict``, written by rank 0), restores a resumed run (its
+``load_state_dict`` and the rounds so far), owns the checkpoint folder while the run goes
+on and removes it once the run has finished, and at the end saves results.csv, the curves
+and the cost summary and ends the run FINISHED. A run that raises - a round's error,
+Ctrl-C or SIGTERM, a hook that stops it (a sweep's pruner) - keeps what it had and is
+ended FAILED, or KILLED. In rank 0 it says on the console what the run does, and tells
+the caller's :class:`Hooks`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import numpy as np
+
+from fedlgr import __version__
 from fedlgr.core.forgetting import ForgettingTracker
-from fedlgr.core.messages import RoundPlan
+from fedlgr.core.metrics import SCORES
 from fedlgr.core.records import RoundLog
-from fedlgr.core.schedule import Schedule
-from fedlgr.shell.config import ExperimentConfig
+from fedlgr.core.rounds import EpochProgress, Rounds
+from fedlgr.core.schedule import Schedule, schedule
+from fedlgr.shell.config import ExperimentConfig, flatten
+from fedlgr.shell.console import Progress, duration
+from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run import owner
-from fedlgr.shell.run.checkpoint import checkpoint_root, checkpoints, remove, remove_temporaries
 from fedlgr.shell.run.result import ExperimentResult
 from fedlgr.shell.tracking.context import data_digest, run_name
 from fedlgr.shell.tracking.mlflow_run import Tracker, tracking_uri
@@ -34,9 +44,6 @@ from fedlgr.shell.tracking.plots import curves_png
 from fedlgr.shell.tracking.server import runs_hint
 
 Metrics = dict[str, float]
-# ``save(folder, rounds, run_id, elapsed, keep, digest)``: a runtime's checkpoint writer
-# (:meth:`fedlgr.shell.run.loop.Rounds.save`).
-Save = Callable[[Path | None, list[RoundLog], str | None, float, int, str], object]
 
 
 @dataclass
@@ -54,34 +61,58 @@ class Hooks:
 
 @dataclass
 class Resumed:
-    """A run picked up again from its last checkpoint."""
+    """A run picked up again from its last checkpoint (:mod:`fedlgr.shell.run.resume`)."""
 
     run_id: str
-    rounds: list[RoundLog]
-    elapsed: float
+    state: dict[str, Any]  # the checkpoint
     folder: Path | None = None  # the checkpoint folder it was resumed from (this process owns it)
-    digest: str = ""  # of the data it trains on (checked against the checkpoint's)
+
+    @property
+    def elapsed(self) -> float:
+        return self.state["elapsed"]
+
+    @property
+    def digest(self) -> str:
+        """Of the data it trains on ("" in checkpoints of older fedlgr)."""
+        return self.state.get("data_digest", "")
+
+    def rounds(self) -> list[RoundLog]:
+        """The checkpoint's rounds (``missing``: robots that dropped out)."""
+        return [
+            RoundLog(
+                r["round"],
+                r["task"],
+                list(r["keys"]),
+                np.asarray(r["table"]),
+                r["seconds"],
+                tuple(r["missing"]),
+                dict(r["server"]),
+                dict(r["initial"]),
+                None if r["participants"] is None else tuple(r["participants"]),
+            )
+            for r in self.state["rows"]
+        ]
 
 
-class Recorder:
-    """One run's records: :meth:`recording` around the round loop, :meth:`record`,
-    :meth:`checkpoint` (when :meth:`checkpoint_due`) and :meth:`tell` for each round,
-    :meth:`summary` after it. ``start``: when the run's work began (``perf_counter``;
-    default: now); ``what``: the header's account of the runtime."""
+class RunLife:
+    """One run's life: :meth:`run` a runtime's rounds. ``start``: when the run's work began
+    (``perf_counter``; default: now); ``what``: the header's account of the runtime;
+    ``fabric``: the processes that checkpoint together (None: this process alone)."""
 
     def __init__(
         self,
         config: ExperimentConfig,
         hooks: Hooks,
         *,
-        rank0: bool = True,
+        fabric=None,
         tags: dict[str, str] | None = None,
         parent_run_id: str | None = None,
         what: str = "",
         resumed: Resumed | None = None,
         start: float | None = None,
     ):
-        self.config, self.hooks, self.rank0 = config, hooks, rank0
+        self.config, self.hooks, self.fabric = config, hooks, fabric
+        self.rank0 = fabric is None or fabric.global_rank == 0
         self.tags, self.parent_run_id, self.what = tags, parent_run_id, what
         self.resumed = resumed
         self.start = time.perf_counter() if start is None else start
@@ -100,6 +131,32 @@ class Recorder:
         """A console line (rank 0)."""
         if self.rank0:
             self.hooks.echo(text)
+
+    # ------------------------------------------------------------------ the rounds
+
+    def run(self, rounds: Rounds) -> ExperimentResult | None:
+        """Run the rounds of the schedule that the run has not done yet (a resumed run
+        has done some) on ``rounds``. Each round is recorded, checkpointed when due, shows
+        its line and is told to the caller's ``on_round``. Whatever raises ends the run
+        (:meth:`recording`) and goes on. The result in rank 0, else None."""
+        steps = schedule(self.config)
+        tasks = list(self.config.continual.tasks)
+        if self.resumed is not None:
+            rounds.load_state_dict(self.resumed.state)
+        with self.recording(steps):
+            eta = Eta(len(steps) - len(self.result.rounds))
+            for plan in steps.after(len(self.result.rounds)):
+                label = f"round {plan.round}/{len(steps)}"
+                label += f" (task {tasks[plan.task]})" if tasks else ""
+                shown = self.rank0 and self.config.runtime.progress
+                with _local_training(label, rounds.local_clients, self.config, shown) as progress:
+                    log = rounds.run_round(plan, progress)
+                metrics = self.record(plan, log)
+                if self.checkpoint_due(plan.round):
+                    self.checkpoint(rounds)
+                self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta.step()}){_missing(log)}")
+                self.tell(plan.round, metrics)  # the caller's on_round: raising stops the run
+        return self.summary()
 
     # ------------------------------------------------------------------ the run
 
@@ -129,7 +186,7 @@ class Recorder:
         replayed: list[tuple[int, Metrics]] = []
         if self.resumed is None:
             return replayed
-        self.result.rounds = self.resumed.rounds
+        self.result.rounds = self.resumed.rounds()
         for log, plan in zip(self.result.rounds, steps, strict=False):
             metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
             if plan.last_of_task:  # the "after task" figures, as they were computed then
@@ -146,7 +203,7 @@ class Recorder:
         run_id = resumed.run_id if resumed is not None else None
         if config.tracking.checkpoint:  # before the MLflow run exists
             try:
-                owner.check_folder(checkpoint_root(config, tracking_uri(config)))
+                owner.check_folder(ckpt.checkpoint_root(config, tracking_uri(config)))
             except BaseException:
                 owner.release(resumed.folder if resumed is not None else None)
                 raise
@@ -157,7 +214,7 @@ class Recorder:
             owner.release(self.old)
             raise
         self.tracker = tracker
-        self.folder = checkpoint_root(config, tracking_uri(config)) / str(tracker.run_id)
+        self.folder = ckpt.checkpoint_root(config, tracking_uri(config)) / str(tracker.run_id)
         self.result.run_id, self.result.data_digest = tracker.run_id, digest
 
     def _announce(self) -> None:
@@ -182,7 +239,7 @@ class Recorder:
         if tracker is not None:
             if self.every and self.folder is not None:
                 owner.claim(self.folder, str(tracker.run_id))  # this process owns the run
-                remove_temporaries(self.folder)  # of a write a kill cut short
+                ckpt.remove_temporaries(self.folder)  # of a write a kill cut short
                 tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(self.folder))
             if self.hooks.on_start is not None:
                 self.hooks.on_start(str(tracker.run_id))
@@ -213,17 +270,17 @@ class Recorder:
         ours = not self.config.tracking.checkpoint_dir  # its root is fedlgr's checkpoints/
         if tracker is not None and getattr(tracker, "finished", False):
             if self.every and folder is not None:
-                remove(folder, ours)
+                ckpt.remove(folder, ours)
             if old is not None:  # also when resumed with tracking.checkpoint=0
-                remove(old)
-        elif folder is not None and self.every and not checkpoints(folder) and folder != old:
-            remove(folder, ours)  # ended before its first checkpoint: only its lock file
+                ckpt.remove(old)
+        elif folder is not None and self.every and not ckpt.checkpoints(folder) and folder != old:
+            ckpt.remove(folder, ours)  # ended before its first checkpoint: only its lock file
         owner.release(folder)
         owner.release(old)
 
     # ------------------------------------------------------------------ each round
 
-    def record(self, plan: RoundPlan, log: RoundLog) -> Metrics:
+    def record(self, plan, log: RoundLog) -> Metrics:
         """The round ``plan`` has run: its log joins the result; its metrics (forgetting
         and after-task figures too) are logged to MLflow, and returned."""
         self.result.rounds.append(log)
@@ -245,18 +302,26 @@ class Recorder:
         """Every ``tracking.checkpoint`` rounds, and after the last one."""
         return bool(self.every) and (round_ % self.every == 0 or round_ == self.total)
 
-    def checkpoint(self, save: Save) -> None:
-        """Checkpoint the rounds so far through the runtime's ``save`` (every process);
-        a resumed run's checkpoints in a folder no longer its own are removed."""
+    def checkpoint(self, rounds: Rounds) -> Path | None:
+        """Checkpoint the run after its last round: the runtime's state (every process
+        takes part; rank 0 writes it with the rounds so far), the newest
+        ``tracking.keep_checkpoints`` kept. A resumed run's checkpoints in a folder no
+        longer its own are removed."""
         result = self.result
-        spent = self.elapsed + time.perf_counter() - self.start
+        state = rounds.state_dict()
+        whole: dict[str, Any] = {}
+        if self.rank0:
+            spent = self.elapsed + time.perf_counter() - self.start
+            whole = checkpoint_state(self.config, result, state, spent)
+        folder = self.folder if self.folder is not None else Path(".")  # rank 0's is used
         keep = self.config.tracking.keep_checkpoints
-        save(self.folder, result.rounds, result.run_id, spent, keep, result.data_digest)
-        old, folder = self.old, self.folder
-        if old is not None and old != folder and folder is not None:
-            remove(old)  # moved (tracking.checkpoint_dir changed): the old one is stale
-            self.say(f"checkpoints moved from {old} to {folder}")
+        path = ckpt.save(self.fabric, folder, result.rounds[-1].round, whole, keep)
+        old = self.old
+        if old is not None and old != self.folder and self.folder is not None:
+            ckpt.remove(old)  # moved (tracking.checkpoint_dir changed): the old one is stale
+            self.say(f"checkpoints moved from {old} to {self.folder}")
             self.old = None
+        return path
 
     def tell(self, round_: int, metrics: Metrics) -> None:
         """The caller's ``on_round`` (rank 0), which may raise to stop the run."""
@@ -304,6 +369,86 @@ class Recorder:
             self.say(
                 f"(while failing: could not end MLflow run {tracker.run_id}: {_one_line(problem)})"
             )
+
+
+def checkpoint_state(
+    config: ExperimentConfig, result: ExperimentResult, state: dict, elapsed: float
+) -> dict[str, Any]:
+    """A run's checkpoint after its last round: the runtime's ``state`` (its server,
+    clients and random generators), every round's rows, the resolved config, the MLflow
+    run id, the time spent and the data's digest (a resume on other data is refused)."""
+    return {
+        "format": ckpt.FORMAT,
+        "fedlgr": __version__,
+        "run_id": result.run_id,
+        "round": result.rounds[-1].round,
+        "config": flatten(config),
+        **state,
+        "rows": [
+            {
+                "round": r.round,
+                "task": r.task,
+                "keys": list(r.keys),
+                "table": r.table,
+                "seconds": r.seconds,
+                "missing": list(r.missing),
+                "server": r.server,
+                "initial": r.initial,
+                "participants": None if r.participants is None else list(r.participants),
+            }
+            for r in result.rounds
+        ],
+        "elapsed": elapsed,
+        "data_digest": result.data_digest,
+    }
+
+
+@contextlib.contextmanager
+def _local_training(
+    label: str, clients: int, config: ExperimentConfig, shown: bool
+) -> Iterator[EpochProgress]:
+    """A round's progress bar: it counts each local epoch of each of this process's
+    ``clients`` (plugins may run more or fewer epochs than planned, and a strategy may
+    choose fewer clients: it never overflows)."""
+    epochs = config.train.epochs
+    plan = f"{_count(clients, 'client')} x {_count(epochs, 'epoch')}"
+    shown = shown and clients > 0
+    with Progress(f"{label}, local training ({plan})", "client-epochs", shown) as bar:
+        total, done = clients * epochs, itertools.count(1)
+        yield lambda client, epoch: bar(min(next(done), total), total)
+
+
+class Eta:
+    """``, ETA 4 min`` after each round but the last: the rounds still to run times the
+    mean wall time of this process's rounds so far (logging and checkpoints included)."""
+
+    def __init__(self, rounds: int):
+        self.rounds, self.done, self.start = rounds, 0, time.perf_counter()
+
+    def step(self) -> str:
+        self.done += 1
+        left = self.rounds - self.done
+        if left <= 0:
+            return ""
+        mean = (time.perf_counter() - self.start) / self.done
+        return f", ETA {duration(mean * left)}"
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _line(log: RoundLog) -> str:
+    """One round's line: every score's mean over the clients (a score that is not a
+    number, a diverged run's, shows as such) and the CPU per client."""
+    figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
+    shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
+    cpu = log.mean("cost/cpu_s")
+    return shown + f"  CPU {'-' if cpu is None else f'{cpu:.1f}'} s/client"
+
+
+def _missing(log: RoundLog) -> str:
+    return f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
 
 
 def _one_line(err: BaseException) -> str:
