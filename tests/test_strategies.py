@@ -224,3 +224,57 @@ def test_partial_participation_draws_the_round_s_clients_from_the_seed():
     assert len(participants(2, 10, 0.25, seed=3)) == round(2.5) == 2  # Python's round
     strategy = FedAvg(FederatedConfig(fraction=0.3))
     assert strategy.select(4, 10, seed=0) == draws[4]  # the strategy's hook draws them
+
+
+def test_scaffold_takes_one_round_of_control_variate_steps_by_hand():
+    """One round of SCAFFOLD (Karimireddy et al. 2020, Algorithm 1, option II) on a
+    2-parameter model y = w x + b, one client of N = 4, K = 2 SGD steps at lr 0.1 on
+    (x, y) = (1, 3) from w = 1, b = 0, with c = (0.5, -0.5) and c_i = (0.1, 0.2):
+    step 1: g = 2 (w + b - 3) = -4 for both, corrected g - c_i + c = (-3.6, -4.7),
+            w, b = 1.36, 0.47;
+    step 2: g = 2 (1.83 - 3) = -2.34, corrected (-1.94, -3.04), w, b = 1.554, 0.774;
+    c_i+ = c_i - c + (x - y) / (K lr) = (0.1 - 0.5 - 0.554 / 0.2, 0.2 + 0.5 - 0.774 / 0.2)
+         = (-3.17, -3.17); Delta c_i = (-3.27, -3.37);
+    server (lr 0.5): x = x + 0.5 (y - x) = (1.277, 0.387); c = c + Delta c_i / 4
+         = (-0.3175, -1.3425)."""
+    settings = STRATEGIES["scaffold"].settings(lr=0.5)
+    server = build_strategy(FederatedConfig(strategy="scaffold", scaffold=settings))
+    x = {"weight": torch.tensor([[1.0]]), "bias": torch.tensor([0.0])}
+    server.bind(["weight", "bias"], {"weight", "bias"}, x)
+    server.control = {"weight": torch.tensor([[0.5]]), "bias": torch.tensor([-0.5])}
+    model = nn.Linear(1, 1)
+    model.load_state_dict(x)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1)
+    (plugin,) = server.client_plugins(0)
+    plugin.own = {"weight": torch.tensor([[0.1]]), "bias": torch.tensor([0.2])}
+    ctx = LocalContext(0, 1, model, dict(model.state_dict()), torch.device("cpu"))
+    ctx.optimizer, ctx.received = optimizer, server.payload(0)
+    plugin.on_round_start(ctx)
+    for _ in range(2):
+        optimizer.zero_grad()
+        ((model(torch.tensor([[1.0]])) - 3.0) ** 2).sum().backward()
+        plugin.before_step(ctx)
+        optimizer.step()
+        plugin.after_step(ctx)
+    plugin.on_round_end(ctx)
+    y = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    # float32 arithmetic on numbers of order 1-10: a few ulps
+    close = dict(rel=0, abs=1e-5)
+    assert [y["weight"].item(), y["bias"].item()] == pytest.approx([1.554, 0.774], **close)
+    assert [plugin.own["weight"].item(), plugin.own["bias"].item()] == pytest.approx(
+        [-3.17, -3.17], **close
+    )
+    delta = plugin.payload(ctx)
+    assert set(delta) == {"scaffold/weight", "scaffold/bias"}
+    assert [delta["scaffold/weight"].item(), delta["scaffold/bias"].item()] == pytest.approx(
+        [-3.27, -3.37], **close
+    )
+    new = server.server_update(x, y)  # the mean of one client's upload is its own
+    assert [new["weight"].item(), new["bias"].item()] == pytest.approx([1.277, 0.387], **close)
+    server.take_payloads({k: v.double() for k, v in delta.items()}, senders=1, clients=4)
+    assert [server.control["weight"].item(), server.control["bias"].item()] == pytest.approx(
+        [-0.3175, -1.3425], **close
+    )
+    again = build_strategy(FederatedConfig(strategy="scaffold", scaffold=settings))
+    again.load_state_dict(server.state_dict())  # c is the server's state: checkpointed
+    assert torch.equal(again.control["bias"], server.control["bias"])

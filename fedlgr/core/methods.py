@@ -147,6 +147,15 @@ STRATEGIES = _register(
         AvgMSettings,
         in_paper=False,
     ),
+    Method(
+        "scaffold",
+        "SCAFFOLD",
+        f"{STRATEGY}.scaffold:Scaffold",
+        "Karimireddy et al. 2020",
+        declared(lr=setting(1.0, above=0)),  # the global learning rate
+        names={("scaffold", "full"): "SCAFFOLD"},
+        in_paper=False,
+    ),
 )
 
 
