@@ -39,6 +39,8 @@ SCORES: tuple[Score, ...] = (
     Score("pcc", "PCC", True, "pcc", "Pearson correlation per action (constant: 0), averaged"),
 )
 SCORE_NAMES = tuple(s.name for s in SCORES)
+# What a researcher compares runs by: every test score, the loss last.
+HEADLINE = tuple(f"test/{n}" for n in (*(n for n in SCORE_NAMES if n != "loss"), "loss"))
 
 
 @dataclass(frozen=True)

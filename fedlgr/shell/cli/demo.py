@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fedlgr.core.metrics import SCORES
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import CONF_DIR, load_config
 from fedlgr.shell.console import Progress, table
@@ -102,9 +103,7 @@ def demo(args: argparse.Namespace) -> int:
         rows.append(
             [
                 r.config.method_name,
-                last.mean("test_loss"),
-                last.mean("test_rmse"),
-                last.mean("test_pcc"),
+                *(last.mean(f"test/{s.name}") for s in SCORES),
                 last.mean("cpu_s"),
                 f"{last.mean('bytes_up') / 2**20:.2f} MB",
                 f"{r.seconds:.0f}",
@@ -114,7 +113,8 @@ def demo(args: argparse.Namespace) -> int:
         f"\nFedAvg vs FedRootAvg on {args.data} after {results[0].config.federated.rounds} rounds "
         "(test scores: mean over clients; costs: per client per round)"
     )
-    print(table(["method", "loss", "RMSE", "PCC", "CPU s", "upload", "run s"], rows))
+    headers = ["method", *(s.label for s in SCORES), "CPU s", "upload", "run s"]
+    print(table(headers, rows))
     print_runs_hint(results)
     return 0
 

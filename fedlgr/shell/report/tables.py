@@ -25,23 +25,36 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from fedlgr.core.methods import in_paper
+from fedlgr.core.metrics import COSTS as METRIC_COSTS
+from fedlgr.core.metrics import SCORES as METRIC_SCORES
 from fedlgr.shell.config import FCL_METHODS, METHODS, short_setting
 from fedlgr.shell.report.runs import RunRecord
 
 PAPER_CLIENTS = (2, 10)
 BLOCKS = ((False, "W/O augmentation"), (True, "W/ augmentation"))
-SCORES = (("loss", "Loss", True), ("rmse", "RMSE", True), ("pcc", "PCC", False))
+# Name, heading, lower is better: every score (fedlgr.core.metrics.SCORES).
+SCORES = tuple(
+    (s.name, s.label[:1].upper() + s.label[1:], not s.higher_is_better) for s in METRIC_SCORES
+)
 # The server process's CPU over clients x rounds: what the paper's Tables III/IV measured
 # (docs/methods.md, "Table III and IV: what the paper measured"); a row only where runs have it.
 PAPER_CPU = "mean/cost/paper_cpu_s"
-# Row label, run-level metric (per client per round, mean over rounds), scale, decimals.
-COSTS = (
-    ("CPU usage (s)", "mean/cost/cpu_s", 1.0, 2),
-    ("CPU usage, the paper's way (s)", PAPER_CPU, 1.0, 2),
-    ("GPU usage (%)", "mean/cost/gpu_util", 1.0, 2),
-    ("Wall time (s)", "mean/cost/wall_s", 1.0, 2),
-    ("Upload (MB)", "mean/cost/bytes_up", 1e-6, 3),
-)
+
+
+def _cost_rows() -> tuple[tuple[str, str, float, int], ...]:
+    """Row label, run-level metric (per client per round, mean over rounds), scale and
+    decimals of every cost with a report label (fedlgr.core.metrics.COSTS); the paper's
+    CPU after the CPU."""
+    rows = []
+    for c in METRIC_COSTS:
+        if c.label:
+            rows.append((c.label, f"mean/{c.key}", c.scale, c.decimals))
+        if c.key == "cost/cpu_s":
+            rows.append(("CPU usage, the paper's way (s)", PAPER_CPU, 1.0, 2))
+    return tuple(rows)
+
+
+COSTS = _cost_rows()
 NUMBERS = {"table1": "I", "table2": "II", "table3": "III", "table4": "IV"}
 
 
@@ -248,7 +261,7 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
     if fl:
         name = "table1"
         caption = (
-            "Federated Learning results on the test set (final round; loss, RMSE and PCC "
+            f"Federated Learning results on the test set (final round; {_scores_named()} "
             "averaged over the 8 actions and the clients)."
         )
     else:
@@ -263,6 +276,12 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
         _runs_note(runs, [c for b in blocks for _, row in b.rows for c in row], source),
     ]
     return Table(name, caption, "Method", "augmentation", columns, blocks, len(runs), notes)
+
+
+def _scores_named() -> str:
+    """``loss, RMSE and PCC``: the scores' names as a caption says them."""
+    names = [s.label for s in METRIC_SCORES]
+    return ", ".join(names[:-1]) + f" and {names[-1]}"
 
 
 def cost_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Table | None:

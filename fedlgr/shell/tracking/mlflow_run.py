@@ -39,6 +39,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from fedlgr.core.metrics import HEADLINE
 from fedlgr.errors import FedlgrError, interrupt_in
 from fedlgr.shell.config import ExperimentConfig, to_yaml
 from fedlgr.shell.tracking import context
@@ -263,9 +264,9 @@ def _uncut(method):
 
 
 SENTINEL = "round/seconds"  # logged last in each round: the round is wholly logged
-# What a researcher compares runs by, logged first: MLflow's run page lists a run's metrics
-# in the order they were logged, and its compare view plots the first one by default.
-HEADLINE = ("test/rmse", "test/pcc", "test/loss")
+# What a researcher compares runs by, logged first (every score, metrics.HEADLINE, then
+# these costs): MLflow's run page lists a run's metrics in the order they were logged, and
+# its compare view plots the first one by default.
 HEADLINE_COSTS = ("cost/cpu_s", "cost/gpu_util", "cost/bytes_up")
 _CLIENT = re.compile(r"(^|/)client\d+(/|$)")
 

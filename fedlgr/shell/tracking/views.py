@@ -24,10 +24,13 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable
 
+from fedlgr.core.metrics import HEADLINE
+
 VIEW = "fedlgr"
 TAG = f"mlflow.sharedViewState.{VIEW}"
 SECTION = "fedlgr-headline"
-COLUMNS = ("test/rmse", "test/pcc", "test/loss", "mean/cost/cpu_s", "mean/cost/bytes_up")
+# the runs table's metric columns: every score (the loss last), then the costs
+COLUMNS = (*HEADLINE, "mean/cost/cpu_s", "mean/cost/bytes_up")
 MAX_PARAMS = 6  # in the parallel-coordinates plot, the runs table's columns too
 MAX_EXPANDED = 40  # the newest sweeps' parent runs (an experiment tag holds 5000 characters)
 
