@@ -7,6 +7,7 @@ import math
 import pytest
 
 from fedlgr.core.messages import nbytes
+from fedlgr.core.metrics import SCORES
 from fedlgr.core.models.scholar import build_scholar
 from fedlgr.shell.config import FCL_METHODS
 from fedlgr.shell.run.experiment import run_experiment
@@ -185,8 +186,9 @@ def test_three_tasks_forget_the_two_before(tmp_path, cache_dir, store):
     )
     assert config.continual.tasks == ("none", "one", "two")
     result = run_experiment(config)
-    # loss/RMSE/PCC on all seen tasks, on each seen task, and the forgetting of each past one
-    assert [len(a) for a in result.after_tasks] == [3 + 3, 3 + 6 + 3, 3 + 9 + 6]
+    # every score on all seen tasks, on each seen task, and the forgetting of each past one
+    n = len(SCORES)
+    assert [len(a) for a in result.after_tasks] == [n + n, n + 2 * n + n, n + 3 * n + 2 * n]
     after3 = result.after_tasks[2]
     for task in ("none", "one"):
         assert math.isfinite(after3[f"after_task3/forgetting/{task}/rmse"])

@@ -19,6 +19,7 @@ from fedlgr.core.messages import (
     nbytes,
 )
 from fedlgr.core.meters.costs import Usage
+from fedlgr.core.metrics import SCORES
 from fedlgr.core.server.side import ServerSide
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import load_config
@@ -98,10 +99,12 @@ def test_the_summary_averages_a_robot_s_costs_over_the_rounds_it_took_part_in(co
         result.rounds.append(server.round_log(RoundPlan(round_), server.table(rows), 1.0, missing))
     table = result.summary()
     assert "nan" not in table
-    # client  loss  RMSE  PCC  CPU s/round  wall s/round  upload/round
+    # client  loss  RMSE  PCC  ...  CPU s/round  wall s/round  upload/round: a column per
+    # score, then the costs
     cells = {line[:8].strip(): line[8:].split() for line in table.splitlines()[2:] if line.strip()}
-    cpu = {name: float(row[3]) for name, row in cells.items()}
-    assert cells["client 1"][5:] == ["2.0", "KB"]  # its upload, over rounds 1 and 3
+    at = len(SCORES)
+    cpu = {name: float(row[at]) for name, row in cells.items()}
+    assert cells["client 1"][at + 2 :] == ["2.0", "KB"]  # its upload, over rounds 1 and 3
     assert cpu["client 0"] == (2 + 3 + 4) / 3  # rounds 1-3
     assert cpu["client 1"] == (3 + 5) / 2  # rounds 1 and 3: round 2 is missing
     assert cpu["mean"] == (2 + 3 + 4 + 3 + 5) / 5

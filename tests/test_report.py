@@ -26,7 +26,8 @@ from tests.support.runs import fast_config
 EXPERIMENT = "report-test"
 TABLE2 = [m for m in FCL_METHODS if not m.endswith("-FT") and in_paper(m)]
 TABLE1 = [m for m in METHODS if in_paper(m)]
-SCORES = ("loss", "rmse", "pcc")
+SCORES = ("loss", "rmse", "pcc", "ccc")
+HIGHER = ("pcc", "ccc")  # higher is better
 
 
 # --------------------------------------------------------------------------- marking
@@ -125,7 +126,7 @@ def test_table1_rows_columns_values_and_bold_best(report, runs, store):
     blocks = markdown_blocks(report.out / "table1.md")
     assert list(blocks) == ["W/O augmentation", "W/ augmentation"]
     header, rows = blocks["W/O augmentation"]
-    arrows = {"loss": "Loss ▼", "rmse": "RMSE ▼", "pcc": "PCC ▲"}
+    arrows = {"loss": "Loss ▼", "rmse": "RMSE ▼", "pcc": "PCC ▲", "ccc": "CCC ▲"}
     assert header == ["Method"] + [f"{c} clients · {arrows[m]}" for c in (2, 10) for m in SCORES]
     assert list(rows) == TABLE1  # the paper's ten, in order, with or without runs
     assert len(TABLE1) == 10 and len(TABLE2) == 11
@@ -133,7 +134,7 @@ def test_table1_rows_columns_values_and_bold_best(report, runs, store):
     values = {m: metrics_of(store, runs[m]) for m in ("FedAvg", "FedRootAvg")}
     for j, m in enumerate(SCORES):
         shown = {k: f"{values[k][f'test/{m}']:.3f}" for k in values}
-        lower = m != "pcc"
+        lower = m not in HIGHER
         best = min(shown.values(), key=float) if lower else max(shown.values(), key=float)
         for method, text in shown.items():
             assert parse(rows[method][j]) == (
@@ -142,8 +143,8 @@ def test_table1_rows_columns_values_and_bold_best(report, runs, store):
             ), (method, m)
     for method in TABLE1:
         if method not in values:  # FedBN: only a FAILED run; the others: none
-            assert rows[method] == ["—"] * 6, method
-        assert rows[method][3:] == ["—"] * 3  # no run with ten clients
+            assert rows[method] == ["—"] * 2 * len(SCORES), method
+        assert rows[method][len(SCORES) :] == ["—"] * len(SCORES)  # no run with ten clients
 
     # Two seeds in FedAvg's cell: the mean, then the standard deviation over them and n.
     client = mlflow.MlflowClient(store)
@@ -153,10 +154,10 @@ def test_table1_rows_columns_values_and_bold_best(report, runs, store):
 
     _, augmented = blocks["W/ augmentation"]
     aug = metrics_of(store, runs["FedAvg-aug"])
-    assert [parse(c) for c in augmented["FedAvg"][:3]] == [
+    assert [parse(c) for c in augmented["FedAvg"][: len(SCORES)]] == [
         (f"{aug[f'test/{m}']:.3f}", "best") for m in SCORES
     ]
-    assert augmented["FedRootAvg"] == ["—"] * 6
+    assert augmented["FedRootAvg"] == ["—"] * 2 * len(SCORES)
     text = (report.out / "table1.md").read_text(encoding="utf-8")
     assert "Built from 4 finished runs of experiment `report-test`" in text
     assert "(1 to 2 runs per value)" in text
@@ -208,13 +209,14 @@ def test_csv_and_latex_hold_the_same_numbers_as_the_markdown(report):
 def test_table2_and_the_cost_tables(report, runs, store):
     blocks = markdown_blocks(report.out / "table2.md")
     header, rows = blocks["W/O augmentation"]
-    assert list(rows) == TABLE2 and len(header) == 1 + 12
-    assert header[1:4] == [f"2 clients · After Task 1 · {h}" for h in ("Loss ▼", "RMSE ▼", "PCC ▲")]
-    assert header[4] == "2 clients · After Task 2 · Loss ▼"
+    assert list(rows) == TABLE2 and len(header) == 1 + 2 * 2 * len(SCORES)
+    after1 = ("Loss ▼", "RMSE ▼", "PCC ▲", "CCC ▲")
+    assert header[1:5] == [f"2 clients · After Task 1 · {h}" for h in after1]
+    assert header[5] == "2 clients · After Task 2 · Loss ▼"
     lgr = metrics_of(store, runs["FedLGR"])
     expected = [f"{lgr[f'after_task{k}/test/{m}']:.3f}" for k in (1, 2) for m in SCORES]
-    assert [parse(c) for c in rows["FedLGR"][:6]] == [(v, "best") for v in expected]
-    assert rows["FedAvg-EWC"] == ["—"] * 12
+    assert [parse(c) for c in rows["FedLGR"][: 2 * len(SCORES)]] == [(v, "best") for v in expected]
+    assert rows["FedAvg-EWC"] == ["—"] * 2 * 2 * len(SCORES)
 
     header, rows = markdown_blocks(report.out / "table3.md")["2 clients, W/O augmentation"]
     assert header[1:5] == ["FedAvg", "FedRootAvg", "FedBN", "FedRootBN"]

@@ -37,6 +37,7 @@ SCORES: tuple[Score, ...] = (
     Score("loss", "loss", False, "mse", "mean squared error, averaged over the 8 actions"),
     Score("rmse", "RMSE", False, "rmse", "root mean squared error per action, averaged"),
     Score("pcc", "PCC", True, "pcc", "Pearson correlation per action (constant: 0), averaged"),
+    Score("ccc", "CCC", True, "ccc", "Lin's concordance correlation per action, averaged"),
 )
 SCORE_NAMES = tuple(s.name for s in SCORES)
 # What a researcher compares runs by: every test score, the loss last.
