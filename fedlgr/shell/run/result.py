@@ -87,10 +87,12 @@ class ExperimentResult:
                 *(_nanmean(per_round[cost.key]) for cost in costs),
             ]
         )
-        for row in rows:
+        for row in rows:  # a cost measured in no round shows as "-"
             for i, cost in enumerate(costs, start=1 + len(scores)):
                 if cost.key.startswith("cost/bytes"):
                     row[i] = _human_bytes(row[i])
+                elif math.isnan(row[i]):
+                    row[i] = "-"
         headers = ["client", *(s.label for s in SCORES), *(c.summary for c in costs)]
         text = table(headers, rows)
         if self.after_tasks:
