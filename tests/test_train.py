@@ -268,3 +268,32 @@ def test_the_fast_config_shows_learning_in_its_default_run(tmp_path):
     first, last = result.rounds[0], result.rounds[-1]
     assert last.mean("test_pcc") > 0.1
     assert last.mean("test_rmse") < first.mean("test_rmse") or first.mean("test_pcc") > 0.1
+
+
+def test_training_gflops_count_one_batch_and_scale_it_the_same_for_fedavg_and_fedroot(
+    synth_dir, cache_dir
+):
+    """``cost/gflops``: torch's FlopCounterMode on the round's first batch (forward and
+    backward), per sample, x the samples the round trained on - the same work for a FedAvg
+    and a FedRootAvg client, which the CPU seconds of a shared machine blur."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from fedlgr.core.scope import initial_scholar
+
+    figures = {}
+    for method in ("FedAvg", "FedRootAvg"):
+        config = fast_config(synth_dir, cache_dir, "sqlite://", f"method={method}")
+        scenes = load_scenes(config.data)
+        orch = Orchestrator(
+            make_fabric(config), config, scenes, make_split(scenes.table, config.data)
+        )
+        figures[method] = [t.figures for t in orch.client_side.train(TrainIns(RoundPlan(1)))]
+    # the count of one step, by hand: the initial model on a batch of 4 images
+    model = initial_scholar(config).train()
+    x = torch.rand(4, 3, config.data.image_size, config.data.image_size)
+    with FlopCounterMode(display=False) as counter:
+        torch.nn.functional.mse_loss(model(x), torch.zeros(4, 8)).backward()
+    per_sample = counter.get_total_flops() / 4
+    for fedavg, fedroot in zip(figures["FedAvg"], figures["FedRootAvg"], strict=True):
+        assert fedavg["cost/gflops"] == fedroot["cost/gflops"] > 0  # the same work
+        assert fedavg["cost/gflops"] == pytest.approx(per_sample * fedavg["train/samples"] / 1e9)

@@ -71,6 +71,8 @@ COSTS: tuple[Cost, ...] = (
     Cost("cost/gpu_s", "sum", True),  # the span of the client's work on its CUDA stream
     Cost("cost/bytes_up", label="Upload (MB)", scale=1e-6, decimals=3, summary="upload/round"),
     Cost("cost/bytes_down"),
+    # torch's FlopCounterMode on the round's first batch, x the samples of the round
+    Cost("cost/gflops", label="Training (GFLOPs)", decimals=3, summary="GFLOPs/round"),
 )
 COST_KEYS = tuple(c.key for c in COSTS)
 _COST = {c.key: c for c in COSTS}

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import torch
 from torch import nn
+from torch.utils.flop_counter import FlopCounterMode
 
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.data.augment import SceneBatches
@@ -128,14 +129,14 @@ def train_locally(
     plugins may ask for fewer passes, and train on their own before them). ``stop``: once
     set, the loop raises :class:`Stopped` at its next step (an interrupted run's clients
     in other threads, see ``ClientPool``)."""
-    model, optimizer, plugins = client.model, client.optimizer, client.plugins
+    model, plugins = client.model, client.plugins
     model.train()
     for plugin in plugins:
         plugin.on_round_start(ctx)
     asked = [n for plugin in plugins if (n := plugin.epochs(ctx, epochs)) is not None]
     epochs = min(asked, default=epochs)
     total_loss = torch.zeros((), device=ctx.device)
-    seen = 0
+    seen, flops = 0, None  # flops: the round's first batch's, per sample
     for epoch in range(epochs):
         for step, (x, y) in enumerate(client.batches):
             if max_batches is not None and step >= max_batches:
@@ -148,30 +149,44 @@ def train_locally(
                 continue
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
-            with autocast():
-                union = next(
-                    (out for p in plugins if (out := p.forward(ctx, x, y)) is not None), None
-                )
-                outputs, targets = (model(x), y) if union is None else union
-                loss = nn.functional.mse_loss(outputs.float(), targets)
-            outputs = outputs[: len(y)].float()
-            task_loss = (loss if union is None else nn.functional.mse_loss(outputs, y)).detach()
-            for plugin in plugins:
-                loss = plugin.loss(ctx, x, y, outputs, loss)
-            optimizer.zero_grad(set_to_none=True)
-            backward(loss, client.scaler, optimizer)
-            for plugin in plugins:
-                plugin.before_step(ctx)
-            optimizer_step(optimizer, client.scaler)
-            for plugin in plugins:
-                plugin.after_step(ctx)
+            # the floating-point operations of one step (forward and backward, the
+            # plugins' passes too), counted on the round's first batch and scaled by the
+            # samples of the round; the counter is this thread's only
+            counter = FlopCounterMode(display=False) if flops is None else contextlib.nullcontext()
+            with counter:
+                task_loss = _step(client, ctx, x, y, autocast)
+            if flops is None:
+                flops = counter.get_total_flops() / len(x)
             total_loss += task_loss * len(x)
             seen += len(x)
         if on_epoch is not None:
             on_epoch(epoch + 1)
     for plugin in plugins:
         plugin.on_round_end(ctx)
-    return round_stats(client, ctx, total_loss, seen)
+    stats = round_stats(client, ctx, total_loss, seen)
+    stats.figures["cost/gflops"] = (flops or 0.0) * seen / 1e9
+    return stats
+
+
+def _step(client: Client, ctx: LocalContext, x, y, autocast) -> torch.Tensor:
+    """One optimiser step on the batch ``(x, y)`` with the plugins' hooks; its task loss."""
+    model, optimizer, plugins = client.model, client.optimizer, client.plugins
+    with autocast():
+        union = next((out for p in plugins if (out := p.forward(ctx, x, y)) is not None), None)
+        outputs, targets = (model(x), y) if union is None else union
+        loss = nn.functional.mse_loss(outputs.float(), targets)
+    outputs = outputs[: len(y)].float()
+    task_loss = (loss if union is None else nn.functional.mse_loss(outputs, y)).detach()
+    for plugin in plugins:
+        loss = plugin.loss(ctx, x, y, outputs, loss)
+    optimizer.zero_grad(set_to_none=True)
+    backward(loss, client.scaler, optimizer)
+    for plugin in plugins:
+        plugin.before_step(ctx)
+    optimizer_step(optimizer, client.scaler)
+    for plugin in plugins:
+        plugin.after_step(ctx)
+    return task_loss
 
 
 def round_stats(client: Client, ctx: LocalContext, total: torch.Tensor, seen: int) -> LocalStats:
