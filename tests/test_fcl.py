@@ -193,3 +193,29 @@ def test_three_tasks_forget_the_two_before(tmp_path, cache_dir, store):
     for task in ("none", "one"):
         assert math.isfinite(after3[f"after_task3/forgetting/{task}/rmse"])
     assert "after_task3/forgetting/two/rmse" not in after3
+
+
+@pytest.mark.parametrize("method", ["FedRoot-SI", "FedAvg-NR", "FedLGR"])
+def test_a_client_the_strategy_never_chose_in_a_task_still_starts_and_ends_it(
+    method, synth_dir, cache_dir, store
+):
+    """``federated.fraction=0.5`` of 2 clients, one round a task (seed 0: client 1 trains
+    the circle round, client 0 the arrow round): the schedule is the same, every client
+    ends every task - one that trained in none of its rounds is told of its start first -
+    and every client is scored after each."""
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        f"method={method}",
+        "federated.fraction=0.5",
+        "continual.rounds_per_task=1",
+        "continual.lgr.epochs=2",
+    )
+    result = run_experiment(config)
+    assert [log.task for log in result.rounds] == ["circle", "arrow"]
+    assert [log.participants for log in result.rounds] == [(1,), (0,)]
+    for log in result.rounds:
+        assert not any(math.isnan(v) for v in log.column("test/rmse"))
+    after = result.after_tasks[1]
+    assert math.isfinite(after["after_task2/forgetting/circle/rmse"])

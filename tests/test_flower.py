@@ -81,8 +81,12 @@ def root_bytes(config) -> int:
     [
         ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr.epochs=3"],
         ["method=FedAvg", "federated.server_eval=on"],  # the server scores the global model
+        # control variates travel with the round, both ways, and steer rounds 2 and 3
+        ["method=SCAFFOLD", "federated.rounds=3"],
+        # one robot of two trains each round (seed 0: client 1, then 0, then 1)
+        ["method=FedAvg", "federated.fraction=0.5", "federated.rounds=3"],
     ],
-    ids=["FedLGR", "FedAvg-server-eval"],  # FedRootAvg: the resume test below
+    ids=["FedLGR", "FedAvg-server-eval", "SCAFFOLD", "FedAvg-half"],  # FedRootAvg: resume test
 )
 def test_flower_runs_compute_what_one_process_computes(
     federation, synth_dir, cache_dir, store, method

@@ -297,3 +297,33 @@ def test_training_gflops_count_one_batch_and_scale_it_the_same_for_fedavg_and_fe
     for fedavg, fedroot in zip(figures["FedAvg"], figures["FedRootAvg"], strict=True):
         assert fedavg["cost/gflops"] == fedroot["cost/gflops"] > 0  # the same work
         assert fedavg["cost/gflops"] == pytest.approx(per_sample * fedavg["train/samples"] / 1e9)
+
+
+def test_partial_participation_trains_the_chosen_clients_and_scores_every_client(
+    synth_dir, cache_dir
+):
+    """``federated.fraction=0.5`` of 2 clients: one trains a round, drawn from the seed
+    (seed 0: client 1, then 0, then 1); the other keeps its state - FedRoot: its top does
+    not move - downloads the new root and is scored; the log names the participants."""
+    from fedlgr.core.strategies.base import participants
+
+    config = fast_config(
+        synth_dir, cache_dir, "sqlite://", "method=FedRootAvg", "federated.fraction=0.5"
+    )
+    scenes = load_scenes(config.data)
+    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    for round_ in (1, 2, 3):
+        chosen = participants(round_, 2, 0.5, config.seed)
+        (other,) = {0, 1} - set(chosen)
+        top = {k: v.clone() for k, v in orch.clients[other].model.top.state_dict().items()}
+        log = orch.run_round(RoundPlan(round_))
+        assert log.participants == tuple(chosen) and len(chosen) == 1
+        assert log.metrics()["round/participants"] == 1.0
+        trained = [c for c in (0, 1) if not math.isnan(log.column("train/loss")[c])]
+        assert trained == chosen
+        assert math.isnan(log.column("cost/bytes_up")[other])  # it sent nothing
+        assert log.column("cost/bytes_down")[other] > 0  # it took the new root to score
+        assert not any(math.isnan(v) for v in log.column("test/rmse"))  # both scored
+        for key, value in orch.clients[other].model.top.state_dict().items():
+            assert torch.equal(value, top[key]), key  # kept, bit for bit
+    assert [participants(r, 2, 0.5, 0) for r in (1, 2, 3)] == [[1], [0], [1]]
