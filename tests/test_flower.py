@@ -89,14 +89,15 @@ def root_bytes(config) -> int:
     ids=["FedLGR", "FedAvg-server-eval", "SCAFFOLD", "FedAvg-half"],  # FedRootAvg: resume test
 )
 def test_flower_runs_compute_what_one_process_computes(
-    federation, synth_dir, cache_dir, store, method
+    federation, synth_dir, cache_dir, store, method, request
 ):
-    flower, out = flower_run(federation, synth_dir, store, f"flower-{method[0]}", *method)
+    name = request.node.callspec.id  # one run name per case: two cases are FedAvg
+    flower, out = flower_run(federation, synth_dir, store, f"flower-{name}", *method)
     assert flower.info.status == "FINISHED"
     assert flower.data.tags["runtime"] == "flower"
     local = run_experiment(
         fast_config(
-            synth_dir, cache_dir, store, *method, *DETAIL, f"tracking.run_name=local-{method[0]}"
+            synth_dir, cache_dir, store, *method, *DETAIL, f"tracking.run_name=local-{name}"
         )
     )
     rounds = len(local.rounds)

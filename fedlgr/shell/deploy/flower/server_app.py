@@ -303,6 +303,11 @@ class FlowerRounds:
         scoring = [n for n in nodes if n in serving or self.slots[n] not in (None, *chosen)]
         contents, kinds = self.evaluation_messages(evaluate, following, scoring, nodes)
         received = {node: wire.payload_bytes(content) for node, content in contents.items()}
+        # what a combined message carries for the next round alone - the strategy's payload -
+        # is that round's download, as in one process
+        ahead = {
+            node: wire.train_payload_bytes(c) for node, c in contents.items() if node in scoring
+        }
         kind = "evaluate" if following is None else "train"
         label = kind if following is None else f"evaluate + round {round_ + 1} train"
         rows, uploads = {}, {}
@@ -319,15 +324,17 @@ class FlowerRounds:
                 continue
             self.holders.add(node)
             upload = trained.get(res.client)
-            taken = down.get(node, 0) + received[node]
+            taken = down.get(node, 0) + received[node] - ahead[node]
             if upload is None:  # not chosen: it downloads to score
                 rows[res.client] = self.server.row(None, res, 0, taken)
             else:
                 rows[res.client] = self.server.row(upload[1], res, upload[2], taken)
         if following is not None:
-            # what the next round's rows count as downloaded: nothing more for a robot that
-            # scored here (the tensors served both), the tensors for one that did not
-            following_down = {n: 0 if n in scoring else received[n] for n, _, _ in uploads.values()}
+            # what the next round's rows count as downloaded: its payload for a robot that
+            # scored here (the tensors served both), the whole message for one that did not
+            following_down = {
+                n: ahead[n] if n in scoring else received[n] for n, _, _ in uploads.values()
+            }
             self.pending = (following, uploads, following_down, dict(self.failures))
         return rows
 

@@ -113,6 +113,12 @@ def _figures(record: ConfigRecord) -> Figures:
     return {str(k): float(v) for k, v in record.items()}
 
 
+def train_payload_bytes(content: RecordDict) -> int:
+    """Bytes of the strategy's payload a train message carries (0: none)."""
+    record = content.array_records.get("payload")
+    return sum(len(a.data) for a in record.values()) if record is not None else 0
+
+
 def _put_payload(content: RecordDict, payload: Weights) -> None:
     if payload:
         put_weights(content, "payload", payload)
