@@ -24,7 +24,7 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from fedlgr.shell.tracking.server import runs_link
+from fedlgr.shell.tracking.store import runs_link
 
 REPO = Path(__file__).resolve().parent.parent
 SWEEP = """\

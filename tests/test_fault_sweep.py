@@ -17,14 +17,14 @@ import pytest
 from flwr.app import ConfigRecord, RecordDict
 
 from fedlgr.errors import ConfigError, FedlgrError
+from fedlgr.shell.checks.stores import TrackingUnreachable, check_reachable
 from fedlgr.shell.cli import main
 from fedlgr.shell.config import load_config
 from fedlgr.shell.data.synth import MAX_SCENES, synthesize
 from fedlgr.shell.deploy.credentials import make_node_key
 from fedlgr.shell.deploy.flower import robot, wire
 from fedlgr.shell.sweep.storage import check_storage
-from fedlgr.shell.tracking.mlflow_run import StoreError, store_lock
-from fedlgr.shell.tracking.server import TrackingUnreachable, check_reachable
+from fedlgr.shell.tracking.store import StoreError, store_lock
 
 
 def plan(run_key: str) -> RecordDict:

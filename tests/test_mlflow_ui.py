@@ -20,7 +20,7 @@ from fedlgr.shell.cli import main
 from fedlgr.shell.config import load_config
 from fedlgr.shell.tracking.context import run_name, trial_config
 from fedlgr.shell.tracking.mlflow_run import headline_first
-from fedlgr.shell.tracking.server import runs_hint
+from fedlgr.shell.tracking.store import runs_hint
 from tests.support.ports import free_port
 from tests.support.runs import FAST
 

@@ -21,13 +21,14 @@ import mlflow
 import pytest
 
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.stores import TrackingUnreachable, check_sqlite_usable
 from fedlgr.shell.cli import main
 from fedlgr.shell.data.synth import synthesize
 from fedlgr.shell.report.runs import select_runs
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.resume import find_checkpoint
-from fedlgr.shell.tracking.mlflow_run import SENTINEL, StoreError, dead_reason
-from fedlgr.shell.tracking.server import TrackingUnreachable, check_sqlite_usable
+from fedlgr.shell.tracking.mlflow_run import SENTINEL, dead_reason
+from fedlgr.shell.tracking.store import StoreError
 from tests.support.ports import free_port
 from tests.support.processes import Child, child_env, metric_steps, only_run, run_args
 from tests.support.runs import fast_config

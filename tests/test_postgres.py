@@ -26,7 +26,7 @@ import pytest
 from fedlgr.shell.cli import main
 from fedlgr.shell.config import flatten, to_yaml
 from fedlgr.shell.sweep import load_sweep, run_sweep
-from fedlgr.shell.tracking.server import mask_password, masked_text
+from fedlgr.shell.tracking.uri import mask_password, masked_text
 from tests.support.data import read_rows
 from tests.support.ports import free_port, wait_healthy
 from tests.support.postgres import USER, PostgresServer, missing, postgres_server

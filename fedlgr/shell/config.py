@@ -34,6 +34,7 @@ from fedlgr.shell.checks.values import choice as _choice
 from fedlgr.shell.checks.values import epochs as _epochs
 from fedlgr.shell.checks.values import positive as _positive
 from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.tracking.uri import mask_password
 
 
 def _shipped(folder: str) -> Path:
@@ -1143,8 +1144,6 @@ def to_yaml(config: ExperimentConfig) -> str:
     artifact to whoever opens the run)."""
     import yaml
 
-    from fedlgr.shell.tracking.server import mask_password
-
     plain = to_plain(config)
     tracking = plain.get("tracking")
     if isinstance(tracking, dict) and tracking.get("uri"):
@@ -1166,7 +1165,5 @@ def flatten(config: ExperimentConfig) -> dict[str, str]:
 
     walk("", to_plain(config))
     if out.get("tracking.uri"):  # what is kept (checkpoints) holds no password
-        from fedlgr.shell.tracking.server import mask_password
-
-        out["tracking.uri"] = mask_password(out["tracking.uri"])
+            out["tracking.uri"] = mask_password(out["tracking.uri"])
     return out

@@ -8,6 +8,7 @@ trains as fast as a hand-written PyTorch loop (``bench/train.py`` measures the r
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import threading
 from dataclasses import dataclass, field
@@ -136,7 +137,7 @@ def train_locally(
     asked = [n for plugin in plugins if (n := plugin.epochs(ctx, epochs)) is not None]
     epochs = min(asked, default=epochs)
     total_loss = torch.zeros((), device=ctx.device)
-    seen, flops = 0, None  # flops: the round's first batch's, per sample
+    seen, first = 0, None  # first: the round's first batch
     for epoch in range(epochs):
         for step, (x, y) in enumerate(client.batches):
             if max_batches is not None and step >= max_batches:
@@ -149,14 +150,8 @@ def train_locally(
                 continue
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
-            # the floating-point operations of one step (forward and backward, the
-            # plugins' passes too), counted on the round's first batch and scaled by the
-            # samples of the round; the counter is this thread's only
-            counter = FlopCounterMode(display=False) if flops is None else contextlib.nullcontext()
-            with counter:
-                task_loss = _step(client, ctx, x, y, autocast)
-            if flops is None:
-                flops = counter.get_total_flops() / len(x)
+            task_loss = _step(client, ctx, x, y, autocast)
+            first = x if first is None else first
             total_loss += task_loss * len(x)
             seen += len(x)
         if on_epoch is not None:
@@ -164,8 +159,21 @@ def train_locally(
     for plugin in plugins:
         plugin.on_round_end(ctx)
     stats = round_stats(client, ctx, total_loss, seen)
-    stats.figures["cost/gflops"] = (flops or 0.0) * seen / 1e9
+    per_sample = 0.0 if first is None else flops_per_sample(model, first)
+    stats.figures["cost/gflops"] = per_sample * seen / 1e9  # the round's first batch, scaled
     return stats
+
+
+def flops_per_sample(model: nn.Module, x: torch.Tensor) -> float:
+    """The floating-point operations of one training step of ``model`` on batch ``x`` -
+    its forward, and its backward to the parameters that train - per sample, counted by
+    torch's FlopCounterMode on a copy of the model on the meta device: shapes only, nothing
+    computed, and the client's own arithmetic untouched (counting on the real step changes
+    the rounding of its convolutions)."""
+    ghost = copy.deepcopy(model).to("meta")
+    with FlopCounterMode(display=False) as counter:
+        ghost(torch.empty_like(x, device="meta")).float().sum().backward()
+    return counter.get_total_flops() / len(x)
 
 
 def _step(client: Client, ctx: LocalContext, x, y, autocast) -> torch.Tensor:

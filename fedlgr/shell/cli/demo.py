@@ -20,11 +20,12 @@ import argparse
 from pathlib import Path
 
 from fedlgr.core.metrics import SCORES
+from fedlgr.shell.checks.stores import check_tracking
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import CONF_DIR, load_config
 from fedlgr.shell.console import Progress, table
 from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
-from fedlgr.shell.tracking.server import check_tracking, runs_hint
+from fedlgr.shell.tracking.store import runs_hint
 
 DEFAULT_DATA = Path("data/manners-synth")
 DEMO_CONFIG = CONF_DIR / "experiment" / "demo.yaml"

@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.tracking.server import mask_password
+from fedlgr.shell.tracking.uri import mask_password
 
 
 def check_repeats(args: argparse.Namespace) -> None:

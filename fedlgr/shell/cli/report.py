@@ -9,8 +9,7 @@ from pathlib import Path
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import TrackingConfig
 from fedlgr.shell.report import ReportError, make_report
-from fedlgr.shell.tracking.mlflow_run import resolve_uri
-from fedlgr.shell.tracking.server import masked_text
+from fedlgr.shell.tracking.uri import masked_text, resolve_uri
 
 
 def add_parser(verbs: Verbs) -> None:

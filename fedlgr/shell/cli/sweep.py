@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.stores import check_tracking
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import SWEEPS_DIR
 from fedlgr.shell.machine import available_cores
@@ -15,7 +16,7 @@ from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.sweep import load_sweep, run_sweep
 from fedlgr.shell.sweep.spec import MAX_HEARTBEAT_S
 from fedlgr.shell.sweep.storage import check_storage
-from fedlgr.shell.tracking.server import check_tracking, given_uri, masked_echo, sqlite_path
+from fedlgr.shell.tracking.uri import given_uri, masked_echo, sqlite_path
 
 MAX_STUDY_NAME = 512  # optuna.storages._rdb.models.MAX_INDEXED_STRING_LENGTH
 

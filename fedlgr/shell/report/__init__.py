@@ -14,7 +14,7 @@ from pathlib import Path
 
 from fedlgr.errors import broken_link
 from fedlgr.shell.report.runs import ReportError, RunRecord
-from fedlgr.shell.tracking.server import mask_password
+from fedlgr.shell.tracking.uri import mask_password
 
 __all__ = ["ReportError", "ReportResult", "RunRecord", "default_out", "make_report"]
 

@@ -28,6 +28,7 @@ from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
 
 from fedlgr.core.in_process import Orchestrator
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import Progress
 from fedlgr.shell.data.dataset import load_scenes
@@ -37,7 +38,6 @@ from fedlgr.shell.run.life import Hooks, RunLife
 from fedlgr.shell.run.result import ExperimentResult
 from fedlgr.shell.run.resume import adopt_settings, left_to_machine, resume_point
 from fedlgr.shell.tracking.mlflow_run import tracking_uri
-from fedlgr.shell.tracking.server import check_reachable
 
 
 def make_fabric(config: ExperimentConfig):

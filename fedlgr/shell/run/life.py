@@ -41,7 +41,7 @@ from fedlgr.shell.run.result import ExperimentResult
 from fedlgr.shell.tracking.context import data_digest, run_name
 from fedlgr.shell.tracking.mlflow_run import Tracker, tracking_uri
 from fedlgr.shell.tracking.plots import curves_png
-from fedlgr.shell.tracking.server import runs_hint
+from fedlgr.shell.tracking.store import runs_hint
 
 Metrics = dict[str, float]
 

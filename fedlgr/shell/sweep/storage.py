@@ -19,16 +19,10 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.errors import FedlgrError, exception_chain, not_a_file
+from fedlgr.shell.checks.stores import CONNECT_TIMEOUT_S, check_database
 from fedlgr.shell.sweep.space import SweepSpec
-from fedlgr.shell.tracking.mlflow_run import StoreError, open_lock_file, store_lock
-from fedlgr.shell.tracking.server import (
-    CONNECT_TIMEOUT_S,
-    check_database,
-    in_memory_sqlite,
-    mask_password,
-    masked_text,
-    server_database,
-)
+from fedlgr.shell.tracking.store import StoreError, open_lock_file, store_lock
+from fedlgr.shell.tracking.uri import in_memory_sqlite, mask_password, masked_text, server_database
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
 
@@ -107,7 +101,7 @@ def open_study(
     exists``, a UNIQUE constraint on the version or the study name), so it happens under
     the file lock MLflow's sqlite stores are opened under (``<file>.lock``) - on
     PostgreSQL, under an advisory lock of the database (workers on several machines;
-    :func:`fedlgr.shell.tracking.server.database_lock`). A storage that cannot hold the study
+    :func:`fedlgr.shell.tracking.store.database_lock`). A storage that cannot hold the study
     is one :class:`FedlgrError` line naming it, its password masked
     (:func:`check_storage`)."""
     path = check_storage(storage)
@@ -138,7 +132,7 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
     folder, a file that is not an sqlite database, a folder that cannot be made or
     written in, a file another process keeps locked; a database server's driver that is
     not installed, a server that does not answer, a wrong user or password, a database
-    that does not exist (:func:`fedlgr.shell.tracking.server.check_database`). ``make``:
+    that does not exist (:func:`fedlgr.shell.checks.stores.check_database`). ``make``:
     create the sqlite file's folder and lock file (else only look). The sqlite file, for
     sqlite."""
     from sqlalchemy.exc import ArgumentError  # lazy: sqlalchemy (~1 s), for a storage only

@@ -54,7 +54,8 @@ from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.storage import DEFAULT_STORAGE
 from fedlgr.shell.sweep.trials import all_failed, counts, nothing_left, ran, summary
 from fedlgr.shell.sweep.worker import Worker
-from fedlgr.shell.tracking.server import mask_password, runs_hint
+from fedlgr.shell.tracking.store import runs_hint
+from fedlgr.shell.tracking.uri import mask_password
 
 
 @dataclass

@@ -146,7 +146,7 @@ def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> Non
         InputTag("mlflow.data.context", "training"),
         InputTag("modality", config.data.modality),
     ]
-    from fedlgr.shell.tracking.mlflow_run import store_lock
+    from fedlgr.shell.tracking.store import store_lock
 
     # MLflow's sqlite store looks the dataset up, then inserts it: two runs starting at once
     # on one store both inserted it, and one died on the UNIQUE constraint. One at a time.

@@ -12,7 +12,7 @@ that fails is ended FAILED (KILLED on Ctrl-C or when a sweep prunes it) after sa
 it had. What else a run records so that runs can be told apart - its name, MLflow's
 context tags (source, user, git commit), params without machine-local paths, the dataset
 input, system metrics - is in :mod:`fedlgr.shell.tracking.context`; an unreachable server is
-refused within seconds (:func:`fedlgr.shell.tracking.server.check_reachable`).
+refused within seconds (:func:`fedlgr.shell.checks.stores.check_reachable`).
 
 A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``) and a heartbeat
 (``fedlgr.heartbeat``, seconds since the epoch, refreshed every ``tracking.heartbeat_s``
@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import errno
 import io
 import logging
 import os
@@ -41,18 +40,11 @@ from pathlib import Path
 
 from fedlgr.core.metrics import HEADLINE
 from fedlgr.errors import FedlgrError, interrupt_in
+from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable
 from fedlgr.shell.config import ExperimentConfig, to_yaml
 from fedlgr.shell.tracking import context
-from fedlgr.shell.tracking.server import check_reachable, check_sqlite_usable
-
-DEFAULT_URI = "sqlite:///mlflow.db"
-
-
-def resolve_uri(uri: str | None) -> str:
-    """``uri`` if given, else ``$MLFLOW_TRACKING_URI``, else the local sqlite store."""
-    if uri is not None and not uri.strip():
-        raise FedlgrError("tracking URI '': empty; give one, or leave it unset for the default")
-    return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+from fedlgr.shell.tracking.store import StoreError, store_lock
+from fedlgr.shell.tracking.uri import resolve_uri
 
 
 def tracking_uri(config: ExperimentConfig) -> str:
@@ -132,43 +124,6 @@ def _create_experiment(client, name: str) -> str:
     return store.create_experiment(name, tags=[ExperimentTag(k, v) for k, v in KIND.items()])
 
 
-@contextlib.contextmanager
-def store_lock(uri: str):
-    """Held while a process opens a local sqlite store: the first use of a fresh store
-    runs MLflow's schema migrations, which two processes must not run at once (one would
-    die on ``duplicate column name``). A PostgreSQL database (a store or a sweep's
-    storage shared by several machines) takes an advisory lock of its own
-    (:func:`fedlgr.shell.tracking.server.database_lock`); other stores need no lock."""
-    if not uri.startswith("sqlite:///"):
-        from fedlgr.shell.tracking.server import database_lock
-
-        with database_lock(uri):
-            yield
-        return
-    import fcntl
-
-    path = Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()  # no ?mode=..
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = open_lock_file(Path(f"{path}.lock"), f"tracking store {uri}")
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
-
-
-def open_lock_file(path: Path, what: str) -> int:
-    """The descriptor of the lock file ``path`` beside a store, created if missing (empty,
-    0644). O_NOFOLLOW: a link planted there is refused, not a way to create or truncate a
-    file elsewhere (``flock`` needs no content, so nothing is written)."""
-    try:
-        return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    except OSError as err:
-        if err.errno == errno.ELOOP:
-            raise StoreError(f"{what}: its lock file {path} is a symbolic link: refused") from None
-        raise StoreError(f"{what}: cannot open its lock file {path}: {err.strerror}") from None
-
-
 def open_client(uri: str):
     """An ``MlflowClient`` on ``uri`` whose store is created and migrated (under
     :func:`store_lock`)."""
@@ -194,7 +149,7 @@ def create_whole(uri: str) -> None:
     :func:`store_lock`, so a temporary file found is one a kill left behind."""
     import mlflow
 
-    from fedlgr.shell.tracking.server import sqlite_path
+    from fedlgr.shell.tracking.uri import sqlite_path
 
     path = sqlite_path(uri)
     if str(path) == ":memory:" or path.exists():
@@ -211,10 +166,6 @@ def create_whole(uri: str) -> None:
 def dataset_name(config: ExperimentConfig) -> str:
     path = Path(config.data.path)
     return "synthetic" if (path / "synth.json").is_file() else path.name
-
-
-class StoreError(FedlgrError):
-    """The tracking store refused a write (full disk, lost server, locked file)."""
 
 
 def _cause(err: BaseException) -> str:
@@ -235,7 +186,7 @@ def store_errors(uri: str, what: str):
     except FedlgrError:
         raise
     except Exception as err:
-        from fedlgr.shell.tracking.server import mask_password, masked_text
+        from fedlgr.shell.tracking.uri import mask_password, masked_text
 
         problem = masked_text(_cause(err), uri)
         if problem == "database is locked":

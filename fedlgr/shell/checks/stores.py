@@ -1,20 +1,12 @@
-"""The tracking store as a user meets it: is it there, and where to look at the runs.
+"""Store checks: is a tracking store or a sweep's storage there and usable, said in one
+line before anything is written to it.
 
 ``check_reachable(uri)`` refuses an ``http(s)://`` tracking URI that nothing answers in a
 few seconds, with one line that names it (MLflow's own client would retry for minutes,
 then raise a long stack trace); a database server's URL (``postgresql://...``) is
 connected to first (:func:`check_database`: driver, address, password, database), and
-fedlgr's messages show its password masked (:func:`mask_password`).
-``runs_hint(uri, experiment_id)`` is what ``fedlgr run``, ``demo`` and ``sweep`` print at
-the end: the link that opens the experiment's runs table
-and, for a local store, the ``mlflow ui`` command that serves it first.
-
-MLflow 3 opens a browser that has not been there before on its GenAI pages (Traces,
-"Detect Issues"); the runs table is the "Model training" workflow. Its single-page app
-(``mlflow/server/js``) routes ``#/experiments/<id>/runs`` to that table and takes the
-workflow from the ``workflowType`` query parameter before the browser's stored choice,
-so the link below lands on the runs whatever the browser saw before.
-
+the messages show its password masked (:func:`fedlgr.shell.tracking.uri.mask_password`);
+an sqlite file is checked to be one (:func:`check_sqlite`, :func:`check_sqlite_usable`).
 Light on purpose (no MLflow import): the CLI calls it before loading torch.
 """
 
@@ -23,47 +15,24 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import shutil
-import sys
 import urllib.error
 import urllib.parse
 import urllib.request
-from pathlib import Path
 
 from fedlgr.errors import FedlgrError, not_a_file
-
-UI_PORT = 5000  # mlflow ui's default
-# The runs table, in fedlgr's shared view of it (fedlgr.shell.tracking.views).
-RUNS_VIEW = (
-    "#/experiments/{experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=fedlgr"
+from fedlgr.shell.tracking.uri import (
+    authority_end,
+    given_uri,
+    in_memory_sqlite,
+    mask_password,
+    masked_text,
+    server_database,
+    sqlite_path,
 )
-DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
 
 
 class TrackingUnreachable(FedlgrError):
     """Nothing answers at the tracking server's address."""
-
-
-def in_memory_sqlite(uri: str) -> bool:
-    """Whether ``uri`` names an in-memory sqlite database, which keeps nothing once its
-    process ends: ``sqlite://``, ``:memory:``, or SQLite's URI filenames
-    (``file::memory:``, ``mode=memory``)."""
-    if not uri.startswith("sqlite:"):
-        return False
-    from sqlalchemy.engine import make_url
-    from sqlalchemy.exc import ArgumentError
-
-    try:
-        url = make_url(uri)
-    except (ArgumentError, ValueError):
-        return False  # not a URL sqlalchemy reads: for the store's own check to refuse
-    database = url.database or ""
-    return (
-        database in ("", ":memory:")
-        or database.startswith("file::memory:")
-        or url.query.get("mode") == "memory"
-        or "mode=memory" in database
-    )
 
 
 def check_reachable(uri: str, timeout: float = 5.0) -> None:
@@ -108,10 +77,6 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
 
 
 SQLITE_HEADER = b"SQLite format 3\x00"
-
-
-def sqlite_path(uri: str) -> Path:
-    return Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()
 
 
 def check_sqlite(uri: str) -> None:
@@ -213,127 +178,18 @@ def check_tracking(uri: str | None, overrides: list[str]) -> None:
     check_reachable(given_uri(uri, overrides))
 
 
-def given_uri(uri: str | None, overrides: list[str]) -> str:
-    """The tracking URI a command was given: ``--tracking-uri``, else its last
-    ``tracking.uri=`` override, else ``$MLFLOW_TRACKING_URI`` or the default."""
-    from fedlgr.shell.tracking.mlflow_run import resolve_uri
-
-    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
-    return resolve_uri(uri or (given[-1] if given else None))
-
-
-def runs_link(server: str, experiment_id: str) -> str:
-    """The UI address that opens experiment ``experiment_id``'s runs table."""
-    return f"{server.rstrip('/')}/{RUNS_VIEW.format(experiment_id=experiment_id)}"
-
-
-def runs_hint(uri: str, experiment_id: str) -> str:
-    """What to open to see the runs: the link for a server; for a database store, the
-    ``mlflow ui`` command that serves it, then the link. Empty for other stores."""
-    scheme = uri.split(":", 1)[0].split("+", 1)[0]
-    if scheme in ("http", "https"):
-        return f"MLflow runs: {runs_link(uri, experiment_id)}"
-    if scheme not in DATABASES:
-        return ""
-    store = _absolute_sqlite(uri) if scheme == "sqlite" else mask_password(uri)
-    link = runs_link(f"http://127.0.0.1:{UI_PORT}", experiment_id)
-    return (
-        f"MLflow runs: start the UI with\n  {_mlflow()} ui --backend-store-uri {store} "
-        f"--port {UI_PORT}\nthen open {link}"
-    )
-
-
-def _absolute_sqlite(uri: str) -> str:
-    """``sqlite:///mlflow.db`` -> ``sqlite:////work/mlflow.db``: the command works from
-    any folder."""
-    path = uri.removeprefix("sqlite:///")
-    if uri.startswith("sqlite:///") and path and path != ":memory:":
-        return "sqlite:///" + str(Path(path).expanduser().resolve())
-    return uri
-
-
-def _mlflow() -> str:
-    """How to call MLflow's command here: through uv when fedlgr runs under ``uv run``,
-    else the ``mlflow`` on PATH, else this interpreter's module."""
-    if os.environ.get("UV"):
-        return "uv run mlflow"
-    if shutil.which("mlflow"):
-        return "mlflow"
-    return f"{sys.executable} -m mlflow"
-
-
-# --------------------------------------------------------------------------- database servers
-
-
-def mask_password(uri: str) -> str:
-    """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
-    holds ``/`` or ``@``, or in a URL no parser reads), and the value of every query
-    parameter named ``...password`` (libpq reads ``password`` and ``sslpassword`` there,
-    also percent-encoded, ``pass%77ord``): what fedlgr prints of a URI."""
-    scheme, sep, rest = uri.partition("://")
-    if not sep:
-        return uri
-    end = _authority_end(rest)
-    at = rest.rfind("@", 0, end)
-    user, colon, _ = rest[: max(at, 0)].partition(":")
-    if at >= 0 and colon and "/" not in user:
-        rest = f"{user}:***{rest[at:]}"
-    return f"{scheme}://" + _QUERY_PARAM.sub(_masked_param, rest)
-
-
-# a query (or fragment) parameter: its separator, name and value
-_QUERY_PARAM = re.compile(r"([?&#;])([^=&#;]*)=([^&#;]*)")
-
-
-def _secret_param(name: str) -> bool:
-    return urllib.parse.unquote(name).strip().lower().endswith("password")
-
-
-def _masked_param(m: re.Match) -> str:
-    return f"{m.group(1)}{m.group(2)}=***" if _secret_param(m.group(2)) else m.group(0)
-
-
-def _authority_end(rest: str) -> int:
-    """Where the query or fragment of a URL (after its ``scheme://``) begins."""
-    return min((i for i in (rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
-
-
-def _secrets(uri: str) -> set[str]:
-    """The passwords ``uri`` holds (in its ``user:password@`` part and its query), as
-    written and decoded, and each part of one that holds ``@`` (a parser that splits the
-    URL at its first ``@`` shows the rest as a host name)."""
-    _, sep, rest = uri.partition("://")
-    if not sep:
-        return set()
-    end = _authority_end(rest)
-    at = rest.rfind("@", 0, end)
-    found = {rest[:at].partition(":")[2]} if at > 0 else set()
-    found |= {m.group(3) for m in _QUERY_PARAM.finditer(rest) if _secret_param(m.group(2))}
-    forms = found | {urllib.parse.unquote(f) for f in found}
-    forms |= {part for f in forms for part in f.split("@")}
-    return {f for f in forms if len(f) >= 3}
-
-
 def check_userinfo(uri: str, what: str, error: type[FedlgrError] = FedlgrError) -> None:
     """A ``user:password@`` part that holds an unescaped ``@``: URL parsers disagree on
     where it ends (libpq splits at the first ``@``, SQLAlchemy at the last), so one of them
     would take the tail of the password for a host name - and print it. One line asking for
     ``%40``."""
     _, sep, rest = uri.partition("://")
-    authority = rest[: _authority_end(rest)].split("/", 1)[0]
+    authority = rest[: authority_end(rest)].split("/", 1)[0]
     if sep and authority.count("@") > 1:
         raise error(
             f"{what} {mask_password(uri)}: its user or password holds an '@': write it "
             "percent-encoded, %40 (and ':' as %3A, '/' as %2F)"
         )
-
-
-def server_database(uri: str) -> bool:
-    """Whether ``uri`` names a database server's database (``postgresql://``,
-    ``postgresql+psycopg://``, ``mysql+pymysql://``, ...) rather than a file or an
-    HTTP server; also a misspelt one (``postgres://``), for :func:`check_database` to name."""
-    scheme = uri.partition("://")[0].split("+", 1)[0].lower() if "://" in uri else ""
-    return scheme in (*DATABASES[1:], "postgres", "mariadb")
 
 
 DRIVER_HINTS = {
@@ -353,12 +209,12 @@ def check_database(uri: str, what: str, error: type[FedlgrError] = FedlgrError) 
     server that does not answer, a wrong user or password, a missing database are one
     ``error`` line ``{what} {uri}: {problem}``, the password masked (MLflow would retry
     for minutes; Optuna and SQLAlchemy end in stack traces)."""
-    with _database_connection(uri, what, error):
+    with database_connection(uri, what, error):
         pass
 
 
 @contextlib.contextmanager
-def _database_connection(uri: str, what: str, error: type[FedlgrError]):
+def database_connection(uri: str, what: str, error: type[FedlgrError]):
     """An open SQLAlchemy connection to ``uri`` (no pool: closed for good at the end);
     failing to open it is one ``error`` line (:func:`database_problem`)."""
     from sqlalchemy import create_engine
@@ -445,54 +301,3 @@ def _address(uri: str) -> str:
 
 def _first_line(err: BaseException) -> str:
     return (str(err).strip().splitlines() or [type(err).__name__])[0].strip()
-
-
-def masked_text(text: str, uri: str) -> str:
-    """``text`` without the URI's passwords: the URI as :func:`mask_password` writes it, and
-    each password elsewhere (three characters or more), as written or decoded, and each
-    ``@``-separated part of one."""
-    text = text.replace(uri, mask_password(uri))
-    for form in sorted(_secrets(uri), key=len, reverse=True):
-        text = text.replace(form, "***")
-    return text
-
-
-# An advisory lock's key (any 64-bit number): held while a process opens a study or an
-# MLflow store on a PostgreSQL database, as the lock file is beside an sqlite file.
-LOCK_KEY = 0x666564_6C6772  # "fedlgr"
-
-
-@contextlib.contextmanager
-def database_lock(uri: str, what: str = "database"):
-    """Held while a process creates tables, a study or a parent run in the PostgreSQL
-    database ``uri``: an advisory lock of the database (``pg_advisory_lock``), which the
-    server releases when the holder's connection ends - a killed process included. Two
-    processes that create Optuna's or MLflow's tables in a fresh database at once would
-    make one fail (a duplicate key in ``pg_type``). Other databases are not locked."""
-    if not uri.lower().startswith(("postgresql:", "postgresql+")):
-        yield
-        return
-    from sqlalchemy import text
-
-    with _database_connection(uri, what, FedlgrError) as connection:
-        connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": LOCK_KEY})
-        connection.commit()  # a session lock: no transaction left open while it is held
-        try:
-            yield
-        finally:
-            with contextlib.suppress(Exception):
-                connection.execute(text("SELECT pg_advisory_unlock(:key)"), {"key": LOCK_KEY})
-
-
-def masked_echo(echo, *uris: str | None):
-    """``echo`` (e.g. ``print``) that writes the passwords of ``uris`` as ``***``: what a
-    command prints of its URIs (the study's storage, the tracking store)."""
-    given = [u for u in uris if u]
-
-    def say(*args: object, **kwargs) -> None:
-        text = " ".join(map(str, args))
-        for uri in given:
-            text = masked_text(text, uri)
-        echo(text, **kwargs)
-
-    return say

@@ -1,0 +1,144 @@
+"""Tracking URIs: which store a command was given, and what of a URI may be shown.
+
+``resolve_uri`` is the store a run uses (``tracking.uri``, else ``$MLFLOW_TRACKING_URI``,
+else ``sqlite:///mlflow.db``); ``mask_password`` and ``masked_text`` are what fedlgr prints
+of a database URI (its password as ``***``, in the URI and anywhere in a message). Light on
+purpose: the config and the CLI read it before anything heavy loads.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import urllib.error
+import urllib.parse
+import urllib.request
+from pathlib import Path
+
+from fedlgr.errors import FedlgrError
+
+DEFAULT_URI = "sqlite:///mlflow.db"
+
+
+def resolve_uri(uri: str | None) -> str:
+    """``uri`` if given, else ``$MLFLOW_TRACKING_URI``, else the local sqlite store."""
+    if uri is not None and not uri.strip():
+        raise FedlgrError("tracking URI '': empty; give one, or leave it unset for the default")
+    return uri or os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+
+
+DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
+
+
+def in_memory_sqlite(uri: str) -> bool:
+    """Whether ``uri`` names an in-memory sqlite database, which keeps nothing once its
+    process ends: ``sqlite://``, ``:memory:``, or SQLite's URI filenames
+    (``file::memory:``, ``mode=memory``)."""
+    if not uri.startswith("sqlite:"):
+        return False
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        url = make_url(uri)
+    except (ArgumentError, ValueError):
+        return False  # not a URL sqlalchemy reads: for the store's own check to refuse
+    database = url.database or ""
+    return (
+        database in ("", ":memory:")
+        or database.startswith("file::memory:")
+        or url.query.get("mode") == "memory"
+        or "mode=memory" in database
+    )
+
+
+def sqlite_path(uri: str) -> Path:
+    return Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()
+
+
+def given_uri(uri: str | None, overrides: list[str]) -> str:
+    """The tracking URI a command was given: ``--tracking-uri``, else its last
+    ``tracking.uri=`` override, else ``$MLFLOW_TRACKING_URI`` or the default."""
+    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
+    return resolve_uri(uri or (given[-1] if given else None))
+
+
+def server_database(uri: str) -> bool:
+    """Whether ``uri`` names a database server's database (``postgresql://``,
+    ``postgresql+psycopg://``, ``mysql+pymysql://``, ...) rather than a file or an
+    HTTP server; also a misspelt one (``postgres://``), for :func:`check_database` to name."""
+    scheme = uri.partition("://")[0].split("+", 1)[0].lower() if "://" in uri else ""
+    return scheme in (*DATABASES[1:], "postgres", "mariadb")
+
+
+def mask_password(uri: str) -> str:
+    """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
+    holds ``/`` or ``@``, or in a URL no parser reads), and the value of every query
+    parameter named ``...password`` (libpq reads ``password`` and ``sslpassword`` there,
+    also percent-encoded, ``pass%77ord``): what fedlgr prints of a URI."""
+    scheme, sep, rest = uri.partition("://")
+    if not sep:
+        return uri
+    end = authority_end(rest)
+    at = rest.rfind("@", 0, end)
+    user, colon, _ = rest[: max(at, 0)].partition(":")
+    if at >= 0 and colon and "/" not in user:
+        rest = f"{user}:***{rest[at:]}"
+    return f"{scheme}://" + _QUERY_PARAM.sub(_masked_param, rest)
+
+
+# a query (or fragment) parameter: its separator, name and value
+_QUERY_PARAM = re.compile(r"([?&#;])([^=&#;]*)=([^&#;]*)")
+
+
+def _secret_param(name: str) -> bool:
+    return urllib.parse.unquote(name).strip().lower().endswith("password")
+
+
+def _masked_param(m: re.Match) -> str:
+    return f"{m.group(1)}{m.group(2)}=***" if _secret_param(m.group(2)) else m.group(0)
+
+
+def authority_end(rest: str) -> int:
+    """Where the query or fragment of a URL (after its ``scheme://``) begins."""
+    return min((i for i in (rest.find("?"), rest.find("#")) if i >= 0), default=len(rest))
+
+
+def _secrets(uri: str) -> set[str]:
+    """The passwords ``uri`` holds (in its ``user:password@`` part and its query), as
+    written and decoded, and each part of one that holds ``@`` (a parser that splits the
+    URL at its first ``@`` shows the rest as a host name)."""
+    _, sep, rest = uri.partition("://")
+    if not sep:
+        return set()
+    end = authority_end(rest)
+    at = rest.rfind("@", 0, end)
+    found = {rest[:at].partition(":")[2]} if at > 0 else set()
+    found |= {m.group(3) for m in _QUERY_PARAM.finditer(rest) if _secret_param(m.group(2))}
+    forms = found | {urllib.parse.unquote(f) for f in found}
+    forms |= {part for f in forms for part in f.split("@")}
+    return {f for f in forms if len(f) >= 3}
+
+
+def masked_text(text: str, uri: str) -> str:
+    """``text`` without the URI's passwords: the URI as :func:`mask_password` writes it, and
+    each password elsewhere (three characters or more), as written or decoded, and each
+    ``@``-separated part of one."""
+    text = text.replace(uri, mask_password(uri))
+    for form in sorted(_secrets(uri), key=len, reverse=True):
+        text = text.replace(form, "***")
+    return text
+
+
+def masked_echo(echo, *uris: str | None):
+    """``echo`` (e.g. ``print``) that writes the passwords of ``uris`` as ``***``: what a
+    command prints of its URIs (the study's storage, the tracking store)."""
+    given = [u for u in uris if u]
+
+    def say(*args: object, **kwargs) -> None:
+        text = " ".join(map(str, args))
+        for uri in given:
+            text = masked_text(text, uri)
+        echo(text, **kwargs)
+
+    return say
