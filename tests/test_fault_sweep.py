@@ -353,7 +353,7 @@ def test_a_config_from_a_pipe_an_include_with_a_suffix_and_loops_are_named(tmp_p
     cfg.yaml and /dev/zero.yaml, files never given (u38, u39); a looping data.path was
     "no such folder" (u48), a looping sweep file "no such file" (u53)."""
     from fedlgr.errors import DataError
-    from fedlgr.shell.data.config import check_data_path
+    from fedlgr.shell.checks.paths import check_data_path
     from fedlgr.shell.sweep.spec import find_sweep
 
     if not Path("/proc/self/fd").is_dir():
@@ -444,7 +444,7 @@ def test_a_folder_given_as_a_link_that_leads_nowhere_or_to_a_device_is_named(
     target made (c118), a link to /dev/null was "(File exists)" (c69); superlink
     --database a loop was passed on to Flower (c117)."""
     from fedlgr.errors import DataError
-    from fedlgr.shell.data.config import check_data_path
+    from fedlgr.shell.checks.paths import check_data_path
     from fedlgr.shell.run.checkpoint import checkpoint_root
 
     fifo, null, loop = tmp_path / "fifo", tmp_path / "null", tmp_path / "l1"

@@ -21,7 +21,8 @@ from typing import Any
 
 from fedlgr.core.data.columns import FEATURE_COLUMNS
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
-from fedlgr.errors import ConfigError, not_a_file
+from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.checks.values import betas as _betas
 from fedlgr.shell.checks.values import (
     check_numbers,
@@ -1165,5 +1166,5 @@ def flatten(config: ExperimentConfig) -> dict[str, str]:
 
     walk("", to_plain(config))
     if out.get("tracking.uri"):  # what is kept (checkpoints) holds no password
-            out["tracking.uri"] = mask_password(out["tracking.uri"])
+        out["tracking.uri"] = mask_password(out["tracking.uri"])
     return out

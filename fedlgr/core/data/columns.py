@@ -5,6 +5,7 @@ descriptors normalised to 0..1 and the 8 Likert labels (1..5). The names below a
 dataset's own, typos included (``3d closest human facing robot?``).
 """
 
+CSV_NAME = "all_data.csv"  # the ratings file of a dataset folder
 STAMP = "Stamp"
 USING_CIRCLE = "Using circle"
 USING_ARROW = "Using arrow"

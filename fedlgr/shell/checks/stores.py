@@ -19,7 +19,8 @@ import urllib.error
 import urllib.parse
 import urllib.request
 
-from fedlgr.errors import FedlgrError, not_a_file
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.tracking.uri import (
     authority_end,
     given_uri,

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import argparse
 
+from fedlgr.shell.checks.paths import check_data_path
 from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import find_config, load_config, to_yaml
-from fedlgr.shell.data.config import check_data_path
 from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.tracking.mlflow_run import tracking_uri
 

@@ -27,30 +27,6 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fedlgr"
 
 
-def check_data_path(path: Path | str) -> None:
-    """``data.path`` must be a folder: said at once (a run checks it before importing
-    torch) rather than as a missing ratings CSV inside a folder that is not there."""
-    from fedlgr.errors import DataError, not_a_folder
-    from fedlgr.shell.data.ratings import CSV_NAME
-
-    path = Path(path)
-    if path.is_file():  # the CSV would be read and then the images looked for under it
-        hint = f"; here data.path={path.parent}" if path.name == CSV_NAME else ""
-        raise DataError(
-            f"data.path={path} is a file; expected the dataset folder (the one holding "
-            f"{CSV_NAME} and images/{hint})"
-        )
-    # a link was "no such folder" (the eighth fault sweep, u48); a FIFO or /dev/null, after
-    # 15 s, "file not found (expected the MANNERS-DB ratings CSV)" (the ninth, c41, c42)
-    if why := not_a_folder(path):
-        raise DataError(f"data.path={path}: {why}")
-    if not path.exists():
-        raise DataError(
-            f"data.path={path}: no such folder (give the dataset folder, the one holding "
-            "the ratings CSV and images/; fedlgr data synth --out FOLDER writes one)"
-        )
-
-
 def cache_dir_setting(cache_dir: Path) -> str:
     """The name of the setting that chose ``cache_dir``, for error messages."""
     from_env = os.environ.get("FEDLGR_CACHE_DIR")

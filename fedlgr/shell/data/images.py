@@ -215,7 +215,7 @@ def _check_cache_dir(cache_dir: Path) -> None:
     """Refuse a cache folder that is, or lies under, a file (before decoding, not after),
     a device or pipe, or a link that loops or leads nowhere (the cache was not written,
     with a warning after decoding: the tenth fault sweep)."""
-    from fedlgr.errors import broken_link
+    from fedlgr.shell.checks.paths import broken_link
 
     if why := broken_link(cache_dir):
         setting = cache_dir_setting(cache_dir)

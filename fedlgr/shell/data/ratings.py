@@ -17,6 +17,7 @@ import numpy as np
 
 from fedlgr.core.data.columns import (
     ALL_COLUMNS,
+    CSV_NAME,
     DESCRIPTOR_COLUMNS,
     FEATURE_COLUMNS,
     LABEL_COLUMNS,
@@ -27,7 +28,6 @@ from fedlgr.core.data.columns import (
 )
 from fedlgr.errors import DataError, join_problems
 
-CSV_NAME = "all_data.csv"
 _VALUE_COLUMNS = (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS, *LABEL_COLUMNS)
 
 # MANNERS-DB normalises its descriptors to 0..1, and even raw counts and distances stay in

@@ -32,7 +32,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from fedlgr.errors import FedlgrError, not_a_folder
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.paths import not_a_folder
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fedlgr.errors import broken_link
+from fedlgr.shell.checks.paths import broken_link
 from fedlgr.shell.report.runs import ReportError, RunRecord
 from fedlgr.shell.tracking.uri import mask_password
 

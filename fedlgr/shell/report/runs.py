@@ -23,7 +23,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError, not_a_file
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.paths import not_a_file
 
 KIND = "fedlgr.kind"
 NOT_EXPERIMENTS = ("report", "sweep")

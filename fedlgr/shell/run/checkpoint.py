@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedlgr.errors import FedlgrError, not_a_folder
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.paths import not_a_folder
 from fedlgr.shell.config import ExperimentConfig, flatten
 
 FORMAT = 2  # 2: a round's rows name their columns (keys) and participants

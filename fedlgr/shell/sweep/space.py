@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import ConfigError, not_a_file
+from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.config import CONF_DIR
 
 CONFIG_KEY = "config"  # the space key that chooses the base config file

@@ -35,7 +35,8 @@ from typing import Any
 
 import yaml
 
-from fedlgr.errors import ConfigError, not_a_file
+from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.config import SETTING_NAME, SWEEPS_DIR, check_interpolations, yaml_reason
 from fedlgr.shell.sweep.checks import check_trial_configs, tracking_experiment
 from fedlgr.shell.sweep.space import Param, SweepSpec, resolve_config

@@ -18,7 +18,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError, exception_chain, not_a_file
+from fedlgr.errors import FedlgrError, exception_chain
+from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.checks.stores import CONNECT_TIMEOUT_S, check_database
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.tracking.store import StoreError, open_lock_file, store_lock

@@ -10,7 +10,8 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from fedlgr.errors import FedlgrError, not_a_file, not_a_folder
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.parser import Verbs
 
 

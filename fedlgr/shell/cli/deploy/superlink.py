@@ -9,7 +9,8 @@ import shlex
 import sys
 from pathlib import Path
 
-from fedlgr.errors import FedlgrError, not_a_file, not_a_folder
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import (
     absolute,

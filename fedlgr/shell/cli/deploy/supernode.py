@@ -7,7 +7,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fedlgr.errors import ConfigError, FedlgrError, not_a_file, not_a_folder
+from fedlgr.errors import ConfigError, FedlgrError
+from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import (
     absolute,

@@ -1,0 +1,115 @@
+"""Path checks: what is at a path a user gave - a link that loops or leads nowhere, a
+folder, a device, a pipe or a socket where a file goes, a file where a folder goes - said
+in words before anything opens the path or makes something beside it (pathlib's
+``exists()`` says False for a dangling link, and an error that then says "does not exist"
+or "File exists" names the wrong reason)."""
+
+from __future__ import annotations
+
+import errno
+import os
+import stat
+from pathlib import Path
+
+from fedlgr.core.data.columns import CSV_NAME
+from fedlgr.errors import DataError
+
+
+def broken_link(path) -> str | None:
+    """Why ``path`` leads nowhere though a symbolic link names it, in words - "a symbolic
+    link that loops" (on the way to it, too) or "a symbolic link to TARGET, which does not
+    exist" - or None. pathlib's ``exists()``/``is_file()`` say False for both, and an
+    error that then says "does not exist" or "cannot make it" names the wrong reason."""
+    import os
+
+    try:
+        os.stat(path)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            return "a symbolic link that loops"
+        if os.path.islink(path):
+            return f"a symbolic link to {os.readlink(path)}, which does not exist"
+        if err.errno == errno.ENOENT:  # a folder above it may be one (the tenth sweep, d24)
+            return _above(path, links_only=True)
+    return None
+
+
+def _above(path, links_only: bool = False) -> str | None:
+    """Why the nearest thing above ``path`` that is there cannot hold it: "under DIR, a
+    symbolic link to TARGET, which does not exist" (``mkdir(parents=True)`` said "File
+    exists", or followed it and made TARGET) or, unless ``links_only``, "under FILE, a file,
+    not a folder"; None when it is a folder."""
+
+    for parent in Path(path).parents:
+        if not os.path.lexists(parent):
+            continue
+        if os.path.isdir(parent):
+            return None
+        if os.path.islink(parent) and not os.path.exists(parent):
+            return f"under {parent}, a symbolic link to {os.readlink(parent)}, which does not exist"
+        if links_only:
+            return None
+        kind = "a file" if os.path.isfile(parent) else "a device, pipe or socket"
+        return f"under {parent}, {kind}, not a folder"
+    return None
+
+
+def _mode(path) -> tuple[str | None, int | None]:
+    """``(why, None)`` where ``path`` leads nowhere (:func:`broken_link`) or something above
+    it is in the way (:func:`_above`; ``why`` None when simply nothing is there), else
+    ``(None, its mode)``: what :func:`not_a_file` and :func:`not_a_folder` start from."""
+
+    if why := broken_link(path):
+        return why, None
+    try:
+        return None, os.stat(path).st_mode
+    except OSError:
+        return _above(path), None
+
+
+def not_a_file(path) -> str | None:
+    """Why ``path`` cannot be read or written as a regular file though something is there:
+    a broken link (:func:`broken_link`), "a folder", or "not a regular file (a device, pipe
+    or socket)" - which sqlite or ``open()`` would block on (a FIFO), read as empty
+    (/dev/null) or write beside (``/dev/null-journal``, the ninth fault sweep's c06-c17) -
+    or None for a regular file or nothing there."""
+
+    why, mode = _mode(path)
+    if mode is None or stat.S_ISREG(mode):
+        return why
+    return "a folder" if stat.S_ISDIR(mode) else "not a regular file (a device, pipe or socket)"
+
+
+def not_a_folder(path) -> str | None:
+    """Why ``path`` cannot be (or be made) a folder: a broken link (:func:`broken_link`;
+    ``mkdir`` said only "File exists", or followed a dangling one and made its target), or a
+    file, device, pipe or socket already there; None for a folder or nothing there."""
+    import stat
+
+    why, mode = _mode(path)
+    if mode is None or stat.S_ISDIR(mode):
+        return why
+    kind = "a file" if stat.S_ISREG(mode) else "a device, pipe or socket"
+    there = f" ({os.path.realpath(path)})" if os.path.islink(path) else ""
+    return f"{kind}{there}, not a folder"
+
+
+def check_data_path(path: Path | str) -> None:
+    """``data.path`` must be a folder: said at once (a run checks it before importing
+    torch) rather than as a missing ratings CSV inside a folder that is not there."""
+    path = Path(path)
+    if path.is_file():  # the CSV would be read and then the images looked for under it
+        hint = f"; here data.path={path.parent}" if path.name == CSV_NAME else ""
+        raise DataError(
+            f"data.path={path} is a file; expected the dataset folder (the one holding "
+            f"{CSV_NAME} and images/{hint})"
+        )
+    # a link was "no such folder" (the eighth fault sweep, u48); a FIFO or /dev/null, after
+    # 15 s, "file not found (expected the MANNERS-DB ratings CSV)" (the ninth, c41, c42)
+    if why := not_a_folder(path):
+        raise DataError(f"data.path={path}: {why}")
+    if not path.exists():
+        raise DataError(
+            f"data.path={path}: no such folder (give the dataset folder, the one holding "
+            "the ratings CSV and images/; fedlgr data synth --out FOLDER writes one)"
+        )
