@@ -11,6 +11,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from fedlgr.core.data.augment import normalize
+from fedlgr.core.schedule import ALL
+
 
 @dataclass
 class EvalSet:
@@ -29,9 +32,6 @@ def eval_set(
     scenes, split, tasks: list[str], device, channels_last: bool, autocast=contextlib.nullcontext
 ) -> EvalSet:
     """The test scenes of ``split`` (tasks: ``["all"]`` in plain FL)."""
-    from fedlgr.core.data.augment import normalize
-    from fedlgr.core.schedule import ALL
-
     test = split.test
     inputs = scenes.inputs[torch.as_tensor(test)]
     if scenes.images is not None:

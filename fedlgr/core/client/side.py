@@ -21,6 +21,7 @@ import torch
 
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.client.pool import ClientPool, resolve
+from fedlgr.core.client.stacked import refuse_plugins, train_batched
 from fedlgr.core.client.training import Client, train_locally
 from fedlgr.core.continual import continual_plugins
 from fedlgr.core.data.augment import Augment, SceneBatches
@@ -109,8 +110,6 @@ class ClientSide:
                 Client(shard.client, model, optimizer, data, plugins, scaler=self._scaler())
             )
         if cfg.runtime.concurrency == "batched":
-            from fedlgr.core.client.stacked import refuse_plugins  # torch.func: when asked
-
             refuse_plugins(self.clients)  # before any run is started, not at round 1
             if any(c.scaler is not None for c in self.clients):
                 raise FedlgrError(
@@ -248,8 +247,6 @@ class ClientSide:
     def _train_batched(self, chosen: list[Client], ins, progress) -> list[TrainRes]:
         """The chosen clients as one stacked model (``runtime.concurrency=batched``). The
         one measured cost is shared out in proportion to the samples each client trained."""
-        from fedlgr.core.client.stacked import train_batched  # lazy: torch.func, when asked
-
         cfg = self.config
         ctxs = [
             self.context(c, ins[c.index].plan.round, ins[c.index].plan.task, ins[c.index].payload)

@@ -123,7 +123,7 @@ def nvml_available() -> bool:
     global _nvml_ready
     if _nvml_ready is None:
         try:
-            import pynvml
+            import pynvml  # lazy: NVML's bindings, asked once, where a GPU is measured
 
             pynvml.nvmlInit()
             _nvml_ready = True

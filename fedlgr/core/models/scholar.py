@@ -35,7 +35,7 @@ OFFLINE_ENV = "FEDLGR_OFFLINE"  # set to 1: never try to download weights
 
 def _imagenet_state_dict() -> dict[str, torch.Tensor]:
     """torchvision's IMAGENET1K_V1 MobileNetV2 weights, from the torch hub cache or the web."""
-    from torchvision.models import MobileNet_V2_Weights
+    from torchvision.models import MobileNet_V2_Weights  # lazy: torchvision, for images only
 
     weights = MobileNet_V2_Weights.IMAGENET1K_V1
     cached = Path(torch.hub.get_dir()) / "checkpoints" / Path(weights.url).name
@@ -92,7 +92,7 @@ class MobileNetRoot(L.LightningModule):
 
     def __init__(self, weights: str = "none", width: float = 1.0):
         super().__init__()
-        from torchvision.models import mobilenet_v2
+        from torchvision.models import mobilenet_v2  # lazy: torchvision, for images only
 
         net = mobilenet_v2(weights=None, width_mult=width)
         if weights == "imagenet":

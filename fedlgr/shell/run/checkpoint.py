@@ -58,9 +58,8 @@ def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
     """The folder that holds the runs' checkpoint folders (see the module docstring)."""
     if config.tracking.checkpoint_dir:
         given = Path(config.tracking.checkpoint_dir).expanduser()
-        # resolve() followed a dangling link and the run made its target; a link to
-        # /dev/null was "cannot make the checkpoint folder /dev/null (File exists)" (the
-        # ninth fault sweep, c118, c69)
+        # before resolve(), which follows a dangling link (the run would make its target)
+        # and turns a link to a device into a folder that cannot be made ("File exists")
         if why := not_a_folder(given):
             raise FedlgrError(f"tracking.checkpoint_dir={config.tracking.checkpoint_dir}: {why}")
         return given.resolve()
@@ -190,9 +189,8 @@ def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
 def remove(folder: Path, ours: bool = False) -> None:
     """Remove a run's checkpoint folder, and the folder of runs' folders if that is left
     empty and ``ours`` - fedlgr's own ``checkpoints/``, not a ``tracking.checkpoint_dir``
-    the user made (an empty one was removed, and a link to it left leading nowhere: the
-    tenth and eleventh fault sweeps, d190, d196, e92, e93): a finished run leaves nothing
-    of its own behind."""
+    the user made (removing that would leave a link to it leading nowhere): a finished run
+    leaves nothing of its own behind."""
     shutil.rmtree(folder, ignore_errors=True)
     if ours and folder.parent.name == ROOT:
         with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile

@@ -18,6 +18,7 @@ every node of the run can reach anyway.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import socket
@@ -45,8 +46,6 @@ def unusable(folder: Path, err: OSError) -> str:
 
 def check_folder(folder: Path) -> None:
     """Refuse, before a run starts, a checkpoint root that cannot be made or written."""
-    import errno
-
     try:
         folder.mkdir(parents=True, exist_ok=True)
         if not os.access(folder, os.W_OK | os.X_OK):
