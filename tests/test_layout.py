@@ -5,8 +5,11 @@ tests' own: no test module imports another or conftest (shared code is in tests/
 from __future__ import annotations
 
 import ast
+import io
+import re
 import subprocess
 import sys
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -88,6 +91,181 @@ def test_every_registered_method_loads_its_class():
     for method in CONTINUAL.values():
         if method.target is not None:
             assert issubclass(method.load(), ClientPlugin), method.key
+
+
+# --------------------------------------------------------------------------- the layers
+
+ROOT = PACKAGE.parent
+
+
+def test_the_import_contracts_hold():
+    """The layers of pyproject.toml's [tool.importlinter]: the shell calls the core, the
+    core never imports the shell (nor MLflow, Optuna, Flower); a robot's side and the
+    server's never import each other; sweeps, reports and robots stay apart."""
+    done = subprocess.run(
+        [str(Path(sys.executable).with_name("lint-imports")), "--no-cache"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert done.returncode == 0, done.stdout[-3000:]
+    assert "5 kept, 0 broken" in done.stdout, done.stdout[-3000:]
+
+
+def import_graph():
+    """fedlgr's modules and what each imports: every import grimp finds - inside
+    functions too - but those under ``if TYPE_CHECKING:``, which never run."""
+    import grimp
+    import networkx as nx
+
+    graph = grimp.build_graph("fedlgr", exclude_type_checking_imports=True, cache_dir=None)
+    edges = [
+        (module, imported)
+        for module in graph.modules
+        for imported in graph.find_modules_directly_imported_by(module)
+        if imported.startswith("fedlgr")
+    ]
+    return nx.DiGraph(edges)
+
+
+def test_no_import_cycle_among_fedlgr_s_modules():
+    """A cycle means a piece sits in the wrong module (or layer)."""
+    import networkx as nx
+
+    graph = import_graph()
+    assert graph.number_of_edges() > 300  # the whole package was read
+    cycles = [sorted(c) for c in nx.strongly_connected_components(graph) if len(c) > 1]
+    assert cycles == []
+
+
+def functions(path: Path):
+    """Every function (and method) of a module: ``(name, first line, lines)``."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            yield node.name, node.lineno, node.end_lineno - node.lineno + 1
+
+
+MAX_FUNCTION_LINES = 80
+
+
+def test_no_function_is_over_80_lines():
+    """A function longer than a screen is a sequence of steps that want names."""
+    long = [
+        f"{path.relative_to(ROOT)}:{line} {name} ({n} lines)"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for name, line, n in functions(path)
+        if n > MAX_FUNCTION_LINES
+    ]
+    assert long == []
+
+
+def imports_inside_functions(path: Path) -> list[tuple[int, bool]]:
+    """``(line, says why)`` for each import inside a function (not under TYPE_CHECKING):
+    it says why with a ``# lazy:`` comment on its line or above its block of imports."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    found = []
+
+    def visit(node, inside: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+                continue
+            if inside and isinstance(child, ast.Import | ast.ImportFrom):
+                found.append((child.lineno, _says_why(lines, child.lineno, child.end_lineno)))
+            visit(child, inside or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef))
+
+    visit(ast.parse("\n".join(lines)), False)
+    return found
+
+
+def _says_why(lines: list[str], first: int, last: int) -> bool:
+    if any("# lazy:" in lines[i - 1] for i in range(first, last + 1)):
+        return True
+    k = first - 2  # the lines above, while they are imports of the same block or comments
+    while k >= 0:
+        text = lines[k].strip()
+        if text.startswith("# lazy:"):
+            return True
+        if not (text.startswith(("import ", "from ", "#", ")")) or text.endswith(",")):
+            return False
+        k -= 1
+    return False
+
+
+def test_an_import_inside_a_function_says_why():
+    """Imports sit at the top of a module; one inside a function keeps ``fedlgr --help``
+    or a torch-free module fast, and says so (``# lazy: <why>``)."""
+    unexplained = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for line, why in imports_inside_functions(path)
+        if not why
+    ]
+    assert unexplained == []
+
+
+def test_the_import_checks_read_what_they_must():
+    source = (
+        "def f():\n"
+        "    # lazy: torch\n"
+        "    import torch\n"
+        "    from torch import nn\n"
+        "def g():\n"
+        "    import numpy\n"
+        "    x = 1\n"
+        "    import yaml  # lazy: yaml\n"
+    )
+    path = TESTS / "__pycache__" / "layout_probe.py"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(source)
+    try:
+        assert imports_inside_functions(path) == [(3, True), (4, True), (6, False), (8, True)]
+        assert [(name, n) for name, _, n in functions(path)] == [("f", 4), ("g", 4)]
+    finally:
+        path.unlink()
+
+
+# Words and case ids of fault-finding campaigns: "the ninth fault sweep", "(c113, c114)",
+# "d24-d74", "g03e". A comment says why in a plain sentence; the case lives in its test.
+CAMPAIGN = re.compile(
+    r"\bfault[ -]sweeps?\b|\b(?:first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth) sweep\b",
+    re.I,
+)
+CASE_IDS = re.compile(
+    r"\((?:[a-z]{1,2}\d{2,3}[a-z]?)(?:\s*(?:[,;-]|and)\s*[a-z]{0,2}\d{2,3}[a-z]?)*\)"
+)
+
+
+def prose(path: Path) -> list[tuple[int, str]]:
+    """The comments and docstrings of a module, by line."""
+    source = path.read_text(encoding="utf-8")
+    out = [
+        (token.start[0], token.string)
+        for token in tokenize.generate_tokens(io.StringIO(source).readline)
+        if token.type == tokenize.COMMENT
+    ]
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            doc = ast.get_docstring(node, clean=False)
+            if doc:
+                out.append((node.body[0].lineno, doc))
+    return out
+
+
+def test_no_comment_cites_a_fault_finding_campaign():
+    cited = [
+        f"{path.relative_to(ROOT)}:{line}: {text.strip()[:80]}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for line, text in prose(path)
+        if CAMPAIGN.search(text) or CASE_IDS.search(text)
+    ]
+    assert cited == []
+
+
+def test_the_campaign_patterns_find_what_they_must():
+    for text in ("(the ninth fault sweep, c06)", "the tenth sweep", "(c113, c114)", "(d24-d74)"):
+        assert CAMPAIGN.search(text) or CASE_IDS.search(text), text
+    for text in ("(2 clients)", "float64 (8,)", "(PCC 0.53)", "a 128 px image", "(x4)"):
+        assert not (CAMPAIGN.search(text) or CASE_IDS.search(text)), text
 
 
 # --------------------------------------------------------------------------- the tests' own

@@ -20,8 +20,6 @@ def broken_link(path) -> str | None:
     link that loops" (on the way to it, too) or "a symbolic link to TARGET, which does not
     exist" - or None. pathlib's ``exists()``/``is_file()`` say False for both, and an
     error that then says "does not exist" or "cannot make it" names the wrong reason."""
-    import os
-
     try:
         os.stat(path)
     except OSError as err:
@@ -84,8 +82,6 @@ def not_a_folder(path) -> str | None:
     """Why ``path`` cannot be (or be made) a folder: a broken link (:func:`broken_link`;
     ``mkdir`` said only "File exists", or followed a dangling one and made its target), or a
     file, device, pipe or socket already there; None for a folder or nothing there."""
-    import stat
-
     why, mode = _mode(path)
     if mode is None or stat.S_ISDIR(mode):
         return why
