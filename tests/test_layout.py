@@ -226,10 +226,8 @@ def test_the_import_checks_read_what_they_must():
 
 # Words and case ids of fault-finding campaigns: "the ninth fault sweep", "(c113, c114)",
 # "d24-d74", "g03e". A comment says why in a plain sentence; the case lives in its test.
-CAMPAIGN = re.compile(
-    r"\bfault[ -]sweeps?\b|\b(?:first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth) sweep\b",
-    re.I,
-)
+ORDINALS = "first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth"
+CAMPAIGN = re.compile(rf"\bfault[ -]sweeps?\b|\b(?:{ORDINALS}) sweep\b", re.I)
 CASE_IDS = re.compile(
     r"\((?:[a-z]{1,2}\d{2,3}[a-z]?)(?:\s*(?:[,;-]|and)\s*[a-z]{0,2}\d{2,3}[a-z]?)*\)"
 )
