@@ -82,21 +82,9 @@ def train_batched(
         epoch_batches = [enumerate(client.batches) for client in clients]
         active = list(range(len(clients)))
         while active:
-            groups: dict[tuple, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}
-            still = []
-            for k in active:
-                step, batch = next(epoch_batches[k], (None, None))
-                if batch is None or (max_batches is not None and step >= max_batches):
-                    continue  # the client's epoch is over
-                still.append(k)
-                x, y = batch
-                if len(x) < 2:  # BatchNorm cannot train on a single sample
-                    continue
-                if channels_last:
-                    x = x.contiguous(memory_format=torch.channels_last)
-                key = (stacks[k].signature, x.shape, x.dtype, x.device, y.shape, y.dtype)
-                groups.setdefault(key, []).append((k, x, y))
-            active = still
+            groups, active = _next_batches(
+                epoch_batches, active, stacks, max_batches, channels_last
+            )
             for key, group in groups.items():
                 members = [stacks[k] for k, _, _ in group]
                 xs = [x for _, x, _ in group]
@@ -114,6 +102,31 @@ def train_batched(
         round_stats(client, ctx, total, n)
         for client, ctx, total, n in zip(clients, ctxs, totals, seen, strict=True)
     ]
+
+
+Group = list[tuple[int, torch.Tensor, torch.Tensor]]  # (client's position, x, y)
+
+
+def _next_batches(
+    epoch_batches: list, active: list[int], stacks: list, max_batches, channels_last: bool
+) -> tuple[dict[tuple, Group], list[int]]:
+    """The next batch of each of the ``active`` clients, grouped by what can be stacked
+    (architecture, shapes, dtypes, device); the clients whose epoch goes on."""
+    groups: dict[tuple, Group] = {}
+    still = []
+    for k in active:
+        step, batch = next(epoch_batches[k], (None, None))
+        if batch is None or (max_batches is not None and step >= max_batches):
+            continue  # the client's epoch is over
+        still.append(k)
+        x, y = batch
+        if len(x) < 2:  # BatchNorm cannot train on a single sample
+            continue
+        if channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        key = (stacks[k].signature, x.shape, x.dtype, x.device, y.shape, y.dtype)
+        groups.setdefault(key, []).append((k, x, y))
+    return groups, still
 
 
 def refuse_plugins(clients: list[Client]) -> None:

@@ -74,23 +74,9 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
     """The run to resume (``resume``: its id, or True for the latest unfinished run of
     this config) and its newest checkpoint; dead RUNNING runs are marked KILLED, a live
     one is refused."""
-    uri = tracking_uri(config)
-    if resume is True:
-        run = _latest_unfinished(config, client, experiment_id(client, config.tracking.experiment))
-    else:
-        try:
-            run = client.get_run(str(resume))
-        except Exception:
-            raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
+    run = _the_run(config, resume, client)
     run_id = run.info.run_id
-    folder = checkpoint_folder(run, config)
-    for _ in range(3):  # a resume under way may move the run's checkpoints meanwhile
-        if folder.is_dir():
-            break
-        run = client.get_run(run_id)
-        if (moved := checkpoint_folder(run, config)) == folder:
-            break
-        folder = moved
+    run, folder = _where_its_checkpoints_are(run, config, client)
     if run.info.status == "FINISHED":
         raise FedlgrError(
             f"--resume: run {run_id} has finished; there is nothing to resume"
@@ -106,20 +92,7 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
         )
     owner.claim(folder, run_id)  # from here on no other process can resume it too
     try:
-        run = client.get_run(run_id)  # as it is now that we own it: its last owner has ended
-        if run.info.status == "FINISHED":
-            raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
-        if run.info.status == "RUNNING":
-            reason = dead_reason(run)
-            if reason is None:
-                tags = run.data.tags
-                raise FedlgrError(
-                    f"--resume: run {run_id} is still running (process "
-                    f"{tags.get('fedlgr.pid')} on {tags.get('fedlgr.host')}); stop it first, "
-                    "or wait until it ends"
-                )
-            client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
-            client.set_terminated(run_id, "KILLED")
+        _end_if_dead(client.get_run(run_id), client)  # now that we own it: its owner has ended
         found = ckpt.checkpoints(folder)
         if not found:
             raise FedlgrError(f"--resume: run {run_id}'s checkpoints in {folder} are gone")
@@ -127,6 +100,50 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
         owner.release(folder)
         raise
     return run_id, found[-1]
+
+
+def _the_run(config: ExperimentConfig, resume: str | bool, client):
+    """The MLflow run ``resume`` names: its id, or True for the latest unfinished run."""
+    if resume is True:
+        return _latest_unfinished(config, client, experiment_id(client, config.tracking.experiment))
+    try:
+        return client.get_run(str(resume))
+    except Exception:
+        uri = tracking_uri(config)
+        raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
+
+
+def _where_its_checkpoints_are(run, config: ExperimentConfig, client) -> tuple[Any, Path]:
+    """The run as it is now and its checkpoint folder: a resume under way elsewhere may
+    move the run's checkpoints meanwhile."""
+    folder = checkpoint_folder(run, config)
+    for _ in range(3):
+        if folder.is_dir():
+            break
+        run = client.get_run(run.info.run_id)
+        if (moved := checkpoint_folder(run, config)) == folder:
+            break
+        folder = moved
+    return run, folder
+
+
+def _end_if_dead(run, client) -> None:
+    """Refuse a finished run or a live one; mark a dead RUNNING run KILLED."""
+    run_id = run.info.run_id
+    if run.info.status == "FINISHED":
+        raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
+    if run.info.status != "RUNNING":
+        return
+    reason = dead_reason(run)
+    if reason is None:
+        tags = run.data.tags
+        raise FedlgrError(
+            f"--resume: run {run_id} is still running (process "
+            f"{tags.get('fedlgr.pid')} on {tags.get('fedlgr.host')}); stop it first, "
+            "or wait until it ends"
+        )
+    client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
+    client.set_terminated(run_id, "KILLED")
 
 
 def remove_leftover(folder: Path, run_id: str) -> str:

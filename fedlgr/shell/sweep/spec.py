@@ -314,13 +314,23 @@ def _param(name: str, value: Any, fail: Fail) -> Param:
     if not isinstance(value, dict):
         raise fail(key, f"expected a list (grid) or {{low, high}} / {{choices}}, not {value!r}")
     if "choices" in value:
-        extra = sorted(set(value) - {"choices"})
-        if extra:
-            raise fail(key, f"unknown setting(s) {extra} next to choices (a list of values)")
-        choices = value["choices"]
-        if not isinstance(choices, list):
-            raise fail(key, f"choices: expected a list of values, not {choices!r}")
-        return Param(name, values=_values(choices, key, "choices", fail), categorical=True)
+        return _choices(name, value, key, fail)
+    return _range(name, value, key, fail)
+
+
+def _choices(name: str, value: dict, key: str, fail: Fail) -> Param:
+    """``{choices: [...]}``: categorical values."""
+    extra = sorted(set(value) - {"choices"})
+    if extra:
+        raise fail(key, f"unknown setting(s) {extra} next to choices (a list of values)")
+    choices = value["choices"]
+    if not isinstance(choices, list):
+        raise fail(key, f"choices: expected a list of values, not {choices!r}")
+    return Param(name, values=_values(choices, key, "choices", fail), categorical=True)
+
+
+def _range(name: str, value: dict, key: str, fail: Fail) -> Param:
+    """``{low, high, log?, step?}``: a numeric range, as Optuna draws from it."""
     extra = sorted(set(value) - {"low", "high", "log", "step"})
     if extra:
         raise fail(key, f"unknown range setting(s) {extra}; use low, high, log, step")
@@ -339,19 +349,23 @@ def _param(name: str, value: Any, fail: Fail) -> Param:
     if log and low <= 0:
         raise fail(key, "a log range needs low > 0")
     if step is not None:
-        number = not isinstance(step, bool) and isinstance(step, int | float)
-        if not number or not math.isfinite(step) or step <= 0:
-            raise fail(key, f"step must be a number above 0, not {step!r}")
-        if log:
-            raise fail(key, "step and log: true cannot go together (Optuna draws either)")
-        if step > high - low:
-            raise fail(key, f"step ({step}) is larger than the range ({low} to {high})")
+        _check_step(step, low, high, log, key, fail)
     param = Param(name, low=low, high=high, log=log, step=step)
     try:
         param.distribution()  # anything else Optuna refuses
     except ValueError as err:
         raise fail(key, str(err).splitlines()[0]) from err
     return param
+
+
+def _check_step(step: Any, low: float, high: float, log: bool, key: str, fail: Fail) -> None:
+    number = not isinstance(step, bool) and isinstance(step, int | float)
+    if not number or not math.isfinite(step) or step <= 0:
+        raise fail(key, f"step must be a number above 0, not {step!r}")
+    if log:
+        raise fail(key, "step and log: true cannot go together (Optuna draws either)")
+    if step > high - low:
+        raise fail(key, f"step ({step}) is larger than the range ({low} to {high})")
 
 
 def _values(values: list[Any], key: str, what: str, fail: Fail) -> tuple[Any, ...]:
