@@ -25,6 +25,8 @@ from typing import Any
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.paths import not_a_file
+from fedlgr.shell.tracking.liveness import end_dead_runs
+from fedlgr.shell.tracking.store import open_client
 
 KIND = "fedlgr.kind"
 NOT_EXPERIMENTS = ("report", "sweep")
@@ -127,15 +129,13 @@ class Study:
 def open_store(uri: str):
     """An MlflowClient for ``uri``; a sqlite file that does not exist is an error (MLflow
     would quietly create an empty store)."""
-    from fedlgr.shell.tracking.mlflow_run import open_client
-
     if uri.startswith("sqlite:///"):
         path = Path(uri.removeprefix("sqlite:///"))
         if not path.is_file():
-            why = not_a_file(path)  # a loop, a FIFO were said not to exist (a78, c11-c13)
+            why = not_a_file(path)  # a link loop or a FIFO is named, not called missing
             what = f"is {why}" if why else "does not exist"
             raise ReportError(f"no MLflow store at {uri}: {path} {what}")
-        if path.stat().st_size == 0:  # MLflow would write its schema into it (p01)
+        if path.stat().st_size == 0:  # MLflow would write its schema into it
             raise ReportError(f"no MLflow store at {uri}: {path} is an empty file")
     return open_client(uri)
 
@@ -168,8 +168,6 @@ def select_runs(
         ids = [found.experiment_id]
     else:
         ids = [e.experiment_id for e in _pages(client.search_experiments)]
-    from fedlgr.shell.tracking.mlflow_run import end_dead_runs
-
     end_dead_runs(client, ids)  # runs killed outright: KILLED, not "still running"
     where = dict(where or {})
     filters = {**{k: v for k, v in (("dataset", dataset), ("modality", modality)) if v}, **where}
@@ -335,7 +333,7 @@ def _pages(search, *args) -> list:
 def _remove_leftover_checkpoints(runs) -> None:
     """A finished run killed before it removed its checkpoint folder left it behind:
     removed, with a line (nothing resumes a finished run)."""
-    from fedlgr.shell.run.resume import remove_leftover
+    from fedlgr.shell.run.resume import remove_leftover  # lazy: torch, via its checkpoints
 
     for run in runs:
         folder = run.data.tags.get("fedlgr.checkpoints")

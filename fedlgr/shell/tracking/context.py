@@ -26,6 +26,7 @@ machine's load while it ran.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import warnings
@@ -33,7 +34,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from fedlgr.core.data.columns import CSV_NAME
 from fedlgr.shell.config import ExperimentConfig, flatten, short_setting
+from fedlgr.shell.tracking.store import store_lock
 
 # Paths that belong to this machine, not to the experiment.
 LOCAL_PATHS = frozenset({"data.path", "data.cache_dir", "tracking.uri", "tracking.checkpoint_dir"})
@@ -70,6 +73,7 @@ def run_tags(tags: Mapping[str, str]) -> dict[str, str]:
     the commit of the checkout that holds the command (``sys.argv[0]``), and none when the
     command is git-ignored, as ``.venv/bin/fedlgr`` is: then the commit (branch, remote) is
     that of the checkout fedlgr's own code runs from, if any."""
+    # lazy: mlflow (seconds), only once a run is created
     from mlflow.tracking.context.registry import resolve_tags
     from mlflow.utils import git_utils
     from mlflow.utils.mlflow_tags import MLFLOW_GIT_BRANCH, MLFLOW_GIT_COMMIT, MLFLOW_GIT_REPO_URL
@@ -102,10 +106,6 @@ def data_digest(config: ExperimentConfig) -> str:
     data is not on this machine (a Flower server). Recorded in the run's checkpoints and
     tag ``fedlgr.data_digest``: ``--resume`` on other data is refused. (MLflow's dataset
     digest covers the ratings table only, not the images.)"""
-    import hashlib
-
-    from fedlgr.shell.data.ratings import CSV_NAME
-
     folder = Path(config.data.path).expanduser().resolve()
     table = folder / CSV_NAME
     if not table.is_file():
@@ -122,12 +122,13 @@ def data_digest(config: ExperimentConfig) -> str:
 
 def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> None:
     """Record the scenes table of ``data.path`` as the run's dataset input."""
+    # lazy: mlflow and pandas (seconds), only once a run is created
     import mlflow.data
     import pandas as pd
     from mlflow.data.dataset_source_registry import get_dataset_source_from_json
     from mlflow.entities import DatasetInput, InputTag
 
-    from fedlgr.shell.data.ratings import CSV_NAME, read_ratings
+    from fedlgr.shell.data.ratings import read_ratings  # lazy: imports numpy at its top
 
     folder = Path(config.data.path).expanduser().resolve()
     if not (folder / CSV_NAME).is_file():  # e.g. a Flower server: the data is on the robots
@@ -146,8 +147,6 @@ def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> Non
         InputTag("mlflow.data.context", "training"),
         InputTag("modality", config.data.modality),
     ]
-    from fedlgr.shell.tracking.store import store_lock
-
     # MLflow's sqlite store looks the dataset up, then inserts it: two runs starting at once
     # on one store both inserted it, and one died on the UNIQUE constraint. One at a time.
     with store_lock(client.tracking_uri):
@@ -184,6 +183,7 @@ class SystemMetrics:
     last sample. ``resume``: go on from the run's last system-metrics step."""
 
     def __init__(self, run_id: str, uri: str, interval: float, resume: bool = False):
+        # lazy: mlflow (seconds), only once a run starts
         from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
 
         # It announces its start and stop at INFO on every run: not news. A failed write

@@ -1,4 +1,4 @@
-"""One MLflow run per experiment run (rank 0 only).
+"""One MLflow run per experiment run (rank 0 only): :class:`Tracker`.
 
 Default store: MLflow 3's sqlite file ``mlflow.db`` in the working directory with
 artifacts under ``mlruns/`` (the plain file store is refused by MLflow 3);
@@ -18,16 +18,21 @@ A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``) and a heartb
 (``fedlgr.heartbeat``, seconds since the epoch, refreshed every ``tracking.heartbeat_s``
 by a background thread and at every round), so that ``--resume``, ``fedlgr report`` and
 sweeps tell a run whose process was killed outright (SIGKILL, a lost machine) from a live
-one, and mark it KILLED (:func:`end_dead_runs`). ``Tracker.resume`` reopens a run: status
-RUNNING again, and nothing logged twice (rounds already logged are skipped).
+one, and mark it KILLED (:mod:`fedlgr.shell.tracking.liveness`). ``Tracker.resume``
+reopens a run: status RUNNING again, and nothing logged twice (rounds already logged are
+skipped).
+
+The store itself is opened by :mod:`fedlgr.shell.tracking.store` and the experiment found
+or made by :mod:`fedlgr.shell.tracking.experiments`; the names other modules import from
+here are listed in ``__all__``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import functools
 import io
-import logging
 import os
 import re
 import socket
@@ -38,129 +43,39 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from fedlgr.core.data.columns import LABEL_SHORT_NAMES
 from fedlgr.core.metrics import HEADLINE
-from fedlgr.errors import FedlgrError, interrupt_in
-from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable
+from fedlgr.errors import interrupt_in
 from fedlgr.shell.config import ExperimentConfig, to_yaml
+from fedlgr.shell.signals import deferred
 from fedlgr.shell.tracking import context
-from fedlgr.shell.tracking.store import StoreError, store_lock
+from fedlgr.shell.tracking.experiments import experiment_id
+from fedlgr.shell.tracking.liveness import (
+    dead_reason,
+    end_dead_runs,
+    process_alive,
+    process_started,
+)
+from fedlgr.shell.tracking.store import open_client, store_errors, store_lock
 from fedlgr.shell.tracking.uri import resolve_uri
+
+__all__ = [
+    "SENTINEL",
+    "Tracker",
+    "dead_reason",
+    "end_dead_runs",
+    "experiment_id",
+    "headline_first",
+    "open_client",
+    "process_alive",
+    "process_started",
+    "store_errors",
+    "tracking_uri",
+]
 
 
 def tracking_uri(config: ExperimentConfig) -> str:
     return resolve_uri(config.tracking.uri)
-
-
-# MLflow 3's UI shows an experiment of this kind on its runs table ("Model training"),
-# not on its GenAI traces.
-KIND = {"mlflow.experimentKind": "custom_model_development"}
-
-
-def experiment_id(client, name: str) -> str:
-    """The id of MLflow experiment ``name``, created if it does not exist yet (by this
-    process or, at the same moment, by another one)."""
-    from fedlgr.shell.tracking.views import TAG
-
-    check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
-    experiment = client.get_experiment_by_name(name)
-    if experiment is None:
-        try:
-            made = _create_experiment(client, name)
-        except Exception:
-            experiment = client.get_experiment_by_name(name)  # another process created it
-            if experiment is None:
-                raise
-        else:
-            _share_view(client, made)  # what the printed link opens
-            return made
-    for key, value in KIND.items():
-        if key not in experiment.tags:  # made by an older fedlgr or by hand
-            client.set_experiment_tag(experiment.experiment_id, key, value)
-    if TAG not in experiment.tags:
-        _share_view(client, experiment.experiment_id)
-    return experiment.experiment_id
-
-
-def _share_view(client, experiment_id: str) -> None:
-    """:func:`~fedlgr.shell.tracking.views.share_view`, again if it fails: a process that opened
-    the new experiment at the same moment (a sweep's worker on another machine, through an
-    MLflow server on PostgreSQL) may have written the tag in between, and MLflow's SQL
-    store then inserts a tag that is there (a duplicate key); the second write updates it."""
-    from fedlgr.shell.tracking.views import share_view
-
-    try:
-        share_view(client, experiment_id)
-    except Exception:
-        share_view(client, experiment_id)
-
-
-def artifact_root(uri: str) -> Path | None:
-    """Where the artifacts of a local sqlite store's experiments go: ``mlruns/`` next to
-    its database file. (MLflow's own default is ``./mlruns`` of the working folder at the
-    moment the experiment is created, so a store elsewhere had its artifacts scattered
-    over whatever folders its runs were started from.) None for other stores: a server
-    decides for itself."""
-    if not uri.startswith("sqlite:///"):
-        return None
-    database = uri.removeprefix("sqlite:///").split("?", 1)[0]
-    if not database or database == ":memory:":
-        return None
-    return Path(database).expanduser().resolve().parent / "mlruns"
-
-
-def _create_experiment(client, name: str) -> str:
-    """A new experiment; in a local sqlite store its artifacts under
-    :func:`artifact_root` / its id (MLflow's layout, rooted at the database)."""
-    root = artifact_root(client.tracking_uri)
-    if root is None:
-        return client.create_experiment(name, tags=KIND)
-    from mlflow.entities import ExperimentTag
-    from mlflow.tracking._tracking_service.utils import _get_store
-
-    # The store MLflow builds for this URI with ``root`` as its default artifact root
-    # (what ``mlflow server --default-artifact-root`` does): the experiment's id is only
-    # known once created, and its artifact location is derived from it in that step.
-    store = _get_store(client.tracking_uri, str(root))
-    return store.create_experiment(name, tags=[ExperimentTag(k, v) for k, v in KIND.items()])
-
-
-def open_client(uri: str):
-    """An ``MlflowClient`` on ``uri`` whose store is created and migrated (under
-    :func:`store_lock`)."""
-    import mlflow
-
-    check_reachable(uri)
-    # MLflow logs a failed store write (with its SQL and two stack traces) before raising
-    # it; fedlgr's StoreError names the store and the cause in one line: only that is shown.
-    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
-    with store_lock(uri):  # the client's construction creates and migrates the store
-        if uri.startswith("sqlite:///"):
-            check_sqlite_usable(uri)  # after the lock: a migration under way is not a fault
-            create_whole(uri)
-        client = mlflow.MlflowClient(uri)
-        client.search_experiments(max_results=1)
-    return client
-
-
-def create_whole(uri: str) -> None:
-    """Create a new sqlite store under a temporary name beside it and rename it into place
-    once MLflow has made its whole schema: a kill during the creation (seconds) left a
-    half-made store no later run could use (the seventh fault sweep, g03e). Called under
-    :func:`store_lock`, so a temporary file found is one a kill left behind."""
-    import mlflow
-
-    from fedlgr.shell.tracking.uri import sqlite_path
-
-    path = sqlite_path(uri)
-    if str(path) == ":memory:" or path.exists():
-        return
-    making = path.with_name(f".{path.name}.creating")
-    making.unlink(missing_ok=True)
-    query = uri.partition("?")[2]
-    mlflow.MlflowClient(f"sqlite:///{making}" + (f"?{query}" if query else "")).search_experiments(
-        max_results=1
-    )
-    os.replace(making, path)
 
 
 def dataset_name(config: ExperimentConfig) -> str:
@@ -168,42 +83,9 @@ def dataset_name(config: ExperimentConfig) -> str:
     return "synthetic" if (path / "synth.json").is_file() else path.name
 
 
-def _cause(err: BaseException) -> str:
-    """The innermost reason, one line (an MLflow error wraps SQLAlchemy's wrapping
-    sqlite's: "database or disk is full")."""
-    while getattr(err, "orig", None) is not None or err.__cause__ is not None:
-        err = getattr(err, "orig", None) or err.__cause__
-    text = str(err).strip()
-    return (text.splitlines()[0] if text else type(err).__name__)[:300]
-
-
-@contextlib.contextmanager
-def store_errors(uri: str, what: str):
-    """An error of the store inside the block, as one line naming the store and what
-    was being done (the CLI prints it without a stack trace)."""
-    try:
-        yield
-    except FedlgrError:
-        raise
-    except Exception as err:
-        from fedlgr.shell.tracking.uri import mask_password, masked_text
-
-        problem = masked_text(_cause(err), uri)
-        if problem == "database is locked":
-            problem += (
-                " (another process holds the sqlite file: one stopped with Ctrl-Z or "
-                "kill -STOP? `kill -CONT PID` lets it go on)"
-            )
-        raise StoreError(f"MLflow store {mask_password(uri)}: could not {what}: {problem}") from err
-
-
 def _uncut(method):
     """A store write that Ctrl-C / SIGTERM does not cut in half (see fedlgr.shell.signals), its
-    failure one line (:func:`store_errors`)."""
-    import functools
-
-    from fedlgr.shell.signals import deferred
-
+    failure one line (:func:`~fedlgr.shell.tracking.store.store_errors`)."""
     what = method.__name__.strip("_").replace("_", " ")
 
     @functools.wraps(method)
@@ -225,8 +107,6 @@ _CLIENT = re.compile(r"(^|/)client\d+(/|$)")
 def is_detail(key: str) -> bool:
     """A per-client (``test/client0/rmse``) or per-action (``test/rmse/vacuum``) metric:
     logged to MLflow only with ``tracking.detail_metrics`` (results.csv always has them)."""
-    from fedlgr.core.data.columns import LABEL_SHORT_NAMES
-
     return bool(_CLIENT.search(key)) or key.rsplit("/", 1)[-1] in LABEL_SHORT_NAMES
 
 
@@ -263,8 +143,7 @@ class Tracker:
                 self._start(config, tags, parent_run_id, run_id, digest)
             except BaseException as err:
                 if self.run_id is not None:  # created, then a write failed: not left RUNNING
-                    # an interrupt is KILLED, as later in the run (was FAILED: the tenth
-                    # fault sweep, d07, d155: a sweep's trial stopped 0.1 s in)
+                    # an interrupt ends it KILLED, as later in the run: stopped, not broken
                     status = "KILLED" if interrupt_in(err) else "FAILED"
                     with contextlib.suppress(Exception):
                         if hasattr(self, "_beat"):
@@ -273,8 +152,6 @@ class Tracker:
                 raise
 
     def _start(self, config, tags, parent_run_id, run_id, digest) -> None:
-        from fedlgr.shell.run.checkpoint import fingerprint
-
         self.client = open_client(self.uri)
         with store_lock(self.uri):
             self.experiment_id = experiment_id(self.client, config.tracking.experiment)
@@ -286,41 +163,47 @@ class Tracker:
             for key, value in (tags or {}).items():  # e.g. a sweep's new trial number
                 self.client.set_tag(self.run_id, key, value)
         else:
-            run_tags = {
-                "method": config.method_name,
-                "strategy": config.federated.strategy,
-                "scope": config.federated.scope,
-                "dataset": dataset_name(config),
-                "modality": config.data.modality,
-                "clients": str(config.data.clients),
-                "augmentation": str(config.data.augment).lower(),
-                "benchmark": "FCL" if config.continual_learning else "FL",
-                "continual": config.continual.method if config.continual_learning else "none",
-                "fedlgr.config_hash": fingerprint(config),
-                "runtime": "fabric",  # where the clients ran (fedlgr deploy: flower)
-                **({"fedlgr.data_digest": digest} if digest else {}),  # --resume checks it
-                **(tags or {}),
-            }
-            if parent_run_id:
-                run_tags["mlflow.parentRunId"] = parent_run_id
-            run = self.client.create_run(
-                self.experiment_id,
-                run_name=context.run_name(config),
-                tags=context.run_tags(run_tags),
-            )
-            self.run_id = run.info.run_id
-            from mlflow.entities import Param
-
-            items = [Param(k, v[:6000]) for k, v in context.run_params(config).items()]
-            for i in range(0, len(items), 100):  # the REST API takes 100 params per batch
-                self.client.log_batch(self.run_id, params=items[i : i + 100])
-            self._log_bytes(to_yaml(config).encode(), "config.yaml")
-            context.log_dataset(self.client, self.run_id, config, run_tags["dataset"])
+            self._create(config, tags, parent_run_id, digest)
         self._start_heartbeat()
         if config.tracking.system_metrics:
             interval = config.tracking.system_metrics_s
             resumed = run_id is not None
             self.system_metrics = context.SystemMetrics(self.run_id, self.uri, interval, resumed)
+
+    def _create(self, config, tags, parent_run_id, digest) -> None:
+        """A new run: its tags, params, ``config.yaml`` and dataset input."""
+        from mlflow.entities import Param  # lazy: mlflow (seconds), only once a run starts
+
+        from fedlgr.shell.run.checkpoint import fingerprint  # lazy: imports torch at its top
+
+        run_tags = {
+            "method": config.method_name,
+            "strategy": config.federated.strategy,
+            "scope": config.federated.scope,
+            "dataset": dataset_name(config),
+            "modality": config.data.modality,
+            "clients": str(config.data.clients),
+            "augmentation": str(config.data.augment).lower(),
+            "benchmark": "FCL" if config.continual_learning else "FL",
+            "continual": config.continual.method if config.continual_learning else "none",
+            "fedlgr.config_hash": fingerprint(config),
+            "runtime": "fabric",  # where the clients ran (fedlgr deploy: flower)
+            **({"fedlgr.data_digest": digest} if digest else {}),  # --resume checks it
+            **(tags or {}),
+        }
+        if parent_run_id:
+            run_tags["mlflow.parentRunId"] = parent_run_id
+        run = self.client.create_run(
+            self.experiment_id,
+            run_name=context.run_name(config),
+            tags=context.run_tags(run_tags),
+        )
+        self.run_id = run.info.run_id
+        items = [Param(k, v[:6000]) for k, v in context.run_params(config).items()]
+        for i in range(0, len(items), 100):  # the REST API takes 100 params per batch
+            self.client.log_batch(self.run_id, params=items[i : i + 100])
+        self._log_bytes(to_yaml(config).encode(), "config.yaml")
+        context.log_dataset(self.client, self.run_id, config, run_tags["dataset"])
 
     def _reopen(self) -> None:
         """Resume: RUNNING again; find what is already logged, so it is not logged twice."""
@@ -369,7 +252,7 @@ class Tracker:
     def log_round(self, round_: int, metrics: dict[str, float]) -> None:
         """Log a round's metrics at ``step=round``, the sentinel last; a round a resumed run
         had already logged is skipped (its values are the same: the run is deterministic)."""
-        from mlflow.entities import Metric
+        from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
 
         if round_ in self.done:
             return
@@ -387,7 +270,7 @@ class Tracker:
     def log_initial(self, metrics: dict[str, float]) -> None:
         """Figures of the model before round 1 (``federated.server_eval``), at ``step=0``;
         once (a resumed run that had logged them does not again)."""
-        from mlflow.entities import Metric
+        from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
 
         if any(self._logged_at(k, 0) for k in metrics):
             return
@@ -403,7 +286,7 @@ class Tracker:
         """Run-level values over the ``rounds`` rounds done (e.g. ``mean/cost/cpu_s``), at
         ``step=rounds``: a run that failed and was resumed logs them again at its last
         round, so the latest value is the whole run's and no step is logged twice."""
-        from mlflow.entities import Metric
+        from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
 
         if self.done or self.partial:  # a resumed run: what did its first life log?
             metrics = {k: v for k, v in metrics.items() if not self._logged_at(k, rounds)}
@@ -427,7 +310,7 @@ class Tracker:
     def describe(self, heading: str, summary: str) -> None:
         """The run's description (MLflow's note, at the top of its run page): the summary
         table the console printed at the end."""
-        from mlflow.utils.mlflow_tags import MLFLOW_RUN_NOTE
+        from mlflow.utils.mlflow_tags import MLFLOW_RUN_NOTE  # lazy: mlflow (seconds)
 
         note = f"**{heading}**\n\n```text\n{summary}\n```\n"
         self.client.set_tag(self.run_id, MLFLOW_RUN_NOTE, note)
@@ -452,67 +335,3 @@ class Tracker:
         self._stop_heartbeat()
         if not getattr(self, "finished", False):
             self.client.set_terminated(self.run_id, "KILLED" if interrupted else "FAILED")
-
-
-# --------------------------------------------------------------------------- dead runs
-
-
-def process_started(pid: int) -> str:
-    """When process ``pid`` started (seconds since the epoch), "" if it cannot be told: with
-    the pid it tells the run's process from a later one that was given the same pid."""
-    import psutil
-
-    try:
-        return f"{psutil.Process(pid).create_time():.2f}"
-    except (psutil.Error, OSError):
-        return ""
-
-
-def process_alive(pid: int, started: str = "") -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:  # a killed child its parent has not reaped yet is a zombie: dead
-        if Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] == "Z":
-            return False
-    except OSError:
-        return True
-    return not started or process_started(pid) in ("", started)  # not the pid of a later process
-
-
-def dead_reason(run, now: float | None = None) -> str | None:
-    """Why a RUNNING run is dead (its process is gone, or its heartbeat stopped), or None
-    while it may be alive. A run whose process is alive on this machine is never dead,
-    however old its heartbeat (a process stopped by Ctrl-Z, a suspended VM): the
-    heartbeat only judges runs on other machines. Runs without a heartbeat (sweep
-    parents, older fedlgr) are never called dead."""
-    tags = run.data.tags
-    if run.info.status != "RUNNING" or "fedlgr.heartbeat" not in tags:
-        return None
-    pid = tags.get("fedlgr.pid", "")
-    here = tags.get("fedlgr.host") == socket.gethostname()
-    if here and pid.isdigit():
-        if process_alive(int(pid), tags.get("fedlgr.pid_started", "")):
-            return None
-        return f"its process {pid} on this machine is gone"
-    age = (now or time.time()) - float(tags["fedlgr.heartbeat"])
-    limit = 3 * float(tags.get("fedlgr.heartbeat_s", 30))
-    if age > limit:
-        return f"no heartbeat for {age:.0f} s (limit {limit:.0f} s)"
-    return None
-
-
-def end_dead_runs(client, experiment_ids: list[str]) -> list[str]:
-    """Mark the dead RUNNING runs of these experiments KILLED; their ids."""
-    runs = client.search_runs(experiment_ids, "attributes.status = 'RUNNING'", max_results=5000)
-    ended = []
-    for run in runs:
-        reason = dead_reason(run)
-        if reason is not None:
-            client.set_tag(run.info.run_id, "fedlgr.ended", f"marked KILLED: {reason}")
-            client.set_terminated(run.info.run_id, "KILLED")
-            ended.append(run.info.run_id)
-    return ended

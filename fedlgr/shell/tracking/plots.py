@@ -9,10 +9,10 @@ from collections.abc import Sequence
 def curves_png(rows: Sequence[dict[str, object]], title: str = "") -> bytes:
     """RMSE and PCC per round from the per-round/per-client result rows, under ``title``
     (the run's name)."""
-    import matplotlib
+    import matplotlib  # lazy: matplotlib (seconds), only when a run's curves are drawn
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    matplotlib.use("Agg")  # no display: files only
+    import matplotlib.pyplot as plt  # lazy: as matplotlib, once its backend is chosen
 
     def value(row, metric: str) -> float:  # a diverged round's score is None: a gap
         return float("nan") if row[metric] is None else float(row[metric])

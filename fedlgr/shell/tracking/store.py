@@ -1,5 +1,9 @@
-"""The tracking store as a user meets it: where to look at the runs, and the locks that
-let several processes create a store (or a sweep's storage) at once.
+"""The tracking store as a user meets it: where to look at the runs, the locks that let
+several processes create a store (or a sweep's storage) at once, and opening it.
+
+``open_client(uri)`` is the ``MlflowClient`` every command works with: the store is
+reachable, created whole (a new sqlite file appears only once its schema is complete) and
+migrated under :func:`store_lock`; ``store_errors`` turns a store's failure into one line.
 
 ``runs_hint(uri, experiment_id)`` is what ``fedlgr run``, ``demo`` and ``sweep`` print at
 the end: the link that opens the experiment's runs table and, for a local store, the
@@ -17,14 +21,15 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import logging
 import os
 import shutil
 import sys
 from pathlib import Path
 
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.checks.stores import database_connection
-from fedlgr.shell.tracking.uri import DATABASES, mask_password
+from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable, database_connection
+from fedlgr.shell.tracking.uri import DATABASES, mask_password, masked_text, sqlite_path
 
 UI_PORT = 5000  # mlflow ui's default
 
@@ -90,7 +95,7 @@ def database_lock(uri: str, what: str = "database"):
     if not uri.lower().startswith(("postgresql:", "postgresql+")):
         yield
         return
-    from sqlalchemy import text
+    from sqlalchemy import text  # lazy: sqlalchemy (~1 s), only for a PostgreSQL store
 
     with database_connection(uri, what, FedlgrError) as connection:
         connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": LOCK_KEY})
@@ -137,3 +142,67 @@ def open_lock_file(path: Path, what: str) -> int:
         if err.errno == errno.ELOOP:
             raise StoreError(f"{what}: its lock file {path} is a symbolic link: refused") from None
         raise StoreError(f"{what}: cannot open its lock file {path}: {err.strerror}") from None
+
+
+def open_client(uri: str):
+    """An ``MlflowClient`` on ``uri`` whose store is created and migrated (under
+    :func:`store_lock`)."""
+    import mlflow  # lazy: mlflow (seconds), only once a command opens its store
+
+    check_reachable(uri)
+    # MLflow logs a failed store write (with its SQL and two stack traces) before raising
+    # it; fedlgr's StoreError names the store and the cause in one line: only that is shown.
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
+    with store_lock(uri):  # the client's construction creates and migrates the store
+        if uri.startswith("sqlite:///"):
+            check_sqlite_usable(uri)  # after the lock: a migration under way is not a fault
+            create_whole(uri)
+        client = mlflow.MlflowClient(uri)
+        client.search_experiments(max_results=1)
+    return client
+
+
+def create_whole(uri: str) -> None:
+    """Create a new sqlite store under a temporary name beside it and rename it into place
+    once MLflow has made its whole schema: a kill during the creation (seconds) would leave
+    a half-made store that no later run could use. Called under
+    :func:`store_lock`, so a temporary file found is one a kill left behind."""
+    import mlflow  # lazy: mlflow (seconds), only once a command opens its store
+
+    path = sqlite_path(uri)
+    if str(path) == ":memory:" or path.exists():
+        return
+    making = path.with_name(f".{path.name}.creating")
+    making.unlink(missing_ok=True)
+    query = uri.partition("?")[2]
+    mlflow.MlflowClient(f"sqlite:///{making}" + (f"?{query}" if query else "")).search_experiments(
+        max_results=1
+    )
+    os.replace(making, path)
+
+
+def _cause(err: BaseException) -> str:
+    """The innermost reason, one line (an MLflow error wraps SQLAlchemy's wrapping
+    sqlite's: "database or disk is full")."""
+    while getattr(err, "orig", None) is not None or err.__cause__ is not None:
+        err = getattr(err, "orig", None) or err.__cause__
+    text = str(err).strip()
+    return (text.splitlines()[0] if text else type(err).__name__)[:300]
+
+
+@contextlib.contextmanager
+def store_errors(uri: str, what: str):
+    """An error of the store inside the block, as one line naming the store and what
+    was being done (the CLI prints it without a stack trace)."""
+    try:
+        yield
+    except FedlgrError:
+        raise
+    except Exception as err:
+        problem = masked_text(_cause(err), uri)
+        if problem == "database is locked":
+            problem += (
+                " (another process holds the sqlite file: one stopped with Ctrl-Z or "
+                "kill -STOP? `kill -CONT PID` lets it go on)"
+            )
+        raise StoreError(f"MLflow store {mask_password(uri)}: could not {what}: {problem}") from err

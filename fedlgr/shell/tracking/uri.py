@@ -36,6 +36,7 @@ def in_memory_sqlite(uri: str) -> bool:
     (``file::memory:``, ``mode=memory``)."""
     if not uri.startswith("sqlite:"):
         return False
+    # lazy: sqlalchemy (~1 s); this module is read before anything heavy loads
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError
 

@@ -31,12 +31,17 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import importlib
 import os
 import signal
 import sys
 import threading
 import time
+import traceback
+import warnings
+
+from fedlgr.shell.tracking.liveness import process_alive
 
 # What each kind of task imports before its first fork (the app modules pull in the rest).
 PRELOAD = {
@@ -47,14 +52,15 @@ PRELOAD = {
 
 def _entry(task_type):
     """The console entry point Flower's SubprocessExecutor would start for ``task_type``."""
+    # lazy: flwr (seconds): the executor watches its parent before any slow import
     from flwr.supercore.constant import TaskType
 
     if task_type == TaskType.CLIENT_APP:
-        from flwr.supernode.cli.flwr_clientapp import flwr_clientapp
+        from flwr.supernode.cli.flwr_clientapp import flwr_clientapp  # lazy: flwr, as above
 
         return flwr_clientapp
     if task_type == TaskType.SERVER_APP:
-        from flwr.superlink.cli.flwr_serverapp import flwr_serverapp
+        from flwr.superlink.cli.flwr_serverapp import flwr_serverapp  # lazy: flwr, as above
 
         return flwr_serverapp
     return None
@@ -62,6 +68,7 @@ def _entry(task_type):
 
 def task_argv(spec) -> list[str]:
     """The command line flwr 1.41's ``SubprocessExecutor.launch`` builds for ``spec``."""
+    # lazy: flwr (seconds): the executor watches its parent before any slow import
     from flwr.supercore.constant import TASK_TYPE_TO_APPIO_API_ADDRESS_ARG, TASK_TYPE_TO_COMMAND
 
     argv = [TASK_TYPE_TO_COMMAND[spec.task_type]]
@@ -92,6 +99,7 @@ class ForkExecutor:
         """No capacity gate, as Flower's SubprocessExecutor."""
 
     def launch(self, spec):
+        # lazy: flwr (seconds): the executor watches its parent before any slow import
         from flwr.supercore.superexec.executor import LaunchResult
 
         entry = _entry(spec.task_type)
@@ -129,6 +137,7 @@ def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
     the same pid, counts an unreaped one as alive)."""
     code = 1
     try:
+        # lazy: flwr (seconds): the executor watches its parent before any slow import
         from flwr.supercore.exit import exit_handler
 
         # The parent's exit handlers (closing its Runtime API client) are not this task's.
@@ -149,8 +158,6 @@ def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
     except SystemExit as stop:
         code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
     except BaseException:
-        import traceback
-
         traceback.print_exc()
     finally:
         _flush()
@@ -160,12 +167,10 @@ def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
 def leave_with(parent_pid: int) -> None:
     """Exit at once (quietly, status 0) when ``parent_pid`` has ended or this process is
     orphaned. Flower's own monitor (``run_superexec(parent_pid=...)``, ``os.kill(pid, 0)``)
-    counts a parent that exited but is not reaped yet - a zombie - as alive: a SuperNode that
-    gave up on its SuperLink left its executor retrying the gone Runtime API for ever (the
-    eighth fault sweep, b01). The exit is ``os._exit``: the interpreter's would wait for
+    counts a parent that exited but is not reaped yet - a zombie - as alive, so the executor
+    of a SuperNode that gave up on its SuperLink would retry the gone Runtime API for ever.
+    The exit is ``os._exit``: the interpreter's would wait for
     Flower's threads, and with the parent gone nothing is left to close gracefully."""
-    from fedlgr.shell.tracking.mlflow_run import process_alive
-
     parent = os.getppid()
 
     def watch() -> None:
@@ -187,8 +192,6 @@ def _name(name: str) -> None:
     """The process's name (``ps -o comm``, ``pgrep flwr-clientapp``) as Flower's own
     process would have it; its command line stays this executor's."""
     if sys.platform == "linux":
-        import ctypes
-
         ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # 15: PR_SET_NAME
 
 
@@ -202,14 +205,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.parent_pid is not None:
         leave_with(args.parent_pid)  # before the preload, which takes seconds
-    import warnings
-
     # Python 3.12+ warns at every fork of a process with threads; this one's other threads
     # (Flower's parent-process monitor, leave_with's) hold no lock a task needs.
     warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
     for kind in args.preload:
         for module in PRELOAD[kind]:
             importlib.import_module(module)
+    # lazy: flwr (seconds): the executor watches its parent before any slow import
     from flwr.supercore.superexec import run_superexec as loop
 
     executor = ForkExecutor()
@@ -228,10 +230,9 @@ if __name__ == "__main__":
     try:
         sys.exit(main())
     except KeyboardInterrupt:
-        # Stopped by its SuperNode or SuperLink as that exits - possibly while still
-        # importing what it preloads: a traceback then says nothing (the seventh fault
-        # sweep, e24: a SuperNode that gave up on an unreachable SuperLink). It exits at
-        # once: the interpreter's exit would wait for Flower's threads (a connection
-        # retried for ever), and the process stayed (found when a CI run hung on it).
+        # Stopped by its SuperNode or SuperLink as that exits (a SuperNode that gave up on
+        # an unreachable SuperLink), possibly while still importing what it preloads: a
+        # traceback then says nothing. It exits at once: the interpreter's exit would wait
+        # for Flower's threads (a connection retried for ever), and the process would stay.
         _flush()
         os._exit(130)

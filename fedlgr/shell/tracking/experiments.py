@@ -1,0 +1,79 @@
+"""The MLflow experiment a run goes into: found, or made by this process or, at the same
+moment, by another one; in a local sqlite store its artifacts lie beside the database, and
+its runs table opens in fedlgr's shared view (:mod:`fedlgr.shell.tracking.views`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fedlgr.shell.checks.stores import check_reachable
+from fedlgr.shell.tracking.views import TAG, share_view
+
+# MLflow 3's UI shows an experiment of this kind on its runs table ("Model training"),
+# not on its GenAI traces.
+KIND = {"mlflow.experimentKind": "custom_model_development"}
+
+
+def experiment_id(client, name: str) -> str:
+    """The id of MLflow experiment ``name``, created if it does not exist yet (by this
+    process or, at the same moment, by another one)."""
+    check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
+    experiment = client.get_experiment_by_name(name)
+    if experiment is None:
+        try:
+            made = _create_experiment(client, name)
+        except Exception:
+            experiment = client.get_experiment_by_name(name)  # another process created it
+            if experiment is None:
+                raise
+        else:
+            _share_view(client, made)  # what the printed link opens
+            return made
+    for key, value in KIND.items():
+        if key not in experiment.tags:  # made by an older fedlgr or by hand
+            client.set_experiment_tag(experiment.experiment_id, key, value)
+    if TAG not in experiment.tags:
+        _share_view(client, experiment.experiment_id)
+    return experiment.experiment_id
+
+
+def _share_view(client, experiment_id: str) -> None:
+    """:func:`~fedlgr.shell.tracking.views.share_view`, again if it fails: a process that opened
+    the new experiment at the same moment (a sweep's worker on another machine, through an
+    MLflow server on PostgreSQL) may have written the tag in between, and MLflow's SQL
+    store then inserts a tag that is there (a duplicate key); the second write updates it."""
+    try:
+        share_view(client, experiment_id)
+    except Exception:
+        share_view(client, experiment_id)
+
+
+def artifact_root(uri: str) -> Path | None:
+    """Where the artifacts of a local sqlite store's experiments go: ``mlruns/`` next to
+    its database file. (MLflow's own default is ``./mlruns`` of the working folder at the
+    moment the experiment is created, so a store elsewhere had its artifacts scattered
+    over whatever folders its runs were started from.) None for other stores: a server
+    decides for itself."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    database = uri.removeprefix("sqlite:///").split("?", 1)[0]
+    if not database or database == ":memory:":
+        return None
+    return Path(database).expanduser().resolve().parent / "mlruns"
+
+
+def _create_experiment(client, name: str) -> str:
+    """A new experiment; in a local sqlite store its artifacts under
+    :func:`artifact_root` / its id (MLflow's layout, rooted at the database)."""
+    root = artifact_root(client.tracking_uri)
+    if root is None:
+        return client.create_experiment(name, tags=KIND)
+    # lazy: mlflow (seconds), only when an experiment is made
+    from mlflow.entities import ExperimentTag
+    from mlflow.tracking._tracking_service.utils import _get_store
+
+    # The store MLflow builds for this URI with ``root`` as its default artifact root
+    # (what ``mlflow server --default-artifact-root`` does): the experiment's id is only
+    # known once created, and its artifact location is derived from it in that step.
+    store = _get_store(client.tracking_uri, str(root))
+    return store.create_experiment(name, tags=[ExperimentTag(k, v) for k, v in KIND.items()])
