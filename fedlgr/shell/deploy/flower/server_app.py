@@ -35,12 +35,10 @@ it answered) sends the same reply again.
 from __future__ import annotations
 
 import functools
-import math
 import shlex
 import time
 
 import torch
-from cryptography.exceptions import UnsupportedAlgorithm
 from flwr.app import Context, Message, RecordDict
 from flwr.serverapp import Grid, ServerApp
 
@@ -57,31 +55,29 @@ from fedlgr.shell.config import ExperimentConfig, load_config, to_yaml
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.deploy.flower import wire
-from fedlgr.shell.deploy.roster import fingerprint, roster_of
+from fedlgr.shell.deploy.flower.nodes import Nodes, quorum
+from fedlgr.shell.deploy.roster import roster_of
 from fedlgr.shell.run.life import Hooks, RunLife
 from fedlgr.shell.run.resume import resume_point
 from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
 
 app = ServerApp()
 CPU = torch.device("cpu")
-POLL_S = 0.2  # how often the server asks the SuperLink for replies
-
-
-def quorum(clients: int) -> int:
-    """The uploads a round needs by default (``deploy.min_clients``): half the robots,
-    at least one - one robot's drop-out does not end a run."""
-    return max(1, math.ceil(clients / 2))
 
 
 class FlowerRounds:
     """A run's rounds (:class:`fedlgr.core.rounds.Rounds`), with the clients on the
-    robots."""
+    robots (:class:`~fedlgr.shell.deploy.flower.nodes.Nodes`: which take part, and the
+    exchanges of messages with them)."""
 
     def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
         self.grid, self.config, self.echo = grid, config, echo
-        self.roster = roster_of(config)
+        self.run_id: str | None = None  # the MLflow run (for tags), once it exists
+        self.tags: dict[str, str] = {}
+        roster = roster_of(config)
+        self.nodes = Nodes(grid, config, roster, echo, self.tag)
         self.server = ServerSide(config)
-        if config.federated.fraction < 1 and self.roster is None:
+        if config.federated.fraction < 1 and roster is None:
             raise FedlgrError(
                 f"federated.fraction={config.federated.fraction:g} on robots needs a roster "
                 "(deploy.roster): the server chooses clients, so it must know which robot "
@@ -98,46 +94,9 @@ class FlowerRounds:
         # (plan, uploads by client, bytes down by node, failures by node) of the next
         # round, trained in the exchange that evaluated this one (with_next_round)
         self.pending: tuple[RoundPlan, dict, dict[int, int], dict[int, str]] | None = None
-        self.slots: dict[int, int | None] = {}  # admitted node -> its client (None: no roster)
-        self.names: dict[int, str] = {}  # admitted node -> "robot0 (client 0)"
-        self.refused: dict[int, str] = {}  # node -> why it is sent nothing
-        self.failures: dict[int, str] = {}  # node -> its error in the last exchange
-        self.run_id: str | None = None  # the MLflow run (for tags), once it exists
-        self.tags: dict[str, str] = {}
         self.missed: list[str] = []  # "round 2: robot1 (client 1)"
 
-    # ------------------------------------------------------------------ who takes part
-
-    def online(self) -> list[int]:
-        """The admitted nodes online now, by client slot. A node seen for the first time is
-        admitted if the roster lists the key the SuperLink authenticated it with (its slot
-        is the roster's), else refused - named, tagged and never sent a message."""
-        nodes = list(self.grid.get_nodes())
-        for info in nodes:
-            node = info.node_id
-            if node in self.slots or node in self.refused:
-                continue
-            if self.roster is None:
-                self.slots[node], self.names[node] = None, f"node {node}"
-                continue
-            member = self.roster.member(bytes(info.public_key))
-            if member is None:
-                key = _fingerprint(bytes(info.public_key))
-                self.refuse(node, f"its key {key} is not on the roster {self.roster.path}")
-            elif member.client >= self.config.data.clients:
-                self.refuse(node, f"{member}: the run has data.clients={self.config.data.clients}")
-            else:
-                self.slots[node], self.names[node] = member.client, str(member)
-                self.echo(f"{member} is online (node {node})")
-        here = {info.node_id for info in nodes}
-        admitted = [n for n in self.slots if n in here and n not in self.refused]
-        return sorted(admitted, key=lambda n: (self.slots[n] is None, self.slots[n] or 0, n))
-
-    def refuse(self, node: int, why: str) -> None:
-        self.refused[node] = why
-        self.slots.pop(node, None)
-        self.echo(f"refused node {node}: {why}; it is sent no work")
-        self.tag("fedlgr.refused", "; ".join(f"node {n}: {w}" for n, w in self.refused.items()))
+    # ------------------------------------------------------------------ MLflow tags
 
     def started(self, run_id: str) -> None:
         """``on_start`` (:class:`fedlgr.shell.run.life.Hooks`): the MLflow run exists;
@@ -151,89 +110,7 @@ class FlowerRounds:
         if self.run_id is not None and self.config.tracking.enabled:
             open_client(tracking_uri(self.config)).set_tag(self.run_id, key, value[:5000])
 
-    def wait_for_robots(self) -> None:
-        """Until every client's robot has joined, or ``deploy.join_timeout_s``."""
-        want, deadline = (
-            self.config.data.clients,
-            time.monotonic() + self.config.deploy.join_timeout_s,
-        )
-        nodes: list[int] = []
-        while time.monotonic() < deadline:
-            nodes = self.online()
-            if len(nodes) >= want:
-                break
-            time.sleep(0.5)
-        if len(nodes) < self.min_clients:
-            raise FedlgrError(
-                f"{len(nodes)} of {want} robots joined within deploy.join_timeout_s="
-                f"{self.config.deploy.join_timeout_s:g} (deploy.min_clients={self.min_clients})"
-            )
-        self.echo(f"{len(nodes)} of {want} robots joined: {', '.join(self.name(n) for n in nodes)}")
-        self.tag("fedlgr.robots", ", ".join(self.name(n) for n in nodes))
-        self.joined = True
-
-    def name(self, node: int) -> str:
-        return self.names.get(node, f"node {node}")
-
-    # ------------------------------------------------------------------ messages
-
-    def exchange(
-        self,
-        kind: str,
-        contents: dict[int, RecordDict],
-        round_: int,
-        label: str = "",
-        kinds: dict[int, str] | None = None,
-    ):
-        """Send ``contents`` (node -> message content), each a message of type ``kind``
-        unless ``kinds`` names another for its node; the replies that came back in time,
-        by node. Error replies (a robot's exception) are reported, not raised: a robot
-        whose SuperNode claims a slot the roster does not give it is refused."""
-        kinds = kinds or {}
-        messages = [
-            Message(
-                wire.stamp_run(content, self.run_id or ""),
-                dst_node_id=node,
-                message_type=kinds.get(node, kind),
-                group_id=str(round_),
-            )
-            for node, content in contents.items()
-        ]
-        # Grid.send_and_receive polls every 3 s: up to 6 s idle per round for two
-        # exchanges. The same push/pull with a 0.2 s poll.
-        started = time.monotonic()
-        pending = {i for i in self.grid.push_messages(messages) if i}
-        replies = []
-        deadline = time.monotonic() + self.config.deploy.round_timeout_s
-        while pending and time.monotonic() < deadline:
-            for reply in self.grid.pull_messages(list(pending)):
-                pending.discard(reply.metadata.reply_to_message_id)
-                replies.append(reply)
-            if pending:
-                time.sleep(POLL_S)
-        seconds = time.monotonic() - started
-        # An error reply may come from the SuperLink itself (a robot gone offline): the
-        # robot is the one the message was sent to.
-        to_node = {m.metadata.message_id: m.metadata.dst_node_id for m in messages}
-        out = {}
-        self.failures = {}
-        for reply in replies:
-            node = to_node.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
-            if reply.has_error():
-                reason = " ".join(str(reply.error.reason).split())
-                self.failures[node] = reason
-                self.echo(f"round {round_}, {label or kind}: {self.name(node)} failed: {reason}")
-                if "the run's roster gives its key client" in reason:
-                    self.refuse(node, f"{self.name(node)} claims another slot")
-            else:
-                out[node] = reply
-        silent = [self.name(n) for n in contents if n not in out and n not in self.failures]
-        late = f"; no reply from {', '.join(silent)}" if silent else ""
-        self.echo(
-            f"round {round_}, {label or kind}: {len(out)} of {len(messages)} replies "
-            f"({seconds:.1f} s){late}"
-        )
-        return out
+    # ------------------------------------------------------------------ rounds
 
     @property
     def local_clients(self) -> int:
@@ -246,14 +123,15 @@ class FlowerRounds:
         client - with ``deploy.evaluate=with_next_round`` in the same exchange as the next
         round's training. ``progress`` is never called (no client trains here)."""
         if not self.joined:
-            self.wait_for_robots()
+            self.nodes.wait_for_robots(self.min_clients)
+            self.joined = True
         start = time.perf_counter()
         chosen = self.server.chosen(plan)
         if self.pending is not None and self.pending[0] == plan:
             _, trained, down, failures = self.pending
         else:
             trained, down = self.train(plan, chosen)
-            failures = dict(self.failures)
+            failures = dict(self.nodes.failures)
         self.pending = None
         self.check_quorum(plan.round, trained, chosen, failures)
         # In client order, as in one process: the same sums to the last bit.
@@ -281,7 +159,7 @@ class FlowerRounds:
         needed = min(self.min_clients, len(chosen))
         if len(trained) >= needed:
             return
-        causes = "".join(f"; {self.name(n)}: {why}" for n, why in failures.items())
+        causes = "".join(f"; {self.nodes.name(n)}: {why}" for n, why in failures.items())
         of = f"{len(chosen)} chosen" if len(chosen) < self.config.data.clients else ""
         raise FedlgrError(
             f"round {round_}: {len(trained)} of {of or self.config.data.clients} robots sent "
@@ -298,9 +176,9 @@ class FlowerRounds:
         evaluate = EvaluateIns(plan, self.server.global_weights)
         following = self.next_plan(round_)
         serving = {node: client for client, (node, _, _) in trained.items()}
-        nodes = sorted({*self.online(), *(n for n in serving if n in self.slots)})
+        nodes = sorted({*self.nodes.online(), *(n for n in serving if n in self.nodes.slots)})
         # the robots that trained, and those of clients the strategy did not choose
-        scoring = [n for n in nodes if n in serving or self.slots[n] not in (None, *chosen)]
+        scoring = [n for n in nodes if n in serving or self.nodes.slots[n] not in (None, *chosen)]
         contents, kinds = self.evaluation_messages(evaluate, following, scoring, nodes)
         received = {node: wire.payload_bytes(content) for node, content in contents.items()}
         # what a combined message carries for the next round alone - the strategy's payload -
@@ -312,7 +190,8 @@ class FlowerRounds:
         label = kind if following is None else f"evaluate + round {round_ + 1} train"
         rows, uploads = {}, {}
         self.holders = set()
-        for node, reply in self.exchange(kind, contents, round_, label, kinds).items():
+        replies = self.nodes.exchange(kind, contents, round_, self.run_id, label, kinds)
+        for node, reply in replies.items():
             if kinds.get(node, kind) == "evaluate":
                 res = wire.decode_evaluate_res(reply.content)
             else:
@@ -320,7 +199,7 @@ class FlowerRounds:
                 self.keep_upload(uploads, node, reply, round_ + 1)
             if res is None or node not in scoring:
                 continue
-            if serving.get(node, self.slots.get(node)) != res.client:
+            if serving.get(node, self.nodes.slots.get(node)) != res.client:
                 continue
             self.holders.add(node)
             upload = trained.get(res.client)
@@ -335,7 +214,7 @@ class FlowerRounds:
             following_down = {
                 n: ahead[n] if n in scoring else received[n] for n, _, _ in uploads.values()
             }
-            self.pending = (following, uploads, following_down, dict(self.failures))
+            self.pending = (following, uploads, following_down, dict(self.nodes.failures))
         return rows
 
     def evaluation_messages(
@@ -348,7 +227,7 @@ class FlowerRounds:
         kinds: dict[int, str] = {}
         chosen_next = set() if following is None else set(self.server.chosen(following))
         for node in nodes:
-            slot = self.slots.get(node)
+            slot = self.nodes.slots.get(node)
             trains = following is not None and (slot is None or slot in chosen_next)
             if node in scoring and not trains:
                 contents[node] = wire.encode_evaluate_ins(evaluate, self.config_yaml, slot)
@@ -362,8 +241,8 @@ class FlowerRounds:
         return contents, kinds
 
     def record_missing(self, round_: int, missing: tuple[int, ...], trained: dict) -> None:
-        by_client = {c: self.name(n) for c, (n, _, _) in trained.items()}
-        by_client |= {s: self.names[n] for n, s in self.slots.items() if s is not None}
+        by_client = {c: self.nodes.name(n) for c, (n, _, _) in trained.items()}
+        by_client |= {s: self.nodes.names[n] for n, s in self.nodes.slots.items() if s is not None}
         self.missed.append(
             f"round {round_}: " + ", ".join(by_client.get(c, f"client {c}") for c in missing)
         )
@@ -381,30 +260,29 @@ class FlowerRounds:
         robots of the ``chosen`` clients: the uploads by client, and each node's bytes down."""
         down: dict[int, int] = {}
         contents = {}
-        for node in self.online():
-            slot = self.slots[node]
+        for node in self.nodes.online():
+            slot = self.nodes.slots[node]
             if slot is not None and slot not in chosen:
                 continue
             ins = self.server.train_ins(plan, slot, holds_global=node in self.holders)
             contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
             down[node] = wire.payload_bytes(contents[node])
         trained: dict[int, tuple[int, TrainRes, int]] = {}  # client -> (node, upload, bytes)
-        for node, reply in self.exchange("train", contents, plan.round).items():
+        for node, reply in self.nodes.exchange("train", contents, plan.round, self.run_id).items():
             self.keep_upload(trained, node, reply, plan.round)
         return trained, down
 
     def keep_upload(self, trained: dict, node: int, reply: Message, round_: int) -> None:
         res = wire.decode_train_res(reply.content)
-        slot = self.slots.get(node)
+        slot = self.nodes.slots.get(node)
+        name = self.nodes.name
         if slot is not None and res.client != slot:
-            self.echo(
-                f"round {round_}: {self.name(node)} sent client {res.client}'s upload; ignored"
-            )
+            self.echo(f"round {round_}: {name(node)} sent client {res.client}'s upload; ignored")
             return
         if res.client in trained:
             self.echo(
-                f"round {round_}: {self.name(trained[res.client][0])} and {self.name(node)} "
-                f"both serve client {res.client}; {self.name(node)}'s upload is ignored"
+                f"round {round_}: {name(trained[res.client][0])} and {name(node)} "
+                f"both serve client {res.client}; {name(node)}'s upload is ignored"
             )
             return
         trained[res.client] = (node, res, wire.payload_bytes(reply.content))
@@ -473,13 +351,6 @@ def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
     tasks = list(config.continual.tasks) or [ALL]
     channels_last = config.model.channels_last and scenes.images is not None
     return ServerEvaluation(config, eval_set(scenes, split, tasks, CPU, channels_last))
-
-
-def _fingerprint(public_key: bytes) -> str:
-    try:
-        return fingerprint(public_key)
-    except (ValueError, TypeError, UnsupportedAlgorithm):
-        return "(none: no SuperNode authentication)"
 
 
 def config_of(context: Context) -> ExperimentConfig:
