@@ -41,5 +41,5 @@ def interrupt_in(err: BaseException) -> KeyboardInterrupt | None:
     """The Ctrl-C or SIGTERM (:class:`fedlgr.shell.signals.Terminated`) behind ``err``, if any:
     one that arrives while Optuna records a trial turns into Optuna 4's
     ``UnboundLocalError: ... 'updated_state'`` in ``_run_trial``, and a sweep stopped
-    there ended in two tracebacks (the seventh fault sweep, i17)."""
+    there would end in two tracebacks."""
     return next((e for e in exception_chain(err) if isinstance(e, KeyboardInterrupt)), None)

@@ -73,7 +73,7 @@ class Progress:
 
     def _draw(self, done: int, total: int) -> None:
         if self.bar is None:
-            from tqdm.auto import tqdm
+            from tqdm.auto import tqdm  # lazy: tqdm (~0.1 s), only on a terminal
 
             self.bar = tqdm(
                 total=total, desc=self.desc, unit=self.unit, leave=False, dynamic_ncols=True

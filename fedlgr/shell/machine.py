@@ -45,7 +45,7 @@ def busy_cores(sample_s: float = 0.25) -> float:
     the load average still holds the last minute of this process's own previous run (a
     demo's second run, a sweep's next trial) and a start-up's imports, and one sample
     can catch a passing burst. Busy by both counts is busy."""
-    import psutil
+    import psutil  # lazy: psutil (~0.1 s), kept off `fedlgr --help`
 
     cores = available_cores()
     try:

@@ -23,7 +23,9 @@ from torch import nn
 
 from fedlgr.core.data.augment import Augment, SceneBatches
 from fedlgr.core.models.scholar import MobileNetRoot
-from fedlgr.shell.data.dataset import Scenes
+from fedlgr.shell.config import DataConfig
+from fedlgr.shell.data.dataset import Scenes, load_scenes
+from fedlgr.shell.data.synth import synthesize
 
 
 @dataclass(frozen=True)
@@ -111,10 +113,6 @@ def synthetic_root(
 
     ``progress(desc, unit)``: a context manager giving a ``(done, total)`` callback for each
     stage (synthesising, decoding, pretraining; e.g. ``fedlgr.shell.console.Progress``)."""
-    from fedlgr.shell.data.config import DataConfig
-    from fedlgr.shell.data.dataset import load_scenes
-    from fedlgr.shell.data.synth import synthesize
-
     folder = Path(folder)
     data = folder / f"synth-seed{seed + PRETRAIN_SEED_OFFSET}-{scenes}"
     path = folder / f"root-w{width:g}-{size}px-{scenes}scenes-{images}img-seed{seed}.pt"

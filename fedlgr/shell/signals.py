@@ -11,7 +11,9 @@ ended KILLED, a sweep's trial queued again) handles it too.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 
@@ -68,8 +70,6 @@ def _in_finaliser(frame, depth: int = 8) -> bool:
 
 def _again(signum: int) -> None:
     """Deliver ``signum`` to this process again in a moment, outside the finaliser."""
-    import os
-
     timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
     timer.daemon = True
     timer.start()
@@ -108,7 +108,7 @@ def terminate_as_interrupt() -> Iterator[None]:
     previous = signal.signal(signal.SIGTERM, on_term)
     previous_int = signal.signal(signal.SIGINT, on_int)
     # SIGHUP (the terminal closed, an ssh session dropped) as SIGTERM, unless it is ignored
-    # (nohup): it killed a run at once and left it RUNNING (the seventh fault sweep, s10b).
+    # (nohup): its default action kills the process at once and leaves the run RUNNING.
     hangup = signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
     previous_hup = signal.signal(signal.SIGHUP, on_term) if hangup else None
     try:
@@ -125,8 +125,6 @@ def quiet_exit(code: int = 130) -> None:
     process that is already exiting after an interrupt. Otherwise a second Ctrl-C (or one
     redelivered by :func:`_again`) lands in an ``atexit`` hook (torch's, MLflow's), and
     Python prints its ``KeyboardInterrupt`` traceback after fedlgr's last line."""
-    import os
-    import sys
 
     def now(signum: int, frame) -> None:
         with contextlib.suppress(Exception):

@@ -89,13 +89,13 @@ def _private_bytes(key, encoding) -> bytes:
 def _folder(folder: Path) -> None:
     """The credentials folder, made 0700 (it holds private keys and the roster: under
     umask 000 it was 0777, and anyone could replace a public key or the roster in it)."""
-    if why := not_a_folder(folder):  # was "cannot create the folder (File exists)" (c115)
+    if why := not_a_folder(folder):  # named as what it is: mkdir would say "File exists"
         raise FedlgrError(f"{folder}: {why}")
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as err:
         raise FedlgrError(f"{folder}: cannot create the folder ({err.strerror})") from None
-    # an existing folder: said, not changed (the seventh sweep, x12)
+    # an existing folder's mode is its owner's choice: an open one is warned of, not changed
     warn_if_open(folder, "a public key, the roster or ca.pem")
 
 
@@ -162,8 +162,8 @@ def check_host(host: str) -> None:
 
 def check_node_key(path: Path, option: str = "--key") -> None:
     """``path`` holds a robot's private node key (OpenSSH, as ``node-key`` writes it): not
-    its ``.pub`` half or another file, which Flower refuses only as the SuperNode starts,
-    in a traceback (the fifth fault sweep, k37)."""
+    its ``.pub`` half or another file, which Flower would refuse only as the SuperNode
+    starts, in a traceback."""
     try:
         serialization.load_ssh_private_key(path.read_bytes(), password=None)
     except (ValueError, TypeError, UnsupportedAlgorithm) as err:
@@ -175,14 +175,14 @@ def check_node_key(path: Path, option: str = "--key") -> None:
     except OSError as err:
         raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None
     check_private_mode(path, option)
-    warn_if_open(path.parent, "the key")  # as node-key says of its folder (the eighth, u04)
-    if path.resolve().parent != path.parent.resolve():  # through a link: where it lies (d188)
+    warn_if_open(path.parent, "the key")  # as node-key warns of the folder it writes in
+    if path.resolve().parent != path.parent.resolve():  # a link: the key's own folder too
         warn_if_open(path.resolve().parent, "the key")
 
 
 def check_private_mode(path: Path, option: str) -> None:
-    """A private key that others can read or write is refused, as ssh refuses one (the
-    seventh fault sweep, z06: a robot's --key; the eighth, u31: the SuperLink's server.key)."""
+    """A private key that others can read or write (a robot's --key, the SuperLink's
+    server.key) is refused, as ssh refuses one."""
     mode = stat.S_IMODE(path.stat().st_mode)
     if mode & 0o077:
         raise FedlgrError(
@@ -192,7 +192,8 @@ def check_private_mode(path: Path, option: str) -> None:
 
 
 def check_certificates(path: Path, option: str = "--ca") -> None:
-    """``path`` holds PEM certificates (a ``ca.pem``), not a key or another file (k38)."""
+    """``path`` holds PEM certificates (a ``ca.pem``), not a key or another file: said in
+    one line before Flower starts, not in its traceback."""
     try:
         x509.load_pem_x509_certificates(path.read_bytes())
     except ValueError:

@@ -16,6 +16,8 @@ SuperNodes speak HTTP/1.1 with unary requests (``flwr.supernode.fleet_http_clien
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ipaddress
 import re
 import signal
 import socket
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import httpx
 import uvicorn
+from cryptography import x509
 from starlette.background import BackgroundTask
 from starlette.requests import ClientDisconnect, Request
 from starlette.responses import PlainTextResponse, Response, StreamingResponse
@@ -81,10 +84,6 @@ def refusal(internal: str) -> str:
 def covers_loopback(cert: Path) -> bool:
     """Whether the server certificate names 127.0.0.1, where the gateway (and Flower's own
     SuperExec) reach the SuperLink."""
-    import ipaddress
-
-    from cryptography import x509
-
     server = x509.load_pem_x509_certificate(cert.read_bytes())
     try:
         names = server.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
@@ -269,8 +268,6 @@ def _die_with_parent() -> None:
     """In the child before exec: on Linux, SIGTERM it when the gateway dies, even by SIGKILL
     (which runs no clean-up here)."""
     if sys.platform == "linux":
-        import ctypes
-
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
 
 

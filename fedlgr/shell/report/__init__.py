@@ -13,7 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedlgr.shell.checks.paths import broken_link
-from fedlgr.shell.report.runs import ReportError, RunRecord
+from fedlgr.shell.report import runs as mlflow_runs
+from fedlgr.shell.report.cells import best_per_cell, check_cells, newest_per_seed
+from fedlgr.shell.report.plots import write_plots
+from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
+from fedlgr.shell.report.runs import ReportError, RunRecord, safe_name
+from fedlgr.shell.report.tables import build_tables
 from fedlgr.shell.tracking.uri import mask_password
 
 __all__ = ["ReportError", "ReportResult", "RunRecord", "default_out", "make_report"]
@@ -61,8 +66,6 @@ class ReportResult:
 
 def default_out(name: str) -> Path:
     """``reports/<experiment or sweep name>``."""
-    from fedlgr.shell.report.runs import safe_name
-
     return Path("reports") / safe_name(name)
 
 
@@ -73,11 +76,12 @@ def _check_folder(out: Path) -> None:
             "--out names the current folder ('' or .): name a folder of its own for the "
             "report's tables and plots (default: reports/NAME)"
         )
-    if why := broken_link(out):  # was "cannot create the report folder (File exists)"
-        raise ReportError(f"{out}: {why}; the report (--out) is a folder")  # (c113, c114)
+    # a link that loops or leads nowhere is named as such (mkdir would say "File exists")
+    if why := broken_link(out):
+        raise ReportError(f"{out}: {why}; the report (--out) is a folder")
     existing = next((p for p in (out, *out.parents) if p.exists()), None)
     if existing is not None and not existing.is_dir():
-        # /dev/null, a FIFO was "is a file" (the tenth fault sweep, d36-d38, d142)
+        # a device or a FIFO (/dev/null) is named as such: it is not a file either
         kind = "a file" if existing.is_file() else "a device, pipe or socket"
         where = f"is {kind}" if existing == out else f"lies under {existing}, {kind}"
         raise ReportError(
@@ -105,16 +109,10 @@ def make_report(
     Each cell averages replicates only (:mod:`~fedlgr.shell.report.cells`): repeats of one seed
     count once, runs of other settings in one cell are refused (narrow them with
     ``where``, e.g. ``{"federated.rounds": "20"}``)."""
-    from fedlgr.shell.report.cells import best_per_cell, check_cells, newest_per_seed
-    from fedlgr.shell.report.plots import write_plots
-    from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
-    from fedlgr.shell.report.runs import log_report, metric_histories, open_store, select_runs
-    from fedlgr.shell.report.tables import build_tables
-
     if out is not None:  # before reading the store: a wrong --out fails at once
         _check_folder(Path(out))
-    client = open_store(uri)
-    selection = select_runs(
+    client = mlflow_runs.open_store(uri)
+    selection = mlflow_runs.select_runs(
         client,
         uri,
         experiment=experiment,
@@ -142,8 +140,9 @@ def make_report(
         for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
             (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
         result.tables.append((table.name, table.runs))
-    histories = {m: metric_histories(client, records, m) for m in ("test/rmse", "test/pcc")}
+    metrics = ("test/rmse", "test/pcc")
+    histories = {m: mlflow_runs.metric_histories(client, records, m) for m in metrics}
     result.plots = write_plots(records, histories, out)
     if log:
-        result.logged_to = log_report(selection, out, len(records))
+        result.logged_to = mlflow_runs.log_report(selection, out, len(records))
     return result

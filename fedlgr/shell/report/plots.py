@@ -119,10 +119,11 @@ def task1_forgetting(run: RunRecord, metric: str) -> float | None:
 
 
 def _pyplot():
-    import matplotlib
+    """matplotlib's pyplot, drawing to files only."""
+    import matplotlib  # lazy: matplotlib (seconds), only when a report draws its plots
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: as matplotlib, once its backend is chosen
 
     return plt
 
@@ -133,7 +134,7 @@ def curves_plot(path: Path, title: str, panels: dict[str, Series], order: list[s
     if not settings:
         return False
     plt = _pyplot()
-    from matplotlib.ticker import MaxNLocator
+    from matplotlib.ticker import MaxNLocator  # lazy: matplotlib, as in _pyplot
 
     colors = {m: f"C{i % 10}" for i, m in enumerate(order)}
     fig, axes = plt.subplots(

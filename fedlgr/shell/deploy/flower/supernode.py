@@ -26,6 +26,7 @@ flwr still reads these names, so a flwr upgrade that changes them is noticed.
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 import time
 
@@ -50,6 +51,7 @@ class _Clock:
 
 def set_heartbeat(seconds: float) -> None:
     """The heartbeat interval this SuperNode declares to the SuperLink and beats at."""
+    # lazy: flwr (seconds); `fedlgr --help` imports this module for its constants
     from flwr.supercore import heartbeat
     from flwr.supernode import fleet_http_connection
 
@@ -64,8 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ``--warm-apps`` its ClientApps forked by :mod:`.executor` from a process that has
     imported them (the SuperNode in Flower's ``process`` isolation, the executor on its
     Runtime API at HOST:PORT). ``fedlgr deploy supernode`` builds and checks the line."""
-    import subprocess
-
+    # lazy: flwr (seconds); `fedlgr --help` imports this module for its constants
     from flwr.supernode import start_client_internal as internal
     from flwr.supernode.cli import flower_supernode
 
@@ -90,8 +91,8 @@ if __name__ == "__main__":
     try:
         sys.exit(main())
     except KeyboardInterrupt:
-        # Ctrl-C before Flower's own handlers are in place: while the imports above run,
-        # which took over 8 s under load (the eighth fault sweep, b02-b04, printed their
-        # traceback). A warm executor started already leaves by itself (executor.leave_with).
+        # Ctrl-C before Flower's own handlers are in place, while the imports above run
+        # (over 8 s under load): one line, not their traceback. A warm executor started
+        # already leaves by itself (executor.leave_with).
         print("fedlgr: interrupted", file=sys.stderr, flush=True)
         os._exit(130)  # the interpreter's exit could wait for threads Flower started
