@@ -43,7 +43,7 @@ def main() -> int:
     import torch
 
     from fedlgr.core.data.augment import Augment, SceneBatches
-    from fedlgr.shell.data.config import DataConfig
+    from fedlgr.shell.config import DataConfig
     from fedlgr.shell.data.dataset import load_scenes
     from fedlgr.shell.data.synth import synthesize
 

@@ -12,13 +12,13 @@ import mlflow.utils.validation
 import pytest
 from PIL import Image
 
+import fedlgr.shell.checks.experiment as experiment_checks
 import fedlgr.shell.config as config_module
 import fedlgr.shell.data.images as images_module
 import fedlgr.shell.report.runs as report_runs
 from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.cli import main
-from fedlgr.shell.config import FederatedConfig, ModelConfig, load_config
-from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.config import DataConfig, FederatedConfig, ModelConfig, load_config
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.ratings import read_ratings
 from tests.support.data import HEADER, rating_row, write_rows
@@ -82,7 +82,7 @@ def test_floats_where_integers_are_expected_are_refused(build, message):
 
 
 def test_a_model_too_large_for_the_memory_is_refused_with_the_estimate(monkeypatch):
-    monkeypatch.setattr(config_module, "machine_memory", lambda: 64 * 10**9, raising=False)
+    monkeypatch.setattr(experiment_checks, "machine_memory", lambda: 64 * 10**9, raising=False)
     message = refused(["data.modality=features", "model.mlp_hidden=[1000000000]"])
     # Linear(29, 1e9) + BatchNorm(1e9) + the top's BatchNorm(1e9) and Linear(1e9, 32):
     # ~7e10 numbers x 16 bytes

@@ -12,7 +12,7 @@ import torch
 
 from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS, LABEL_COLUMNS, MODE_COLUMNS, STAMP
 from fedlgr.errors import DataError
-from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.config import DataConfig
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.images import decode
 

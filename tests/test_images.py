@@ -14,7 +14,7 @@ from PIL import Image
 import fedlgr.shell.data.images as images_module
 from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.cli import main
-from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.config import DataConfig
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.images import decode, load_image_store, match_images
 

@@ -15,7 +15,7 @@ from fedlgr.core.data.columns import (
     USING_CIRCLE,
 )
 from fedlgr.errors import ConfigError, DataError
-from fedlgr.shell.data.config import DEFAULT_TASKS, DataConfig, TaskSpec
+from fedlgr.shell.config import DEFAULT_TASKS, DataConfig, TaskSpec
 from fedlgr.shell.data.ratings import SceneTable, read_ratings
 from fedlgr.shell.data.splits import (
     make_split,

@@ -1,8 +1,8 @@
 """Value checks: the rules every setting's value follows, each refusal one line that
 names the setting (``train.epochs=0: must be >= 1``). The config's dataclasses call
-them as they are built (:mod:`fedlgr.shell.config`), a method's settings are checked
-against the bounds their fields declare (:func:`check_settings`), so the round's core
-trusts the config it is given."""
+them as they are built (each section's rules are in :mod:`.settings`), a method's settings
+are checked against the bounds their fields declare (:func:`check_settings`), so the
+round's core trusts the config it is given."""
 
 from __future__ import annotations
 
@@ -49,8 +49,8 @@ def _number_problem(hint, value) -> str | None:
         problems = (_number_problem(a, v) for a, v in zip(items, value, strict=False))
         return next((p for p in problems if p is not None), None)
     if hint in (int, float) and isinstance(value, list | tuple | dict):
-        # OmegaConf does not type what a typed tuple holds: model.mlp_hidden=[[16]] was
-        # "'<' not supported between instances of 'list' and 'int'" (the eighth sweep, a24)
+        # OmegaConf does not type what a typed tuple holds: model.mlp_hidden=[[16]] would
+        # fail later as "'<' not supported between instances of 'list' and 'int'"
         return "a list or mapping where a number goes"
     if hint is int and isinstance(value, float):
         return "must be an integer, not a float"
@@ -69,7 +69,7 @@ def check_seed(setting: str, value: int) -> None:
 
 def machine_memory() -> int:
     """This machine's memory in bytes (``psutil.virtual_memory().total``)."""
-    import psutil
+    import psutil  # lazy: psutil is heavy, and the config loads before any run (fedlgr --help)
 
     return psutil.virtual_memory().total
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES
 from fedlgr.shell.cli.parser import Verbs, crop
+from fedlgr.shell.config import DataConfig
 from fedlgr.shell.console import Progress, table
-from fedlgr.shell.data.config import DataConfig
 from fedlgr.shell.signals import terminate_as_interrupt
 
 

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from fedlgr.shell.cli.parser import Verbs, crop
+from fedlgr.shell.config import DataConfig
 from fedlgr.shell.console import Progress
-from fedlgr.shell.data.config import DataConfig
 
 
 def add_parser(verbs: Verbs) -> None:

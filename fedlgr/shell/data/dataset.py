@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from fedlgr.shell.checks.paths import check_data_path
-from fedlgr.shell.data.config import DataConfig
+from fedlgr.shell.config import DataConfig
 from fedlgr.shell.data.images import load_image_store
 from fedlgr.shell.data.ratings import SceneTable, read_ratings
 

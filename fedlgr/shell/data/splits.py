@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fedlgr.errors import ConfigError, DataError
-from fedlgr.shell.data.config import DataConfig, TaskSpec
+from fedlgr.shell.config import DataConfig, TaskSpec
 from fedlgr.shell.data.ratings import SceneTable
 
 _DIRICHLET_TRIES = 100

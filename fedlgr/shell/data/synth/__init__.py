@@ -61,7 +61,7 @@ import numpy as np
 from fedlgr.core.data.columns import ALL_COLUMNS
 from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.checks.paths import not_a_folder
-from fedlgr.shell.data.config import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
+from fedlgr.shell.config import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
 from fedlgr.shell.data.synth.appropriateness import RaterPool, true_appropriateness
 from fedlgr.shell.data.synth.drawing import render
 from fedlgr.shell.data.synth.layout import Layout, descriptors, sample_layout

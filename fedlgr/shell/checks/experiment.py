@@ -1,0 +1,144 @@
+"""Experiment checks: the rules across the sections of a config - the rounds of a whole
+task schedule, a CL method against the scope, server evaluation against the scope,
+``method`` against the settings, the tasks against ``data.tasks``, the root against the
+modality, the processes against the clients, ``continual.lgr.train_blocks`` against the
+root, and the scholar against this machine's memory. :class:`ExperimentConfig` calls
+:func:`check_experiment` from ``__post_init__``, after each section has checked its own
+(:mod:`.settings`)."""
+
+from __future__ import annotations
+
+import itertools
+from typing import TYPE_CHECKING
+
+from fedlgr.core.data.columns import FEATURE_COLUMNS
+from fedlgr.core.methods import CONTINUAL, method_name
+from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.settings import MAX_ROUNDS, ROUNDS_BOUND
+from fedlgr.shell.checks.values import check_numbers, check_seed, format_bytes, machine_memory
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config.settings import ExperimentConfig
+
+MOBILENET_V2_NUMBERS = 2_258_036  # parameters and buffers of torchvision's features, width 1
+MOBILENET_V2_BLOCKS = 19  # its features' blocks (Root.blocks(); a test checks the model)
+
+
+def check_experiment(config: ExperimentConfig) -> None:
+    """The rules across sections, after each section has checked its own."""
+    check_numbers("", config)
+    check_seed("seed", config.seed)
+    _rounds_in_all(config)
+    _method_fits(config)
+    _tasks_known(config)
+    _root_reads_features(config)
+    _processes_have_clients(config)
+    _root_reads_images(config)
+    _train_blocks(config)
+    _model_fits(config)
+
+
+def _rounds_in_all(config: ExperimentConfig) -> None:
+    """A task schedule's rounds, all tasks together, within MAX_ROUNDS."""
+    if config.continual.tasks and config.total_rounds > MAX_ROUNDS:
+        raise ConfigError(
+            f"continual.rounds_per_task={config.continual.rounds_per_task} x "
+            f"{len(config.continual.tasks)} tasks = {config.total_rounds} rounds: "
+            f"{ROUNDS_BOUND}"
+        )
+
+
+def _method_fits(config: ExperimentConfig) -> None:
+    """The CL method works with the scope, the server holds a model to evaluate, and
+    ``method`` names what the settings say."""
+    cl = CONTINUAL[config.continual.method]
+    if config.federated.scope not in cl.scopes:
+        raise ConfigError(
+            f"continual.method={cl.key} ({method_name('avg', cl.scopes[0], cl.key)}) works "
+            f"with federated.scope={' or '.join(cl.scopes)} only: set "
+            f"federated.scope={cl.scopes[0]}"
+        )
+    if config.federated.server_eval == "on" and config.federated.scope == "root":
+        raise ConfigError(
+            f"federated.server_eval=on: {config.method_name} shares the root only and "
+            "keeps each top on its client, so the server holds no whole model to "
+            "evaluate; server evaluation is for full-scope methods (FedAvg, FedBN, "
+            "FedProx, FedOpt, FedDistill and their CL variants; 'auto' turns it on "
+            "for those only)"
+        )
+    if config.method is not None and config.method != config.method_name:
+        raise ConfigError(f"method={config.method} disagrees with federated/continual settings")
+
+
+def _tasks_known(config: ExperimentConfig) -> None:
+    known = [t.name for t in config.data.tasks]
+    unknown = [t for t in config.continual.tasks if t not in known]
+    if unknown:
+        raise ConfigError(f"continual.tasks: unknown task(s) {unknown}; data.tasks has {known}")
+
+
+def _root_reads_features(config: ExperimentConfig) -> None:
+    if config.data.modality == "features" and config.root_kind != "mlp":
+        raise ConfigError(
+            f"model.root={config.model.root} reads images, but data.modality=features: "
+            "use model.root=mlp (or auto)"
+        )
+
+
+def _processes_have_clients(config: ExperimentConfig) -> None:
+    clients = config.data.clients
+    if config.runtime.world_size > clients:
+        raise ConfigError(
+            f"runtime.devices x runtime.num_nodes = {config.runtime.world_size} processes for "
+            f"data.clients={clients}: every process needs at least one client"
+        )
+    if (config.deploy.min_clients or 0) > clients:
+        raise ConfigError(
+            f"deploy.min_clients={config.deploy.min_clients} exceeds data.clients={clients}"
+        )
+
+
+def _root_reads_images(config: ExperimentConfig) -> None:
+    if config.data.modality == "image" and config.root_kind == "mlp":
+        raise ConfigError("model.root=mlp reads the descriptors: set data.modality=features")
+
+
+def _train_blocks(config: ExperimentConfig) -> None:
+    """``continual.lgr.train_blocks=k`` trains the root's last k blocks: more blocks than
+    the root has would train it whole without a word."""
+    k = config.continual.lgr.train_blocks
+    if k is None or config.continual.method != "lgr" or not config.continual.tasks:
+        return
+    # Root.blocks() (fedlgr.core.models.scholar): MobileNetV2's features, an MLP's layers
+    mlp = config.root_kind == "mlp"
+    mlp_hidden = config.model.mlp_hidden
+    blocks = len(mlp_hidden) if mlp else MOBILENET_V2_BLOCKS
+    if k > blocks:
+        what = f"model.mlp_hidden={list(mlp_hidden)}" if mlp else "MobileNetV2"
+        raise ConfigError(
+            f"continual.lgr.train_blocks={k}: the root ({what}) has {blocks} block"
+            f"{'' if blocks == 1 else 's'}; at most {blocks} (null: the whole root trains)"
+        )
+
+
+def _model_fits(config: ExperimentConfig) -> None:
+    """Refuse a scholar too large to train in this machine's memory, before it is built."""
+    m = config.model
+    if config.root_kind == "mlp":
+        sizes = (len(FEATURE_COLUMNS), *m.mlp_hidden)
+        # Linear weights and bias, BatchNorm weight, bias and running mean and variance
+        root = sum(a * b + 5 * b for a, b in itertools.pairwise(sizes))
+        out, setting = sizes[-1], f"model.mlp_hidden={list(m.mlp_hidden)}"
+    else:  # the number of MobileNetV2's weights grows with the square of its width
+        root = round(MOBILENET_V2_NUMBERS * m.width**2)
+        out, setting = round(1280 * max(1.0, m.width)), f"model.width={m.width}"
+    h = m.top_hidden
+    numbers = root + 4 * out + out * h + h + 4 * h + 8 * h + 8  # BN, Linear, BN, Linear
+    need, have = 16 * numbers, machine_memory()
+    if need > have:
+        raise ConfigError(
+            f"{setting} with model.top_hidden={h}: the scholar holds ~{numbers:.2g} "
+            f"parameters and buffers, {format_bytes(need)} to train (4 bytes each for the "
+            "weights, gradients and Adam's two moments), more than this machine's "
+            f"{format_bytes(have)} of memory (psutil.virtual_memory().total)"
+        )

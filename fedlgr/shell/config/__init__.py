@@ -1,0 +1,92 @@
+"""Experiment settings: typed, checked dataclasses filled from YAML and ``key=value``.
+
+- :mod:`.settings` and :mod:`.data`: the dataclasses, the single source of truth for every
+  setting and its default; each checks itself on construction with the rules of
+  :mod:`fedlgr.shell.checks.settings` (and :mod:`fedlgr.shell.checks.experiment`).
+- :mod:`.load`: the layers (defaults, a config file and what it ``includes``, found by
+  :mod:`.files`, the command line) merged by OmegaConf into the dataclasses, old names
+  read through :mod:`.deprecated`, ``${...}`` kept to the policy of
+  :mod:`.interpolation`, OmegaConf's errors made one line by :mod:`.messages`.
+- :mod:`.export`: a config written out (YAML, flat MLflow params) and the settings' names.
+
+The names below are the package's public face: ``from fedlgr.shell.config import
+load_config, ExperimentConfig``.
+"""
+
+from fedlgr.core.methods import FCL_METHODS, METHODS, method_name
+from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.experiment import MOBILENET_V2_BLOCKS
+from fedlgr.shell.checks.settings import (
+    MAX_AUGMENT_COPIES,
+    MAX_EXPERIMENT_NAME,
+    MAX_IMAGE_SIZE,
+    MAX_INTERVAL_S,
+    MAX_PER_MACHINE,
+    MAX_ROUNDS,
+    MIN_IMAGE_SIZE,
+)
+from fedlgr.shell.config.data import (
+    DEFAULT_TASKS,
+    DataConfig,
+    TaskSpec,
+    cache_dir_setting,
+    default_cache_dir,
+)
+from fedlgr.shell.config.deprecated import DEPRECATED
+from fedlgr.shell.config.export import flatten, known_settings, short_setting, to_plain, to_yaml
+from fedlgr.shell.config.files import CONF_DIR, SETTING_NAME, SWEEPS_DIR, find_config, yaml_reason
+from fedlgr.shell.config.interpolation import check_interpolations
+from fedlgr.shell.config.load import check_data, config_from_data, load_config
+from fedlgr.shell.config.settings import (
+    ContinualConfig,
+    DeployConfig,
+    ExperimentConfig,
+    FederatedConfig,
+    ModelConfig,
+    RuntimeConfig,
+    TrackingConfig,
+    TrainConfig,
+)
+
+__all__ = [
+    "CONF_DIR",
+    "DEFAULT_TASKS",
+    "DEPRECATED",
+    "FCL_METHODS",
+    "MAX_AUGMENT_COPIES",
+    "MAX_EXPERIMENT_NAME",
+    "MAX_IMAGE_SIZE",
+    "MAX_INTERVAL_S",
+    "MAX_PER_MACHINE",
+    "MAX_ROUNDS",
+    "METHODS",
+    "MIN_IMAGE_SIZE",
+    "MOBILENET_V2_BLOCKS",
+    "SETTING_NAME",
+    "SWEEPS_DIR",
+    "ConfigError",
+    "ContinualConfig",
+    "DataConfig",
+    "DeployConfig",
+    "ExperimentConfig",
+    "FederatedConfig",
+    "ModelConfig",
+    "RuntimeConfig",
+    "TaskSpec",
+    "TrackingConfig",
+    "TrainConfig",
+    "cache_dir_setting",
+    "check_data",
+    "check_interpolations",
+    "config_from_data",
+    "default_cache_dir",
+    "find_config",
+    "flatten",
+    "known_settings",
+    "load_config",
+    "method_name",
+    "short_setting",
+    "to_plain",
+    "to_yaml",
+    "yaml_reason",
+]

@@ -1,0 +1,76 @@
+"""A loaded config written out: as plain values, as YAML (``--print-config``, the run's
+``config.yaml``, what a Flower server sends its robots), as flat ``section.setting``
+strings (MLflow params, checkpoints); and the names of the settings themselves. What is
+written out never holds the password of ``tracking.uri``."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from fedlgr.shell.config.settings import ExperimentConfig
+from fedlgr.shell.tracking.uri import mask_password
+
+
+def to_plain(value: Any) -> Any:
+    """Dataclasses -> dicts, tuples -> lists, paths -> strings (YAML/MLflow friendly)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, list | tuple):
+        return [to_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: to_plain(v) for k, v in value.items()}
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def to_yaml(config: ExperimentConfig) -> str:
+    """The resolved config as YAML - what ``--print-config`` shows, the run's
+    ``config.yaml`` artifact and what a Flower server sends its robots - with the
+    password of ``tracking.uri`` masked (a database URI may hold one; the UI shows the
+    artifact to whoever opens the run)."""
+    # lazy: yaml is imported once a config is written out, not by fedlgr --help
+    import yaml
+
+    plain = to_plain(config)
+    tracking = plain.get("tracking")
+    if isinstance(tracking, dict) and tracking.get("uri"):
+        tracking["uri"] = mask_password(str(tracking["uri"]))
+    return yaml.safe_dump(plain, sort_keys=False)
+
+
+def flatten(config: ExperimentConfig) -> dict[str, str]:
+    """``{"data.clients": "2", ...}``: the resolved config as MLflow params and as a
+    checkpoint keeps it, the password of ``tracking.uri`` masked."""
+    out = {key: str(value) for key, value in _leaves(to_plain(config))}
+    if out.get("tracking.uri"):  # what is kept (checkpoints) holds no password
+        out["tracking.uri"] = mask_password(out["tracking.uri"])
+    return out
+
+
+def _leaves(values: dict, prefix: str = ""):
+    """``(dotted name, value)`` for every setting (not section) in plain ``values``."""
+    for key, value in values.items():
+        if isinstance(value, dict):
+            yield from _leaves(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def short_setting(name: str) -> str:
+    """A setting without its section, for names of trials and cells: ``train.lr_root`` ->
+    ``lr_root``, ``continual.lgr.replay`` -> ``lgr.replay`` (a method's setting keeps the
+    method's name)."""
+    return name.split(".", 1)[-1]
+
+
+def known_settings() -> list[str]:
+    """Every setting's dotted name (``train.lr_top``, ...)."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+
+    defaults = OmegaConf.structured(ExperimentConfig)
+    plain = OmegaConf.to_container(defaults, resolve=False, throw_on_missing=False)
+    return [name for name, _ in _leaves(plain)]

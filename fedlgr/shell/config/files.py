@@ -1,0 +1,170 @@
+"""Config files: where the shipped ``conf/`` and ``sweeps/`` are, and reading one config
+file, preceded by the files it ``includes``, as layers of settings. A path that is no
+config (a folder, a device, a broken link, a loop of includes, text that is not
+``setting: value`` lines, YAML too deep or too large) is refused in one line naming it."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+from fedlgr.errors import ConfigError
+from fedlgr.shell.checks.paths import not_a_file
+from fedlgr.shell.config.written import plain
+
+
+def _shipped(folder: str) -> Path:
+    """``conf/`` or ``sweeps/``: the copy a wheel ships inside the package (pyproject's
+    ``force-include``, for ``pip install`` / ``uv tool install``), else the checkout's, next
+    to the package (a clone, an editable install)."""
+    package = Path(__file__).resolve().parents[2]  # fedlgr/
+    return package / folder if (package / folder).is_dir() else package.parent / folder
+
+
+CONF_DIR = _shipped("conf")
+SWEEPS_DIR = _shipped("sweeps")
+
+SETTING_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]{0,99}")
+
+MAX_NESTING = 50  # levels of a config file; fedlgr's own nest 4 at most (at 90 levels of
+# mappings OmegaConf's own recursion gives up)
+
+
+def find_config(name: str | Path) -> Path:
+    """A config file as given, else the shipped one it names relative to ``conf/``
+    (``debug/fast.yaml``, ``conf/debug/fast.yaml`` outside a checkout, ``.yaml`` optional);
+    unchanged when neither exists (loading it then names the missing file)."""
+    path = Path(name)
+    if path.is_file() or path.is_absolute():
+        return path
+    inside = Path(*path.parts[1:]) if path.parts[:1] == ("conf",) else path
+    for candidate in (CONF_DIR / inside, (CONF_DIR / inside).with_suffix(".yaml")):
+        if candidate.is_file():
+            return candidate
+    return path
+
+
+def read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[tuple[Any, Any]]:
+    """The YAML at ``path`` preceded by what it includes, each as ``(path, OmegaConf
+    node)``; ``seen``: the files including it, outermost first."""
+    path = _config_file(path, seen)
+    node = _read_settings(path)
+    layers: list[tuple[Any, Any]] = []
+    for inc in _includes(node):
+        if "${" in str(inc):
+            raise ConfigError(f"{path}: includes: {inc!r}: name the file (no ${{...}} here)")
+        layers += read_layers(_included(Path(str(inc)), path), (*seen, path))
+    return [*layers, (path, node)]
+
+
+def _config_file(path: Path, seen: tuple[Path, ...]) -> Path:
+    """``path`` resolved, once it is known to be a regular file that is not already being
+    read; else one line saying what it is instead."""
+    # a broken link, or a path under a FIFO or a file: named for what it is, not "not found"
+    if not path.exists() and (why := not_a_file(path)):
+        raise ConfigError(f"{path.absolute()}: {why}")
+    if path.exists() and not path.is_file() and not path.is_dir():
+        # /dev/stdin, before it resolves to /proc/PID/fd/pipe:[N], which is no file
+        raise ConfigError(f"{path.absolute()}: not a regular file (a device, pipe or socket)")
+    path = path.resolve()
+    if path in seen:
+        raise ConfigError(f"{path}: includes itself (via {' -> '.join(p.name for p in seen)})")
+    if path.is_dir():
+        raise ConfigError(f"{path}: a folder, not a config file (name a .yaml file in it)")
+    if path.exists() and not path.is_file():  # /dev/zero or a FIFO: a read never ends
+        raise ConfigError(f"{path}: not a regular file (a device, pipe or socket)")
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    return path
+
+
+def _read_settings(path: Path) -> Any:
+    """The settings in the config file ``path``, an OmegaConf mapping of setting names."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+
+    _check_nesting(path)
+    try:
+        node = OmegaConf.load(path)
+    except Exception as err:
+        raise ConfigError(f"{path}: {yaml_reason(err)}") from err
+    if node is None or not OmegaConf.is_dict(node):
+        raise ConfigError(f"{path}: expected a mapping of settings at the top level")
+    if len(node) == 0:  # an empty file would run every default without a word
+        raise ConfigError(f"{path}: holds no settings (an empty file); give a config that does")
+    if any(not SETTING_NAME.fullmatch(str(key)) for key in node):
+        # e.g. a text file named as a config or a sweep's base: its text is not echoed
+        raise ConfigError(
+            f"{path}: not a config file: its top level is not `setting: value` lines "
+            "(a setting name is letters, digits, _ and .)"
+        )
+    return node
+
+
+def _includes(node: Any) -> list:
+    """The names a layer ``includes`` (as written, nothing resolved), taken out of ``node``
+    so that they are not read as a setting."""
+    written = plain(node)  # nothing resolved
+    includes = written.get("includes") or []
+    if "includes" in written:
+        del node["includes"]
+    return includes if isinstance(includes, list) else [includes]
+
+
+def _included(name: Path, including: Path) -> Path:
+    """The file ``includes: [NAME]`` in ``including`` names: NAME.yaml (or NAME if it ends
+    in .yaml/.yml, or NAME itself if only that exists), relative to conf/, else to the
+    including file. A suffix is added, never replaced (``with_suffix`` would look for
+    ``includes: [cfg.fifo]`` as cfg.yaml, and for ``/dev/zero`` as /dev/zero.yaml)."""
+    names = [name] if name.suffix in (".yaml", ".yml") else [name.with_name(f"{name.name}.yaml")]
+    names += [name] if name not in names else []
+    folders = [Path("/")] if name.is_absolute() else [CONF_DIR, including.parent]
+    candidates = [folder / n for n in names for folder in folders]
+    return next((c for c in candidates if os.path.lexists(c)), candidates[len(folders) - 1])
+
+
+def yaml_reason(err: Exception) -> str:
+    """Why OmegaConf's loader refused a YAML file, in one line: ``not valid YAML (...)`` or
+    ``too large: ...``. Its limit on the nodes of one file (10,000, against alias bombs)
+    names aliases and how to raise it, whether or not the file has an alias (a file of
+    200,000 plain keys gets it too); that is said as what it is, with no advice to lift a
+    safety limit."""
+    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    found = re.search(r"YAML node expansion exceeds the configured limit of (\d+)", first)
+    if found:
+        return (
+            f"too large: over {int(found.group(1)):,} YAML nodes (keys, values and list "
+            "items), more than OmegaConf reads from one file (a config holds a few hundred)"
+        )
+    return f"not valid YAML ({first})"
+
+
+def _check_nesting(path: Path) -> None:
+    """A file nested deeper than MAX_NESTING levels is one line. OmegaConf composes YAML
+    with libyaml's recursive C code, which crashes the process (SIGSEGV, no word) on
+    100,000 nested ``[``; libyaml's event parser keeps its own stack, so the levels are
+    counted from its events first (microseconds for a config)."""
+    # lazy: yaml is imported once a config is loaded, not by fedlgr --help
+    import yaml
+
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    opened = (yaml.MappingStartEvent, yaml.SequenceStartEvent)
+    closed = (yaml.MappingEndEvent, yaml.SequenceEndEvent)
+    depth = 0
+    try:
+        with path.open("rb") as stream:
+            for event in yaml.parse(stream, Loader=loader):
+                if isinstance(event, opened):
+                    depth += 1
+                    if depth > MAX_NESTING:
+                        line = event.start_mark.line + 1
+                        raise ConfigError(
+                            f"{path}: nested over {MAX_NESTING} levels deep (line {line}); "
+                            "a config nests a few"
+                        )
+                elif isinstance(event, closed):
+                    depth -= 1
+    except (yaml.YAMLError, OSError, UnicodeDecodeError):
+        return  # said with its reason by the load that follows

@@ -1,0 +1,233 @@
+"""Loading a config: OmegaConf merges, in order, the defaults (the dataclasses of
+:mod:`.settings`), the files a config ``includes`` (:mod:`.files`), the config file
+itself and the command-line overrides, checks every key and type against the
+dataclasses, and builds them (so each ``__post_init__`` checks its own settings).
+``method=FedRootProx`` is shorthand for ``federated.strategy=prox federated.scope=root``.
+Every ``${...}`` is checked against the policy of :mod:`.interpolation` before anything
+resolves, and each of OmegaConf's errors becomes one line naming the setting and its layer
+(:mod:`.messages`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
+from fedlgr.errors import ConfigError
+from fedlgr.shell.config.deprecated import renamed
+from fedlgr.shell.config.files import read_layers
+from fedlgr.shell.config.interpolation import check_interpolations, resolve
+from fedlgr.shell.config.messages import (
+    container_mismatch,
+    first_line,
+    merge_message,
+    omegaconf_message,
+)
+from fedlgr.shell.config.settings import ExperimentConfig
+from fedlgr.shell.config.written import lookup, plain, strings
+
+
+def load_config(
+    path: Path | str | None = None, overrides: list[str] | tuple[str, ...] = ()
+) -> ExperimentConfig:
+    """Merge the defaults, ``path`` (with its includes) and ``overrides`` (``key=value``).
+    ``${...}`` is checked in every layer before anything resolves."""
+    layers = read_layers(Path(path)) if path is not None else []
+    bad = [o for o in overrides if "=" not in o or o.startswith("=")]
+    if bad:
+        raise ConfigError(f"override {bad[0]!r}: expected key=value (e.g. federated.rounds=5)")
+    layers = [*layers, ("command line", _dotlist(overrides))]
+    layers = [(source, renamed(source, node)) for source, node in layers]
+    interpolated: dict[str, tuple[Any, str]] = {}
+    for source, node in layers:
+        interpolated.update(check_interpolations(source, node))
+    return _build(layers, interpolated)
+
+
+def config_from_data(data: Any, source: str) -> ExperimentConfig:
+    """A config received as data (a robot's copy of the server's resolved config,
+    :func:`~fedlgr.shell.config.export.to_yaml`): settings only, checked by
+    :func:`check_data`."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    check_data(data, source)
+    try:
+        node = OmegaConf.create(data)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{source}: {omegaconf_message(err)}") from None
+    return _build([(source, node)], {})
+
+
+def check_data(data: Any, source: str) -> None:
+    """Refuse what would make plain settings read or resolve anything: ``includes`` and
+    any ``${`` (in a key or a value). The messages name the setting, never a value."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of settings at the top level")
+    if "includes" in data:
+        raise ConfigError(f"{source}: includes: refused (a config sent as data reads no files)")
+    for key, value in strings(data, keys=True):
+        if "${" in value:
+            raise ConfigError(
+                f"{source}: {key}: holds ${{...}}, which a config sent as data may not "
+                "(it is resolved where it was written)"
+            )
+
+
+def _dotlist(overrides) -> Any:
+    """The command-line layer; an override whose value YAML cannot read is one line."""
+    # lazy: omegaconf and yaml are imported once a config is loaded, not by fedlgr --help
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    # RecursionError: a value nested thousands of levels deep ([[[[...]]]])
+    unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError, RecursionError)
+    # before OmegaConf reads them: with 'train=5' first it would keep train.lr_root=0.1 and
+    # drop the 5 without a word (in the other order, fail with a Merge error)
+    if clash := _clashing(overrides):
+        raise ConfigError(f"command line: {clash}")
+    try:
+        return OmegaConf.from_dotlist(list(overrides))
+    except unreadable as err:
+        for override in overrides:  # name the culprit
+            try:
+                OmegaConf.from_dotlist([override])
+            except unreadable as one:
+                shown = override if len(override) <= 120 else f"{override[:100]}..."
+                raise ConfigError(f"command line: {shown!r}: {first_line(one)}") from None
+        raise ConfigError(f"command line: {first_line(err)}") from None
+
+
+def _clashing(overrides) -> str | None:
+    """Two overrides that set one setting both whole and by its parts (``data.path=D`` and
+    ``data=[1,2]``), which OmegaConf refuses with "Cannot merge incompatible container
+    types" or "invalid literal for int()", naming neither, or reads with one of them
+    dropped: both, named."""
+    keys = [override.partition("=")[0] for override in overrides]
+    for i, key in enumerate(keys):
+        for earlier, other in zip(overrides[:i], keys[:i], strict=True):
+            if other.startswith(f"{key}.") or key.startswith(f"{other}."):
+                return (
+                    f"{earlier!r} and {overrides[i]!r} set {min(key, other, key=len)} both "
+                    "whole and by its parts; give one of them"
+                )
+    return None
+
+
+# --------------------------------------------------------------------------- building
+
+
+def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> ExperimentConfig:
+    """The dataclasses from ``layers`` (``(source, node)``, merged in order)."""
+    _require_mandatory(layers)
+    merged = _merge(layers)
+    resolve(merged, interpolated)
+    return _to_object(_named(merged))
+
+
+def _merge(layers: list) -> Any:
+    """The defaults and ``layers`` merged in order, a ``method`` name expanded where it
+    is given; a layer that does not fit is one line naming it and the setting."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    merged = OmegaConf.structured(ExperimentConfig)
+    for source, node in layers:
+        try:
+            if "method" in node and node["method"] is not None:
+                node = _expand_method(node, merged)
+            merged = OmegaConf.merge(merged, node)
+        except OmegaConfBaseException as err:
+            raise ConfigError(f"{source}: {merge_message(err, merged, node)}") from err
+        except ConfigError as err:
+            raise ConfigError(f"{source}: {err}") from err
+        except TypeError as err:  # "Cannot merge incompatible container types" (a traceback)
+            written = OmegaConf.to_container(node, resolve=False)
+            raise ConfigError(f"{source}: {container_mismatch(merged, written) or err}") from err
+    return merged
+
+
+def _named(merged: Any) -> Any:
+    """``method`` is input shorthand: afterwards it names what the settings say."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+
+    fed, cont = merged.federated, merged.continual
+    if fed.strategy in STRATEGIES and fed.scope in SCOPES and cont.method in CONTINUAL:
+        name = method_name(fed.strategy, fed.scope, cont.method if cont.tasks else None)
+        merged = OmegaConf.merge(merged, {"method": name})
+    return merged
+
+
+def _to_object(merged: Any) -> ExperimentConfig:
+    """The dataclasses, each checking its settings as it is built."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+    from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
+    try:
+        return OmegaConf.to_object(merged)
+    except MissingMandatoryValue as err:
+        key = getattr(err, "full_key", "?")
+        raise ConfigError(f"{key}: no value; set it, e.g. {key}=/path/to/manners-db") from err
+    except OmegaConfBaseException as err:
+        raise ConfigError(omegaconf_message(err)) from err
+
+
+def _require_mandatory(layers: list) -> None:
+    """A ``???`` value (e.g. data.path in conf/data/manners.yaml) must be set by a later
+    layer or the command line. (OmegaConf's merge skips ``???``, which would let an earlier
+    default - the synthetic data - stand in silently.)"""
+    written = [(source, plain(node)) for source, node in layers]  # nothing resolved
+    for i, (source, values) in enumerate(written):
+        for key in _missing_keys(values):
+            later = (lookup(v, key) for _, v in written[i + 1 :])
+            if not any(v is not None and v != "???" for v in later):
+                raise ConfigError(
+                    f"{key}: no value (required by {source}); set it, "
+                    f"e.g. {key}=/path/to/manners-db"
+                )
+
+
+def _missing_keys(values: dict, prefix: str = "") -> list[str]:
+    """Dotted keys whose value is the mandatory marker ``???`` in this layer's values."""
+    keys = []
+    for key, value in values.items():
+        if value == "???":
+            keys.append(f"{prefix}{key}")
+        elif isinstance(value, dict):
+            keys += _missing_keys(value, f"{prefix}{key}.")
+    return keys
+
+
+def _expand_method(node: Any, merged: Any) -> Any:
+    """``method=NAME`` -> strategy and scope; a Table II name sets the CL method too, and,
+    if no task schedule is set yet, the schedule of every task in ``data.tasks``; an FL
+    name clears the schedule and the CL method."""
+    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
+    from omegaconf import OmegaConf
+
+    name = str(node["method"])
+    if name in METHODS:
+        strategy, scope, _ = METHODS[name]
+        fl = {"strategy": strategy, "scope": scope}
+        return OmegaConf.merge(
+            {"federated": fl, "continual": {"tasks": [], "method": "none"}}, node
+        )
+    if name not in FCL_METHODS:
+        known = ", ".join([*METHODS, *FCL_METHODS])
+        raise ConfigError(f"method={name}: unknown; known methods: {known}")
+    strategy, scope, continual = FCL_METHODS[name]
+    update: dict = {
+        "federated": {"strategy": strategy, "scope": scope},
+        "continual": {"method": continual},
+    }
+    here = OmegaConf.select(node, "continual.tasks", default=None)
+    if not here and not merged.continual.tasks:
+        tasks = OmegaConf.select(node, "data.tasks", default=None) or merged.data.tasks
+        update["continual"]["tasks"] = [t["name"] for t in tasks]
+    # Settings given next to the name (in the same file or command line) win over it.
+    return OmegaConf.merge(update, node)
