@@ -25,7 +25,7 @@ from torchvision.transforms.v2 import functional as F
 
 from fedlgr.errors import ConfigError, DataError, join_problems
 from fedlgr.shell.checks.values import format_bytes, machine_memory
-from fedlgr.shell.data.config import cache_dir_setting
+from fedlgr.shell.config import cache_dir_setting
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _STAMP_PREFIX = re.compile(r"^(\d+)(?!\d)")
