@@ -11,6 +11,7 @@ import contextlib
 import copy
 import math
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import torch
@@ -169,11 +170,43 @@ def flops_per_sample(model: nn.Module, x: torch.Tensor) -> float:
     its forward, and its backward to the parameters that train - per sample, counted by
     torch's FlopCounterMode on a copy of the model on the meta device: shapes only, nothing
     computed, and the client's own arithmetic untouched (counting on the real step changes
-    the rounding of its convolutions)."""
-    ghost = copy.deepcopy(model).to("meta")
-    with FlopCounterMode(display=False) as counter:
-        ghost(torch.empty_like(x, device="meta")).float().sum().backward()
-    return counter.get_total_flops() / len(x)
+    the rounding of its convolutions). Counted once per model structure, sample shape and
+    set of trained parameters (a count takes about four real steps' time)."""
+    key = (
+        tuple(type(m).__qualname__ for m in model.modules()),
+        tuple((name, tuple(p.shape), p.requires_grad) for name, p in model.named_parameters()),
+        tuple(x.shape[1:]),
+        x.dtype,
+    )
+    if key not in _COUNTED:
+        ghost = _without_hooks(model).to("meta")
+        with FlopCounterMode(display=False) as counter:
+            ghost(torch.empty_like(x, device="meta")).float().sum().backward()
+        if len(_COUNTED) >= 64:  # structures seen in one process: a handful
+            _COUNTED.clear()
+        _COUNTED[key] = counter.get_total_flops() / len(x)
+    return _COUNTED[key]
+
+
+_COUNTED: dict[tuple, float] = {}  # flops_per_sample's counts, by structure and shape
+
+_HOOKS = (
+    "_forward_hooks",
+    "_forward_hooks_with_kwargs",
+    "_forward_hooks_always_called",
+    "_forward_pre_hooks",
+    "_forward_pre_hooks_with_kwargs",
+    "_backward_hooks",
+    "_backward_pre_hooks",
+)
+
+
+def _without_hooks(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` whose modules have no forward or backward hooks: a hook observes
+    the real model (a plug-in, a test's spy) and is no part of its arithmetic. The copy's
+    memo maps each hook table to a new empty one, so the model itself is left untouched."""
+    memo = {id(getattr(m, name)): OrderedDict() for m in model.modules() for name in _HOOKS}
+    return copy.deepcopy(model, memo)
 
 
 def _step(client: Client, ctx: LocalContext, x, y, autocast) -> torch.Tensor:
