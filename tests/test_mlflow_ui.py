@@ -153,7 +153,7 @@ def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
         assert row in dom and f">{run['info']['run_name']}</span>" in dom
     # fedlgr's shared view: the headline figures are columns of the runs table ...
     assert "shared view" in dom
-    for metric in ("test/rmse", "test/pcc", "mean/cost/cpu_s"):
+    for metric in ("test/rmse", "test/pcc", "test/ccc", "mean/cost/cpu_s"):
         assert f">{metric}<" in dom, metric
     # ... and the first charts of the chart view, beside a parallel-coordinates plot.
     titles = [f">{t}<" for t in ("test/rmse", "test/pcc", "Parallel Coordinates")]

@@ -6,7 +6,7 @@ sorting, charts, expanded parent runs) as the experiment tag
 ``mlflow.sharedViewState.<key>``, and ``?viewStateShareKey=<key>`` in the page's address
 loads it. fedlgr writes such a view, :data:`VIEW`, to every experiment it logs to:
 
-- the runs table shows ``test/rmse``, ``test/pcc``, ``test/loss`` and the costs per client
+- the runs table shows ``test/rmse``, ``test/pcc``, ``test/ccc`` and the costs per client
   per round (``mean/cost/cpu_s``, ``mean/cost/bytes_up``) as columns, with the method and
   each sweep's swept settings, sorted by ``test/rmse``; a sweep's trials are shown (their
   parent run expanded);
@@ -29,8 +29,9 @@ from fedlgr.core.metrics import HEADLINE
 VIEW = "fedlgr"
 TAG = f"mlflow.sharedViewState.{VIEW}"
 SECTION = "fedlgr-headline"
-# the runs table's metric columns: every score (the loss last), then the costs
-COLUMNS = (*HEADLINE, "mean/cost/cpu_s", "mean/cost/bytes_up")
+# the runs table's metric columns: every score but the loss (the square of the RMSE), then
+# the costs; the table sorts them by name and shows about six in a 1400-pixel window
+COLUMNS = (*(m for m in HEADLINE if m != "test/loss"), "mean/cost/cpu_s", "mean/cost/bytes_up")
 MAX_PARAMS = 6  # in the parallel-coordinates plot, the runs table's columns too
 MAX_EXPANDED = 40  # the newest sweeps' parent runs (an experiment tag holds 5000 characters)
 
