@@ -27,7 +27,7 @@ def broken_link(path) -> str | None:
             return "a symbolic link that loops"
         if os.path.islink(path):
             return f"a symbolic link to {os.readlink(path)}, which does not exist"
-        if err.errno == errno.ENOENT:  # a folder above it may be one (the tenth sweep, d24)
+        if err.errno == errno.ENOENT:  # a folder above it may be a dangling link
             return _above(path, links_only=True)
     return None
 
@@ -69,8 +69,8 @@ def not_a_file(path) -> str | None:
     """Why ``path`` cannot be read or written as a regular file though something is there:
     a broken link (:func:`broken_link`), "a folder", or "not a regular file (a device, pipe
     or socket)" - which sqlite or ``open()`` would block on (a FIFO), read as empty
-    (/dev/null) or write beside (``/dev/null-journal``, the ninth fault sweep's c06-c17) -
-    or None for a regular file or nothing there."""
+    (/dev/null) or write beside (``/dev/null-journal``) - or None for a regular file or
+    nothing there."""
 
     why, mode = _mode(path)
     if mode is None or stat.S_ISREG(mode):
@@ -100,8 +100,8 @@ def check_data_path(path: Path | str) -> None:
             f"data.path={path} is a file; expected the dataset folder (the one holding "
             f"{CSV_NAME} and images/{hint})"
         )
-    # a link was "no such folder" (the eighth fault sweep, u48); a FIFO or /dev/null, after
-    # 15 s, "file not found (expected the MANNERS-DB ratings CSV)" (the ninth, c41, c42)
+    # a link, a FIFO or /dev/null is named as such at once, not as a folder that is not
+    # there or, after the data has loaded, a ratings CSV that is not in it
     if why := not_a_folder(path):
         raise DataError(f"data.path={path}: {why}")
     if not path.exists():

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import sqlite3
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -93,8 +94,10 @@ def check_sqlite(uri: str) -> None:
 
     if path.is_dir():
         refuse(f"{path} is a folder; name the database file in it, e.g. sqlite:///{path}/mlflow.db")
-    if why := not_a_file(path):  # a new store would replace a link (u79, u50); a FIFO
-        refuse(f"{path} is {why}")  # hung, /dev/null made /dev/null-journal (c06, c07)
+    # a new store would replace a link; sqlite would hang on a FIFO and write
+    # /dev/null-journal beside /dev/null
+    if why := not_a_file(path):
+        refuse(f"{path} is {why}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -120,7 +123,6 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
     """The sqlite store opens and takes a write lock within ``wait`` seconds: a corrupted
     file, or one that another process keeps locked, is one line (MLflow would retry for
     minutes, then end in a stack trace)."""
-    import sqlite3
 
     path = sqlite_path(uri)
     if not path.is_file() or str(path) == ":memory:":
@@ -151,11 +153,10 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
 
 def half_created(connection) -> None:
     """Raise ``sqlite3.DatabaseError`` for an MLflow store whose creation a kill cut short
-    (the seventh fault sweep, g03e: its tables there, ``alembic_version`` empty, and every
-    later use a ``duplicate column name`` traceback). fedlgr now creates a store under
+    (its tables there, ``alembic_version`` empty, and every later use a ``duplicate column
+    name`` traceback). fedlgr now creates a store under
     another name and renames it when whole (:func:`fedlgr.shell.tracking.mlflow_run.open_client`);
     this names the ones left by other tools or earlier versions."""
-    import sqlite3
 
     tables = {name for (name,) in connection.execute("SELECT name FROM sqlite_master")}
     if not tables or "experiments" not in tables:
@@ -218,6 +219,7 @@ def check_database(uri: str, what: str, error: type[FedlgrError] = FedlgrError) 
 def database_connection(uri: str, what: str, error: type[FedlgrError]):
     """An open SQLAlchemy connection to ``uri`` (no pool: closed for good at the end);
     failing to open it is one ``error`` line (:func:`database_problem`)."""
+    # lazy: SQLAlchemy (~0.5 s), only for a database server's URL
     from sqlalchemy import create_engine
     from sqlalchemy.pool import NullPool
 
@@ -227,7 +229,7 @@ def database_connection(uri: str, what: str, error: type[FedlgrError]):
     check_userinfo(uri, what, error)
     engine = None
     try:
-        from sqlalchemy.engine import make_url
+        from sqlalchemy.engine import make_url  # lazy: SQLAlchemy, a server's URL only
 
         url = make_url(uri)
         backend = url.get_backend_name()
@@ -251,7 +253,7 @@ def database_connection(uri: str, what: str, error: type[FedlgrError]):
 
 def database_problem(uri: str, err: BaseException) -> str:
     """What an error of opening a connection to ``uri`` means, in a few words."""
-    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
+    from sqlalchemy.exc import ArgumentError, NoSuchModuleError  # lazy: SQLAlchemy
 
     scheme = uri.partition("://")[0]
     if isinstance(err, NoSuchModuleError):
@@ -291,7 +293,7 @@ def database_problem(uri: str, err: BaseException) -> str:
 
 
 def _address(uri: str) -> str:
-    from sqlalchemy.engine import make_url
+    from sqlalchemy.engine import make_url  # lazy: SQLAlchemy, a server's URL only
 
     try:
         url = make_url(uri)

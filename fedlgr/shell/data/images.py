@@ -24,6 +24,7 @@ from PIL import Image, UnidentifiedImageError
 from torchvision.transforms.v2 import functional as F
 
 from fedlgr.errors import ConfigError, DataError, join_problems
+from fedlgr.shell.checks.paths import broken_link
 from fedlgr.shell.checks.values import format_bytes, machine_memory
 from fedlgr.shell.config import cache_dir_setting
 
@@ -212,11 +213,9 @@ def _check_store_fits(n: int, size: int) -> None:
 
 
 def _check_cache_dir(cache_dir: Path) -> None:
-    """Refuse a cache folder that is, or lies under, a file (before decoding, not after),
-    a device or pipe, or a link that loops or leads nowhere (the cache was not written,
-    with a warning after decoding: the tenth fault sweep)."""
-    from fedlgr.shell.checks.paths import broken_link
-
+    """Refuse a cache folder that is, or lies under, a file, a device or pipe, or a link
+    that loops or leads nowhere, before decoding: after it, the cache could only be skipped
+    with a warning, its decoding lost."""
     if why := broken_link(cache_dir):
         setting = cache_dir_setting(cache_dir)
         raise ConfigError(
