@@ -28,6 +28,13 @@ def join_problems(subject: str, problems: list[str], shown: int = 5) -> str:
     return f"{subject}: {len(problems)} problems: {listed}{more}"
 
 
+def first_line(err: BaseException, limit: int | None = None) -> str:
+    """The first line of ``err``'s message, stripped and cut to ``limit`` characters, or
+    the name of its type when it has no message: how an error is quoted in one line."""
+    text = str(err).strip()
+    return (text.splitlines()[0].strip() if text else type(err).__name__)[:limit]
+
+
 def exception_chain(err: BaseException | None):
     """``err``, then what caused it or was being handled when it was raised, each once."""
     seen: set[int] = set()

@@ -15,9 +15,9 @@ import pytest
 from fedlgr.core.methods import in_paper
 from fedlgr.shell.cli import main
 from fedlgr.shell.config import FCL_METHODS, METHODS, load_config
+from fedlgr.shell.config.export import config_hash
 from fedlgr.shell.report import ReportError, make_report
 from fedlgr.shell.report.tables import mark_best, mark_lower_of_pair, reduction_percent
-from fedlgr.shell.run.checkpoint import fingerprint
 from fedlgr.shell.run.experiment import run_experiment
 from fedlgr.shell.tracking.context import run_params
 from tests.support.report import markdown_blocks, parse
@@ -386,7 +386,7 @@ def _tracked_run(client, experiment_id, overrides, metrics, *, start, tags=None)
         "augmentation": str(config.data.augment).lower(),
         "dataset": "synthetic",
         "modality": config.data.modality,
-        "fedlgr.config_hash": fingerprint(config),
+        "fedlgr.config_hash": config_hash(config),
         **(tags or {}),
     }
     run_id = client.create_run(experiment_id, start_time=start, tags=run_tags).info.run_id

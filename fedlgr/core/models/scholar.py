@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from fedlgr.core.data.columns import FEATURE_COLUMNS, LABEL_COLUMNS
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, first_line
 
 if TYPE_CHECKING:
     from fedlgr.shell.config import ExperimentConfig, ModelConfig
@@ -48,7 +48,7 @@ def _imagenet_state_dict() -> dict[str, torch.Tensor]:
     try:
         return weights.get_state_dict(progress=False, check_hash=True)
     except Exception as err:
-        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        reason = first_line(err)
         raise ConfigError(
             f"model.weights=imagenet: cannot load the ImageNet weights ({reason}). {how}"
         ) from err

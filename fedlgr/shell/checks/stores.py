@@ -20,7 +20,7 @@ import urllib.error
 import urllib.parse
 import urllib.request
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.tracking.uri import (
     authority_end,
@@ -29,7 +29,7 @@ from fedlgr.shell.tracking.uri import (
     mask_password,
     masked_text,
     server_database,
-    sqlite_path,
+    sqlite_file,
 )
 
 
@@ -85,12 +85,17 @@ def check_sqlite(uri: str) -> None:
     """One line, before MLflow meets it, for a sqlite store that is a folder, not an
     SQLite file, read-only (or immutable), or in a folder that cannot be made or
     written. (MLflow would retry for minutes, or end in a stack trace.)"""
-    path = sqlite_path(uri)
-    if str(path) == ":memory:":
-        return
+    from sqlalchemy.exc import ArgumentError  # lazy: SQLAlchemy (~0.5 s), a sqlite store only
 
     def refuse(why: str) -> None:
         raise TrackingUnreachable(f"tracking store {uri}: {why}")
+
+    try:
+        path = sqlite_file(uri)
+    except ArgumentError:
+        refuse("not a database URL (e.g. sqlite:///mlflow.db)")
+    if path is None:
+        return
 
     if path.is_dir():
         refuse(f"{path} is a folder; name the database file in it, e.g. sqlite:///{path}/mlflow.db")
@@ -124,8 +129,8 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
     file, or one that another process keeps locked, is one line (MLflow would retry for
     minutes, then end in a stack trace)."""
 
-    path = sqlite_path(uri)
-    if not path.is_file() or str(path) == ":memory:":
+    path = sqlite_file(uri)
+    if path is None or not path.is_file():
         return
     try:
         connection = sqlite3.connect(path, timeout=wait)
@@ -264,11 +269,11 @@ def database_problem(uri: str, err: BaseException) -> str:
             "postgresql+psycopg://, mysql+pymysql://)"
         )
     if isinstance(err, ArgumentError | ValueError):
-        return f"not a database URL ({_first_line(err)}); e.g. postgresql://USER@HOST:5432/DATABASE"
+        return f"not a database URL ({first_line(err)}); e.g. postgresql://USER@HOST:5432/DATABASE"
     if isinstance(err, ImportError):
         name = (getattr(err, "name", None) or "").split(".")[0]
         return DRIVER_HINTS.get(name) or f"its driver {name or err} is not installed"
-    text = _first_line(getattr(err, "orig", None) or err)
+    text = first_line(getattr(err, "orig", None) or err)
     for prefix in ("connection failed: ", "connection is bad: "):
         text = text.removeprefix(prefix)
     # psycopg: 'connection to server at "HOST", port PORT failed: FATAL:  WHY'
@@ -300,7 +305,3 @@ def _address(uri: str) -> str:
         return f"{url.host or 'localhost'}:{url.port or 'default port'}"
     except Exception:
         return "its address"
-
-
-def _first_line(err: BaseException) -> str:
-    return (str(err).strip().splitlines() or [type(err).__name__])[0].strip()

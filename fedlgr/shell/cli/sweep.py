@@ -16,7 +16,7 @@ from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.sweep import load_sweep, run_sweep
 from fedlgr.shell.sweep.spec import MAX_HEARTBEAT_S
 from fedlgr.shell.sweep.storage import check_storage
-from fedlgr.shell.tracking.uri import given_uri, masked_echo, sqlite_path
+from fedlgr.shell.tracking.uri import given_uri, masked_echo, sqlite_file
 
 MAX_STUDY_NAME = 512  # optuna.storages._rdb.models.MAX_INDEXED_STRING_LENGTH
 
@@ -152,7 +152,8 @@ def _not_the_tracking_store(optuna_file: Path | None, args, overrides: list[str]
     uri = given_uri(args.tracking_uri, overrides)
     if optuna_file is None or not uri.startswith("sqlite:///"):
         return
-    if sqlite_path(uri).resolve() == optuna_file.resolve():  # by a link, or .., all the same
+    tracking = sqlite_file(uri)
+    if tracking and tracking.resolve() == optuna_file.resolve():  # by a link, or .., the same
         raise FedlgrError(
             f"--storage {args.storage}: the tracking store's file too; Optuna's study and "
             "MLflow's runs each need a database of their own (e.g. --storage "

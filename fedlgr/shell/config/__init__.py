@@ -36,7 +36,7 @@ from fedlgr.shell.config.deprecated import DEPRECATED
 from fedlgr.shell.config.export import flatten, known_settings, short_setting, to_plain, to_yaml
 from fedlgr.shell.config.files import CONF_DIR, SETTING_NAME, SWEEPS_DIR, find_config, yaml_reason
 from fedlgr.shell.config.interpolation import check_interpolations
-from fedlgr.shell.config.load import check_data, config_from_data, load_config
+from fedlgr.shell.config.load import check_sent_settings, config_from_data, load_config
 from fedlgr.shell.config.settings import (
     ContinualConfig,
     DeployConfig,
@@ -76,8 +76,8 @@ __all__ = [
     "TrackingConfig",
     "TrainConfig",
     "cache_dir_setting",
-    "check_data",
     "check_interpolations",
+    "check_sent_settings",
     "config_from_data",
     "default_cache_dir",
     "find_config",

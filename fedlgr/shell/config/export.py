@@ -1,11 +1,13 @@
 """A loaded config written out: as plain values, as YAML (``--print-config``, the run's
 ``config.yaml``, what a Flower server sends its robots), as flat ``section.setting``
 strings (MLflow params, checkpoints); and the names of the settings themselves. What is
-written out never holds the password of ``tracking.uri``."""
+written out never holds the password of ``tracking.uri``. And which settings change a run's
+numbers: the hash by which a resumed run or a retried trial is found."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from pathlib import Path
 from typing import Any
 
@@ -74,3 +76,35 @@ def known_settings() -> list[str]:
     defaults = OmegaConf.structured(ExperimentConfig)
     plain = OmegaConf.to_container(defaults, resolve=False, throw_on_missing=False)
     return [name for name, _ in _leaves(plain)]
+
+
+# --------------------------------------------------------------------------- what changes a run
+
+# Settings a resumed run may change: they do not touch a number the run computes.
+SAFE_KEYS = frozenset(
+    {
+        "runtime.progress",
+        "runtime.timeout_s",
+        "tracking.uri",
+        "tracking.checkpoint",
+        "tracking.keep_checkpoints",
+        "tracking.checkpoint_dir",
+        "tracking.system_metrics",
+        "tracking.system_metrics_s",
+        "data.cache_dir",
+    }
+)
+
+# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
+# its checkpoint's values for them (``resume.adopt_settings``), so that it computes the
+# same numbers; they are not part of the hash a run is found by.
+MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
+
+
+def config_hash(config: ExperimentConfig) -> str:
+    """A hash of every setting that changes the run's numbers (``SAFE_KEYS`` excluded, and
+    the machine-chosen thread settings, which a resume adopts): ``--resume`` without a run
+    id, and a sweep's retried trial, look for an unfinished run with the same one."""
+    skip = SAFE_KEYS | set(MACHINE_CHOSEN)
+    items = sorted((k, v) for k, v in flatten(config).items() if k not in skip)
+    return hashlib.sha256(repr(items).encode()).hexdigest()[:16]

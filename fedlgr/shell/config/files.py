@@ -10,7 +10,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, first_line
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.config.written import plain
 
@@ -131,7 +131,7 @@ def yaml_reason(err: Exception) -> str:
     names aliases and how to raise it, whether or not the file has an alias (a file of
     200,000 plain keys gets it too); that is said as what it is, with no advice to lift a
     safety limit."""
-    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    first = first_line(err)
     found = re.search(r"YAML node expansion exceeds the configured limit of (\d+)", first)
     if found:
         return (

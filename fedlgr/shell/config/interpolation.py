@@ -11,8 +11,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from fedlgr.errors import ConfigError
-from fedlgr.shell.config.messages import first_line
+from fedlgr.errors import ConfigError, first_line
 from fedlgr.shell.config.written import plain, strings
 
 _REFERENCE = r"\.*[A-Za-z_][\w-]*(?:\.[\w-]+|\[\d+\])*"

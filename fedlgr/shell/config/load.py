@@ -13,16 +13,11 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, first_line
 from fedlgr.shell.config.deprecated import renamed
 from fedlgr.shell.config.files import read_layers
 from fedlgr.shell.config.interpolation import check_interpolations, resolve
-from fedlgr.shell.config.messages import (
-    container_mismatch,
-    first_line,
-    merge_message,
-    omegaconf_message,
-)
+from fedlgr.shell.config.messages import container_mismatch, merge_message, omegaconf_message
 from fedlgr.shell.config.settings import ExperimentConfig
 from fedlgr.shell.config.written import lookup, plain, strings
 
@@ -47,12 +42,12 @@ def load_config(
 def config_from_data(data: Any, source: str) -> ExperimentConfig:
     """A config received as data (a robot's copy of the server's resolved config,
     :func:`~fedlgr.shell.config.export.to_yaml`): settings only, checked by
-    :func:`check_data`."""
+    :func:`check_sent_settings`."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    check_data(data, source)
+    check_sent_settings(data, source)
     try:
         node = OmegaConf.create(data)
     except OmegaConfBaseException as err:
@@ -60,7 +55,7 @@ def config_from_data(data: Any, source: str) -> ExperimentConfig:
     return _build([(source, node)], {})
 
 
-def check_data(data: Any, source: str) -> None:
+def check_sent_settings(data: Any, source: str) -> None:
     """Refuse what would make plain settings read or resolve anything: ``includes`` and
     any ``${`` (in a key or a value). The messages name the setting, never a value."""
     if not isinstance(data, dict):

@@ -9,12 +9,9 @@ import re
 from collections.abc import Iterator
 from typing import Any
 
+from fedlgr.errors import first_line
 from fedlgr.shell.config.export import known_settings
 from fedlgr.shell.config.written import lookup
-
-
-def first_line(err: Exception) -> str:
-    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
 
 
 def omegaconf_message(err: Exception) -> str:

@@ -23,7 +23,7 @@ import torch
 from PIL import Image, UnidentifiedImageError
 from torchvision.transforms.v2 import functional as F
 
-from fedlgr.errors import ConfigError, DataError, join_problems
+from fedlgr.errors import ConfigError, DataError, first_line, join_problems
 from fedlgr.shell.checks.paths import broken_link
 from fedlgr.shell.checks.values import format_bytes, machine_memory
 from fedlgr.shell.config import cache_dir_setting
@@ -94,7 +94,7 @@ def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
         pixels = re.search(r"\((\d+) pixels\)", str(err))
         raise DataError(_oversized(path, pixels.group(1) if pixels else "too many")) from err
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
-        raise DataError(f"{path}: cannot decode image ({str(err).splitlines()[0]})") from err
+        raise DataError(f"{path}: cannot decode image ({first_line(err)})") from err
     image = torch.from_numpy(pixels).permute(2, 0, 1)
     if crop is not None:
         height, width = image.shape[-2:]
@@ -241,7 +241,7 @@ def _read_cache(cache_file: Path, wanted: list[int], size: int, n_missing: int):
     except Exception as err:
         # torch.load raises IndexError, UnpicklingError, RuntimeError, EOFError, ... on
         # damage; a damaged cache is rebuilt, never fatal
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        reason = first_line(err)
         warnings.warn(
             f"{cache_file}: unreadable image cache, decoding again ({reason})", stacklevel=3
         )
@@ -341,5 +341,5 @@ def _save_atomically(store: ImageStore, cache_file: Path) -> None:
     except (OSError, RuntimeError) as err:  # a read-only or full cache folder: the run goes on
         # (torch.save reports a failed write as a RuntimeError: "unexpected pos ...")
         tmp.unlink(missing_ok=True)
-        reason = str(err).strip().splitlines()[0][:200] if str(err).strip() else type(err).__name__
+        reason = first_line(err, 200)
         warnings.warn(f"{cache_file}: could not write the image cache ({reason})", stacklevel=3)

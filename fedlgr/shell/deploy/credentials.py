@@ -32,7 +32,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.paths import not_a_folder
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
@@ -170,7 +170,7 @@ def check_node_key(path: Path, option: str = "--key") -> None:
         half = " (the public half: give NAME, not NAME.pub)" if path.suffix == ".pub" else ""
         raise FedlgrError(
             f"{option} {path}: not a private node key{half}; fedlgr deploy node-key DIR NAME "
-            f"writes one ({str(err).splitlines()[0] if str(err) else type(err).__name__})"
+            f"writes one ({first_line(err)})"
         ) from None
     except OSError as err:
         raise FedlgrError(f"{option} {path}: cannot read it ({err.strerror})") from None

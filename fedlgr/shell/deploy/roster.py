@@ -26,7 +26,7 @@ import yaml
 from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 
 ROSTER_NAME = "roster.yaml"
 HEADER = (
@@ -79,7 +79,7 @@ class Roster:
         try:
             data = yaml.safe_load(path.read_text()) or {}
         except (yaml.YAMLError, UnicodeDecodeError) as err:
-            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            first = first_line(err)
             raise FedlgrError(f"roster {path}: not valid YAML ({first})") from None
         except RecursionError:  # thousands of nested levels: no roster fedlgr writes
             raise FedlgrError(f"roster {path}: nested too deeply to be a roster") from None

@@ -21,7 +21,6 @@ arrays are stored as tensors).
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import re
 import shutil
@@ -31,27 +30,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.paths import not_a_folder
-from fedlgr.shell.config import ExperimentConfig, flatten
+from fedlgr.shell.config import ExperimentConfig
+from fedlgr.shell.config.export import SAFE_KEYS
 
 FORMAT = 2  # 2: a round's rows name their columns (keys) and participants
 PATTERN = re.compile(r"round-(\d+)\.ckpt")
 ROOT = "checkpoints"  # the folder of runs' folders, unless tracking.checkpoint_dir names one
-# Settings a resumed run may change: they do not touch a number the run computes.
-SAFE_KEYS = frozenset(
-    {
-        "runtime.progress",
-        "runtime.timeout_s",
-        "tracking.uri",
-        "tracking.checkpoint",
-        "tracking.keep_checkpoints",
-        "tracking.checkpoint_dir",
-        "tracking.system_metrics",
-        "tracking.system_metrics_s",
-        "data.cache_dir",
-    }
-)
 
 
 def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
@@ -119,8 +105,7 @@ def _io_reason(err: BaseException) -> str:
         if isinstance(seen, OSError) and seen.strerror:
             return seen.strerror
         seen = seen.__cause__ or seen.__context__
-    text = str(err).strip()
-    return text.splitlines()[0][:200] if text else type(err).__name__
+    return first_line(err, 200)
 
 
 def _write_atomically(path: Path, state: Any) -> None:
@@ -169,7 +154,7 @@ def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        reason = first_line(err)
         if "Weights only load failed" in reason:
             reason = "it holds objects other than tensors and plain values"
         raise FedlgrError(
@@ -198,21 +183,6 @@ def remove(folder: Path, ours: bool = False) -> None:
 
 
 # --------------------------------------------------------------------------- the config
-
-
-# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
-# its checkpoint's values for them (``resume.adopt_settings``), so that it computes the
-# same numbers; they are not part of the fingerprint a run is found by.
-MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
-
-
-def fingerprint(config: ExperimentConfig) -> str:
-    """A hash of every setting that changes the run's numbers (``SAFE_KEYS`` excluded, and
-    the machine-chosen thread settings, which a resume adopts): ``--resume`` without a run
-    id, and a sweep's retried trial, look for an unfinished run with the same one."""
-    skip = SAFE_KEYS | set(MACHINE_CHOSEN)
-    items = sorted((k, v) for k, v in flatten(config).items() if k not in skip)
-    return hashlib.sha256(repr(items).encode()).hexdigest()[:16]
 
 
 def differences(saved: dict[str, str], now: dict[str, str]) -> list[str]:

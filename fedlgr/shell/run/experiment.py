@@ -27,7 +27,7 @@ from lightning.fabric.strategies import DDPStrategy
 from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
 
 from fedlgr.core.in_process import Orchestrator
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import Progress
@@ -131,7 +131,7 @@ def _launch(fabric, config: ExperimentConfig, *args):
         raise FedlgrError(
             f"runtime.num_nodes={rt.num_nodes}, runtime.devices={rt.devices}: not every process "
             f"joined within runtime.timeout_s={rt.timeout_s:g} s at {where} "
-            f"({_one_line(err)}); {way_out}"
+            f"({first_line(err, 200)}); {way_out}"
         ) from None
     except RuntimeError as err:  # after DistStoreError, one of its kind
         if not (isinstance(err, DistBackendError) or _peer_lost(err)):
@@ -212,7 +212,7 @@ def _threads_text(config: ExperimentConfig, share: int | None) -> str:
 def _peer_message(fabric, err: BaseException) -> str:
     return (
         f"another process of this {fabric.world_size}-process run ended during an exchange "
-        f"({_one_line(err)}); its own output says why (killed, or an error); the run is "
+        f"({first_line(err, 200)}); its own output says why (killed, or an error); the run is "
         "ended FAILED and --resume continues it from its last checkpoint"
     )
 
@@ -223,8 +223,3 @@ def _peer_lost(err: BaseException) -> bool:
     return "gloo" in text and any(
         w in text for w in ("Connection reset by peer", "Connection closed by peer", "Read error")
     )
-
-
-def _one_line(err: BaseException) -> str:
-    text = str(err).strip()
-    return text.splitlines()[0][:200] if text else type(err).__name__

@@ -33,6 +33,7 @@ from fedlgr.core.metrics import SCORES
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress, Rounds
 from fedlgr.core.schedule import Schedule, schedule
+from fedlgr.errors import first_line
 from fedlgr.shell.config import ExperimentConfig, flatten
 from fedlgr.shell.console import Progress, duration
 from fedlgr.shell.run import checkpoint as ckpt
@@ -361,14 +362,14 @@ class RunLife:
                 try:
                     action()
                 except Exception as problem:  # reported; never raised over err
-                    self.say(f"(while failing: could not record {what}: {_one_line(problem)})")
+                    reason = first_line(problem, 200)
+                    self.say(f"(while failing: could not record {what}: {reason})")
         killed = isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
         try:
             tracker.fail(interrupted=killed)
         except Exception as problem:
-            self.say(
-                f"(while failing: could not end MLflow run {tracker.run_id}: {_one_line(problem)})"
-            )
+            reason = first_line(problem, 200)
+            self.say(f"(while failing: could not end MLflow run {tracker.run_id}: {reason})")
 
 
 def checkpoint_state(
@@ -449,8 +450,3 @@ def _line(log: RoundLog) -> str:
 
 def _missing(log: RoundLog) -> str:
     return f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
-
-
-def _one_line(err: BaseException) -> str:
-    text = str(err).strip()
-    return text.splitlines()[0][:200] if text else type(err).__name__

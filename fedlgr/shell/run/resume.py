@@ -20,6 +20,7 @@ from typing import Any
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig, flatten
+from fedlgr.shell.config.export import MACHINE_CHOSEN, config_hash
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run import owner
 from fedlgr.shell.run.life import Resumed
@@ -174,8 +175,7 @@ def checkpoint_folder(run, config: ExperimentConfig) -> Path:
 
 def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
     query = (
-        f"tags.`fedlgr.config_hash` = '{ckpt.fingerprint(config)}' "
-        "and attributes.status != 'FINISHED'"
+        f"tags.`fedlgr.config_hash` = '{config_hash(config)}' and attributes.status != 'FINISHED'"
     )
     runs = client.search_runs([experiment], query, order_by=["attributes.start_time DESC"])
     if not runs:
@@ -183,7 +183,7 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
         # resuming at once are told which run the other one finished.
         finished = client.search_runs(
             [experiment],
-            f"tags.`fedlgr.config_hash` = '{ckpt.fingerprint(config)}'",
+            f"tags.`fedlgr.config_hash` = '{config_hash(config)}'",
             order_by=["attributes.start_time DESC"],
             max_results=1,
         )
@@ -194,9 +194,6 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
             "start the run without --resume"
         )
     return runs[0]
-
-
-MACHINE_CHOSEN = ckpt.MACHINE_CHOSEN
 
 
 def load_checkpoint(

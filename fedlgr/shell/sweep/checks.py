@@ -138,7 +138,7 @@ def run_metrics(config: ExperimentConfig) -> set[str]:
     return names
 
 
-def check_data(spec: SweepSpec) -> None:
+def check_data_folders(spec: SweepSpec) -> None:
     """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start
     rather than fail each of its trials on it. (:func:`~fedlgr.shell.sweep.spec.load_sweep`
     does not ask this, so that a sweep file can be checked without its data.)"""

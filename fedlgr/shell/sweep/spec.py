@@ -35,7 +35,7 @@ from typing import Any
 
 import yaml
 
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, first_line
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.config import SETTING_NAME, SWEEPS_DIR, check_interpolations, yaml_reason
 from fedlgr.shell.sweep.checks import check_trial_configs, tracking_experiment
@@ -264,7 +264,7 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}{_yaml_problem(err)}") from err
     except OmegaConfBaseException as err:  # e.g. ${...} that names nothing
         key = f"{err.full_key}: " if getattr(err, "full_key", None) else ""
-        raise ConfigError(f"{path}: {key}{str(err).splitlines()[0]}") from err
+        raise ConfigError(f"{path}: {key}{first_line(err)}") from err
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"{path}: cannot read the sweep file: {err}") from err
     except RecursionError:  # thousands of nested levels
@@ -354,7 +354,7 @@ def _range(name: str, value: dict, key: str, fail: Fail) -> Param:
     try:
         param.distribution()  # anything else Optuna refuses
     except ValueError as err:
-        raise fail(key, str(err).splitlines()[0]) from err
+        raise fail(key, first_line(err)) from err
     return param
 
 

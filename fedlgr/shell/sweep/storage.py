@@ -21,9 +21,16 @@ from typing import Any
 from fedlgr.errors import FedlgrError, exception_chain
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.checks.stores import CONNECT_TIMEOUT_S, check_database
+from fedlgr.shell.config.export import MACHINE_CHOSEN, SAFE_KEYS
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.tracking.store import StoreError, open_lock_file, store_lock
-from fedlgr.shell.tracking.uri import in_memory_sqlite, mask_password, masked_text, server_database
+from fedlgr.shell.tracking.uri import (
+    in_memory_sqlite,
+    mask_password,
+    masked_text,
+    server_database,
+    sqlite_file,
+)
 
 DEFAULT_STORAGE = "sqlite:///optuna.db"
 
@@ -116,17 +123,6 @@ SQLITE_HEADER = b"SQLite format 3\x00"
 LOCK_WAIT_S = 5.0  # another process's write that takes longer than this is not a sweep's
 
 
-def sqlite_path(storage: str) -> Path | None:
-    """The file of an sqlite storage URL; None for a server database or an in-memory one."""
-    from sqlalchemy.engine import make_url  # lazy: sqlalchemy (~1 s), for a storage only
-
-    url = make_url(storage)
-    database = url.database or ""
-    if url.get_backend_name() != "sqlite" or database in ("", ":memory:") or url.query:
-        return None
-    return Path(database).expanduser()
-
-
 def check_storage(storage: str, make: bool = True) -> Path | None:
     """Refuse, in one line naming it (its password masked), a storage that cannot hold a
     study, before anything waits on it: not a database URL; an sqlite path that is a
@@ -146,7 +142,7 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         return None
 
     try:
-        path = sqlite_path(storage)
+        path = sqlite_file(storage)
     except ArgumentError as err:
         raise fail("not a database URL (e.g. sqlite:///optuna.db or postgresql://HOST/DB)") from err
     if in_memory_sqlite(storage):
@@ -359,8 +355,6 @@ def _as_dict(overrides: list[str]) -> dict[str, str]:
     that change no number (``tracking.*``, ``data.cache_dir``) left out, and how trials
     run (``--workers`` sets the threads per trial: a relaunch with other workers or on
     another machine goes on with the study)."""
-    from fedlgr.shell.run.checkpoint import MACHINE_CHOSEN, SAFE_KEYS  # lazy: torch (~5 s)
-
     pairs = dict(o.split("=", 1) for o in overrides)
     return {
         k: v

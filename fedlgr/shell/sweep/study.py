@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fedlgr.shell.signals import Terminated
-from fedlgr.shell.sweep.checks import check_data
+from fedlgr.shell.sweep.checks import check_data_folders
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.storage import DEFAULT_STORAGE
 from fedlgr.shell.sweep.trials import all_failed, counts, nothing_left, ran, summary
@@ -81,7 +81,7 @@ def run_sweep(
     """Run (or resume) the sweep with ``workers`` processes: this one and ``workers - 1``
     ``fedlgr sweep`` subprocesses on the same storage. Refuses to start (ConfigError)
     when a trial's ``data.path`` is not a folder."""
-    check_data(spec)
+    check_data_folders(spec)
     if workers > 1:  # the helpers' lines are echoed from threads: one line at a time
         echo = serialised(echo)
     worker = Worker(

@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig, load_config
+from fedlgr.shell.config.export import config_hash
 from fedlgr.shell.signals import Terminated
 from fedlgr.shell.sweep.parent_run import ParentRun
 from fedlgr.shell.sweep.space import SweepSpec
@@ -161,7 +162,7 @@ class TrialRunner:
         run started) and reported rounds, so the retry resumes that run instead of
         training from round 1."""
         # lazy: torch (~5 s), loaded by the checkpoint modules
-        from fedlgr.shell.run.checkpoint import checkpoints, fingerprint
+        from fedlgr.shell.run.checkpoint import checkpoints
         from fedlgr.shell.run.resume import checkpoint_folder
 
         run_id = trial.user_attrs.get("mlflow_run_id")
@@ -174,7 +175,7 @@ class TrialRunner:
             return None
         if run.info.status == "FINISHED" or not checkpoints(checkpoint_folder(run, config)):
             return None
-        if run.data.tags.get("fedlgr.config_hash") != fingerprint(config):
+        if run.data.tags.get("fedlgr.config_hash") != config_hash(config):
             changed = f"settings changed since run {run_id}"
             self.echo(f"=== trial {trial.number}: {changed}; it starts from round 1")
             return None

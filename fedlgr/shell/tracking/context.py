@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.core.data.columns import CSV_NAME
+from fedlgr.errors import first_line
 from fedlgr.shell.config import ExperimentConfig, flatten, short_setting
 from fedlgr.shell.tracking.store import store_lock
 
@@ -208,6 +209,5 @@ class SystemMetrics:
             monitor.publish_metrics(monitor.aggregate_metrics())
             monitor.mlflow_logger.flush()
         except Exception as err:  # the store went away: the run's end reports it
-            text = str(err).strip()
-            first = text.splitlines()[0][:200] if text else type(err).__name__
+            first = first_line(err, 200)
             warnings.warn(f"last system-metrics sample not logged: {first}", stacklevel=2)

@@ -47,6 +47,7 @@ from fedlgr.core.data.columns import LABEL_SHORT_NAMES
 from fedlgr.core.metrics import HEADLINE
 from fedlgr.errors import interrupt_in
 from fedlgr.shell.config import ExperimentConfig, to_yaml
+from fedlgr.shell.config.export import config_hash
 from fedlgr.shell.signals import deferred
 from fedlgr.shell.tracking import context
 from fedlgr.shell.tracking.experiments import experiment_id
@@ -174,8 +175,6 @@ class Tracker:
         """A new run: its tags, params, ``config.yaml`` and dataset input."""
         from mlflow.entities import Param  # lazy: mlflow (seconds), only once a run starts
 
-        from fedlgr.shell.run.checkpoint import fingerprint  # lazy: imports torch at its top
-
         run_tags = {
             "method": config.method_name,
             "strategy": config.federated.strategy,
@@ -186,7 +185,7 @@ class Tracker:
             "augmentation": str(config.data.augment).lower(),
             "benchmark": "FCL" if config.continual_learning else "FL",
             "continual": config.continual.method if config.continual_learning else "none",
-            "fedlgr.config_hash": fingerprint(config),
+            "fedlgr.config_hash": config_hash(config),
             "runtime": "fabric",  # where the clients ran (fedlgr deploy: flower)
             **({"fedlgr.data_digest": digest} if digest else {}),  # --resume checks it
             **(tags or {}),

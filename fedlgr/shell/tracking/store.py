@@ -27,9 +27,9 @@ import shutil
 import sys
 from pathlib import Path
 
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable, database_connection
-from fedlgr.shell.tracking.uri import DATABASES, mask_password, masked_text, sqlite_path
+from fedlgr.shell.tracking.uri import DATABASES, mask_password, masked_text, sqlite_file
 
 UI_PORT = 5000  # mlflow ui's default
 
@@ -169,8 +169,8 @@ def create_whole(uri: str) -> None:
     :func:`store_lock`, so a temporary file found is one a kill left behind."""
     import mlflow  # lazy: mlflow (seconds), only once a command opens its store
 
-    path = sqlite_path(uri)
-    if str(path) == ":memory:" or path.exists():
+    path = sqlite_file(uri)
+    if path is None or path.exists():
         return
     making = path.with_name(f".{path.name}.creating")
     making.unlink(missing_ok=True)
@@ -186,8 +186,7 @@ def _cause(err: BaseException) -> str:
     sqlite's: "database or disk is full")."""
     while getattr(err, "orig", None) is not None or err.__cause__ is not None:
         err = getattr(err, "orig", None) or err.__cause__
-    text = str(err).strip()
-    return (text.splitlines()[0] if text else type(err).__name__)[:300]
+    return first_line(err, 300)
 
 
 @contextlib.contextmanager

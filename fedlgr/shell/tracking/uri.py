@@ -53,8 +53,17 @@ def in_memory_sqlite(uri: str) -> bool:
     )
 
 
-def sqlite_path(uri: str) -> Path:
-    return Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()
+def sqlite_file(url: str) -> Path | None:
+    """The file an sqlite URL names (a tracking store, a sweep's storage), its query
+    aside; None for another database or an in-memory one. Raises sqlalchemy's
+    ``ArgumentError`` for a URL it cannot read."""
+    # lazy: sqlalchemy (~1 s); this module is read before anything heavy loads
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite" or in_memory_sqlite(url):
+        return None
+    return Path(parsed.database).expanduser()
 
 
 def given_uri(uri: str | None, overrides: list[str]) -> str:

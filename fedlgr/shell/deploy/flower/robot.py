@@ -35,8 +35,8 @@ from lightning.fabric import seed_everything
 
 from fedlgr.core.client.side import ClientSide
 from fedlgr.core.state import to_device
-from fedlgr.errors import FedlgrError
-from fedlgr.shell.config import ExperimentConfig, check_data, config_from_data, to_yaml
+from fedlgr.errors import FedlgrError, first_line
+from fedlgr.shell.config import ExperimentConfig, check_sent_settings, config_from_data, to_yaml
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import FederatedSplit, make_split
 from fedlgr.shell.deploy.flower import wire
@@ -197,10 +197,10 @@ def robot_config(node_config: dict, config_yaml: str) -> ExperimentConfig:
     try:
         settings = yaml.load(config_yaml, Loader=_DataLoader)  # a SafeLoader
     except yaml.YAMLError as err:
-        raise FedlgrError(f"{SERVER}: not valid YAML ({str(err).splitlines()[0]})") from None
+        raise FedlgrError(f"{SERVER}: not valid YAML ({first_line(err)})") from None
     except RecursionError:  # thousands of levels: a message no fedlgr server sends
         raise FedlgrError(f"{SERVER}: nested too deeply to be a config") from None
-    check_data(settings, SERVER)
+    check_sent_settings(settings, SERVER)
     data, model, tracking, runtime = (
         _section(settings, name) for name in ("data", "model", "tracking", "runtime")
     )
