@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import os
 import re
-import urllib.error
 import urllib.parse
-import urllib.request
 from pathlib import Path
 
 from fedlgr.errors import FedlgrError
