@@ -21,6 +21,7 @@ are per client, so both modes compute the same numbers.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import TYPE_CHECKING
 
@@ -64,6 +65,11 @@ class Orchestrator:
         payloads summed, then the server update; ``senders``: how many clients trained in
         all processes (default: those of ``trained``, one process)."""
         senders = len(trained) if senders is None else senders
+        if self.server.strategy.needs_uploads:  # a statistic of every upload: gather them
+            everyone = [r for part in _all_gather(self.fabric, trained) for r in part]
+            here = [_moved(r, self.device) for r in sorted(everyone, key=lambda r: r.client)]
+            self.server.combine(here, senders)
+            return
         sums, total, payloads = self.server.sums(trained)
         if self.world > 1:  # one collective for everything
             like = self.server.global_weights
@@ -173,6 +179,22 @@ def _unflatten(flat: torch.Tensor, out: Weights, like: Weights, keys: list[str],
         out[k] = flat[at : at + size].view(like[k].shape)
         at += size
     return at
+
+
+def _all_gather(fabric, part: list[TrainRes]) -> list[list[TrainRes]]:
+    """Every process's uploads ``part`` in every process, through the CPU
+    (torch.distributed's object gather, as :func:`_gather`): for a robust aggregate."""
+    if fabric.world_size == 1:
+        return [part]
+    parts: list = [None] * fabric.world_size
+    dist.all_gather_object(parts, [_moved(r, CPU) for r in part])
+    return parts
+
+
+def _moved(result: TrainRes, device: torch.device) -> TrainRes:
+    """``result`` with its tensors on ``device``."""
+    weights, payload = to_device(result.weights, device), to_device(result.payload, device)
+    return dataclasses.replace(result, weights=weights, payload=payload)
 
 
 def _gather(fabric, part: dict) -> list[dict] | None:

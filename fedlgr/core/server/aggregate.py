@@ -38,3 +38,15 @@ def finish_mean(sums: Weights, total: float, like: Weights | None = None) -> Wei
     if total <= 0:
         raise ValueError("no samples to aggregate")
     return {k: (s / total).to(like[k].dtype if like else torch.float32) for k, s in sums.items()}
+
+
+def stacked(uploads: list[tuple[int, Weights]], key: str) -> torch.Tensor:
+    """Tensor ``key`` of every upload, stacked along a new first dimension (float64)."""
+    return torch.stack([weights[key].detach().double() for _, weights in uploads])
+
+
+def middle(values: torch.Tensor, cut: int) -> torch.Tensor:
+    """Per coordinate, the mean of ``values`` (stacked along dimension 0) once the ``cut``
+    smallest and ``cut`` largest are left out."""
+    n = len(values)
+    return values.sort(dim=0).values[cut : n - cut].mean(dim=0)

@@ -95,8 +95,26 @@ class ServerSide:
         self.strategy.take_payloads(payloads, senders, self.config.data.clients)
 
     def aggregate(self, results: Iterable[TrainRes]) -> None:
+        """The next global tensors from every upload of the round."""
         results = list(results)
-        self.update(*self.sums(results), len(results))
+        if self.strategy.needs_uploads:
+            self.combine(sorted(results, key=lambda r: r.client), len(results))
+        else:
+            self.update(*self.sums(results), len(results))
+
+    def combine(self, results: list[TrainRes], senders: int) -> None:
+        """The next global tensors from the strategy's statistic of the uploads
+        (``Strategy.combine``: a median, Krum, ...), for strategies that need them all."""
+        for r in results:
+            check_shared(r.weights, self.keys, f"client {r.client}'s upload", self.prefix)
+        uploads = [(r.n_samples, {k: r.weights[k] for k in self.keys}) for r in results]
+        combined = self.strategy.combine(uploads)
+        like = self.global_weights
+        aggregate = {k: combined[k].to(like[k].dtype) for k in self.keys}
+        self.global_weights = self.strategy.server_update(self.global_weights, aggregate)
+        payload_keys = sorted({k for r in results for k in r.payload})
+        payloads, _ = weighted_sum(((1, r.payload) for r in results), payload_keys)
+        self.strategy.take_payloads(payloads, senders, self.config.data.clients)
 
     # ------------------------------------------------------------------ the record
 

@@ -5,9 +5,11 @@ A strategy decides who trains and what travels, and how the server aggregates (F
 them, or a seeded ``federated.fraction`` of them), what each chosen client is sent besides
 the global tensors (``payload``: per-client state such as SCAFFOLD's control variate),
 which of the scope's tensors are exchanged (``shares``), what each client adds to its
-local training (``client_plugins``), and how the server turns the clients'
-sample-weighted mean into the next global weights (``server_update``) and takes in what
-their plugins sent (``take_payloads``). What is shared at all - the whole model or the root
+local training (``client_plugins``), how the server aggregates the clients' uploads
+(their sample-weighted mean, from sums that processes add up; or, for a robust statistic
+such as a median, ``combine`` over every upload), turns the aggregate into the next
+global weights (``server_update``) and takes in what their plugins sent
+(``take_payloads``). What is shared at all - the whole model or the root
 only - is the orthogonal *scope* (``fedlgr.core.scope``): FedRoot x every strategy are
 combinations, not a class each. Subclasses override only what differs (Flower's
 ``Strategy``).
@@ -78,6 +80,17 @@ class Strategy:
         return []
 
     # ------------------------------------------------------------------ aggregation
+
+    # Whether the aggregate is a statistic of the uploads themselves (a median, a trimmed
+    # mean, Krum's choice) rather than their weighted sum: the runtimes then gather every
+    # upload of the round and call ``combine``.
+    needs_uploads = False
+
+    def combine(self, uploads: list[tuple[int, Weights]]) -> Weights:
+        """The aggregate of the round's uploads, ``(n_samples, tensors)`` in client order,
+        as float64 tensors (called where ``needs_uploads``; FedAvg's sample-weighted mean
+        is taken from sums instead)."""
+        raise NotImplementedError
 
     def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
         """The next global weights from the clients' sample-weighted mean."""
