@@ -85,8 +85,11 @@ def root_bytes(config) -> int:
         ["method=SCAFFOLD", "federated.rounds=3"],
         # one robot of two trains each round (seed 0: client 1, then 0, then 1)
         ["method=FedAvg", "federated.fraction=0.5", "federated.rounds=3"],
+        # a robust aggregate over every robot's root (of two, Krum keeps robot 0's)
+        ["method=FedRootKrum", "federated.rounds=2"],
     ],
-    ids=["FedLGR", "FedAvg-server-eval", "SCAFFOLD", "FedAvg-half"],  # FedRootAvg: resume test
+    # FedRootAvg: the resume test
+    ids=["FedLGR", "FedAvg-server-eval", "SCAFFOLD", "FedAvg-half", "FedRootKrum"],
 )
 def test_flower_runs_compute_what_one_process_computes(
     federation, synth_dir, cache_dir, store, method, request

@@ -278,3 +278,107 @@ def test_scaffold_takes_one_round_of_control_variate_steps_by_hand():
     again = build_strategy(FederatedConfig(strategy="scaffold", scaffold=settings))
     again.load_state_dict(server.state_dict())  # c is the server's state: checkpointed
     assert torch.equal(again.control["bias"], server.control["bias"])
+
+
+# --------------------------------------------------------------------------- robust
+
+
+def robust(key: str, **settings) -> Strategy:
+    section = {key: STRATEGIES[key].settings(**settings)} if settings else {}
+    return build_strategy(FederatedConfig(strategy=key, **section))
+
+
+def uploads_of(*values, n=(1, 1, 1, 1, 1)) -> list:
+    """One upload per value: tensor ``w`` = [value, -value] and an int64 counter."""
+    return [
+        (count, {"w": torch.tensor([v, -v]), "steps": torch.tensor(7)})
+        for count, v in zip(n, values, strict=False)
+    ]
+
+
+def test_fedmedian_takes_the_coordinate_wise_median_whatever_the_sample_counts():
+    """Yin et al. 2018: per coordinate, the median of the uploads, unweighted; with an even
+    number the mean of the middle two (numpy's), not torch.median's lower one."""
+    median = robust("median")
+    assert median.needs_uploads
+    odd = median.combine(uploads_of(1.0, 2.0, 100.0, n=(1, 1, 10**6)))
+    assert odd["w"].tolist() == [2.0, -2.0] and odd["steps"].item() == 7
+    even = median.combine(uploads_of(1.0, 2.0, 4.0, 100.0))
+    assert even["w"].tolist() == [3.0, -3.0]  # (2 + 4) / 2
+    a = {"w": torch.tensor([1.0, 9.0])}
+    b = {"w": torch.tensor([5.0, 1.0])}
+    c = {"w": torch.tensor([3.0, 4.0])}
+    mixed = median.combine([(1, a), (1, b), (1, c)])  # coordinates apart: (3, 4), no upload
+    assert mixed["w"].tolist() == [3.0, 4.0]
+
+
+def test_fedtrimmedavg_leaves_out_floor_beta_n_at_either_end():
+    """Yin et al. 2018, beta-trimmed mean: of 5 uploads beta 0.2 cuts 1 at either end,
+    beta 0.45 cuts 2 (the median), beta 0 none (the plain mean); counts do not weigh."""
+    values = (1.0, 2.0, 3.0, 4.0, 100.0)
+    cases = {0.2: 3.0, 0.45: 3.0, 0.0: 22.0, 0.1: 22.0}  # floor(0.1 x 5) = 0: nothing cut
+    for beta, expected in cases.items():
+        out = robust("trimmed", beta=beta).combine(uploads_of(*values, n=(9, 1, 1, 1, 1)))
+        assert out["w"].tolist() == [expected, -expected], beta
+    assert robust("trimmed", beta=0.2).combine(uploads_of(2.0, 4.0, 5.0, 6.0, -50.0))[
+        "w"
+    ].tolist() == [11 / 3, -11 / 3]  # -50 and 6 cut: (2 + 4 + 5) / 3
+
+
+def test_krum_and_multikrum_choose_the_uploads_closest_to_their_neighbours():
+    """Blanchard et al. 2017 on five points w = (v, -v), v = 0, 1, 2, 10, 11, f = 1: each
+    scores the sum of its n - f - 2 = 2 smallest squared distances (here 2 v-distances
+    squared, doubled by the -v coordinate):
+    v=0: 2 (1 + 4) = 10; v=1: 2 (1 + 1) = 4; v=2: 2 (1 + 4) = 10; v=10: 2 (1 + 64) = 130;
+    v=11: 2 (1 + 81) = 164. Krum keeps v=1; Multi-Krum m=2 the mean of v=1 and the tie
+    0 / 2 broken to the lower client (v=0): 0.5; m=3: (0 + 1 + 2) / 3 = 1."""
+    from fedlgr.core.strategies.krum import krum_scores
+
+    points = uploads_of(0.0, 1.0, 2.0, 10.0, 11.0, n=(1, 1, 1, 1, 10**6))
+    vectors = torch.stack([w["w"].double() for _, w in points])
+    assert krum_scores(vectors, f=1).tolist() == [10.0, 4.0, 10.0, 130.0, 164.0]
+    assert robust("krum", f=1, m=1).combine(points)["w"].tolist() == [1.0, -1.0]
+    assert robust("krum", f=1, m=2).combine(points)["w"].tolist() == [0.5, -0.5]
+    assert robust("krum", f=1, m=3).combine(points)["w"].tolist() == [1.0, -1.0]
+    assert robust("krum", f=1, m=1).combine(points)["steps"].item() == 7  # counters: not scored
+    # Fewer than 2 f + 3 uploads: each is scored over its nearest neighbour (Flower's floor).
+    two = uploads_of(5.0, 3.0)
+    assert krum_scores(torch.stack([w["w"].double() for _, w in two]), f=1).tolist() == [8.0, 8.0]
+    assert robust("krum", f=1, m=1).combine(two)["w"].tolist() == [5.0, -5.0]  # client 0
+
+
+@pytest.mark.parametrize("scope", ["full", "root"])
+@pytest.mark.parametrize("key", ["median", "trimmed", "krum"])
+def test_a_robust_aggregate_replaces_the_mean_in_the_server_s_round(key, scope):
+    """The server side takes a robust strategy's statistic over the uploads in scope (the
+    root only with FedRoot) - not the sample-weighted mean - and casts it to the global
+    tensors' dtypes; an outlier client moves the global model no more than its rank says."""
+    from fedlgr.core.messages import TrainRes
+    from fedlgr.core.server.side import ServerSide
+    from fedlgr.shell.config import load_config
+
+    config = load_config(
+        None,
+        [
+            f"federated.strategy={key}",
+            f"federated.scope={scope}",
+            "data.clients=5",
+            "data.modality=features",
+            "model.root=mlp",
+            "model.width=0.25",
+        ],
+    )
+    server = ServerSide(config)
+    base = server.global_weights
+    shift = (0.0, 0.1, 0.2, 0.3, 1000.0)  # client 4 is far off
+    results = [
+        TrainRes(c, {k: v + shift[c] if v.is_floating_point() else v for k, v in base.items()}, 10)
+        for c in range(5)
+    ]
+    server.aggregate(reversed(results))  # any arrival order
+    expected = {"median": 0.2, "trimmed": 0.2, "krum": 0.1}[key]  # Krum: f=1, 2 neighbours
+    for k, v in server.global_weights.items():
+        assert v.dtype == base[k].dtype
+        if v.is_floating_point():
+            torch.testing.assert_close(v, base[k] + expected, rtol=0, atol=1e-5)
+    assert all(k.startswith("root.") for k in server.keys) == (scope == "root")

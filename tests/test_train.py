@@ -177,7 +177,9 @@ def _cli_run(args, cwd):
 
 
 @pytest.mark.slow
-def test_two_processes_give_the_same_numbers_as_one(synth_dir, cache_dir, tmp_path):
+# FedMedian: a statistic of every upload, which the processes gather instead of summing
+@pytest.mark.parametrize("method", ["FedRootProx", "FedMedian"])
+def test_two_processes_give_the_same_numbers_as_one(method, synth_dir, cache_dir, tmp_path):
     """Fabric DDP on CPU (gloo), clients sharded over 2 processes, vs one process."""
     store = f"sqlite:///{tmp_path}/mlflow.db"
     common = [
@@ -185,7 +187,7 @@ def test_two_processes_give_the_same_numbers_as_one(synth_dir, cache_dir, tmp_pa
         f"data.path={synth_dir}",
         f"data.cache_dir={cache_dir}",
         "federated.rounds=2",
-        "method=FedRootProx",
+        f"method={method}",
         "runtime.accelerator=cpu",
         "runtime.threads=1",
         "tracking.detail_metrics=true",  # every client's scores compared

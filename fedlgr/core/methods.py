@@ -156,6 +156,24 @@ STRATEGIES = _register(
         names={("scaffold", "full"): "SCAFFOLD"},
         in_paper=False,
     ),
+    Method("median", "Median", f"{STRATEGY}.median:FedMedian", "Yin et al. 2018", in_paper=False),
+    Method(
+        "trimmed",
+        "TrimmedAvg",
+        f"{STRATEGY}.trimmed:FedTrimmedAvg",
+        "Yin et al. 2018",
+        declared(beta=setting(0.2, least=0, below=0.5)),  # the fraction cut at either end
+        in_paper=False,
+    ),
+    Method(
+        "krum",
+        "Krum",
+        f"{STRATEGY}.krum:Krum",
+        "Blanchard et al. 2017",
+        declared(f=setting(1, least=0), m=setting(1, least=1)),  # Byzantine clients; kept
+        names={("krum", "full"): "Krum"},
+        in_paper=False,
+    ),
 )
 
 
