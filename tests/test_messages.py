@@ -62,8 +62,10 @@ def test_nothing_but_the_shared_tensors_may_cross(config, synth_dir):
     with pytest.raises(FedlgrError, match=r"server's download: \['top.net.1.weight'\] outside"):
         side.evaluate(EvaluateIns(RoundPlan(1), {**res.weights, **top}))
     server = ServerSide(config)
-    with pytest.raises(FedlgrError, match=r"client 1's upload: \['top.net.1.weight'\] outside"):
-        server.aggregate([TrainRes(1, {**res.weights, **top}, 10)])
+    before = {k: v.clone() for k, v in server.global_weights.items()}
+    server.aggregate([TrainRes(1, {**res.weights, **top}, 10)])  # refused, the round goes on
+    assert "tensor(s) that are not shared (top.net.1.weight, ...)" in server.refused[1]
+    assert all(torch.equal(v, before[k]) for k, v in server.global_weights.items())
 
 
 def test_a_round_with_a_robot_missing_has_its_row_nan_and_names_it(config):

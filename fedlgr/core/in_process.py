@@ -60,15 +60,25 @@ class Orchestrator:
             else None
         )
 
-    def aggregate(self, trained: list[TrainRes], senders: int | None = None) -> None:
-        """Sample-weighted mean over the trained clients of all processes, their plugins'
-        payloads summed, then the server update; ``senders``: how many clients trained in
-        all processes (default: those of ``trained``, one process)."""
-        senders = len(trained) if senders is None else senders
+    def aggregate(self, trained: list[TrainRes]) -> None:
+        """Sample-weighted mean over the uploads of all processes that the server takes
+        (:meth:`ServerSide.screen`: each process checks its own clients', against the
+        scenes they hold), their plugins' payloads summed, then the server update."""
+        capacity = {c.index: c.n_samples for c in self.clients}
+        refused = self.server.refusals(trained, capacity)
+        norms = self.server.update_norms(trained, refused)
+        if self.world > 1:  # every process decides on the round's norms, all of them
+            parts = _all_gather(self.fabric, (refused, norms))
+            refused = {c: why for part, _ in parts for c, why in part.items()}
+            norms = {c: norm for _, part in parts for c, norm in part.items()}
+        trained = self.server.screen(trained, refused, norms)
+        senders = sum(c not in self.server.refused for c in norms)  # taken, all processes
         if self.server.strategy.needs_uploads:  # a statistic of every upload: gather them
-            everyone = [r for part in _all_gather(self.fabric, trained) for r in part]
+            mine = [_moved(r, CPU) for r in trained]
+            everyone = [r for part in _all_gather(self.fabric, mine) for r in part]
             here = [_moved(r, self.device) for r in sorted(everyone, key=lambda r: r.client)]
-            self.server.combine(here, senders)
+            if here:
+                self.server.combine(here, senders)
             return
         sums, total, payloads = self.server.sums(trained)
         if self.world > 1:  # one collective for everything
@@ -85,7 +95,7 @@ class Orchestrator:
             total = float(flat[-1])
             offset = _unflatten(flat, sums, like, self.server.keys, 0)
             _unflatten(flat, payloads, template, sorted(template), offset)
-        self.server.update(sums, total, payloads, senders)
+        self.server.update_if_any(sums, total, payloads, senders)
 
     @property
     def local_clients(self) -> int:
@@ -110,7 +120,7 @@ class Orchestrator:
             self.server_eval,
             round_,
             task,
-            lambda: self.aggregate(list(trained.values()), len(chosen)),
+            lambda: self.aggregate(list(trained.values())),
         )
         evaluated = self.client_side.evaluate(EvaluateIns(plan, self.server.global_weights))
         rows = {}
@@ -181,13 +191,14 @@ def _unflatten(flat: torch.Tensor, out: Weights, like: Weights, keys: list[str],
     return at
 
 
-def _all_gather(fabric, part: list[TrainRes]) -> list[list[TrainRes]]:
-    """Every process's uploads ``part`` in every process, through the CPU
-    (torch.distributed's object gather, as :func:`_gather`): for a robust aggregate."""
+def _all_gather(fabric, part):
+    """Every process's ``part`` in every process (torch.distributed's object gather, as
+    :func:`_gather`; tensors go through the CPU): the round's checks and, for a robust
+    aggregate, its uploads."""
     if fabric.world_size == 1:
         return [part]
     parts: list = [None] * fabric.world_size
-    dist.all_gather_object(parts, [_moved(r, CPU) for r in part])
+    dist.all_gather_object(parts, part)
     return parts
 
 

@@ -59,6 +59,7 @@ class RoundLog:
     # federated.server_eval: the initial model's scores, before round 1 (step 0).
     initial: dict[str, float] = field(default_factory=dict)
     participants: tuple[int, ...] | None = None  # the clients that trained (None: all)
+    refused: dict[int, str] = field(default_factory=dict)  # uploads refused: client -> why
 
     @property
     def fields(self) -> list[Field]:
@@ -99,6 +100,8 @@ class RoundLog:
             out["round/missing_clients"] = float(len(self.missing))
         if self.participants is not None:
             out["round/participants"] = float(len(self.participants))
+        if self.refused:
+            out["faults/refused"] = float(len(self.refused))
         for key, values in zip(self.keys, self.table.T, strict=True):
             if not np.isnan(values).all():
                 out[key] = float(np.nanmean(values))

@@ -26,6 +26,7 @@ from fedlgr.core.records import RoundLog, table
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import SCOPE_PREFIX, initial_scholar, parameter_keys, shared_keys
 from fedlgr.core.server.aggregate import finish_mean, weighted_sum
+from fedlgr.core.server.screen import oversized, refusal, update_norm
 from fedlgr.core.state import to_device
 from fedlgr.core.strategies import build_strategy
 
@@ -50,6 +51,7 @@ class ServerSide:
         # What the method's client plugins measure (every client has the same kinds).
         self.plugin_keys = plugin_metrics(cfg.federated.strategy, cfg.continual.method)
         self.round_keys = round_keys(self.tasks, self.plugin_keys)  # a round's columns
+        self.refused: dict[int, str] = {}  # this round's refused uploads: client -> why
 
     def to(self, device: torch.device) -> ServerSide:
         self.global_weights = {k: v.to(device) for k, v in self.global_weights.items()}
@@ -74,6 +76,29 @@ class ServerSide:
         initial = self.initial_bytes if round_ == 1 and trained else 0
         return nbytes(self.global_weights) + initial
 
+    # ------------------------------------------------------------------ what is taken
+
+    def refusals(
+        self, results: Iterable[TrainRes], capacity: Mapping[int, int] | None = None
+    ) -> dict[int, str]:
+        """The uploads that cannot be aggregated, client -> why (:mod:`.screen`):
+        ``capacity``, where the server knows it, bounds each client's sample count."""
+        bound = capacity or {}
+        found = {r.client: refusal(r, self.global_weights, bound.get(r.client)) for r in results}
+        return {client: why for client, why in found.items() if why is not None}
+
+    def update_norms(self, results: Iterable[TrainRes], refused: Mapping[int, str]) -> dict:
+        """client -> the norm of its update, for the uploads not ``refused``."""
+        shared = self.global_weights
+        return {r.client: update_norm(r, shared) for r in results if r.client not in refused}
+
+    def screen(self, results: list[TrainRes], refused: dict, norms: dict) -> list[TrainRes]:
+        """The uploads taken: not ``refused``, nor far larger than the round's others
+        (``federated.norm_ratio`` over every process's ``norms``); the round's refusals
+        are kept for its record."""
+        self.refused = refused | oversized(norms, self.config.federated.norm_ratio)
+        return [r for r in results if r.client not in self.refused]
+
     # ------------------------------------------------------------------ aggregation
 
     def sums(self, results: Iterable[TrainRes]) -> tuple[Weights, float, Weights]:
@@ -95,8 +120,13 @@ class ServerSide:
         self.strategy.take_payloads(payloads, senders, self.config.data.clients)
 
     def aggregate(self, results: Iterable[TrainRes]) -> None:
-        """The next global tensors from every upload of the round."""
+        """The next global tensors from every upload of the round that the server takes
+        (all of them in this process); nothing changes where none is taken."""
         results = list(results)
+        refused = self.refusals(results)
+        results = self.screen(results, refused, self.update_norms(results, refused))
+        if not results:
+            return
         if self.strategy.needs_uploads:
             self.combine(sorted(results, key=lambda r: r.client), len(results))
         else:
@@ -115,6 +145,11 @@ class ServerSide:
         payload_keys = sorted({k for r in results for k in r.payload})
         payloads, _ = weighted_sum(((1, r.payload) for r in results), payload_keys)
         self.strategy.take_payloads(payloads, senders, self.config.data.clients)
+
+    def update_if_any(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
+        """:meth:`update`, where any upload was taken (``total`` > 0)."""
+        if total > 0:
+            self.update(sums, total, payloads, senders)
 
     # ------------------------------------------------------------------ the record
 
@@ -146,6 +181,7 @@ class ServerSide:
         strategy chose fewer than all."""
         clients = self.config.data.clients
         chosen = None if participants is None or len(participants) == clients else participants
+        refused, self.refused = self.refused, {}
         return RoundLog(
             plan.round,
             self.tasks[plan.task],
@@ -154,6 +190,7 @@ class ServerSide:
             seconds,
             missing,
             participants=None if chosen is None else tuple(chosen),
+            refused=refused,
         )
 
     # ------------------------------------------------------------------ checkpoints

@@ -113,6 +113,11 @@ def check_federated(federated: FederatedConfig) -> None:
             f"federated.fraction={federated.fraction}: must be in (0, 1] (the share of the "
             "clients that train in a round; 1: all of them)"
         )
+    if federated.norm_ratio != 0 and federated.norm_ratio < 1:
+        raise ConfigError(
+            f"federated.norm_ratio={federated.norm_ratio}: must be 0 (no check) or at least 1 "
+            "(an update over this many times the round's median update norm is refused)"
+        )
     choice("federated.strategy", federated.strategy, tuple(STRATEGIES))
     choice("federated.scope", federated.scope, tuple(SCOPES))
     rounds("federated.rounds", federated.rounds)

@@ -98,6 +98,10 @@ class _FederatedConfig:
     # 1; else max(1, round(fraction x clients)) drawn from the run's seed each round. The
     # others keep their state and are still evaluated.
     fraction: float = 1.0
+    # An upload whose update (its tensors minus the global ones) has a norm over this many
+    # times the round's median update norm is refused (0: no such check). Every upload's
+    # keys, shapes, dtypes, values and sample count are checked whatever this says.
+    norm_ratio: float = 10.0
 
     def __post_init__(self) -> None:
         # true/false as YAML or the command line give them: on/off

@@ -90,6 +90,7 @@ class Resumed:
                 dict(r["server"]),
                 dict(r["initial"]),
                 None if r["participants"] is None else tuple(r["participants"]),
+                {int(c): why for c, why in r.get("refused", {}).items()},
             )
             for r in self.state["rows"]
         ]
@@ -127,6 +128,7 @@ class RunLife:
         self.every = config.tracking.checkpoint if config.tracking.enabled else 0
         self.total = 0  # rounds in the schedule
         self.missed: list[str] = []  # "round 2: client 1" (fedlgr.missing)
+        self.refused: list[str] = []  # "round 2: client 1 (why)" (fedlgr.refused)
 
     def say(self, text: str) -> None:
         """A console line (rank 0)."""
@@ -156,6 +158,8 @@ class RunLife:
                 if self.checkpoint_due(plan.round):
                     self.checkpoint(rounds)
                 self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta.step()}){_missing(log)}")
+                for client, why in sorted(log.refused.items()):
+                    self.say(f"{label}: refused client {client}'s upload: {why}")
                 self.tell(plan.round, metrics)  # the caller's on_round: raising stops the run
         return self.summary()
 
@@ -297,6 +301,12 @@ class RunLife:
             if log.missing:  # robots that dropped out (fedlgr deploy)
                 self.missed.append(f"round {plan.round}: client {', '.join(map(str, log.missing))}")
                 tracker.client.set_tag(tracker.run_id, "fedlgr.missing", "; ".join(self.missed))
+            if log.refused:  # uploads the server did not take
+                self.refused += [
+                    f"round {plan.round}: client {c} ({why})" for c, why in log.refused.items()
+                ]
+                refused = "; ".join(self.refused)
+                tracker.client.set_tag(tracker.run_id, "fedlgr.refused", refused[-5000:])
         return metrics
 
     def checkpoint_due(self, round_: int) -> bool:
@@ -396,6 +406,7 @@ def checkpoint_state(
                 "server": r.server,
                 "initial": r.initial,
                 "participants": None if r.participants is None else list(r.participants),
+                "refused": {str(c): why for c, why in r.refused.items()},
             }
             for r in result.rounds
         ],

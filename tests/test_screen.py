@@ -1,0 +1,195 @@
+"""The server's check of what it aggregates: an upload it cannot trust is refused, named
+with its reason, and reaches nothing; the others are aggregated as if it had not come.
+
+The cases are those a tester sent from one rostered robot (issue 37's table): non-finite,
+huge or all-zero tensors, tensors of the wrong size or shape, a truncated tensor, and
+sample counts of 10^12, -31, 0."""
+
+from __future__ import annotations
+
+import math
+
+import mlflow
+import pytest
+import torch
+
+from fedlgr.core.messages import TrainRes
+from fedlgr.core.server.aggregate import weighted_mean
+from fedlgr.core.server.screen import oversized
+from fedlgr.core.server.side import ServerSide
+from fedlgr.shell.config import load_config
+from fedlgr.shell.run.experiment import run_experiment
+from tests.support.runs import fast_config
+
+CLIENTS = 5
+
+
+def server(*overrides: str) -> ServerSide:
+    config = load_config(
+        None,
+        [
+            f"data.clients={CLIENTS}",
+            "data.modality=features",
+            "model.root=mlp",
+            "model.width=0.25",
+            *overrides,
+        ],
+    )
+    return ServerSide(config)
+
+
+def honest(side: ServerSide, client: int, n: int = 10) -> TrainRes:
+    """A small, seeded update of the global tensors (counters unchanged)."""
+    g = torch.Generator().manual_seed(client)
+    weights = {
+        k: v + 1e-3 * torch.randn(v.shape, generator=g) if v.is_floating_point() else v.clone()
+        for k, v in side.global_weights.items()
+    }
+    return TrainRes(client, weights, n)
+
+
+def first_float(side: ServerSide) -> str:
+    return next(k for k, v in side.global_weights.items() if v.is_floating_point() and v.ndim == 2)
+
+
+def altered(side: ServerSide, how: str) -> TrainRes:
+    """Client 2's upload, altered as the tester altered robot 2's."""
+    res = honest(side, 2)
+    key = first_float(side)
+    w = res.weights
+    if how == "nan":
+        w[key] = torch.full_like(w[key], math.nan)
+    elif how == "inf":
+        w[key] = w[key].clone().index_fill_(0, torch.tensor([0]), math.inf)
+    elif how == "x1e30":
+        res.weights = {k: v * 1e30 if v.is_floating_point() else v for k, v in w.items()}
+    elif how == "zeros":
+        res.weights = {k: torch.zeros_like(v) for k, v in w.items()}
+    elif how == "one element":
+        w[key] = w[key].flatten()[:1]
+    elif how == "extra dimension":
+        w[key] = w[key].unsqueeze(0)
+    elif how == "truncated":
+        w[key] = w[key][:-1]
+    elif how == "float64":
+        w[key] = w[key].double()
+    elif how == "missing key":
+        del w[key]
+    elif how == "extra key":
+        w["top.secret"] = torch.zeros(1)
+    elif how.startswith("n="):
+        res.n_samples = eval(how[2:])
+    return res
+
+
+REASONS = {
+    "nan": "holds values that are not finite",
+    "inf": "holds values that are not finite",
+    "x1e30": "x the round's median",
+    "zeros": "x the round's median",
+    "one element": "has shape [1], not",
+    "extra dimension": "has shape [1, ",
+    "truncated": "has shape [",
+    "float64": "is float64, not float32",
+    "missing key": "shared tensor(s) missing",
+    "extra key": "tensor(s) that are not shared (top.secret, ...)",
+    "n=10**12": "sample count 1000000000000 exceeds its 10 training scenes",
+    "n=-31": "sample count -31 is not a positive whole number",
+    "n=0": "sample count 0 is not a positive whole number",
+    "n=2.5": "sample count 2.5 is not a positive whole number",
+    "n=True": "sample count True is not a positive whole number",
+}
+
+
+@pytest.mark.parametrize("how", list(REASONS))
+def test_an_altered_upload_is_refused_named_and_leaves_the_global_model_untouched(how):
+    side = server()
+    uploads = [altered(side, how) if c == 2 else honest(side, c, n=10 + c) for c in range(CLIENTS)]
+    others = [u for u in uploads if u.client != 2]
+    expected = weighted_mean(
+        [(u.n_samples, u.weights) for u in others], side.keys, like=side.global_weights
+    )
+    capacity = {c: 10 + c for c in range(CLIENTS)}
+    capacity[2] = 10
+    refused = side.refusals(uploads, capacity)
+    taken = side.screen(uploads, refused, side.update_norms(uploads, refused))
+    assert [u.client for u in taken] == [0, 1, 3, 4]
+    assert list(side.refused) == [2] and REASONS[how] in side.refused[2], side.refused
+    side.update(*side.sums(taken), senders=len(taken))
+    for key, value in side.global_weights.items():
+        assert torch.equal(value, expected[key]), key  # as if client 2 had not sent
+    why = side.refused[2]
+    log = side.round_log(_plan(), side.table({}), 1.0)
+    assert log.refused == {2: why} and side.refused == {}  # the next round starts clean
+    assert log.metrics()["faults/refused"] == 1.0
+
+
+def test_the_server_s_own_round_refuses_an_upload_without_knowing_the_split():
+    """``ServerSide.aggregate`` (the Flower server's): every check but the sample-count
+    bound, which needs the split; nothing is taken, nothing changes."""
+    side = server()
+    before = {k: v.clone() for k, v in side.global_weights.items()}
+    side.aggregate([altered(side, "nan")])
+    assert "not finite" in side.refused[2]
+    assert all(torch.equal(v, before[k]) for k, v in side.global_weights.items())
+    side.aggregate([honest(side, 0), altered(side, "n=10**12")])  # no bound: taken
+    assert side.refused == {}
+
+
+def test_the_norm_check_compares_with_the_round_s_median_and_can_be_turned_off():
+    assert oversized({0: 1.0, 1: 2.0, 2: 20.0}, 10.0) == {}  # 20 = 10 x the median 2
+    assert list(oversized({0: 1.0, 1: 2.0, 2: 20.1}, 10.0)) == [2]
+    assert oversized({0: 1.0, 1: 2.0, 2: 1e9}, 0.0) == {}  # federated.norm_ratio=0: off
+    assert oversized({0: 0.0, 1: 0.0, 2: 5.0}, 10.0) == {}  # nobody moved: no scale
+    side = server("federated.norm_ratio=0")
+    uploads = [honest(side, c) for c in (0, 1)] + [altered(side, "x1e30")]
+    refused = side.refusals(uploads)
+    assert side.screen(uploads, refused, side.update_norms(uploads, refused)) == uploads
+
+
+def test_norm_ratio_below_one_is_refused_at_load():
+    from fedlgr.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"federated.norm_ratio=0.5: must be 0 \(no check\)"):
+        server("federated.norm_ratio=0.5")
+
+
+def _plan():
+    from fedlgr.core.messages import RoundPlan
+
+    return RoundPlan(1)
+
+
+def test_a_run_with_a_poisoned_client_finishes_names_it_and_logs_the_count(
+    synth_dir, cache_dir, store, monkeypatch, capsys
+):
+    """In one process: client 1's round-2 upload is NaN; the server refuses it, the run
+    goes on with client 0's (before: every client failed round 3 on a NaN loss), the
+    console and MLflow name client 1, and ``faults/refused`` counts it at step 2."""
+    from fedlgr.core.client.side import ClientSide
+
+    original = ClientSide.upload
+    uploads = {0: 0, 1: 0}
+
+    def poisoned(self, client):
+        weights = original(self, client)
+        uploads[client.index] += 1
+        if client.index == 1 and uploads[1] == 2:  # its round-2 upload
+            return {k: v * math.nan if v.is_floating_point() else v for k, v in weights.items()}
+        return weights
+
+    monkeypatch.setattr(ClientSide, "upload", poisoned)
+    config = fast_config(
+        synth_dir, cache_dir, store, "method=FedAvg", "federated.rounds=3", "data.modality=features"
+    )
+    result = run_experiment(config)
+    out = capsys.readouterr().out
+    assert "round 2/3: refused client 1's upload: " in out and "not finite" in out
+    client = mlflow.MlflowClient(store)
+    run = client.get_run(result.run_id)
+    assert run.info.status == "FINISHED"
+    assert [
+        (m.step, m.value) for m in client.get_metric_history(run.info.run_id, "faults/refused")
+    ] == [(2, 1.0)]
+    assert run.data.tags["fedlgr.refused"].startswith("round 2: client 1 (")
+    assert math.isfinite(run.data.metrics["test/rmse"])
