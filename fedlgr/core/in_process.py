@@ -29,6 +29,7 @@ import torch
 import torch.distributed as dist
 
 from fedlgr.core.client.side import ClientSide
+from fedlgr.core.faults import Faults
 from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes, Weights, nbytes
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress
@@ -53,6 +54,7 @@ class Orchestrator:
         self.client_side = ClientSide(config, scenes, split, mine, self.device, fabric.autocast)
         self.config = self.client_side.config  # its runtime settings resolved
         self.clients = self.client_side.clients
+        self.faults = Faults(config.federated.faults, config.data.clients, config.seed)
         # federated.server_eval: rank 0, which logs, scores the global model.
         self.server_eval = (
             ServerEvaluation(config, self.client_side.test)
@@ -108,11 +110,16 @@ class Orchestrator:
         epoch)`` after each local epoch of this process's clients."""
         start = time.perf_counter()
         round_, task = plan.round, plan.task
-        chosen = self.server.chosen(plan)
+        dropped = self.faults.dropped(round_, self.server.chosen(plan))
+        chosen = [c for c in self.server.chosen(plan) if c not in dropped]
         # Our clients start from the initial model and keep every download: they always
         # hold the global tensors (round 1's initial ones are billed in ``bytes_down``).
         ins = {c: self.server.train_ins(plan, c) for c in chosen if c in self.indices}
-        trained = {t.client: t for t in self.client_side.train(ins, progress)}
+        shared = self.server.global_weights  # what they started from
+        trained = {
+            t.client: self.faults.sent(t, shared, round_)
+            for t in self.client_side.train(ins, progress)
+        }
         # The server's work - aggregation, its update, its evaluation - is its own cost,
         # never a client's.
         server, initial = serve_round(
@@ -139,6 +146,8 @@ class Orchestrator:
         seconds = time.perf_counter() - start
         log = self.server.round_log(plan, table.numpy(), seconds, participants=chosen)
         log.server, log.initial = server, initial
+        if self.config.federated.faults.dropout:
+            log.server["faults/dropped"] = float(len(dropped))
         return log
 
     # ------------------------------------------------------------------ state

@@ -92,6 +92,11 @@ def _processes_have_clients(config: ExperimentConfig) -> None:
             f"runtime.devices x runtime.num_nodes = {config.runtime.world_size} processes for "
             f"data.clients={clients}: every process needs at least one client"
         )
+    if config.federated.faults.byzantine >= clients:
+        raise ConfigError(
+            f"federated.faults.byzantine={config.federated.faults.byzantine}: fewer than "
+            f"data.clients={clients} (an honest client at least)"
+        )
     if (config.deploy.min_clients or 0) > clients:
         raise ConfigError(
             f"deploy.min_clients={config.deploy.min_clients} exceeds data.clients={clients}"

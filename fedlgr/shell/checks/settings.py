@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from fedlgr.shell.config.settings import (
         ContinualConfig,
         DeployConfig,
+        FaultsConfig,
         FederatedConfig,
         ModelConfig,
         RuntimeConfig,
@@ -123,6 +124,23 @@ def check_federated(federated: FederatedConfig) -> None:
     rounds("federated.rounds", federated.rounds)
     choice("federated.server_eval", federated.server_eval, SERVER_EVAL)
     _method_settings(federated, "federated", STRATEGIES)
+
+
+ATTACKS = ("sign_flip", "noise", "scale")
+
+
+def check_faults(faults: FaultsConfig) -> None:
+    check_numbers("federated.faults.", faults)
+    if not 0.0 <= faults.dropout < 1.0:
+        raise ConfigError(
+            f"federated.faults.dropout={faults.dropout}: must be in [0, 1) (the probability "
+            "that a chosen client drops out of a round)"
+        )
+    if faults.byzantine < 0:
+        raise ConfigError(f"federated.faults.byzantine={faults.byzantine}: must be 0 or more")
+    choice("federated.faults.attack", faults.attack, ATTACKS)
+    if faults.noise < 0:
+        raise ConfigError(f"federated.faults.noise={faults.noise}: must be 0 or more")
 
 
 def check_runtime(runtime: RuntimeConfig) -> None:

@@ -16,6 +16,7 @@ from fedlgr.shell.checks.experiment import check_experiment
 from fedlgr.shell.checks.settings import (
     check_continual,
     check_deploy,
+    check_faults,
     check_federated,
     check_model,
     check_runtime,
@@ -83,6 +84,22 @@ def _with_sections(base: type, registry: dict) -> type:
 
 
 @dataclass(frozen=True)
+class FaultsConfig:
+    """Faults simulated in one process or Fabric's processes, seeded by the run's seed
+    (``fedlgr.core.faults``): clients that drop out of a round, and Byzantine clients whose
+    uploads are altered before the server sees them."""
+
+    dropout: float = 0.0  # the probability that a chosen client drops out of a round
+    byzantine: int = 0  # how many clients are Byzantine (drawn once from the seed)
+    attack: str = "sign_flip"  # what they send: sign_flip | noise | scale
+    noise: float = 1.0  # attack=noise: the Gaussian's standard deviation, on every value
+    scale: float = 10.0  # attack=scale: the factor on their update
+
+    def __post_init__(self) -> None:
+        check_faults(self)
+
+
+@dataclass(frozen=True)
 class _FederatedConfig:
     """What is shared (scope), how it is aggregated (strategy, with each strategy's
     settings under ``federated.<strategy>``: ``federated.prox.mu``), SPEC 4.1."""
@@ -102,6 +119,7 @@ class _FederatedConfig:
     # times the round's median update norm is refused (0: no such check). Every upload's
     # keys, shapes, dtypes, values and sample count are checked whatever this says.
     norm_ratio: float = 10.0
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
 
     def __post_init__(self) -> None:
         # true/false as YAML or the command line give them: on/off
