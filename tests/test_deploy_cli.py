@@ -499,6 +499,20 @@ def test_run_reports_a_config_typo_before_anything_is_submitted(tmp_path, fake_f
     assert not fake_flwr.exists()  # flwr was never called
 
 
+def test_run_with_simulated_faults_is_refused_before_anything_is_submitted(
+    tmp_path, fake_flwr, capsys
+):
+    config = tmp_path / "conf.yaml"
+    config.write_text("seed: 3\n")
+    assert main(["deploy", "run", str(config), "federated.faults.dropout=0.2"]) == 1
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line == (
+        "fedlgr: error: federated.faults: faults are simulated in one process or Fabric's "
+        "processes (fedlgr run); robots on Flower are real and nothing is simulated there"
+    )
+    assert not fake_flwr.exists()  # flwr was never called
+
+
 def test_run_without_a_roster_is_refused_before_anything_is_submitted(tmp_path, fake_flwr, capsys):
     config = tmp_path / "conf.yaml"
     config.write_text("seed: 3\n")

@@ -15,7 +15,7 @@ from fedlgr.errors import FedlgrError
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import absolute, add_print_command, add_sub_verb
 from fedlgr.shell.cli.parser import Verbs
-from fedlgr.shell.config import load_config
+from fedlgr.shell.config import FaultsConfig, load_config
 from fedlgr.shell.deploy.flower import APP_DIR
 
 STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
@@ -101,7 +101,13 @@ def _check_config(config: Path, overrides: list[str]) -> None:
         return
     from fedlgr.shell.deploy.roster import roster_of  # lazy: cryptography and yaml
 
-    roster_of(load_config(config, overrides))
+    loaded = load_config(config, overrides)
+    if loaded.federated.faults != FaultsConfig():
+        raise FedlgrError(
+            "federated.faults: faults are simulated in one process or Fabric's processes "
+            "(fedlgr run); robots on Flower are real and nothing is simulated there"
+        )
+    roster_of(loaded)
 
 
 def _stream(cmd: list[str], env: dict[str, str], link: list[str]) -> str:
