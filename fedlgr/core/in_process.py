@@ -110,8 +110,9 @@ class Orchestrator:
         epoch)`` after each local epoch of this process's clients."""
         start = time.perf_counter()
         round_, task = plan.round, plan.task
-        dropped = self.faults.dropped(round_, self.server.chosen(plan))
-        chosen = [c for c in self.server.chosen(plan) if c not in dropped]
+        chosen = self.server.chosen(plan)
+        dropped = self.faults.dropped(round_, chosen)
+        chosen = [c for c in chosen if c not in dropped]
         # Our clients start from the initial model and keep every download: they always
         # hold the global tensors (round 1's initial ones are billed in ``bytes_down``).
         ins = {c: self.server.train_ins(plan, c) for c in chosen if c in self.indices}

@@ -19,12 +19,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes, Weights, check_shared, nbytes
+from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes, Weights, nbytes
 from fedlgr.core.methods import plugin_metrics
 from fedlgr.core.metrics import Figures, combine, round_keys
 from fedlgr.core.records import RoundLog, table
 from fedlgr.core.schedule import ALL
-from fedlgr.core.scope import SCOPE_PREFIX, initial_scholar, parameter_keys, shared_keys
+from fedlgr.core.scope import initial_scholar, parameter_keys, shared_keys
 from fedlgr.core.server.aggregate import finish_mean, weighted_sum
 from fedlgr.core.server.screen import oversized, refusal, update_norm
 from fedlgr.core.state import to_device
@@ -43,7 +43,6 @@ class ServerSide:
         self.strategy = build_strategy(cfg.federated)
         initial = initial_scholar(cfg)
         self.keys = shared_keys(initial, cfg.federated.scope, self.strategy)
-        self.prefix = SCOPE_PREFIX[cfg.federated.scope]
         state = initial.state_dict()
         self.global_weights: Weights = {k: state[k].detach().clone() for k in self.keys}
         self.strategy.bind(self.keys, parameter_keys(initial), self.global_weights)
@@ -102,15 +101,12 @@ class ServerSide:
     # ------------------------------------------------------------------ aggregation
 
     def sums(self, results: Iterable[TrainRes]) -> tuple[Weights, float, Weights]:
-        """Sample-weighted sums of the uploads (float64), the sum of the weights, and the
-        plain sums of the plugins' payloads (float64)."""
+        """Sample-weighted sums of the uploads the server took (:meth:`screen`: they hold
+        exactly the shared tensors; float64), the sum of the weights, and the plain sums of
+        the plugins' payloads (float64)."""
         results = list(results)
-        for r in results:
-            check_shared(r.weights, self.keys, f"client {r.client}'s upload", self.prefix)
         sums, total = weighted_sum(((r.n_samples, r.weights) for r in results), self.keys)
-        payload_keys = sorted({k for r in results for k in r.payload})
-        payloads, _ = weighted_sum(((1, r.payload) for r in results), payload_keys)
-        return sums, total, payloads
+        return sums, total, _payload_sums(results)
 
     def update(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
         """The next global tensors from the sums of every upload of the round's
@@ -134,17 +130,14 @@ class ServerSide:
 
     def combine(self, results: list[TrainRes], senders: int) -> None:
         """The next global tensors from the strategy's statistic of the uploads
-        (``Strategy.combine``: a median, Krum, ...), for strategies that need them all."""
-        for r in results:
-            check_shared(r.weights, self.keys, f"client {r.client}'s upload", self.prefix)
+        (``Strategy.combine``: a median, Krum, ...), for strategies that need them all;
+        ``results``: the uploads the server took (:meth:`screen`)."""
         uploads = [(r.n_samples, {k: r.weights[k] for k in self.keys}) for r in results]
         combined = self.strategy.combine(uploads)
         like = self.global_weights
         aggregate = {k: combined[k].to(like[k].dtype) for k in self.keys}
         self.global_weights = self.strategy.server_update(self.global_weights, aggregate)
-        payload_keys = sorted({k for r in results for k in r.payload})
-        payloads, _ = weighted_sum(((1, r.payload) for r in results), payload_keys)
-        self.strategy.take_payloads(payloads, senders, self.config.data.clients)
+        self.strategy.take_payloads(_payload_sums(results), senders, self.config.data.clients)
 
     def update_if_any(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
         """:meth:`update`, where any upload was taken (``total`` > 0)."""
@@ -201,3 +194,9 @@ class ServerSide:
     def load_state_dict(self, state: dict, device: torch.device | str) -> None:
         self.global_weights = {k: v.to(device) for k, v in state["global"].items()}
         self.strategy.load_state_dict(to_device(state["strategy"], device))
+
+
+def _payload_sums(results: list[TrainRes]) -> Weights:
+    """The plain sums of what the uploads' plugins sent (float64), by key."""
+    keys = sorted({k for r in results for k in r.payload})
+    return weighted_sum(((1, r.payload) for r in results), keys)[0]
