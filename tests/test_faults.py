@@ -1,5 +1,6 @@
-"""Simulated faults (``federated.faults.*``): drop-outs and Byzantine clients, seeded,
-on hand numbers and in runs whose rounds count them."""
+"""Simulated faults (``federated.faults.*``): drop-outs, stragglers and Byzantine clients
+(altered uploads, poisoned labels), seeded, on hand numbers and in runs whose rounds count
+them and whose results.csv says which client failed how."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from fedlgr.core.messages import TrainRes
 from fedlgr.errors import ConfigError
 from fedlgr.shell.config import FaultsConfig, load_config
 from fedlgr.shell.run.experiment import run_experiment
-from tests.support.runs import fast_config
+from tests.support.runs import fast_config, results_csv
 
 
 def test_byzantine_clients_and_drop_outs_are_drawn_from_the_seed():
@@ -66,6 +67,8 @@ def test_each_attack_alters_a_byzantine_upload_by_hand():
         ),
         ("federated.faults.attack=lie", r"federated.faults.attack"),
         ("federated.faults.noise=-1", r"federated.faults.noise=-1.0: must be 0 or more"),
+        ("federated.faults.straggler=1", r"federated.faults.straggler=1.0: must be in \[0, 1\)"),
+        ("federated.faults.label=nan", r"federated.faults.label=nan"),
     ],
 )
 def test_impossible_faults_are_refused_at_load(override, message):
@@ -87,7 +90,13 @@ def run(synth_dir, cache_dir, store, *overrides):
     client = mlflow.MlflowClient(store)
     history = {
         key: [(m.step, m.value) for m in client.get_metric_history(result.run_id, key)]
-        for key in ("faults/dropped", "round/participants", "faults/refused", "test/rmse")
+        for key in (
+            "faults/dropped",
+            "faults/late",
+            "round/participants",
+            "faults/refused",
+            "test/rmse",
+        )
     }
     return result, client.get_run(result.run_id), history
 
@@ -118,5 +127,88 @@ def test_a_byzantine_client_scaling_its_update_is_refused_every_round(synth_dir,
         "federated.faults.scale=1e6",
     )
     assert history["faults/refused"] == [(1, 1.0), (2, 1.0), (3, 1.0)]
-    assert run_.data.tags["fedlgr.refused"].startswith(f"round 1: client {bad} (update norm")
+    assert run_.data.tags["fedlgr.refused"].startswith(
+        f"round 1: client {bad} (upload: update norm"
+    )
     assert all(math.isfinite(v) for _, v in history["test/rmse"])
+
+
+def test_stragglers_are_drawn_from_the_seed_apart_from_drop_outs():
+    """Late clients are drawn among those that train, from a stream of their own: adding
+    stragglers changes no drop-out, and a seed gives the same ones."""
+    both = Faults(FaultsConfig(dropout=0.3, straggler=0.3), clients=10, seed=0)
+    alone = Faults(FaultsConfig(dropout=0.3), clients=10, seed=0)
+    clients = list(range(10))
+    for r in range(1, 21):
+        assert both.dropped(r, clients) == alone.dropped(r, clients)
+        what = both.what(r, clients)
+        dropped = [c for c, f in what.items() if f == "dropped"]
+        late = [c for c, f in what.items() if f == "late"]
+        assert dropped == both.dropped(r, clients)
+        assert late == both.late(r, [c for c in clients if c not in dropped])
+        assert not set(late) & set(dropped)
+    draws = [len(both.late(r, clients)) for r in range(1, 41)]
+    assert 0.2 < sum(draws) / 400 < 0.4
+    assert Faults(FaultsConfig(), 10, 0).late(1, clients) == []
+
+
+def test_a_straggler_trains_but_its_late_upload_is_dropped(synth_dir, cache_dir, store):
+    """straggler=0.4 over 5 clients and 3 rounds (seed 0): the late clients are counted
+    each round, trained (their training figures and upload bytes are in results.csv) and
+    marked ``late``; their uploads are dropped, so the run differs from the clean one, and
+    a second run is the same to the last digit."""
+    faults = Faults(FaultsConfig(straggler=0.4), clients=5, seed=0)
+    late = {r: faults.late(r, list(range(5))) for r in (1, 2, 3)}
+    assert any(late.values()) and not all(len(v) == 5 for v in late.values())
+    result, _, history = run(synth_dir, cache_dir, store, "federated.faults.straggler=0.4")
+    assert history["faults/late"] == [(r, float(len(late[r]))) for r in (1, 2, 3)]
+    assert history["faults/dropped"] == [] and history["round/participants"] == []
+    client = mlflow.MlflowClient(store)
+    for row in results_csv(client, result.run_id):
+        was_late = int(row["client"]) in late[int(row["round"])]
+        assert row["fault"] == ("late" if was_late else ""), row
+        assert row["train_loss"] != "" and float(row["bytes_up"]) > 0
+    _, _, again = run(synth_dir, cache_dir, store, "federated.faults.straggler=0.4")
+    assert again["test/rmse"] == history["test/rmse"]
+    _, _, clean = run(synth_dir, cache_dir, store)
+    assert clean["test/rmse"] != history["test/rmse"]
+
+
+def test_a_poisoned_client_trains_on_constant_labels(synth_dir, cache_dir, store):
+    """attack=labels: the Byzantine client's training batches rate every action
+    ``label``; the others' keep the scenes' ratings; results.csv marks it in every round
+    it trained, and its honest-looking upload is aggregated (no refusal)."""
+    from fedlgr.core.client.side import ClientSide  # lazy: torch models, this test only
+    from fedlgr.shell.data.dataset import load_scenes  # lazy: as above
+    from fedlgr.shell.data.splits import make_split  # lazy: as above
+
+    settings = ["federated.faults.byzantine=1", "federated.faults.attack=labels"]
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        "data.modality=features",
+        "data.clients=5",
+        *settings,
+        "federated.faults.label=4.5",
+    )
+    (bad,) = Faults(config.federated.faults, 5, config.seed).byzantine
+    scenes = load_scenes(config.data)
+    side = ClientSide(
+        config, scenes, make_split(scenes.table, config.data), list(range(5)), torch.device("cpu")
+    )
+    for c in side.clients:
+        [batches] = c.data.values()
+        targets = batches.targets[batches.positions]
+        if c.index == bad:
+            assert torch.equal(targets, torch.full_like(targets, 4.5))
+        else:
+            assert targets.min() < 4.5 and len(targets.unique()) > 10
+    result, _, history = run(synth_dir, cache_dir, store, *settings)
+    assert history["faults/refused"] == []
+    rows = results_csv(mlflow.MlflowClient(store), result.run_id)
+    assert {(r["client"], r["fault"]) for r in rows} == {
+        (str(c), "byzantine (labels)" if c == bad else "") for c in range(5)
+    }
+    _, _, clean = run(synth_dir, cache_dir, store)
+    assert clean["test/rmse"] != history["test/rmse"]

@@ -111,8 +111,8 @@ class Orchestrator:
         start = time.perf_counter()
         round_, task = plan.round, plan.task
         chosen = self.server.chosen(plan)
-        dropped = self.faults.dropped(round_, chosen)
-        chosen = [c for c in chosen if c not in dropped]
+        faults = self.faults.what(round_, chosen)  # simulated: client -> what failed
+        chosen = [c for c in chosen if faults.get(c) != "dropped"]
         # Our clients start from the initial model and keep every download: they always
         # hold the global tensors (round 1's initial ones are billed in ``bytes_down``).
         ins = {c: self.server.train_ins(plan, c) for c in chosen if c in self.indices}
@@ -121,6 +121,8 @@ class Orchestrator:
             t.client: self.faults.sent(t, shared, round_)
             for t in self.client_side.train(ins, progress)
         }
+        # a late upload comes after the round's deadline: it is dropped, as on Flower
+        on_time = [t for c, t in trained.items() if not faults.get(c, "").endswith("late")]
         # The server's work - aggregation, its update, its evaluation - is its own cost,
         # never a client's.
         server, initial = serve_round(
@@ -128,7 +130,7 @@ class Orchestrator:
             self.server_eval,
             round_,
             task,
-            lambda: self.aggregate(list(trained.values())),
+            lambda: self.aggregate(on_time),
         )
         evaluated = self.client_side.evaluate(EvaluateIns(plan, self.server.global_weights))
         rows = {}
@@ -146,9 +148,12 @@ class Orchestrator:
             table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
         seconds = time.perf_counter() - start
         log = self.server.round_log(plan, table.numpy(), seconds, participants=chosen)
-        log.server, log.initial = server, initial
-        if self.config.federated.faults.dropout:
-            log.server["faults/dropped"] = float(len(dropped))
+        log.server, log.initial, log.faults = server, initial, faults
+        settings = self.config.federated.faults
+        if settings.dropout:
+            log.server["faults/dropped"] = float(sum(f == "dropped" for f in faults.values()))
+        if settings.straggler:
+            log.server["faults/late"] = float(sum(f.endswith("late") for f in faults.values()))
         return log
 
     # ------------------------------------------------------------------ state

@@ -59,7 +59,24 @@ class RoundLog:
     # federated.server_eval: the initial model's scores, before round 1 (step 0).
     initial: dict[str, float] = field(default_factory=dict)
     participants: tuple[int, ...] | None = None  # the clients that trained (None: all)
-    refused: dict[int, str] = field(default_factory=dict)  # uploads refused: client -> why
+    # what the server refused: client -> "upload: why", "scores: why" (both: "; ")
+    refused: dict[int, str] = field(default_factory=dict)
+    # simulated faults (fedlgr.core.faults): client -> dropped, late, byzantine (attack)
+    faults: dict[int, str] = field(default_factory=dict)
+    # who each client is where it is a robot: client -> "robot2 (client 2)"
+    names: dict[int, str] = field(default_factory=dict)
+
+    def who(self, client: int) -> str:
+        """The client as the console and MLflow name it: its robot, or ``client N``."""
+        return self.names.get(client, f"client {client}")
+
+    def fault(self, client: int) -> str:
+        """What went wrong with the client in this round ("": nothing): results.csv's
+        ``fault`` column."""
+        parts = [self.faults[client]] if client in self.faults else []
+        if client in self.refused:
+            parts.append(f"refused {self.refused[client]}")
+        return "; ".join(parts)
 
     @property
     def fields(self) -> list[Field]:
@@ -88,6 +105,7 @@ class RoundLog:
             row.update(
                 {n: None if math.isnan(v) else float(v) for n, v in zip(names, values, strict=True)}
             )
+            row["fault"] = self.fault(client)
             out.append(row)
         return out
 

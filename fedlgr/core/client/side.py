@@ -26,6 +26,7 @@ from fedlgr.core.client.training import Client, train_locally
 from fedlgr.core.continual import continual_plugins
 from fedlgr.core.data.augment import Augment, SceneBatches
 from fedlgr.core.evaluation import eval_set, predict, predict_tops
+from fedlgr.core.faults import Faults
 from fedlgr.core.messages import (
     EvaluateIns,
     EvaluateRes,
@@ -46,6 +47,11 @@ if TYPE_CHECKING:
     from fedlgr.shell.config import ExperimentConfig
     from fedlgr.shell.data.dataset import Scenes
     from fedlgr.shell.data.splits import FederatedSplit
+
+
+def _poisoned(targets: torch.Tensor, label: float) -> torch.Tensor:
+    """Every scene rated ``label`` for every action (``federated.faults.attack=labels``)."""
+    return torch.full_like(targets, label)
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -82,6 +88,8 @@ class ClientSide:
         self.channels_last = cfg.model.channels_last and scenes.images is not None
         augment = Augment() if cfg.data.augment and scenes.images is not None else None
         copies = cfg.data.augment_copies if augment is not None else 1
+        faults = cfg.federated.faults  # attack=labels: these clients train on poisoned labels
+        poisoned = Faults(faults, cfg.data.clients, cfg.seed).poisoned
         self.clients: list[Client] = []
         for shard in split.clients:
             if shard.client not in indices:
@@ -91,7 +99,9 @@ class ClientSide:
             data = {
                 task: SceneBatches(
                     scenes.inputs,
-                    scenes.targets,
+                    _poisoned(scenes.targets, faults.label)
+                    if shard.client in poisoned
+                    else scenes.targets,
                     shard.train if task == ALL else shard.tasks[task],
                     cfg.train.batch_size,
                     copies=copies,

@@ -50,7 +50,8 @@ class ServerSide:
         # What the method's client plugins measure (every client has the same kinds).
         self.plugin_keys = plugin_metrics(cfg.federated.strategy, cfg.continual.method)
         self.round_keys = round_keys(self.tasks, self.plugin_keys)  # a round's columns
-        self.refused: dict[int, str] = {}  # this round's refused uploads: client -> why
+        # this round's refusals: client -> what and why ("upload: ...", "scores: ...")
+        self.refused: dict[int, str] = {}
 
     def to(self, device: torch.device) -> ServerSide:
         self.global_weights = {k: v.to(device) for k, v in self.global_weights.items()}
@@ -95,7 +96,8 @@ class ServerSide:
         """The uploads taken: not ``refused``, nor far larger than the round's others
         (``federated.norm_ratio`` over every process's ``norms``); the round's refusals
         are kept for its record."""
-        self.refused = refused | oversized(norms, self.config.federated.norm_ratio)
+        found = refused | oversized(norms, self.config.federated.norm_ratio)
+        self.refused = {client: f"upload: {why}" for client, why in found.items()}
         return [r for r in results if r.client not in self.refused]
 
     # ------------------------------------------------------------------ aggregation

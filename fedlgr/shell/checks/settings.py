@@ -126,16 +126,18 @@ def check_federated(federated: FederatedConfig) -> None:
     _method_settings(federated, "federated", STRATEGIES)
 
 
-ATTACKS = ("sign_flip", "noise", "scale")
+ATTACKS = ("sign_flip", "noise", "scale", "labels")
 
 
 def check_faults(faults: FaultsConfig) -> None:
     check_numbers("federated.faults.", faults)
-    if not 0.0 <= faults.dropout < 1.0:
-        raise ConfigError(
-            f"federated.faults.dropout={faults.dropout}: must be in [0, 1) (the probability "
-            "that a chosen client drops out of a round)"
-        )
+    for name, what in (("dropout", "drops out of"), ("straggler", "is late in")):
+        value = getattr(faults, name)
+        if not 0.0 <= value < 1.0:
+            raise ConfigError(
+                f"federated.faults.{name}={value}: must be in [0, 1) (the probability that a "
+                f"chosen client {what} a round)"
+            )
     if faults.byzantine < 0:
         raise ConfigError(f"federated.faults.byzantine={faults.byzantine}: must be 0 or more")
     choice("federated.faults.attack", faults.attack, ATTACKS)

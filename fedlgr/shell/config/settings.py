@@ -86,14 +86,19 @@ def _with_sections(base: type, registry: dict) -> type:
 @dataclass(frozen=True)
 class FaultsConfig:
     """Faults simulated in one process or Fabric's processes, seeded by the run's seed
-    (``fedlgr.core.faults``): clients that drop out of a round, and Byzantine clients whose
-    uploads are altered before the server sees them."""
+    (``fedlgr.core.faults``): clients that drop out of a round, stragglers whose upload comes
+    after the round's deadline (dropped), and Byzantine clients whose uploads are altered
+    before the server sees them, or who train on poisoned labels."""
 
     dropout: float = 0.0  # the probability that a chosen client drops out of a round
+    # the probability that a client that trains sends its upload after the round's deadline
+    # (it is dropped, never used stale)
+    straggler: float = 0.0
     byzantine: int = 0  # how many clients are Byzantine (drawn once from the seed)
-    attack: str = "sign_flip"  # what they send: sign_flip | noise | scale
+    attack: str = "sign_flip"  # what they send: sign_flip | noise | scale | labels
     noise: float = 1.0  # attack=noise: the Gaussian's standard deviation, on every value
     scale: float = 10.0  # attack=scale: the factor on their update
+    label: float = 5.0  # attack=labels: the rating of every action in their training scenes
 
     def __post_init__(self) -> None:
         check_faults(self)

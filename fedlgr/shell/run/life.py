@@ -91,6 +91,8 @@ class Resumed:
                 dict(r["initial"]),
                 None if r["participants"] is None else tuple(r["participants"]),
                 {int(c): why for c, why in r.get("refused", {}).items()},
+                {int(c): what for c, what in r.get("faults", {}).items()},
+                {int(c): name for c, name in r.get("names", {}).items()},
             )
             for r in self.state["rows"]
         ]
@@ -159,7 +161,7 @@ class RunLife:
                     self.checkpoint(rounds)
                 self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta.step()}){_missing(log)}")
                 for client, why in sorted(log.refused.items()):
-                    self.say(f"{label}: refused client {client}'s upload: {why}")
+                    self.say(f"{label}: refused {log.who(client)}'s {why}")
                 self.tell(plan.round, metrics)  # the caller's on_round: raising stops the run
         return self.summary()
 
@@ -303,7 +305,7 @@ class RunLife:
                 tracker.client.set_tag(tracker.run_id, "fedlgr.missing", "; ".join(self.missed))
             if log.refused:  # uploads the server did not take
                 self.refused += [
-                    f"round {plan.round}: client {c} ({why})" for c, why in log.refused.items()
+                    f"round {plan.round}: {log.who(c)} ({why})" for c, why in log.refused.items()
                 ]
                 refused = "; ".join(self.refused)
                 tracker.client.set_tag(tracker.run_id, "fedlgr.refused", refused[-5000:])
@@ -407,6 +409,8 @@ def checkpoint_state(
                 "initial": r.initial,
                 "participants": None if r.participants is None else list(r.participants),
                 "refused": {str(c): why for c, why in r.refused.items()},
+                "faults": {str(c): what for c, what in r.faults.items()},
+                "names": {str(c): name for c, name in r.names.items()},
             }
             for r in result.rounds
         ],
