@@ -127,7 +127,7 @@ def test_a_byzantine_client_scaling_its_update_is_refused_every_round(synth_dir,
         "federated.faults.scale=1e6",
     )
     assert history["faults/refused"] == [(1, 1.0), (2, 1.0), (3, 1.0)]
-    assert run_.data.tags["fedlgr.refused"].startswith(
+    assert run_.data.tags["fedlgr.not_taken"].startswith(
         f"round 1: client {bad} (upload: update norm"
     )
     assert all(math.isfinite(v) for _, v in history["test/rmse"])

@@ -6,6 +6,7 @@ unauthorised robot refused, a robot killed mid-round and back with its private s
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import signal
@@ -18,6 +19,7 @@ import pytest
 
 from fedlgr.core.messages import nbytes
 from fedlgr.core.scope import initial_scholar
+from fedlgr.shell.deploy.roster import Roster
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.flower import Federation
 from tests.support.runs import FAST, fast_config, results_csv
@@ -168,7 +170,9 @@ def wait_online(federation, name: str, timeout: float = 120) -> None:
 QUICK = ["--max-retries", "1", "--max-wait-time", "5"]  # a refused SuperNode exits in ~5 s
 
 
-def start_until_online(federation, name: str, synth_dir, going=lambda: True) -> bool:
+def start_until_online(
+    federation, name: str, synth_dir, going=lambda: True, env: dict | None = None
+) -> bool:
     """Start ``name``'s SuperNode (its roster slot) again and again until the SuperLink
     takes it - a key whose last connection has not yet timed out is refused for two
     heartbeats (~1 min with Flower's, ~20 s with the tests' --heartbeat-s 10) and the
@@ -179,7 +183,8 @@ def start_until_online(federation, name: str, synth_dir, going=lambda: True) -> 
     deadline = time.monotonic() + 300
     while going():
         assert time.monotonic() < deadline, federation.log(name)[-2000:]
-        node = federation.start_supernode(name, federation.keys[name], None, synth_dir, QUICK)
+        keys = federation.keys[name]
+        node = federation.start_supernode(name, keys, None, synth_dir, QUICK, env)
         while node.poll() is None:
             if "SuperNode ID" in federation.log(name):
                 return True
@@ -248,6 +253,89 @@ def test_roster_keeps_strangers_unrostered_keys_and_claimed_slots_out_of_a_run(
     rows = {(r["round"], r["client"]): r for r in results_csv(client, run.info.run_id)}
     assert rows[("1", "0")]["test_loss"] != "" and rows[("1", "1")]["test_loss"] != ""
     assert rows[("1", "2")]["test_loss"] == ""
+
+
+BYZANTINE = Path(__file__).parent / "support" / "byzantine"  # its sitecustomize alters replies
+
+
+def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_without_it(
+    federation, synth_dir, cache_dir, store
+):
+    """robot2 (client 2) is on the roster (at most 100 scenes) and trains honestly, but
+    alters every upload it sends: NaN (round 1), x 1e6 (round 2), a tensor cut short
+    (round 3), a sample count of 10^12 (round 4), and with round 2's upload it reports its
+    round-1 scores as NaN. Each is refused and robot2 named, in the console, MLflow and
+    results.csv (a robot whose upload cannot be read is not scored in that round); the run
+    completes with robots 0 and 1, and the global model - the server's own scores of it
+    each round, and every robot's - is the one-process run's whose client 2 sends x 1e6
+    every round (refused there by its norm: the same mean without it)."""
+    ensure_online(federation, synth_dir, "robot0", "robot1")
+    roster = Roster.read(federation.roster)
+    roster.members = [
+        dataclasses.replace(m, scenes=100) if m.name == "robot2" else m for m in roster.members
+    ]
+    roster.write()
+    plan = "nan,scale+scores,truncate,count"
+    env = {"PYTHONPATH": str(BYZANTINE), "FEDLGR_BYZANTINE": plan}
+    assert start_until_online(federation, "robot2", synth_dir, env=env)
+    method = ["method=FedAvg", "federated.server_eval=on", "data.clients=3"]
+    method += ["federated.rounds=4", "seed=2"]  # seed 2: the one-process run's client 2
+    try:
+        flower, out = flower_run(federation, synth_dir, store, "byzantine", *method)
+    finally:
+        stop(federation, "robot2")
+        service = federation.robot_dir("robot2") / "robot.pid"
+        with contextlib.suppress(ProcessLookupError, FileNotFoundError, ValueError):
+            os.kill(int(service.read_text()), signal.SIGTERM)  # no altered robot left
+    robot_log = (federation.robot_dir("robot2") / "robot.log").read_text()
+    assert "byzantine: train reply 2: scale+scores" in robot_log  # it did alter them
+    who = "refused robot2 (client 2)'s"
+    assert f"round 1/4: {who} upload: " in out and "holds values that are not finite" in out
+    assert f"round 2/4: {who} upload: update norm " in out
+    assert f"round 3/4: {who} upload: cannot be read (ValueError: " in out
+    assert f"round 4/4: {who} upload: sample count 1000000000000 exceeds its 100" in out
+    [first] = [line for line in out.splitlines() if line.startswith(f"round 1/4: {who}")]
+    assert "; scores: " in first and "= nan is not finite" in first, first  # one line each
+    client = mlflow.MlflowClient(store)
+    run_id = flower.info.run_id
+    assert flower.info.status == "FINISHED"
+    assert history(client, run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4)]
+    assert flower.data.tags["fedlgr.not_taken"].startswith("round 1: robot2 (client 2) (upload: ")
+    # its round-1 scores refused, its round-3 upload unread
+    assert history(client, run_id, "round/missing_clients") == [(1, 1.0), (3, 1.0)]
+    faults = {(r["round"], r["client"]): r["fault"] for r in results_csv(client, run_id)}
+    first = faults[("1", "2")]
+    assert first.startswith("refused upload: ") and "; scores: " in first, first
+    assert faults[("3", "2")].startswith("refused upload: cannot be read (ValueError: ")
+    assert all(faults[(str(r), c)] == "" for r in (1, 2, 3, 4) for c in ("0", "1"))
+    byzantine = ["federated.faults.byzantine=1", "federated.faults.attack=scale"]
+    local = run_experiment(
+        fast_config(
+            synth_dir,
+            cache_dir,
+            store,
+            *method,
+            *byzantine,
+            "federated.faults.scale=1e6",
+            *DETAIL,
+            "tracking.run_name=local-byzantine",
+        )
+    )
+    assert local.config.federated.faults.byzantine == 1
+    assert history(client, local.run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4)]
+    local_run = client.get_run(local.run_id)
+    keys = [k for k in local_run.data.metrics if k.startswith("server/test/")]
+    keys += [k for k in local_run.data.metrics if k.startswith(("test/client0/", "test/client1/"))]
+    assert "server/test/rmse" in keys and "test/client1/pcc" in keys
+    for key in [*keys, "test/client2/rmse", "test/client2/pcc"]:
+        ours = history(client, run_id, key)
+        theirs = [p for p in history(client, local.run_id, key) if p[0] > 0]
+        if "client2" in key:  # not scored in rounds 1 and 3
+            theirs = [p for p in theirs if p[0] not in (1, 3)]
+        ours = [p for p in ours if p[0] > 0]
+        assert [s for s, _ in ours] == [s for s, _ in theirs] and ours, (key, ours, theirs)
+        for (_, a), (_, b) in zip(ours, theirs, strict=True):
+            assert math.isclose(a, b, rel_tol=0, abs_tol=1e-5), (key, a, b)
 
 
 def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state(

@@ -69,3 +69,32 @@ def test_a_robot_with_its_own_data_trains_and_scores_on_its_own_scenes(synth_dir
     shared = Robot(config, 1, tmp_path / "shard")
     assert np.array_equal(shared.side.split.clients[1].train, full.clients[1].train)
     assert len(full.clients[1].train) < len(shard.train)
+
+
+def test_a_robot_restarted_on_other_data_says_so_before_it_answers(synth_dir, tmp_path):
+    """A robot's private state is of the data it trained on: restarted with --data holding
+    other ratings, it refuses to go on - naming the data, both digests and the state file -
+    rather than train on the new data with the old state; back on its own data, it goes on."""
+    import shutil
+
+    from fedlgr.errors import FedlgrError
+    from fedlgr.shell.deploy.flower.robot import Robot
+    from tests.support.runs import FAST
+
+    data = tmp_path / "data"
+    shutil.copytree(synth_dir, data)
+    config = load_config(FAST, [f"data.path={data}", "method=FedRootAvg"])
+    robot = Robot(config, 1, tmp_path / "state")
+    robot.answered, robot.reply = ["train", 1, -1], b"its reply"  # as after a message
+    robot.save()
+    table = next(data.glob("*.csv"))
+    original = table.read_text()
+    lines = original.splitlines(keepends=True)
+    table.write_text("".join([*lines[:-2], lines[-1], lines[-2]]))  # two scenes swapped
+    with pytest.raises(FedlgrError) as err:
+        Robot(config, 1, tmp_path / "state")
+    message = str(err.value)
+    assert message.startswith(f"the data in --data {data} is not the data this robot's private")
+    assert "client-1.ckpt was trained on (dataset digest " in message
+    table.write_text(original)
+    assert Robot(config, 1, tmp_path / "state").client.index == 1

@@ -110,7 +110,9 @@ def test_a_run_needs_a_roster_with_a_robot_for_every_client(tmp_path):
     [
         ("robots: [", "not valid YAML"),
         ("robots: 3\n", "expected 'robots:' and a list of robots"),
-        ("robots:\n- name: a\n  client: 0\n", "robot 1: expected exactly name, client and key"),
+        ("robots:\n- name: a\n  client: 0\n", "robot 1: expected name, client and key"),
+        ("robots:\n- {name: a, client: 0, key: x, scenes: 0}\n", "robot 1 (a): scenes must be"),
+        ("robots:\n- {name: a, client: 0, key: x, host: h}\n", "(and scenes, optional)"),
         ("robots:\n- {name: a, client: -1, key: x}\n", "robot 1 (a): client must be an integer"),
         ("robots:\n- {name: a, client: 0, key: nope}\n", "robot 1 (a): key is not a public key"),
     ],

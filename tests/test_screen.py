@@ -15,7 +15,7 @@ import torch
 
 from fedlgr.core.messages import TrainRes
 from fedlgr.core.server.aggregate import weighted_mean
-from fedlgr.core.server.screen import oversized
+from fedlgr.core.server.screen import figures_refusal, oversized
 from fedlgr.core.server.side import ServerSide
 from fedlgr.shell.config import load_config
 from fedlgr.shell.run.experiment import run_experiment
@@ -191,5 +191,28 @@ def test_a_run_with_a_poisoned_client_finishes_names_it_and_logs_the_count(
     assert [
         (m.step, m.value) for m in client.get_metric_history(run.info.run_id, "faults/refused")
     ] == [(2, 1.0)]
-    assert run.data.tags["fedlgr.refused"].startswith("round 2: client 1 (")
+    assert run.data.tags["fedlgr.not_taken"].startswith("round 2: client 1 (upload: ")
     assert math.isfinite(run.data.metrics["test/rmse"])
+
+
+@pytest.mark.parametrize(
+    ("figures", "why"),
+    [
+        ({"test/rmse": 0.9, "test/pcc": 0.5, "cost/cpu_s": 1.0}, None),
+        ({"test/pcc": 1.000001, "test/ccc": -1.0}, None),  # float32's slack at the ends
+        ({"test/rmse": math.nan}, "test/rmse = nan is not finite"),
+        ({"test/pcc": math.inf}, "test/pcc = inf is not finite"),
+        ({"test/pcc": 1.5}, "test/pcc = 1.5 is out of [-1, 1]"),
+        ({"task/circle/ccc": -2.0}, "task/circle/ccc = -2 is out of [-1, 1]"),
+        ({"test/rmse": -0.1}, "test/rmse = -0.1 is below 0"),
+        ({"test/mse/vacuum": -1.0}, "test/mse/vacuum = -1 is below 0"),
+        ({"cost/bytes_up": -5.0}, "cost/bytes_up = -5 is below 0"),
+        ({"test/rmse": "0.9"}, "test/rmse = '0.9' is not a number"),
+        ({"test/rmse": True}, "test/rmse = 'True' is not a number"),
+        ({"secret/figure": 1.0}, "'secret/figure' is not a figure of this run"),
+    ],
+)
+def test_a_robots_reported_figures_are_checked_by_hand(figures, why):
+    keys = {"test/rmse", "test/pcc", "test/ccc", "task/circle/ccc", "test/mse/vacuum"}
+    keys |= {"cost/cpu_s", "cost/bytes_up"}
+    assert figures_refusal(figures, keys) == why

@@ -53,11 +53,16 @@ class Federation:
         assert out.returncode == 0, out.stdout + out.stderr
         return out
 
-    def spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+    def spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
+        """``env``: added to the federation's environment for this process."""
         log = (self.logs / f"{name}.log").open("ab")
         self.starts[name] = log.tell()
         proc = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, cwd=self.folder
+            cmd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env={**self.env, **(env or {})},
+            cwd=self.folder,
         )
         self.procs[name] = proc
         return proc
@@ -101,9 +106,16 @@ class Federation:
         return self.folder / "robots" / name
 
     def start_supernode(
-        self, name: str, key: Path, client: int | None, data: Path, extra: list[str] = ()
+        self,
+        name: str,
+        key: Path,
+        client: int | None,
+        data: Path,
+        extra: list[str] = (),
+        env: dict | None = None,
     ) -> subprocess.Popen:
-        """``client``: the slot the robot expects (``--client``); None: the roster's."""
+        """``client``: the slot the robot expects (``--client``); None: the roster's;
+        ``env``: added to its environment (and its ClientApps' and robot service's)."""
         robot = self.robot_dir(name)
         node = ["supernode", "--superlink", f"127.0.0.1:{self.port}"]
         node += ["--ca", str(self.creds / "ca.pem"), "--key", str(key), "--data", str(data)]
@@ -112,7 +124,7 @@ class Federation:
         # Flower's shortest heartbeat: a killed robot is declared lost (and its key taken
         # back) after ~20 s, not ~1 min
         node += ["--heartbeat-s", "10"]
-        return self.spawn(name, [str(BIN / "fedlgr"), "deploy", *node, *extra])
+        return self.spawn(name, [str(BIN / "fedlgr"), "deploy", *node, *extra], env)
 
     def run(self, config: Path, overrides: list[str]) -> subprocess.Popen:
         """``fedlgr deploy run``: flwr run of fedlgr's app, its log streamed to stdout."""

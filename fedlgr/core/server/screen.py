@@ -7,12 +7,18 @@ server knows them (in simulation it holds the split). An upload whose update - i
 minus the global ones - is over ``federated.norm_ratio`` times the round's median update
 norm is refused too. A refused upload reaches nothing: the round aggregates the others,
 and its record names the client and why.
+
+What a client reports - its training figures with its upload, its scores - is checked
+where the client is not the server's own (a robot): each figure must have its column in
+the round's record and be a finite number, errors and costs not below 0, correlations in
+[-1, 1] (:func:`figures_refusal`).
 """
 
 from __future__ import annotations
 
 import math
 import statistics
+from collections.abc import Collection, Mapping
 
 import torch
 
@@ -70,3 +76,26 @@ def oversized(norms: dict[int, float], ratio: float) -> dict[int, str]:
         for client, norm in sorted(norms.items())
         if norm > ratio * median
     }
+
+
+CORRELATIONS = frozenset({"pcc", "ccc"})  # in [-1, 1]
+NOT_NEGATIVE = frozenset({"loss", "mse", "rmse", "recon_mse"})  # errors, and every cost
+SLACK = 1e-5  # float32 sums can put a perfect correlation a hair over 1
+
+
+def figures_refusal(figures: Mapping, keys: Collection[str]) -> str | None:
+    """Why a client's reported ``figures`` cannot be recorded in a round whose columns are
+    ``keys``, or None."""
+    for key, value in figures.items():
+        if key not in keys:
+            return f"{str(key)[:80]!r} is not a figure of this run"
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return f"{key} = {str(value)[:40]!r} is not a number"
+        if not math.isfinite(value):
+            return f"{key} = {value} is not finite"
+        parts = set(key.split("/"))
+        if parts & CORRELATIONS and not -1 - SLACK <= value <= 1 + SLACK:
+            return f"{key} = {value:.4g} is out of [-1, 1]"
+        if (parts & NOT_NEGATIVE or key.startswith("cost/")) and value < 0:
+            return f"{key} = {value:.4g} is below 0"
+    return None

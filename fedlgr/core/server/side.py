@@ -117,11 +117,18 @@ class ServerSide:
         self.global_weights = self.strategy.server_update(self.global_weights, mean)
         self.strategy.take_payloads(payloads, senders, self.config.data.clients)
 
-    def aggregate(self, results: Iterable[TrainRes]) -> None:
+    def aggregate(
+        self,
+        results: Iterable[TrainRes],
+        capacity: Mapping[int, int] | None = None,
+        refused: Mapping[int, str] | None = None,
+    ) -> None:
         """The next global tensors from every upload of the round that the server takes
-        (all of them in this process); nothing changes where none is taken."""
+        (all of them in this process); nothing changes where none is taken. ``capacity``:
+        :meth:`refusals`; ``refused``: uploads already refused (client -> why: a robot's
+        that could not be read)."""
         results = list(results)
-        refused = self.refusals(results)
+        refused = {**(refused or {}), **self.refusals(results, capacity)}
         results = self.screen(results, refused, self.update_norms(results, refused))
         if not results:
             return

@@ -13,6 +13,11 @@ The file is plain YAML, read as data::
     - name: robot0
       client: 0
       key: ecdsa-sha2-nistp384 AAAA...   # the robot's NAME.pub
+      scenes: 120                        # optional: the most training scenes it holds
+
+``scenes`` bounds the sample count the robot may claim with an upload (its weight in the
+mean): the server refuses a larger one (``fedlgr.core.server.screen``); without it, any
+positive whole number is taken.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from cryptography.hazmat.primitives import serialization
 from fedlgr.errors import FedlgrError, first_line
 
 ROSTER_NAME = "roster.yaml"
+FIELDS = frozenset({"name", "client", "key", "scenes"})  # a robot's entry
 HEADER = (
     "# fedlgr's roster: the robots of this federation, their client slots and public keys.\n"
     "# fedlgr deploy node-key adds to it; a Flower run names it with deploy.roster=PATH.\n"
@@ -58,6 +64,7 @@ class Member:
     name: str
     client: int
     key: str  # the OpenSSH public key line
+    scenes: int | None = None  # the most training scenes it holds (None: not bounded)
 
     def __str__(self) -> str:
         return f"{self.name} (client {self.client})"
@@ -97,7 +104,11 @@ class Roster:
     def write(self, path: Path | None = None) -> Path:
         """All of it, replacing the file at once (a reader never sees half a roster)."""
         path = Path(path or self.path)
-        rows = [{"name": m.name, "client": m.client, "key": m.key} for m in self.members]
+        rows = [
+            {"name": m.name, "client": m.client, "key": m.key}
+            | ({} if m.scenes is None else {"scenes": m.scenes})
+            for m in self.members
+        ]
         text = HEADER + yaml.safe_dump({"robots": rows}, sort_keys=False, width=1000)
         partial = path.with_name(f".{path.name}.partial")
         partial.unlink(missing_ok=True)
@@ -117,7 +128,7 @@ class Roster:
         taken = next((m for m in others if m.client == client), None)
         if taken is not None:
             raise FedlgrError(f"--client {client}: {taken} holds that slot in {self.path}")
-        member = Member(name, client, key.strip())
+        member = Member(name, client, key.strip(), old.scenes if old is not None else None)
         self.members = sorted([*others, member], key=lambda m: m.client)
         self._by_key = {key_der(m.key): m for m in self.members}
         return member
@@ -130,6 +141,11 @@ class Roster:
             return self._by_key.get(key_der(public_key))
         except (ValueError, TypeError, UnsupportedAlgorithm):
             return None
+
+    @property
+    def capacity(self) -> dict[int, int]:
+        """client -> the most training scenes its robot holds, where the roster says."""
+        return {m.client: m.scenes for m in self.members if m.scenes is not None}
 
     def check_slots(self, clients: int) -> None:
         """Every client of the run has a robot."""
@@ -144,18 +160,23 @@ class Roster:
 
 def _member(path: Path, index: int, entry) -> Member:
     where = f"roster {path}: robot {index + 1}"
-    if not isinstance(entry, dict) or set(entry) != {"name", "client", "key"}:
-        raise FedlgrError(f"{where}: expected exactly name, client and key")
+    if not isinstance(entry, dict) or not {"name", "client", "key"} <= set(entry) <= FIELDS:
+        raise FedlgrError(f"{where}: expected name, client and key (and scenes, optional)")
     name, client, key = entry["name"], entry["client"], entry["key"]
     if not isinstance(name, str) or not name:
         raise FedlgrError(f"{where}: name must be a non-empty string")
     if isinstance(client, bool) or not isinstance(client, int) or client < 0:
         raise FedlgrError(f"{where} ({name}): client must be an integer >= 0, not {client!r}")
+    scenes = entry.get("scenes")
+    if scenes is not None and (
+        isinstance(scenes, bool) or not isinstance(scenes, int) or scenes < 1
+    ):
+        raise FedlgrError(f"{where} ({name}): scenes must be an integer >= 1, not {scenes!r}")
     try:
         key_der(str(key))
     except (ValueError, TypeError, UnsupportedAlgorithm) as err:
         raise FedlgrError(f"{where} ({name}): key is not a public key ({err})") from None
-    return Member(name, client, str(key).strip())
+    return Member(name, client, str(key).strip(), scenes)
 
 
 def _check_unique(path: Path, members: list[Member]) -> None:

@@ -130,7 +130,7 @@ class RunLife:
         self.every = config.tracking.checkpoint if config.tracking.enabled else 0
         self.total = 0  # rounds in the schedule
         self.missed: list[str] = []  # "round 2: client 1" (fedlgr.missing)
-        self.refused: list[str] = []  # "round 2: client 1 (why)" (fedlgr.refused)
+        self.refused: list[str] = []  # "round 2: client 1 (why)" (fedlgr.not_taken)
 
     def say(self, text: str) -> None:
         """A console line (rank 0)."""
@@ -308,7 +308,7 @@ class RunLife:
                     f"round {plan.round}: {log.who(c)} ({why})" for c, why in log.refused.items()
                 ]
                 refused = "; ".join(self.refused)
-                tracker.client.set_tag(tracker.run_id, "fedlgr.refused", refused[-5000:])
+                tracker.client.set_tag(tracker.run_id, "fedlgr.not_taken", refused[-5000:])
         return metrics
 
     def checkpoint_due(self, round_: int) -> bool:

@@ -44,6 +44,7 @@ from fedlgr.shell.deploy.flower.link import encode, state_dir
 from fedlgr.shell.machine import torch_threads
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import make_fabric
+from fedlgr.shell.tracking.context import data_digest
 
 _robots: dict[tuple[int | str, int], Robot] = {}  # (run, client): while the service lives
 SERVER = "the server's config"
@@ -83,8 +84,10 @@ class Robot:
         # answered and was resumed - the robot sends the same reply, and trains nothing.
         self.answered: list | None = None
         self.reply = b""
+        self.digest = data_digest(config)  # of --data: its state is of this data only
         if self.path.is_file():
             state = ckpt.load(self.path)
+            check_same_data(state.get("data_digest", ""), self.digest, config, self.path)
             self.side.load_state_dict(to_device({client: state["client"]}, fabric.device))
             self.ended = state["ended"]
             self.trained = state.get("trained", -1)
@@ -98,6 +101,7 @@ class Robot:
             "trained": self.trained,
             "answered": self.answered,
             "reply": self.reply,
+            "data_digest": self.digest,
         }
         ckpt.write(self.path, state)
 
@@ -138,6 +142,17 @@ class Robot:
         if ins.plan.last_of_task:
             self.ended = ins.plan.task
         return res
+
+
+def check_same_data(saved: str, now: str, config: ExperimentConfig, path: Path) -> None:
+    """A robot's private state goes on only on the data it was trained on (as ``--resume``
+    checks a run's): a robot restarted on other data says so and answers nothing."""
+    if saved and saved != now:
+        raise FedlgrError(
+            f"the data in --data {config.data.path} is not the data this robot's private "
+            f"state {path} was trained on (dataset digest {now}, the state's {saved}): "
+            "start the robot on its own data again, or start a new run"
+        )
 
 
 def check_client(config: ExperimentConfig, client: int) -> None:
@@ -246,7 +261,7 @@ def _malformed(kind: str):
     wrong type) is one line, not a KeyError from the decoder."""
     try:
         yield
-    except (KeyError, ValueError, TypeError, AttributeError) as err:
+    except wire.MALFORMED as err:
         raise FedlgrError(
             f"the server's {kind} message is malformed ({type(err).__name__}: {err}); is the "
             "server running the same fedlgr as this robot?"

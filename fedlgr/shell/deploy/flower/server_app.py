@@ -25,6 +25,13 @@ clients (NaN rows, ``round/missing_clients``, tag ``fedlgr.missing``), and a rob
 comes back is sent the global tensors with its next training message. A robot that drops
 out while it answers a combined message misses the evaluation of the round before too.
 
+What the server takes: every upload is checked as in one process
+(:mod:`fedlgr.core.server.screen`), its sample count bounded by the roster's ``scenes``
+where it says; an upload that cannot be read (a truncated tensor, a missing record) or
+whose figures are not this run's, not finite or out of range is refused too, and so are a
+robot's scores (that round's row is left out); the console and the tag ``fedlgr.not_taken``
+name the robot.
+
 Checkpoints: what the server holds is checkpointed every ``tracking.checkpoint`` rounds as
 ``fedlgr run`` does (:meth:`FlowerRounds.state_dict`); ``fedlgr deploy run CONFIG --resume``
 continues the same MLflow run from the newest one. The robots keep their own state under
@@ -43,14 +50,15 @@ from flwr.app import Context, Message, RecordDict
 from flwr.serverapp import Grid, ServerApp
 
 from fedlgr.core.evaluation import eval_set
-from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes
+from fedlgr.core.messages import EvaluateIns, EvaluateRes, RoundPlan, TrainRes
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress
 from fedlgr.core.schedule import ALL, schedule
 from fedlgr.core.server.evaluate import ServerEvaluation, serve_round
+from fedlgr.core.server.screen import figures_refusal
 from fedlgr.core.server.side import ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
-from fedlgr.errors import FedlgrError
+from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.config import ExperimentConfig, load_config, to_yaml
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
@@ -76,6 +84,12 @@ class FlowerRounds:
         self.tags: dict[str, str] = {}
         roster = roster_of(config)
         self.nodes = Nodes(grid, config, roster, echo, self.tag)
+        # client -> "robot2 (client 2)", and the most training scenes it may claim
+        self.names = {m.client: str(m) for m in roster.members} if roster is not None else {}
+        self.capacity = roster.capacity if roster is not None else {}
+        # refused on receipt: round -> client -> why (uploads: aggregation's; scores: the record's)
+        self.unread: dict[int, dict[int, str]] = {}
+        self.bad_scores: dict[int, str] = {}
         self.server = ServerSide(config)
         if config.federated.fraction < 1 and roster is None:
             raise FedlgrError(
@@ -135,13 +149,17 @@ class FlowerRounds:
         self.pending = None
         self.check_quorum(plan.round, trained, chosen, failures)
         # In client order, as in one process: the same sums to the last bit.
+        unread = self.unread.pop(plan.round, {})
         server, initial = serve_round(
             self.server,
             self.server_eval,
             plan.round,
             plan.task,
-            lambda: self.server.aggregate(trained[c][1] for c in sorted(trained)),
+            lambda: self.server.aggregate(
+                (trained[c][1] for c in sorted(trained)), self.capacity, unread
+            ),
         )
+        self.bad_scores = {}
         rows = self.evaluate(plan, chosen, trained, down)
         missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
         if missing:
@@ -150,8 +168,22 @@ class FlowerRounds:
         log = self.server.round_log(
             plan, table, time.perf_counter() - start, missing, participants=chosen
         )
-        log.server, log.initial = server, initial
+        log.server, log.initial, log.names = server, initial, dict(self.names)
+        for client, why in self.bad_scores.items():  # their rows are left out
+            said = log.refused.get(client)
+            log.refused[client] = f"{said}; scores: {why}" if said else f"scores: {why}"
         return log
+
+    def refuse(self, round_: int, node: int, client: int | None, what: str, why: str) -> None:
+        """What a robot sent in round ``round_`` is not taken: its ``upload`` (kept for that
+        round's aggregation, which names it) or its ``scores``; a robot whose client is not
+        known (no roster, and its reply unreadable) is named here."""
+        if client is None:
+            self.echo(f"round {round_}: refused {self.nodes.name(node)}'s {what}: {why}")
+        elif what == "upload":
+            self.unread.setdefault(round_, {})[client] = why
+        else:
+            self.bad_scores[client] = why
 
     def check_quorum(self, round_: int, trained: dict, chosen: list[int], failures: dict) -> None:
         """Enough uploads to aggregate: ``deploy.min_clients`` (at most the clients the
@@ -192,14 +224,15 @@ class FlowerRounds:
         self.holders = set()
         replies = self.nodes.exchange(kind, contents, round_, self.run_id, label, kinds)
         for node, reply in replies.items():
-            if kinds.get(node, kind) == "evaluate":
-                res = wire.decode_evaluate_res(reply.content)
-            else:
-                res = wire.decode_evaluated(reply.content)
+            if kinds.get(node, kind) != "evaluate":
                 self.keep_upload(uploads, node, reply, round_ + 1)
+            res = self.scores(reply, node, round_, kinds.get(node, kind))
             if res is None or node not in scoring:
                 continue
             if serving.get(node, self.nodes.slots.get(node)) != res.client:
+                continue
+            if (why := figures_refusal(res.figures, self.server.round_keys)) is not None:
+                self.refuse(round_, node, res.client, "scores", why)
                 continue
             self.holders.add(node)
             upload = trained.get(res.client)
@@ -216,6 +249,17 @@ class FlowerRounds:
             }
             self.pending = (following, uploads, following_down, dict(self.nodes.failures))
         return rows
+
+    def scores(self, reply: Message, node: int, round_: int, kind: str) -> EvaluateRes | None:
+        """The scores a reply carries (None: none, or none that can be read)."""
+        try:
+            if kind == "evaluate":
+                return wire.decode_evaluate_res(reply.content)
+            return wire.decode_evaluated(reply.content)
+        except wire.MALFORMED as err:
+            why = f"cannot be read ({type(err).__name__}: {first_line(err)[:200]})"
+            self.refuse(round_, node, self.nodes.slots.get(node), "scores", why)
+            return None
 
     def evaluation_messages(
         self, evaluate: EvaluateIns, following: RoundPlan | None, scoring: list[int], nodes
@@ -273,8 +317,13 @@ class FlowerRounds:
         return trained, down
 
     def keep_upload(self, trained: dict, node: int, reply: Message, round_: int) -> None:
-        res = wire.decode_train_res(reply.content)
         slot = self.nodes.slots.get(node)
+        try:
+            res = wire.decode_train_res(reply.content)
+        except wire.MALFORMED as err:
+            why = f"cannot be read ({type(err).__name__}: {first_line(err)[:200]})"
+            self.refuse(round_, node, slot, "upload", why)
+            return
         name = self.nodes.name
         if slot is not None and res.client != slot:
             self.echo(f"round {round_}: {name(node)} sent client {res.client}'s upload; ignored")
@@ -284,6 +333,9 @@ class FlowerRounds:
                 f"round {round_}: {name(trained[res.client][0])} and {name(node)} "
                 f"both serve client {res.client}; {name(node)}'s upload is ignored"
             )
+            return
+        if (why := figures_refusal(res.figures, self.server.round_keys)) is not None:
+            self.refuse(round_, node, res.client, "upload", f"its figures: {why}")
             return
         trained[res.client] = (node, res, wire.payload_bytes(reply.content))
 
@@ -309,6 +361,7 @@ class FlowerRounds:
             "pending": pending,
             "holders": sorted(self.holders),
             "missed": list(self.missed),
+            "unread": self.unread,
         }
         return {"server": server, "clients": {}, "rng": [rng_states()]}
 
@@ -317,6 +370,7 @@ class FlowerRounds:
         self.server.load_state_dict(held["server"], "cpu")
         self.holders = set(held["holders"])
         self.missed = list(held["missed"])
+        self.unread = {int(r): dict(found) for r, found in held.get("unread", {}).items()}
         pending = held["pending"]
         if pending is not None:
             trained = {

@@ -36,6 +36,9 @@ from fedlgr.core.metrics import Figures
 from fedlgr.errors import FedlgrError
 
 PACKED = "fedlgr.packed"
+# What decoding a malformed message raises: a record or field missing, a value of the
+# wrong type, tensor bytes that do not match their index.
+MALFORMED = (KeyError, ValueError, TypeError, AttributeError, IndexError, OverflowError)
 
 
 def put_weights(content: RecordDict, name: str, weights: Weights) -> None:
@@ -210,11 +213,13 @@ def encode_train_res(res: TrainRes, evaluated: EvaluateRes | None = None) -> Rec
 
 
 def decode_train_res(content: RecordDict, device: torch.device | str = "cpu") -> TrainRes:
+    """A robot's upload; its sample count as sent (the server's checks refuse one that is
+    not a positive whole number: 2.5 is not rounded to 2)."""
     r = content.config_records["report"]
     return TrainRes(
         int(r["client"]),
         get_weights(content, "shared", device),
-        int(r["n_samples"]),
+        r["n_samples"],
         _figures(content.config_records["figures"]),
         _payload(content),
     )
