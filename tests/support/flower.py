@@ -53,11 +53,18 @@ class Federation:
         assert out.returncode == 0, out.stdout + out.stderr
         return out
 
-    def spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+    def spawn(
+        self, name: str, cmd: list[str], env: dict[str, str] | None = None
+    ) -> subprocess.Popen:
+        """``env``: what this process alone has in its environment besides ``self.env``."""
         log = (self.logs / f"{name}.log").open("ab")
         self.starts[name] = log.tell()
         proc = subprocess.Popen(
-            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, cwd=self.folder
+            cmd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env={**self.env, **(env or {})},
+            cwd=self.folder,
         )
         self.procs[name] = proc
         return proc
@@ -68,13 +75,14 @@ class Federation:
         whole = (self.logs / f"{name}.log").read_bytes()
         return whole[self.starts.get(name, 0) :].decode(errors="replace")
 
-    def start_superlink(self, extra: list[str] = ()) -> None:
+    def start_superlink(self, extra: list[str] = (), env: dict[str, str] | None = None) -> None:
         """``fedlgr deploy superlink``: SuperNodes use the gateway on ``self.port``, ``flwr``
-        (connection ``local``) Flower's own port on loopback, ``self.internal_port``."""
+        (connection ``local``) Flower's own port on loopback, ``self.internal_port``;
+        ``env``: the SuperLink machine's own environment (the other processes lack it)."""
         self.internal_port = free_port()
         link = ["superlink", "--certs", str(self.creds), "--host", "127.0.0.1", *extra]
         link += ["--port", str(self.port), "--internal-port", str(self.internal_port)]
-        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link])
+        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link], env)
         wait_port(self.port)  # the gateway listens once Flower does
         ca = str(self.creds / "ca.pem")
         local = f"127.0.0.1:{self.internal_port}"
@@ -101,11 +109,18 @@ class Federation:
         return self.folder / "robots" / name
 
     def start_supernode(
-        self, name: str, key: Path, client: int | None, data: Path, extra: list[str] = ()
+        self,
+        name: str,
+        key: Path,
+        client: int | None,
+        data: Path,
+        extra: list[str] = (),
+        port: int | None = None,
     ) -> subprocess.Popen:
-        """``client``: the slot the robot expects (``--client``); None: the roster's."""
+        """``client``: the slot the robot expects (``--client``); None: the roster's.
+        ``port``: where it reaches the SuperLink (default: the robots' port)."""
         robot = self.robot_dir(name)
-        node = ["supernode", "--superlink", f"127.0.0.1:{self.port}"]
+        node = ["supernode", "--superlink", f"127.0.0.1:{port or self.port}"]
         node += ["--ca", str(self.creds / "ca.pem"), "--key", str(key), "--data", str(data)]
         node += [*(() if client is None else ("--client", str(client))), "--state-dir", str(robot)]
         node += ["--cache-dir", str(robot / "cache"), "--port", str(free_port())]
