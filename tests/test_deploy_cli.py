@@ -513,6 +513,35 @@ def test_run_with_simulated_faults_is_refused_before_anything_is_submitted(
     assert not fake_flwr.exists()  # flwr was never called
 
 
+@pytest.mark.parametrize(
+    "uri",
+    [
+        "postgresql://me:S3cretPw@db.lab:5432/mlflow",
+        "postgresql://db.lab/mlflow?user=me&password=S3cretPw",
+        "https://me:S3cretPw@mlflow.lab",
+    ],
+)
+@pytest.mark.parametrize("print_command", [[], ["--print-command"]])
+def test_run_refuses_a_password_on_the_command_line_before_printing_anything(
+    tmp_path, fake_flwr, capsys, uri, print_command
+):
+    """Issue 37, Deliver 6: such an override was printed in the flwr command, kept in the
+    SuperLink's database and sent to every robot in the run's config
+    (tests/test_flower_secrets.py shows it on a real federation)."""
+    config = tmp_path / "conf.yaml"
+    config.write_text("seed: 3\n")
+    assert main(["deploy", "run", str(config), f"tracking.uri={uri}", *print_command]) == 1
+    out = capsys.readouterr()
+    [line] = out.err.strip().splitlines()
+    assert out.out == "" and "S3cretPw" not in line
+    assert line.startswith(f"fedlgr: error: tracking.uri={uri.replace('S3cretPw', '***')}: ")
+    assert not fake_flwr.exists()  # flwr was never called
+    # without its password the URI goes on (the password is then the SuperLink's)
+    bare = "postgresql://me@db.lab:5432/mlflow"
+    assert main(["deploy", "run", str(config), f"tracking.uri={bare}", "--print-command"]) == 0
+    assert bare in capsys.readouterr().out
+
+
 def test_run_without_a_roster_is_refused_before_anything_is_submitted(tmp_path, fake_flwr, capsys):
     config = tmp_path / "conf.yaml"
     config.write_text("seed: 3\n")

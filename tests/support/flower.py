@@ -53,8 +53,10 @@ class Federation:
         assert out.returncode == 0, out.stdout + out.stderr
         return out
 
-    def spawn(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
-        """``env``: added to the federation's environment for this process."""
+    def spawn(
+        self, name: str, cmd: list[str], env: dict[str, str] | None = None
+    ) -> subprocess.Popen:
+        """``env``: what this process alone has in its environment besides ``self.env``."""
         log = (self.logs / f"{name}.log").open("ab")
         self.starts[name] = log.tell()
         proc = subprocess.Popen(
@@ -73,13 +75,14 @@ class Federation:
         whole = (self.logs / f"{name}.log").read_bytes()
         return whole[self.starts.get(name, 0) :].decode(errors="replace")
 
-    def start_superlink(self, extra: list[str] = ()) -> None:
+    def start_superlink(self, extra: list[str] = (), env: dict[str, str] | None = None) -> None:
         """``fedlgr deploy superlink``: SuperNodes use the gateway on ``self.port``, ``flwr``
-        (connection ``local``) Flower's own port on loopback, ``self.internal_port``."""
+        (connection ``local``) Flower's own port on loopback, ``self.internal_port``;
+        ``env``: the SuperLink machine's own environment (the other processes lack it)."""
         self.internal_port = free_port()
         link = ["superlink", "--certs", str(self.creds), "--host", "127.0.0.1", *extra]
         link += ["--port", str(self.port), "--internal-port", str(self.internal_port)]
-        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link])
+        self.spawn("superlink", [str(BIN / "fedlgr"), "deploy", *link], env)
         wait_port(self.port)  # the gateway listens once Flower does
         ca = str(self.creds / "ca.pem")
         local = f"127.0.0.1:{self.internal_port}"
@@ -113,11 +116,13 @@ class Federation:
         data: Path,
         extra: list[str] = (),
         env: dict | None = None,
+        port: int | None = None,
     ) -> subprocess.Popen:
         """``client``: the slot the robot expects (``--client``); None: the roster's;
-        ``env``: added to its environment (and its ClientApps' and robot service's)."""
+        ``env``: added to its environment (and its ClientApps' and robot service's);
+        ``port``: where it reaches the SuperLink (default: the robots' port)."""
         robot = self.robot_dir(name)
-        node = ["supernode", "--superlink", f"127.0.0.1:{self.port}"]
+        node = ["supernode", "--superlink", f"127.0.0.1:{port or self.port}"]
         node += ["--ca", str(self.creds / "ca.pem"), "--key", str(key), "--data", str(data)]
         node += [*(() if client is None else ("--client", str(client))), "--state-dir", str(robot)]
         node += ["--cache-dir", str(robot / "cache"), "--port", str(free_port())]

@@ -33,7 +33,14 @@ from fedlgr.shell.config.data import (
     default_cache_dir,
 )
 from fedlgr.shell.config.deprecated import DEPRECATED
-from fedlgr.shell.config.export import flatten, known_settings, short_setting, to_plain, to_yaml
+from fedlgr.shell.config.export import (
+    flatten,
+    known_settings,
+    robot_yaml,
+    short_setting,
+    to_plain,
+    to_yaml,
+)
 from fedlgr.shell.config.files import CONF_DIR, SETTING_NAME, SWEEPS_DIR, find_config, yaml_reason
 from fedlgr.shell.config.interpolation import check_interpolations
 from fedlgr.shell.config.load import check_sent_settings, config_from_data, load_config
@@ -87,6 +94,7 @@ __all__ = [
     "known_settings",
     "load_config",
     "method_name",
+    "robot_yaml",
     "short_setting",
     "to_plain",
     "to_yaml",

@@ -1,8 +1,8 @@
 """A loaded config written out: as plain values, as YAML (``--print-config``, the run's
-``config.yaml``, what a Flower server sends its robots), as flat ``section.setting``
-strings (MLflow params, checkpoints); and the names of the settings themselves. What is
-written out never holds the password of ``tracking.uri``. And which settings change a run's
-numbers: the hash by which a resumed run or a retried trial is found."""
+``config.yaml``; without ``tracking.uri``, what a Flower server sends its robots), as flat
+``section.setting`` strings (MLflow params, checkpoints); and the names of the settings
+themselves. What is written out never holds the password of ``tracking.uri``. And which
+settings change a run's numbers: the hash by which a resumed run or a retried trial is found."""
 
 from __future__ import annotations
 
@@ -29,17 +29,28 @@ def to_plain(value: Any) -> Any:
 
 
 def to_yaml(config: ExperimentConfig) -> str:
-    """The resolved config as YAML - what ``--print-config`` shows, the run's
-    ``config.yaml`` artifact and what a Flower server sends its robots - with the
-    password of ``tracking.uri`` masked (a database URI may hold one; the UI shows the
-    artifact to whoever opens the run)."""
+    """The resolved config as YAML - what ``--print-config`` shows and the run's
+    ``config.yaml`` artifact - with the password of ``tracking.uri`` masked (a database URI
+    may hold one; the UI shows the artifact to whoever opens the run)."""
+    plain = to_plain(config)
+    if plain["tracking"]["uri"]:
+        plain["tracking"]["uri"] = mask_password(str(plain["tracking"]["uri"]))
+    return _dump(plain)
+
+
+def robot_yaml(config: ExperimentConfig) -> str:
+    """The resolved config as a Flower server sends it to its robots: as :func:`to_yaml`,
+    without ``tracking.uri``. A robot logs nothing, and the store's address (its host,
+    user and database, even with the password masked) is the server's alone."""
+    plain = to_plain(config)
+    plain["tracking"]["uri"] = None
+    return _dump(plain)
+
+
+def _dump(plain: dict) -> str:
     # lazy: yaml is imported once a config is written out, not by fedlgr --help
     import yaml
 
-    plain = to_plain(config)
-    tracking = plain.get("tracking")
-    if isinstance(tracking, dict) and tracking.get("uri"):
-        tracking["uri"] = mask_password(str(tracking["uri"]))
     return yaml.safe_dump(plain, sort_keys=False)
 
 

@@ -17,6 +17,7 @@ from fedlgr.shell.cli.deploy.options import absolute, add_print_command, add_sub
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import FaultsConfig, load_config
 from fedlgr.shell.deploy.flower import APP_DIR
+from fedlgr.shell.tracking.uri import mask_password
 
 STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
 
@@ -49,6 +50,7 @@ def add_parser(subs: Verbs) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    _refuse_passwords(args.overrides)  # before anything is printed or submitted
     flwr = launch.flower_command("flwr")
     config = absolute(args.config)
     run_config = (
@@ -72,6 +74,23 @@ def run(args: argparse.Namespace) -> int:
         raise FedlgrError(f"Flower run {run_id} ended {row['status']}: {details}")
     print(f"fedlgr: Flower run {run_id} finished:completed")
     return 0
+
+
+def _refuse_passwords(overrides: list[str]) -> None:
+    """An override that holds a password (a URI's ``user:password@`` or ``password=``) is
+    refused: it would stand in the printed ``flwr run`` command, in the SuperLink's
+    database (the run's config) and in the run config of every robot. The ServerApp
+    finds the password on the SuperLink's machine instead (docs/deployment.md)."""
+    for override in overrides:
+        key, _, value = override.partition("=")
+        if mask_password(value) != value:
+            raise FedlgrError(
+                f"{key}={mask_password(value)}: a password on the command line would be "
+                "printed, kept in the SuperLink's database and sent to every robot with the "
+                "run's config: leave it out of the URI and keep it on the SuperLink's machine "
+                "(~/.pgpass or $PGPASSWORD of the user who runs fedlgr deploy superlink, or "
+                "tracking.uri in CONFIG there; docs/deployment.md)"
+            )
 
 
 def _check_connection(name: str | None) -> None:

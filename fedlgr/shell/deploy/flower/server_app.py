@@ -59,7 +59,7 @@ from fedlgr.core.server.screen import figures_refusal
 from fedlgr.core.server.side import ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
 from fedlgr.errors import FedlgrError, first_line
-from fedlgr.shell.config import ExperimentConfig, load_config, to_yaml
+from fedlgr.shell.config import ExperimentConfig, load_config, robot_yaml
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.deploy.flower import wire
@@ -100,7 +100,7 @@ class FlowerRounds:
         # federated.server_eval: the server scores the global model on its own copy of the
         # test scenes (data.path on the SuperLink's machine).
         self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
-        self.config_yaml = to_yaml(config)
+        self.config_yaml = robot_yaml(config)
         self.holders: set[int] = set()  # nodes that hold the current global tensors
         self.min_clients = config.deploy.min_clients or quorum(config.data.clients)
         self.joined = False
