@@ -212,3 +212,29 @@ def test_a_poisoned_client_trains_on_constant_labels(synth_dir, cache_dir, store
     }
     _, _, clean = run(synth_dir, cache_dir, store)
     assert clean["test/rmse"] != history["test/rmse"]
+
+
+def test_results_fault_column_says_what_went_wrong_with_each_client():
+    """By hand: a simulated fault, a refusal (upload, scores or both) and a robot that
+    sent nothing, each in its client's row; a client with none has an empty cell."""
+    import numpy as np
+
+    from fedlgr.core.records import RoundLog
+
+    log = RoundLog(
+        2,
+        "all",
+        ["test/rmse"],
+        np.array([[0.5], [0.6], [np.nan], [np.nan], [0.7]]),
+        1.0,
+        missing=(2, 3),
+        refused={1: "upload: update norm 9 is over 2 x the round's median 1", 2: "scores: x"},
+        faults={0: "late", 1: "byzantine (scale)"},
+    )
+    assert [row["fault"] for row in log.rows()] == [
+        "late",
+        "byzantine (scale); refused upload: update norm 9 is over 2 x the round's median 1",
+        "refused scores: x",
+        "missing",
+        "",
+    ]

@@ -74,8 +74,11 @@ class RoundLog:
         """What went wrong with the client in this round ("": nothing): results.csv's
         ``fault`` column."""
         parts = [self.faults[client]] if client in self.faults else []
-        if client in self.refused:
-            parts.append(f"refused {self.refused[client]}")
+        refused = self.refused.get(client, "")
+        if refused:
+            parts.append(f"refused {refused}")
+        if client in self.missing and "scores: " not in refused:
+            parts.append("missing")  # a robot whose scores did not come
         return "; ".join(parts)
 
     @property
