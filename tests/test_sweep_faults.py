@@ -19,6 +19,7 @@ from optuna.trial import TrialState
 from fedlgr.shell.sweep import load_sweep, run_sweep
 from fedlgr.shell.sweep.storage import open_study
 from tests.support.checkout import REPO
+from tests.support.processes import BIG_CHECKPOINT, partial_checkpoint
 from tests.support.runs import FAST
 from tests.support.sweeps import (
     child_runs,
@@ -193,6 +194,54 @@ def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     _, (parent,), children = child_runs(store, "sweep-stopped")
     assert parent.info.status == "FINISHED"
     assert sorted(c.info.status for c in children) == ["FINISHED"] * 4 + ["KILLED"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_while_a_trial_writes_its_checkpoint_stops_the_sweep_and_keeps_the_point(
+    tmp_path, synth_dir, cache_dir
+):
+    """Issue 37, Deliver 7: Ctrl-C while a trial's checkpoint was written became "cannot
+    write checkpoint" (torch.save wraps the KeyboardInterrupt in a RuntimeError): the trial
+    was recorded FAILED, the sweep went on and exited 0, and a relaunch said "all 2 trials
+    are done" - a grid point lost. It stops the sweep as Ctrl-C elsewhere does, and the
+    relaunch runs that point."""
+    path = tmp_path / "ckpt.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1, "
+        f"federated.rounds=1, {', '.join(BIG_CHECKPOINT)}]\n"
+        "space:\n  train.lr_top: [0.001, 0.01]\n"
+    )
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    log = tmp_path / "first.log"
+    with log.open("w") as out:
+        process = subprocess.Popen(
+            sweep_command(path, storage, store), env=ENV, stdout=out, stderr=subprocess.STDOUT
+        )
+        try:
+            partial = partial_checkpoint(tmp_path / "checkpoints", process)
+            os.kill(process.pid, signal.SIGINT)
+            code = process.wait(timeout=60)
+        finally:
+            process.kill()
+            process.wait()
+    said = log.read_text()
+    assert code == 130, said[-3000:]
+    assert "cannot write checkpoint" not in said and "fedlgr: interrupted" in said, said[-3000:]
+    assert not list(partial.parent.glob(".*.tmp"))
+    states = trials_by_state(storage, "ckpt")
+    (stopped,) = states["FAIL"]
+    assert stopped.user_attrs["interrupted"] == "stopped by Ctrl-C"
+    assert "error" not in stopped.user_attrs
+    (queued,) = states["WAITING"]
+    assert queued.params == stopped.params
+    _, (parent,), (child,) = child_runs(store, "sweep-ckpt")
+    assert parent.info.status == "KILLED" and child.info.status == "KILLED"
+
+    assert run_sweep(load_sweep(path), storage=storage, tracking_uri=store).done
+    complete = trials_by_state(storage, "ckpt")["COMPLETE"]
+    assert sorted(t.params["train.lr_top"] for t in complete) == [0.001, 0.01]
+    assert any(stopped.number in t.system_attrs.get("retry_history", []) for t in complete)
 
 
 def _fedlgr(*args: str, cwd: Path) -> subprocess.CompletedProcess:
