@@ -6,7 +6,8 @@ this process, the ``--workers N`` extra processes it starts, or ``fedlgr sweep``
 elsewhere on the same storage - runs trials one at a time until the study is done:
 
 * every parameter, every trial's config and the objective's metric are checked before
-  the first trial (:mod:`fedlgr.shell.sweep.checks`);
+  the first trial (:mod:`fedlgr.shell.sweep.checks`), and a relaunched study's space
+  against the values its trials drew from (:func:`~fedlgr.shell.sweep.checks.check_space`);
 * a grid is done when every point has finished (complete, pruned or failed); a TPE study
   when ``trials`` trials have - or when its space has no point left that has not run
   (a finite space smaller than ``trials``, or a sampler that keeps proposing old points:
