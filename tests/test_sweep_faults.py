@@ -4,6 +4,7 @@ kill, Ctrl-C and SIGTERM, bad sweep files and data, two sweeps started at once."
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import sqlite3
@@ -242,6 +243,44 @@ def test_ctrl_c_while_a_trial_writes_its_checkpoint_stops_the_sweep_and_keeps_th
     complete = trials_by_state(storage, "ckpt")["COMPLETE"]
     assert sorted(t.params["train.lr_top"] for t in complete) == [0.001, 0.01]
     assert any(stopped.number in t.system_attrs.get("retry_history", []) for t in complete)
+
+
+@pytest.mark.slow
+def test_a_sweep_whose_trials_keep_failing_stops_after_three_in_a_row(
+    tmp_path, synth_dir, cache_dir
+):
+    """Issue 37, Deliver 7: with --workers 2, trials that all failed at once (here each
+    point asks for more clients than there are training scenes) were run for ever, over
+    7,000 in minutes, when they covered no grid point. A sweep stops once
+    failures_in_a_row (default 3) trials in a row have failed: one line naming the last
+    one's error, exit 1, its parent run FAILED, and both workers gone."""
+    path = tmp_path / "failing.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1]\n"
+        f"space:\n  data.clients: {list(range(100, 120))}\n"
+    )
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    command = sweep_command(path, storage, store, "--workers", "2")
+    done = subprocess.run(command, env=ENV, capture_output=True, text=True, timeout=240)
+    assert done.returncode == 1, done.stdout[-3000:] + done.stderr[-3000:]
+    line = done.stderr.strip().splitlines()[-1]
+    stopped = re.fullmatch(
+        r"fedlgr: error: sweep failing: stopped after 3 trials in a row failed "
+        r"\(failures_in_a_row: 3\); the last, trial (\d+): (ConfigError: .*)",
+        line,
+    )
+    assert stopped, line
+    states = trials_by_state(storage, "failing")
+    assert list(states) == ["FAIL"]
+    # Each worker stops after its own trial that made the third failure in a row.
+    assert 3 <= len(states["FAIL"]) <= 6, [t.number for t in states["FAIL"]]
+    last = next(t for t in states["FAIL"] if t.number == int(stopped.group(1)))
+    assert last.user_attrs["error"] == stopped.group(2)
+    clients = last.params["data.clients"]
+    assert f"data.clients={clients}: more clients than the 36 training scenes" in line
+    _, (parent,), _ = child_runs(store, "sweep-failing")
+    assert parent.info.status == "FAILED"
 
 
 def _fedlgr(*args: str, cwd: Path) -> subprocess.CompletedProcess:
