@@ -27,12 +27,14 @@ from fedlgr.shell.cli import main, parse
 from fedlgr.shell.run.experiment import run_experiment
 from fedlgr.shell.tracking.mlflow_run import dead_reason, end_dead_runs
 from tests.support.processes import (
+    BIG_CHECKPOINT,
     TELEMETRY,
     Child,
     child_env,
     experiment_runs,
     metric_steps,
     only_run,
+    partial_checkpoint,
     run_args,
 )
 from tests.support.runs import FAST, fast_config, results_csv
@@ -224,6 +226,41 @@ def test_sigterm_while_the_store_is_busy_ends_the_run_killed(synth_dir, cache_di
     _, run = only_run(store)
     ended = "did not exit within 15 s" if code is None else f"exit {code}"
     assert (code, run.info.status) == (128 + signal.SIGTERM, "KILLED"), f"{ended}: {stderr}"
+
+
+@pytest.mark.slow
+def test_ctrl_c_while_a_checkpoint_is_written_is_an_interrupt_not_a_full_disk(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    """Issue 37, Deliver 7: Ctrl-C while round 2's checkpoint was written was reported as
+    "cannot write checkpoint ... free space" and ended the run FAILED - torch.save wraps
+    the KeyboardInterrupt raised in one of its writes in a RuntimeError. It is an
+    interrupt: exit 130, the run KILLED, the partial file gone, round 1's checkpoint
+    intact, and --resume finishes the run."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=3", *BIG_CHECKPOINT)
+    with Child(args, tmp_path, "checkpoint") as child:
+        writing = ".round-0002.ckpt.tmp"  # round 1's checkpoint is on disk
+        partial = partial_checkpoint(tmp_path / "checkpoints", child.process, writing)
+        code, _ = child.signal_and_wait(signal.SIGINT)
+        stderr = child.stderr()
+    client, run = only_run(store)
+    run_id = run.info.run_id
+    assert code == 130, stderr[-3000:]
+    assert "free space" not in stderr and "Traceback" not in stderr, stderr[-3000:]
+    assert stderr.strip().splitlines()[-1] == (
+        f"fedlgr: interrupted; MLflow run {run_id} ended KILLED; "
+        f"the same command with --resume {run_id} continues it"
+    )
+    assert run.info.status == "KILLED"
+    assert sorted(p.name for p in partial.parent.glob("*.ckpt*")) == ["round-0001.ckpt"]
+    assert not partial.exists()
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", *args, "--resume"]) == 0
+    assert f"resuming run {run_id} after round 1 of 3" in capsys.readouterr().out
+    client, run = only_run(store)
+    assert run.info.status == "FINISHED" and metric_steps(client, run_id) == [1, 2, 3]
 
 
 # --------------------------------------------------------------------------- 2. dead runs

@@ -82,6 +82,7 @@ def test_the_paper_grids_cover_every_method_and_setting():
         ("space: {train.lr_top: [0.1]}\nobjective: {direction: up}\n", "objective.direction"),
         ("space: {train.lr_topp: [0.1]}\n", "train.lr_topp"),
         ("space: {train.lr_top: [0.1]}\nworkers: 2\n", "workers: unknown setting"),
+        ("space: {train.lr_top: [0.1]}\nfailures_in_a_row: 0\n", "failures_in_a_row: 0 is below"),
     ],
 )
 def test_bad_sweep_files_name_the_file_and_key(tmp_path, body, message):

@@ -4,6 +4,7 @@ kill, Ctrl-C and SIGTERM, bad sweep files and data, two sweeps started at once."
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import sqlite3
@@ -19,6 +20,7 @@ from optuna.trial import TrialState
 from fedlgr.shell.sweep import load_sweep, run_sweep
 from fedlgr.shell.sweep.storage import open_study
 from tests.support.checkout import REPO
+from tests.support.processes import BIG_CHECKPOINT, partial_checkpoint
 from tests.support.runs import FAST
 from tests.support.sweeps import (
     child_runs,
@@ -193,6 +195,92 @@ def test_a_stopped_sweep_requeues_its_trial_and_ends_its_parent_run_killed(
     _, (parent,), children = child_runs(store, "sweep-stopped")
     assert parent.info.status == "FINISHED"
     assert sorted(c.info.status for c in children) == ["FINISHED"] * 4 + ["KILLED"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_while_a_trial_writes_its_checkpoint_stops_the_sweep_and_keeps_the_point(
+    tmp_path, synth_dir, cache_dir
+):
+    """Issue 37, Deliver 7: Ctrl-C while a trial's checkpoint was written became "cannot
+    write checkpoint" (torch.save wraps the KeyboardInterrupt in a RuntimeError): the trial
+    was recorded FAILED, the sweep went on and exited 0, and a relaunch said "all 2 trials
+    are done" - a grid point lost. It stops the sweep as Ctrl-C elsewhere does, and the
+    relaunch runs that point."""
+    path = tmp_path / "ckpt.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1, "
+        f"federated.rounds=1, {', '.join(BIG_CHECKPOINT)}]\n"
+        "space:\n  train.lr_top: [0.001, 0.01]\n"
+    )
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    log = tmp_path / "first.log"
+    with log.open("w") as out:
+        process = subprocess.Popen(
+            sweep_command(path, storage, store), env=ENV, stdout=out, stderr=subprocess.STDOUT
+        )
+        try:
+            partial = partial_checkpoint(tmp_path / "checkpoints", process)
+            os.kill(process.pid, signal.SIGINT)
+            code = process.wait(timeout=60)
+        finally:
+            process.kill()
+            process.wait()
+    said = log.read_text()
+    assert code == 130, said[-3000:]
+    assert "cannot write checkpoint" not in said and "fedlgr: interrupted" in said, said[-3000:]
+    assert not list(partial.parent.glob(".*.tmp"))
+    states = trials_by_state(storage, "ckpt")
+    (stopped,) = states["FAIL"]
+    assert stopped.user_attrs["interrupted"] == "stopped by Ctrl-C"
+    assert "error" not in stopped.user_attrs
+    (queued,) = states["WAITING"]
+    assert queued.params == stopped.params
+    _, (parent,), (child,) = child_runs(store, "sweep-ckpt")
+    assert parent.info.status == "KILLED" and child.info.status == "KILLED"
+
+    assert run_sweep(load_sweep(path), storage=storage, tracking_uri=store).done
+    complete = trials_by_state(storage, "ckpt")["COMPLETE"]
+    assert sorted(t.params["train.lr_top"] for t in complete) == [0.001, 0.01]
+    assert any(stopped.number in t.system_attrs.get("retry_history", []) for t in complete)
+
+
+@pytest.mark.slow
+def test_a_sweep_whose_trials_keep_failing_stops_after_three_in_a_row(
+    tmp_path, synth_dir, cache_dir
+):
+    """Issue 37, Deliver 7: with --workers 2, trials that all failed at once (here each
+    point asks for more clients than there are training scenes) were run for ever, over
+    7,000 in minutes, when they covered no grid point. A sweep stops once
+    failures_in_a_row (default 3) trials in a row have failed: one line naming the last
+    one's error, exit 1, its parent run FAILED, and both workers gone."""
+    path = tmp_path / "failing.yaml"
+    path.write_text(
+        f"base: {FAST}\n"
+        f"overrides: [data.path={synth_dir}, data.cache_dir={cache_dir}, runtime.threads=1]\n"
+        f"space:\n  data.clients: {list(range(100, 120))}\n"
+    )
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    command = sweep_command(path, storage, store, "--workers", "2")
+    done = subprocess.run(command, env=ENV, capture_output=True, text=True, timeout=240)
+    assert done.returncode == 1, done.stdout[-3000:] + done.stderr[-3000:]
+    line = done.stderr.strip().splitlines()[-1]
+    stopped = re.fullmatch(
+        r"fedlgr: error: sweep failing: stopped after 3 trials in a row failed "
+        r"\(failures_in_a_row: 3\); the last, trial (\d+): (ConfigError: .*)",
+        line,
+    )
+    assert stopped, line
+    states = trials_by_state(storage, "failing")
+    assert list(states) == ["FAIL"]
+    # Each worker stops after its own trial that made the third failure in a row.
+    assert 3 <= len(states["FAIL"]) <= 6, [t.number for t in states["FAIL"]]
+    last = next(t for t in states["FAIL"] if t.number == int(stopped.group(1)))
+    assert last.user_attrs["error"] == stopped.group(2)
+    clients = last.params["data.clients"]
+    assert f"data.clients={clients}: more clients than the 36 training scenes" in line
+    _, (parent,), _ = child_runs(store, "sweep-failing")
+    assert parent.info.status == "FAILED"
 
 
 def _fedlgr(*args: str, cwd: Path) -> subprocess.CompletedProcess:

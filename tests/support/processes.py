@@ -124,6 +124,30 @@ class Child:
         self._stderr.close()
 
 
+# A full-width model on 4 clients: a run's checkpoint is ~120 MB, which torch.save writes
+# for a few tenths of a second (0.25-1.7 s seen on 2 busy cores).
+BIG_CHECKPOINT = ("model.width=1.0", "data.clients=4")
+
+
+def partial_checkpoint(
+    folder: Path, process: subprocess.Popen, pattern: str = ".round-*.ckpt.tmp", limit: float = 240
+) -> Path:
+    """A checkpoint being written under ``folder`` (a temporary ``pattern`` file, polled
+    every millisecond) once its first megabyte is on disk: torch.save is then writing the
+    tensors, past the pickling of the state that comes first."""
+    deadline = time.monotonic() + limit
+    while True:
+        assert process.poll() is None, f"the process ended ({process.returncode}) before {pattern}"
+        assert time.monotonic() < deadline, f"no {pattern} under {folder} in {limit} s"
+        for path in folder.glob(f"*/{pattern}"):
+            try:
+                if path.stat().st_size >= 1 << 20:
+                    return path
+            except FileNotFoundError:  # renamed into place meanwhile
+                continue
+        time.sleep(0.001)
+
+
 def experiment_runs(store: str, experiment: str = EXPERIMENT) -> tuple[mlflow.MlflowClient, list]:
     client = mlflow.MlflowClient(store)
     found = client.get_experiment_by_name(experiment)

@@ -45,7 +45,8 @@ def add_parser(verbs: Verbs) -> None:
         "--settings-changed",
         action="store_true",
         help="go on with a study started with other settings (the sweep file or overrides, "
-        "e.g. a dataset that moved); its finished trials count as they are",
+        "e.g. a dataset that moved); its finished trials count as they are. A space whose "
+        "values changed needs a new study (--study)",
     )
     parser.add_argument("--workers", type=int, default=1, help="processes on this machine")
     parser.add_argument(

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fedlgr.errors import FedlgrError, first_line
+from fedlgr.errors import FedlgrError, first_line, interrupt_in
 from fedlgr.shell.checks.paths import not_a_folder
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.config.export import SAFE_KEYS
@@ -64,6 +64,7 @@ def checkpoints(folder: Path) -> list[Path]:
 
 
 TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
+INTERRUPTED = "interrupted"  # what rank 0 tells the others when its write was cut off
 
 
 def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) -> Path | None:
@@ -75,17 +76,25 @@ def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) ->
     transaction) stages the file in ``$TMPDIR`` and moves it into place, so a kill during
     the write leaves a file of the checkpoint's size there, and a full disk there fails a
     run whose checkpoint folder has room. The state is plain tensors and values (no
-    wrapped modules), which ``torch.save`` writes as Fabric would."""
+    wrapped modules), which ``torch.save`` writes as Fabric would. Ctrl-C or SIGTERM
+    during the write is that interrupt, raised in every process once the temporary is
+    removed - not a failed write (``torch.save`` wraps it in a ``RuntimeError``)."""
     path = folder / f"round-{round_:04d}.ckpt"
-    error = ""
+    error, interrupt = "", None
     rank, world = (0, 1) if fabric is None else (fabric.global_rank, fabric.world_size)
     if rank == 0:
         try:
             _write_atomically(path, encode(state))
         except (OSError, RuntimeError) as err:  # torch.save wraps a failed write in the latter
             error = f"cannot write checkpoint {path}: {_io_reason(err)}"
+            # and a Ctrl-C or SIGTERM in the middle of its writes too: that is no I/O error
+            interrupt = interrupt_in(err)
+            if interrupt is not None:
+                error = INTERRUPTED
     if world > 1:
         error = fabric.broadcast(error, src=0)
+    if error == INTERRUPTED:  # every process stops as rank 0 does
+        raise interrupt or KeyboardInterrupt() from None
     if error:
         raise FedlgrError(
             f"{error}; free space or choose another folder (tracking.checkpoint_dir=...), "

@@ -1,5 +1,6 @@
 """What a sweep checks before its first trial trains: every trial's config loads, the
-objective is a metric its runs log, and the data is there.
+objective is a metric its runs log, the data is there, and a relaunched study's space is
+one its trials' values fit.
 
 A grid of up to :data:`EXHAUSTIVE` points is checked point by point. A larger grid, and a
 TPE space, is checked one parameter at a time: each value of each parameter (a range: its
@@ -158,3 +159,51 @@ def check_data_folders(spec: SweepSpec) -> None:
                 f"{spec.path}: data.path={path}: {what}; set data.path=DIR in the sweep's "
                 "overrides or on the command line"
             )
+
+
+def check_space(study, spec: SweepSpec, where: str) -> None:
+    """Refuse a study whose trials drew a parameter from other values than the sweep's
+    space gives it now (a value added to a grid, choices changed, a range made a range of
+    another kind): Optuna compares each trial's distribution with the study's first one
+    of that name and fails every new trial ("CategoricalDistribution does not support
+    dynamic value space"), and a grid cannot grow inside its study. A range's ends may
+    move (Optuna allows it; a changed sweep file still needs ``--settings-changed``).
+    ``where``: the storage, as the message names it."""
+    # lazy: optuna (~1 s), not needed to check a sweep file
+    from optuna.distributions import check_distribution_compatibility
+
+    now = spec.search_space()
+    before = {}
+    for trial in study.get_trials(deepcopy=False):
+        for name, distribution in trial.distributions.items():
+            before.setdefault(name, distribution)  # Optuna compares with the first
+        if now.keys() <= before.keys():
+            break
+    for name, distribution in now.items():
+        if name not in before:
+            continue
+        try:
+            check_distribution_compatibility(before[name], distribution)
+        except ValueError:
+            raise ConfigError(
+                f"study {study.study_name!r} in {where}: space.{name} changed since its "
+                f"trials ran: {_shown(before[name])} -> {_shown(distribution)}; Optuna cannot "
+                "change a parameter's values inside a study (every new trial would fail): "
+                "start a new study with --study NAME (it runs every point of the new space), "
+                "or put the old values back"
+            ) from None
+
+
+def _shown(distribution) -> str:
+    """A distribution as a sweep file gives it: ``[1, 10, 100]``, ``{low: 1, high: 10}``."""
+    # lazy: optuna (~1 s), not needed to check a sweep file
+    from optuna.distributions import CategoricalDistribution, IntDistribution
+
+    if isinstance(distribution, CategoricalDistribution):
+        return "[" + ", ".join(map(str, distribution.choices)) + "]"
+    whole = isinstance(distribution, IntDistribution)
+    extra = ", log: true" if distribution.log else ""
+    if distribution.step != (1 if whole else None):  # a step other than the default
+        extra += f", step: {distribution.step}"
+    kind = "whole numbers " if whole else ""
+    return f"{kind}{{low: {distribution.low}, high: {distribution.high}{extra}}}"

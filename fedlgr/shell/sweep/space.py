@@ -96,6 +96,7 @@ class SweepSpec:
     experiment: str = ""
     description: str = ""
     heartbeat_s: int = 30  # a trial whose worker is silent for 2 heartbeats is retried
+    failures_in_a_row: int = 3  # the sweep stops once this many trials in a row failed
 
     @property
     def grid(self) -> dict[str, list[Any]]:

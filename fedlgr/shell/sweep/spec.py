@@ -22,7 +22,8 @@ take it when the file loads, and every trial's config and the objective with it
 logs, read after the last round (``test/rmse`` = the final mean RMSE, after the last task
 for FCL; ``after_task1/test/pcc``, ``mean/cost/cpu_s``, ...). ``pruner`` (``median`` |
 ``none``) stops hopeless trials from their per-round values; on by default for TPE, off
-for grids (a grid wants every point measured).
+for grids (a grid wants every point measured). ``failures_in_a_row`` (default 3) stops the
+sweep once that many trials in a row have failed (:func:`fedlgr.shell.sweep.trials.failing`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ SAMPLERS = ("grid", "tpe")
 PRUNERS = ("median", "none")
 MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
 MAX_GRID_POINTS = 1_000_000  # GridSampler lists every point (a tuple each) up front
+FAILURES_IN_A_ROW = 3  # a sweep stops once this many trials in a row have failed
 #: The settings a sweep file may have at its top level.
 KNOWN = (
     "name",
@@ -59,6 +61,7 @@ KNOWN = (
     "seed",
     "experiment",
     "heartbeat_s",
+    "failures_in_a_row",
 )
 
 #: ``fail(key, message)``: the ConfigError naming the sweep file and its setting ``key``.
@@ -120,6 +123,7 @@ def load_sweep(
         experiment=str(raw.get("experiment") or f"sweep-{name}"),
         description=str(raw.get("description", "")),
         heartbeat_s=_integer(raw, "heartbeat_s", 30, 1, fail),
+        failures_in_a_row=_integer(raw, "failures_in_a_row", FAILURES_IN_A_ROW, 1, fail),
     )
     if spec.heartbeat_s > MAX_HEARTBEAT_S:
         raise fail("heartbeat_s", f"{spec.heartbeat_s} is above {MAX_HEARTBEAT_S} (one day)")

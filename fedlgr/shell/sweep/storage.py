@@ -22,6 +22,7 @@ from fedlgr.errors import FedlgrError, exception_chain
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.checks.stores import CONNECT_TIMEOUT_S, check_database
 from fedlgr.shell.config.export import MACHINE_CHOSEN, SAFE_KEYS
+from fedlgr.shell.sweep.checks import check_space
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.tracking.store import StoreError, open_lock_file, store_lock
 from fedlgr.shell.tracking.uri import (
@@ -289,6 +290,9 @@ def _open_study(
             direction=spec.direction,
             load_if_exists=True,
         )
+        # The space first: a study whose values changed cannot go on even when the
+        # settings changed on purpose (--settings-changed).
+        check_space(study, spec, mask_password(storage))
         check_settings(study, spec, storage, settings_changed)
     except Exception as err:
         problem = storage_error(storage, err)

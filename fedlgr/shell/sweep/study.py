@@ -6,7 +6,8 @@ this process, the ``--workers N`` extra processes it starts, or ``fedlgr sweep``
 elsewhere on the same storage - runs trials one at a time until the study is done:
 
 * every parameter, every trial's config and the objective's metric are checked before
-  the first trial (:mod:`fedlgr.shell.sweep.checks`);
+  the first trial (:mod:`fedlgr.shell.sweep.checks`), and a relaunched study's space
+  against the values its trials drew from (:func:`~fedlgr.shell.sweep.checks.check_space`);
 * a grid is done when every point has finished (complete, pruned or failed); a TPE study
   when ``trials`` trials have - or when its space has no point left that has not run
   (a finite space smaller than ``trials``, or a sampler that keeps proposing old points:
@@ -14,7 +15,10 @@ elsewhere on the same storage - runs trials one at a time until the study is don
 * a trial that raises is recorded FAILED with its error (user attr ``error``, the
   end-of-sweep table, tag ``fedlgr.error`` of its MLflow run or ``trial.N.error`` of the
   parent) and the sweep goes on; a sweep whose every trial failed ends its parent run
-  FAILED (and ``fedlgr sweep`` exits 1); Ctrl-C or SIGTERM (:mod:`fedlgr.shell.signals`)
+  FAILED (and ``fedlgr sweep`` exits 1), and so does one whose ``failures_in_a_row``
+  trials in a row failed, which stops there (:func:`fedlgr.shell.sweep.trials.failing`:
+  a trial that fails before drawing its point covers none, and the sweep would ask for
+  new ones for ever); Ctrl-C or SIGTERM (:mod:`fedlgr.shell.signals`)
   re-queues the running trial, so the next launch redoes it, and ends the parent run
   KILLED;
 * a worker that dies (killed, machine lost) stops sending heartbeats; after two missed
@@ -63,7 +67,8 @@ class SweepResult:
     study: Any
     parent_run_id: str
     done: bool
-    failure: str | None = None  # every trial failed: how many, and the first error
+    # every trial failed (how many, the first error), or trials in a row did (the last one's)
+    failure: str | None = None
 
 
 def run_sweep(
@@ -100,10 +105,12 @@ def run_sweep(
     done = _run_with_helpers(worker, helpers)
     if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
         return SweepResult(worker.study, worker.parent_run_id, done)
-    best = worker.finish_parent() if done else None
+    best = worker.finish_parent() if done or worker.stopped else None
+    if worker.stopped:  # its best so far and trials.json are logged; it did not finish
+        worker.parent.end("FAILED")
     echo("\n" + summary(worker.study, spec, best))
     echo(runs_hint(worker.parent.tracking_uri, worker.parent.experiment_id))
-    failure = all_failed(worker.study) if done else None
+    failure = worker.stopped or (all_failed(worker.study) if done else None)
     return SweepResult(worker.study, worker.parent_run_id, done, failure)
 
 

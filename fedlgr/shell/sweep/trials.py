@@ -126,6 +126,32 @@ def all_failed(study) -> str | None:
     return f"all {len(finished)} trials failed; trial {first.number}: {error}"
 
 
+def failing(study, spec: SweepSpec, since: int = 0) -> str | None:
+    """Why the sweep stops, or None: the last ``failures_in_a_row`` finished trials
+    numbered ``since`` or later (those of this launch) all failed - a trial that fails
+    before it draws its point (a distribution Optuna refuses, a storage that refuses it)
+    covers no point, and the sweep would otherwise ask for new ones for ever. Interrupted
+    trials and dead workers' ones (queued again) neither count nor break the run of
+    failures; a skipped duplicate is not a trial that ran."""
+    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
+
+    finished = _split(study.get_trials(deepcopy=False))[2]
+    streak = []
+    for t in sorted((t for t in finished if t.number >= since), key=lambda t: -t.number):
+        if t.state != TrialState.FAIL:
+            break
+        if not t.user_attrs.get("interrupted"):
+            streak.append(t)
+        if len(streak) == spec.failures_in_a_row:
+            last = streak[0]
+            error = last.user_attrs.get("error", "no error recorded")
+            return (
+                f"stopped after {len(streak)} trials in a row failed (failures_in_a_row: "
+                f"{spec.failures_in_a_row}); the last, trial {last.number}: {error}"
+            )
+    return None
+
+
 def ran(study) -> int:
     """How many trials have run (finished, duplicates and re-queued failures left out)."""
     return len(_split(study.get_trials(deepcopy=False))[2])

@@ -22,7 +22,7 @@ from fedlgr.shell.sweep.parent_run import ParentRun
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.storage import DEFAULT_STORAGE, open_study, storage_error
 from fedlgr.shell.sweep.trial_run import TrialRunner
-from fedlgr.shell.sweep.trials import counts, no_new_point, ran
+from fedlgr.shell.sweep.trials import counts, failing, no_new_point, ran
 
 
 class Worker:
@@ -46,6 +46,10 @@ class Worker:
         self.ownership = TrialOwnership(spec, self.study, retry, worker, echo)
         self.runner = TrialRunner(spec, self.study, self.parent, worker, echo)
         self.last_trial: int | None = None
+        # The trials of this launch are numbered from here: failures of an earlier launch
+        # (fixed since) do not stop it.
+        self.since = len(self.study.get_trials(deepcopy=False))
+        self.stopped: str | None = None  # why it stopped on failing trials
         # An interrupt between Optuna's ask() and the objective waits until the trial is
         # claimed: the trial ask() made would otherwise be left RUNNING, never queued again.
         self.unborn = contextlib.ExitStack()
@@ -60,7 +64,8 @@ class Worker:
         return self.parent.run_id
 
     def run(self) -> bool:
-        """Run trials until the study is done; True when it is."""
+        """Run trials until the study is done; True when it is, False when trials kept
+        failing (:attr:`stopped` says why)."""
         # lazy: optuna (~1 s), not needed to check a sweep file
         import optuna
 
@@ -144,6 +149,9 @@ class Worker:
                 self.unborn.close()  # no trial began (the study's storage failed in ask())
             self.ownership.release()
             self._report_last(time.perf_counter() - start)
+            self.stopped = failing(self.study, spec, self.since)
+            if self.stopped:
+                return False
 
     def _objective(self, trial) -> float:
         """Optuna's objective: the trial is claimed as this worker's, then run."""
