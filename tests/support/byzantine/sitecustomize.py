@@ -8,6 +8,12 @@ robot does, then alters its n-th train reply as the n-th word says:
 - ``scores``: the previous round's scores that the reply carries NaN;
 - words joined by ``+`` do each (``count+scores``);
 - ``honest``: nothing altered.
+- (fault sweep 37) ``figkey``: a training figure that is not the run's; ``strfig``: a
+  string where a figure's number goes; ``boolcount``: a sample count of True;
+  ``nofigures``: the figures record left out; ``client``: the upload claims client 0;
+  ``extra``: an extra tensor; ``half``: the first float tensor as float16; ``zeros``:
+  every tensor zero; ``payload``: every payload tensor NaN (or, where the strategy sends
+  none, a NaN payload record of its own); ``bigendian``: the tensors' index says >f4.
 
 Python imports ``sitecustomize`` at start; this one only hooks the import of fedlgr's robot
 module, so the SuperNode and its ClientApp processes stay as they are.
@@ -40,8 +46,33 @@ def alter(robot_module) -> None:
                 weights[key] = w * float("nan")
             elif w.is_floating_point() and "scale" in how:
                 weights[key] = w * 1e6
+        if "zeros" in how:
+            weights = {k: w * 0 for k, w in weights.items()}
+        if "half" in how:
+            key = next(k for k, w in weights.items() if w.is_floating_point())
+            weights[key] = weights[key].half()
+        if "extra" in how:
+            import torch
+
+            weights["evil.tensor"] = torch.zeros(3)
         n = 10**12 if "count" in how else res.n_samples
-        res = dataclasses.replace(res, weights=weights, n_samples=n)
+        n = True if "boolcount" in how else n
+        figures = dict(res.figures)
+        if "figkey" in how:
+            figures["evil/figure"] = 1.0
+        if "strfig" in how:
+            figures[next(iter(figures))] = "abc"
+        payload = dict(res.payload)
+        if "payload" in how:
+            import torch
+
+            payload = {k: v * float("nan") for k, v in payload.items()} or {
+                "scaffold/evil": torch.full((3,), float("nan"))
+            }
+        client = 0 if "client" in how else res.client
+        res = dataclasses.replace(
+            res, weights=weights, n_samples=n, figures=figures, payload=payload, client=client
+        )
         if "scores" in how and evaluated is not None:
             nan = {k: float("nan") for k in evaluated.figures}
             evaluated = dataclasses.replace(evaluated, figures=nan)
@@ -49,6 +80,15 @@ def alter(robot_module) -> None:
         if "truncate" in how:
             array = content.array_records["shared"]["tensors"]
             array.data = array.data[:-8]
+        if "nofigures" in how:
+            del content["figures"]
+        if "bigendian" in how:
+            from flwr.app import ConfigRecord
+
+            index = content.config_records["shared.index"]
+            content["shared.index"] = ConfigRecord(
+                {**dict(index), "dtypes": [">f4" for _ in index["dtypes"]]}
+            )
         return content
 
     wire.encode_train_res = encode_train_res
