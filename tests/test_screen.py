@@ -85,8 +85,8 @@ def altered(side: ServerSide, how: str) -> TrainRes:
 REASONS = {
     "nan": "holds values that are not finite",
     "inf": "holds values that are not finite",
-    "x1e30": "x the round's median",
-    "zeros": "x the round's median",
+    "x1e30": "x the others' median",
+    "zeros": "x the others' median",
     "one element": "has shape [1], not",
     "extra dimension": "has shape [1, ",
     "truncated": "has shape [",
@@ -136,11 +136,16 @@ def test_the_server_s_own_round_refuses_an_upload_without_knowing_the_split():
     assert side.refused == {}
 
 
-def test_the_norm_check_compares_with_the_round_s_median_and_can_be_turned_off():
-    assert oversized({0: 1.0, 1: 2.0, 2: 20.0}, 10.0) == {}  # 20 = 10 x the median 2
-    assert list(oversized({0: 1.0, 1: 2.0, 2: 20.1}, 10.0)) == [2]
+def test_the_norm_check_compares_with_the_median_of_the_others_and_can_be_turned_off():
+    """Each norm against the median of the others' (1.5 for client 2 here): a client is
+    never its own yardstick, so two uploads are compared and a round of one is not."""
+    assert oversized({0: 1.0, 1: 2.0, 2: 15.0}, 10.0) == {}  # 15 = 10 x the others' 1.5
+    assert list(oversized({0: 1.0, 1: 2.0, 2: 15.1}, 10.0)) == [2]
+    assert list(oversized({0: 1.0, 1: 1e6}, 10.0)) == [1]  # two uploads: the other's 1
+    assert oversized({0: 1e6}, 10.0) == {}  # one upload: nothing to compare with
     assert oversized({0: 1.0, 1: 2.0, 2: 1e9}, 0.0) == {}  # federated.norm_ratio=0: off
-    assert oversized({0: 0.0, 1: 0.0, 2: 5.0}, 10.0) == {}  # nobody moved: no scale
+    assert oversized({0: 0.0, 1: 0.0, 2: 0.0}, 10.0) == {}  # nobody moved
+    assert list(oversized({0: 0.0, 1: 0.0, 2: 5.0}, 10.0)) == [2]  # only one moved
     side = server("federated.norm_ratio=0")
     uploads = [honest(side, c) for c in (0, 1)] + [altered(side, "x1e30")]
     refused = side.refusals(uploads)

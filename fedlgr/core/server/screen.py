@@ -3,9 +3,12 @@
 A client's upload must hold exactly the tensors the server shares with it, each of the
 global tensor's shape and dtype and every value finite, and a sample count that is a
 positive whole number no larger than the client's training scenes of the task where the
-server knows them (in simulation it holds the split). An upload whose update - its tensors
-minus the global ones - is over ``federated.norm_ratio`` times the round's median update
-norm is refused too. A refused upload reaches nothing: the round aggregates the others,
+server knows them (in simulation it holds the split; on robots, the roster's ``scenes``);
+what its strategy's plugins send beside them (SCAFFOLD's control-variate change) is held to
+the same checks, and no BatchNorm variance may be below 0. An upload whose update - its
+tensors minus the global ones, and its plugins' change - is over ``federated.norm_ratio``
+times the median of the round's other updates is refused too (any update at all, where the
+others did not move). A refused upload reaches nothing: the round aggregates the others,
 and its record names the client and why.
 
 What a client reports - its training figures with its upload, its scores - is checked
@@ -24,58 +27,102 @@ import torch
 
 from fedlgr.core.messages import TrainRes, Weights
 
+MAX_COUNT = 2**53  # a sample count above this is no float's whole number: a weight of nothing
 
-def refusal(result: TrainRes, shared: Weights, capacity: int | None = None) -> str | None:
-    """Why ``result`` cannot be aggregated with the global tensors ``shared``, or None."""
+
+def refusal(
+    result: TrainRes, shared: Weights, capacity: int | None = None, payload: Weights | None = None
+) -> str | None:
+    """Why ``result`` cannot be aggregated with the global tensors ``shared``, or None;
+    ``payload``: zeros shaped like what the strategy's plugins send beside them (their
+    keys exactly, of those shapes and dtypes, finite)."""
     sent = result.weights if isinstance(result.weights, dict) else {}
-    missing = [k for k in shared if k not in sent]
-    extra = sorted(k for k in sent if k not in shared)
-    if missing:
-        return f"{len(missing)} shared tensor(s) missing ({missing[0]}, ...)"
-    if extra:
-        return f"{len(extra)} tensor(s) that are not shared ({extra[0]}, ...)"
+    why = _keys_refusal(sent, shared, "shared tensor(s)", "tensor(s) that are not shared")
+    if why is not None:
+        return why
     n = result.n_samples
     if isinstance(n, bool) or not isinstance(n, int) or n <= 0:
         return f"sample count {n!r} is not a positive whole number"
+    if n > MAX_COUNT:
+        return f"sample count of {n.bit_length()} bits is beyond any dataset (over 2^53)"
     if capacity is not None and n > capacity:
         return f"sample count {n} exceeds its {capacity} training scenes"
-    for key, like in shared.items():
-        tensor = sent[key]
-        if not isinstance(tensor, torch.Tensor):
-            return f"{key} is not a tensor"
-        if tensor.shape != like.shape:
-            return f"{key} has shape {list(tensor.shape)}, not {list(like.shape)}"
-        if tensor.dtype != like.dtype:
-            return f"{key} is {str(tensor.dtype).removeprefix('torch.')}, not " + str(
-                like.dtype
-            ).removeprefix("torch.")
-        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-            return f"{key} holds values that are not finite"
+    extra = result.payload if isinstance(result.payload, dict) else None
+    like = payload or {}
+    if extra is None:
+        return "its payload is not a set of tensors"
+    why = _keys_refusal(
+        extra, like, "payload tensor(s)", "payload tensor(s) this strategy does not use"
+    )
+    if why is not None:
+        return why
+    for key, expected in (*shared.items(), *like.items()):
+        why = _tensor_refusal(key, (sent | extra)[key], expected)
+        if why is not None:
+            return why
+    return None
+
+
+def _keys_refusal(sent: dict, like: Weights, what: str, unknown: str) -> str | None:
+    missing = [k for k in like if k not in sent]
+    extra = sorted(str(k) for k in sent if k not in like)
+    if missing:
+        return f"{len(missing)} {what} missing ({missing[0]}, ...)"
+    if extra:
+        return f"{len(extra)} {unknown} ({extra[0][:80]}, ...)"
+    return None
+
+
+def _tensor_refusal(key: str, tensor, like: torch.Tensor) -> str | None:
+    """Why ``tensor`` cannot stand for ``like``: not a dense tensor of values, another shape
+    or dtype, values that are not finite, a variance below 0."""
+    if not isinstance(tensor, torch.Tensor):
+        return f"{key} is not a tensor"
+    if tensor.layout != torch.strided or tensor.device.type == "meta":
+        return f"{key} is not a dense tensor of values ({tensor.layout}, {tensor.device.type})"
+    if tensor.shape != like.shape:
+        return f"{key} has shape {list(tensor.shape)}, not {list(like.shape)}"
+    if tensor.dtype != like.dtype:
+        return f"{key} is {str(tensor.dtype).removeprefix('torch.')}, not " + str(
+            like.dtype
+        ).removeprefix("torch.")
+    if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+        return f"{key} holds values that are not finite"
+    if key.endswith("running_var") and bool((tensor < 0).any()):
+        return f"{key} holds variances below 0"
     return None
 
 
 def update_norm(result: TrainRes, shared: Weights) -> float:
-    """The Euclidean norm of the upload's change of the global floating-point tensors."""
+    """The Euclidean norm of the upload's change of the global floating-point tensors and of
+    what its plugins send (a change too: SCAFFOLD's control variate's)."""
     total = 0.0
     for key, like in shared.items():
         if like.is_floating_point():
             total += float((result.weights[key].double() - like.double()).pow(2).sum())
+    for tensor in result.payload.values():
+        if tensor.is_floating_point():
+            total += float(tensor.double().pow(2).sum())
     return math.sqrt(total)
 
 
 def oversized(norms: dict[int, float], ratio: float) -> dict[int, str]:
-    """The clients whose update norm is over ``ratio`` times the median of ``norms`` (of
-    every accepted upload of the round), with why; none where ``ratio`` is 0."""
-    if not ratio or not norms:
+    """The clients whose update norm is over ``ratio`` times the median of the others'
+    (every other accepted upload of the round: a client is not its own yardstick, so two
+    uploads can be compared), with why; where the others did not move at all, any update
+    is. None where ``ratio`` is 0 or an upload has no other to be compared with."""
+    if not ratio or len(norms) < 2:
         return {}
-    median = statistics.median(norms.values())
-    if median <= 0:
-        return {}
-    return {
-        client: f"update norm {norm:.3g} is over {ratio:g} x the round's median {median:.3g}"
-        for client, norm in sorted(norms.items())
-        if norm > ratio * median
-    }
+    out = {}
+    for client, norm in sorted(norms.items()):
+        others = statistics.median(v for c, v in norms.items() if c != client)
+        if others <= 0 and norm > 0:
+            out[client] = f"update norm {norm:.3g} where the round's others did not move"
+        elif others > 0 and norm > ratio * others:
+            out[client] = (
+                f"update norm {norm:.3g} is over {ratio:g} x the others' median {others:.3g}"
+            )
+    return out
 
 
 CORRELATIONS = frozenset({"pcc", "ccc"})  # in [-1, 1]
@@ -91,6 +138,10 @@ def figures_refusal(figures: Mapping, keys: Collection[str]) -> str | None:
             return f"{str(key)[:80]!r} is not a figure of this run"
         if isinstance(value, bool) or not isinstance(value, int | float):
             return f"{key} = {str(value)[:40]!r} is not a number"
+        try:
+            value = float(value)
+        except OverflowError:
+            return f"{key} = an integer of {value.bit_length()} bits, beyond any float"
         if not math.isfinite(value):
             return f"{key} = {value} is not finite"
         parts = set(key.split("/"))

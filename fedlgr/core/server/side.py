@@ -83,8 +83,10 @@ class ServerSide:
     ) -> dict[int, str]:
         """The uploads that cannot be aggregated, client -> why (:mod:`.screen`):
         ``capacity``, where the server knows it, bounds each client's sample count."""
-        bound = capacity or {}
-        found = {r.client: refusal(r, self.global_weights, bound.get(r.client)) for r in results}
+        bound, payload = capacity or {}, self.strategy.payload_template()
+        found = {
+            r.client: refusal(r, self.global_weights, bound.get(r.client), payload) for r in results
+        }
         return {client: why for client, why in found.items() if why is not None}
 
     def update_norms(self, results: Iterable[TrainRes], refused: Mapping[int, str]) -> dict:

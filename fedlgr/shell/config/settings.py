@@ -121,7 +121,7 @@ class _FederatedConfig:
     # others keep their state and are still evaluated.
     fraction: float = 1.0
     # An upload whose update (its tensors minus the global ones) has a norm over this many
-    # times the round's median update norm is refused (0: no such check). Every upload's
+    # times the median of the round's other updates is refused (0: no such check). Every upload's
     # keys, shapes, dtypes, values and sample count are checked whatever this says.
     norm_ratio: float = 10.0
     faults: FaultsConfig = field(default_factory=FaultsConfig)
