@@ -90,6 +90,11 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert sorted(kept) == list(range(1, len(kept) + 1))
     assert len(kept) in (len(logged), len(logged) + 1)  # the signal may fall between the two
     assert all(clients == ["0", "1"] for clients in kept.values())
+    # Its summary so far is its description, not mean/* metrics a resume cannot take back.
+    assert not [key for key in run.data.metrics if key.startswith("mean/")]
+    note = run.data.tags["mlflow.note.content"]
+    assert note.startswith(f"**{run.info.run_name}: KILLED after {len(kept)} of {rounds} rounds")
+    assert "CPU s/round" in note
 
     monkeypatch.chdir(tmp_path)
     assert main(["run", *args, "--resume"]) == 0
@@ -102,6 +107,37 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert sorted(done) == list(range(1, rounds + 1))
     assert all(clients == ["0", "1"] for clients in done.values())
     assert not Path(run.data.tags["fedlgr.checkpoints"]).exists()  # a finished run has none
+    _one_summary_of_the_whole_run(client, run, rounds)
+
+
+def _one_summary_of_the_whole_run(client, run, rounds: int) -> None:
+    """Issue 37's tester (Deliver 7): after SIGTERM and --resume the killed attempt's
+    ``mean/*`` points stayed beside the final ones (two points in ``mean/cost/cpu_s``'s
+    history). Each ``mean/*`` has one point, at the last round, the mean over every
+    round's clients (results.csv) or every round (the server's figures)."""
+    run_id = run.info.run_id
+    rows = results_csv(client, run_id)
+    means = {k: v for k, v in run.data.metrics.items() if k.startswith("mean/")}
+    assert {"mean/cost/cpu_s", "mean/cost/bytes_up"} <= set(means), sorted(means)
+    for key, value in means.items():
+        history = [(m.step, m.value) for m in client.get_metric_history(run_id, key)]
+        assert history == [(rounds, value)], key
+        figure = key.removeprefix("mean/")
+        name = figure.replace("/", "_")  # its results.csv column
+        if figure == "cost/paper_cpu_s":  # the server's CPU over clients x rounds
+            per_round = [m.value for m in client.get_metric_history(run_id, "cost/server_cpu_s")]
+            expected = sum(per_round) / (2 * rounds)
+        elif name in rows[0]:
+            column = [float(r[name]) for r in rows if r[name]]
+            assert len(column) == 2 * rounds, key
+            expected = sum(column) / len(column)
+        else:
+            per_round = [m.value for m in client.get_metric_history(run_id, figure)]
+            assert len(per_round) == rounds, key
+            expected = sum(per_round) / rounds
+        # numpy's pairwise sum and Python's running sum of at most 24 doubles of one sign
+        # differ by a few dozen ulp of the total at most: well inside 1e-13
+        assert value == pytest.approx(expected, rel=1e-13, abs=0), key
 
 
 @pytest.mark.slow
@@ -437,7 +473,7 @@ def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error
     synth_dir, cache_dir, tmp_path, monkeypatch
 ):
     """``_record_failure`` goes on when a step fails: with the run's artifact folder made
-    a file, results.csv and curves.png cannot be written, yet the cost summary is logged,
+    a file, results.csv and curves.png cannot be written, yet the summary is recorded,
     the run ends FAILED and the hook's own exception is what propagates."""
     monkeypatch.chdir(tmp_path)
     store = f"sqlite:///{tmp_path}/mlflow.db"
@@ -464,7 +500,8 @@ def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error
     client, run = only_run(store)
     assert run.info.run_id == started[0]
     assert run.info.status == "FAILED"
-    assert "mean/cost/cpu_s" in run.data.metrics  # the step after the failed ones ran
+    note = run.data.tags["mlflow.note.content"]  # the step after the failed ones ran
+    assert note.startswith("**FedAvg-2c-noaug-image: FAILED after 1 of 3 rounds (")
     assert metric_steps(client, run.info.run_id) == [1]
 
 
