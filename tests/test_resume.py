@@ -94,9 +94,8 @@ def _only_run(store: str, experiment: str = "fedlgr-debug", name: str | None = N
 
 
 def _history(client, run_id: str) -> dict[str, list[tuple[int, float]]]:
-    """Every metric's (step, value) pairs, each step logged once. Run-level ``mean/*``
-    figures count at their last step: a run interrupted cleanly logged them as they
-    stood then, and again at its end."""
+    """Every metric's (step, value) pairs, each step logged once (run-level ``mean/*``
+    figures once, at the last round: an interrupted run logs none)."""
     out = {}
     for key in client.get_run(run_id).data.metrics:
         history = client.get_metric_history(run_id, key)
@@ -104,8 +103,6 @@ def _history(client, run_id: str) -> dict[str, list[tuple[int, float]]]:
         assert len(steps) == len(set(steps)), f"{key} logged twice at a step: {steps}"
         if not any(t in key for t in TIMING):
             out[key] = sorted((m.step, m.value) for m in history)
-            if key.startswith("mean/"):
-                out[key] = out[key][-1:]
     return out
 
 

@@ -92,6 +92,11 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert sorted(kept) == list(range(1, len(kept) + 1))
     assert len(kept) in (len(logged), len(logged) + 1)  # the signal may fall between the two
     assert all(clients == ["0", "1"] for clients in kept.values())
+    # Its summary so far is its description, not mean/* metrics a resume cannot take back.
+    assert not [key for key in run.data.metrics if key.startswith("mean/")]
+    note = run.data.tags["mlflow.note.content"]
+    assert note.startswith(f"**{run.info.run_name}: KILLED after {len(kept)} of {rounds} rounds")
+    assert "CPU s/round" in note
 
     monkeypatch.chdir(tmp_path)
     assert main(["run", *args, "--resume"]) == 0
@@ -104,6 +109,37 @@ def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
     assert sorted(done) == list(range(1, rounds + 1))
     assert all(clients == ["0", "1"] for clients in done.values())
     assert not Path(run.data.tags["fedlgr.checkpoints"]).exists()  # a finished run has none
+    _one_summary_of_the_whole_run(client, run, rounds)
+
+
+def _one_summary_of_the_whole_run(client, run, rounds: int) -> None:
+    """Issue 37's tester (Deliver 7): after SIGTERM and --resume the killed attempt's
+    ``mean/*`` points stayed beside the final ones (two points in ``mean/cost/cpu_s``'s
+    history). Each ``mean/*`` has one point, at the last round, the mean over every
+    round's clients (results.csv) or every round (the server's figures)."""
+    run_id = run.info.run_id
+    rows = results_csv(client, run_id)
+    means = {k: v for k, v in run.data.metrics.items() if k.startswith("mean/")}
+    assert {"mean/cost/cpu_s", "mean/cost/bytes_up"} <= set(means), sorted(means)
+    for key, value in means.items():
+        history = [(m.step, m.value) for m in client.get_metric_history(run_id, key)]
+        assert history == [(rounds, value)], key
+        figure = key.removeprefix("mean/")
+        name = figure.replace("/", "_")  # its results.csv column
+        if figure == "cost/paper_cpu_s":  # the server's CPU over clients x rounds
+            per_round = [m.value for m in client.get_metric_history(run_id, "cost/server_cpu_s")]
+            expected = sum(per_round) / (2 * rounds)
+        elif name in rows[0]:
+            column = [float(r[name]) for r in rows if r[name]]
+            assert len(column) == 2 * rounds, key
+            expected = sum(column) / len(column)
+        else:
+            per_round = [m.value for m in client.get_metric_history(run_id, figure)]
+            assert len(per_round) == rounds, key
+            expected = sum(per_round) / rounds
+        # numpy's pairwise sum and Python's running sum of at most 24 doubles of one sign
+        # differ by a few dozen ulp of the total at most: well inside 1e-13
+        assert value == pytest.approx(expected, rel=1e-13, abs=0), key
 
 
 @pytest.mark.slow
@@ -159,6 +195,56 @@ def test_ctrl_c_ends_with_one_line_saying_how_to_resume_and_no_traceback(
         f"fedlgr: interrupted; MLflow run {run_id} ended KILLED; "
         f"the same command with --resume {run_id} continues it"
     )
+
+
+@pytest.mark.slow
+def test_two_ctrl_c_50_ms_apart_still_end_the_run_killed(synth_dir, cache_dir, tmp_path):
+    """Issue 37's tester (Deliver 7): two SIGINTs 50 ms apart mid-run printed "ended
+    KILLED" but left the MLflow run RUNNING (3 of 3 tries): the second KeyboardInterrupt
+    landed in the failure record and cut it short before the run was ended. The second
+    is ignored while the first unwinds: exit 130, one last line, the run KILLED with the
+    results.csv of its rounds."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=40")
+    with Child(args, tmp_path, "twice") as child:
+        child.wait_for(r"round 1/40:")  # round 2 is under way
+        os.kill(child.pid, signal.SIGINT)
+        time.sleep(0.05)
+        code, _ = child.signal_and_wait(signal.SIGINT)
+        stderr = child.stderr()
+    client, run = only_run(store)
+    run_id = run.info.run_id
+    assert (code, run.info.status) == (130, "KILLED"), stderr[-3000:]
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr[-3000:]
+    assert stderr.strip().splitlines()[-1] == (
+        f"fedlgr: interrupted; MLflow run {run_id} ended KILLED; "
+        f"the same command with --resume {run_id} continues it"
+    )
+    logged = metric_steps(client, run_id)
+    kept = _csv_rounds(results_csv(client, run_id))
+    assert sorted(kept) == list(range(1, len(kept) + 1)) and len(kept) >= 1
+    assert len(kept) in (len(logged), len(logged) + 1)  # the signal may fall between the two
+
+
+def test_signals_after_the_first_are_ignored_while_its_interrupt_unwinds():
+    """Issue 37's tester (Deliver 7): a second Ctrl-C cut a run's clean-up short. Under
+    ``terminate_as_interrupt`` the first Ctrl-C raises; Ctrl-C, SIGTERM and SIGHUP after it
+    do not, while the clean-up runs (here: an ``except`` block that waits for them)."""
+    from fedlgr.shell.signals import terminate_as_interrupt
+
+    cleaned = []
+    with pytest.raises(KeyboardInterrupt) as first, terminate_as_interrupt():
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+            pytest.fail("SIGINT did not interrupt")
+        except KeyboardInterrupt:
+            for signum in (signal.SIGINT, signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                os.kill(os.getpid(), signum)
+                time.sleep(0.05)  # the handler runs between two bytecodes of this loop
+            cleaned.append("done")
+            raise
+    assert cleaned == ["done"] and type(first.value) is KeyboardInterrupt
 
 
 SLOW_CURVES = """
@@ -424,7 +510,7 @@ def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error
     synth_dir, cache_dir, tmp_path, monkeypatch
 ):
     """``_record_failure`` goes on when a step fails: with the run's artifact folder made
-    a file, results.csv and curves.png cannot be written, yet the cost summary is logged,
+    a file, results.csv and curves.png cannot be written, yet the summary is recorded,
     the run ends FAILED and the hook's own exception is what propagates."""
     monkeypatch.chdir(tmp_path)
     store = f"sqlite:///{tmp_path}/mlflow.db"
@@ -451,7 +537,8 @@ def test_a_failure_whose_saving_fails_still_ends_the_run_with_the_original_error
     client, run = only_run(store)
     assert run.info.run_id == started[0]
     assert run.info.status == "FAILED"
-    assert "mean/cost/cpu_s" in run.data.metrics  # the step after the failed ones ran
+    note = run.data.tags["mlflow.note.content"]  # the step after the failed ones ran
+    assert note.startswith("**FedAvg-2c-noaug-image: FAILED after 1 of 3 rounds (")
     assert metric_steps(client, run.info.run_id) == [1]
 
 

@@ -32,7 +32,8 @@ _pending: KeyboardInterrupt | None = None
 @contextlib.contextmanager
 def deferred() -> Iterator[None]:
     """Ctrl-C / SIGTERM arriving inside the block (under :func:`terminate_as_interrupt`)
-    is raised when the block ends; a second Ctrl-C meanwhile is raised at once."""
+    is raised when the block ends (later ones are ignored: the first one stops the
+    process)."""
     global _depth, _pending
     if threading.current_thread() is not threading.main_thread():
         yield  # signals reach the main thread only
@@ -79,11 +80,12 @@ def _again(signum: int) -> None:
 def terminate_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`Terminated` in the main thread.
 
-    Only the first SIGTERM raises; later ones are ignored while the interrupt unwinds, so
-    a second signal (Slurm signals every process of a job, and a sweep forwards SIGTERM to
-    its worker processes) cannot cut the clean-up short - SIGKILL still ends the process.
-    Ctrl-C raises ``KeyboardInterrupt`` as usual. Both wait for the end of a
-    :func:`deferred` block. The previous handlers are restored on leaving. Outside the
+    Only the first Ctrl-C, SIGTERM or SIGHUP raises; later ones are ignored while its
+    interrupt unwinds, so a second signal (an impatient second Ctrl-C, Slurm signalling
+    every process of a job, a sweep forwarding SIGTERM to its worker processes) cannot cut
+    the clean-up short - a run's failure record would stop before its MLflow run is ended
+    and leave it RUNNING. SIGKILL still ends the process at once. Both wait for the end of
+    a :func:`deferred` block. The previous handlers are restored on leaving. Outside the
     main thread (Python runs signal handlers only there) the block runs unchanged.
     """
     if threading.current_thread() is not threading.main_thread():
@@ -91,26 +93,22 @@ def terminate_as_interrupt() -> Iterator[None]:
         return
     received: list[int] = []
 
-    def on_term(signum: int, frame) -> None:
+    def on_signal(signum: int, frame) -> None:
         if _in_finaliser(frame):
             _again(signum)  # raised here, it would be printed and dropped
             return
-        if not received:
-            received.append(signum)
-            _raise_or_defer(Terminated(signal.Signals(signum).name))
+        if received:
+            return  # the first one's interrupt is unwinding
+        received.append(signum)
+        name = signal.Signals(signum).name
+        _raise_or_defer(KeyboardInterrupt() if signum == signal.SIGINT else Terminated(name))
 
-    def on_int(signum: int, frame) -> None:
-        if _in_finaliser(frame):
-            _again(signum)
-            return
-        _raise_or_defer(KeyboardInterrupt())
-
-    previous = signal.signal(signal.SIGTERM, on_term)
-    previous_int = signal.signal(signal.SIGINT, on_int)
+    previous = signal.signal(signal.SIGTERM, on_signal)
+    previous_int = signal.signal(signal.SIGINT, on_signal)
     # SIGHUP (the terminal closed, an ssh session dropped) as SIGTERM, unless it is ignored
     # (nohup): its default action kills the process at once and leaves the run RUNNING.
     hangup = signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
-    previous_hup = signal.signal(signal.SIGHUP, on_term) if hangup else None
+    previous_hup = signal.signal(signal.SIGHUP, on_signal) if hangup else None
     try:
         yield
     finally:

@@ -21,6 +21,7 @@ import warnings
 
 from fedlgr import __version__
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.address_space import out_of_address_space, torch_guarded
 from fedlgr.shell.cli import data, demo, deploy, pretrain, report, run, sweep
 from fedlgr.shell.cli.overrides import check_repeats
 from fedlgr.shell.cli.parser import Parser
@@ -73,22 +74,30 @@ def main(argv: list[str] | None = None) -> int:
         check_repeats(args)
         # MLflow announces its sqlite schema set-up at INFO on every new store: not news.
         logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
-        return args.run(args) or 0
+        with torch_guarded(args.verb):  # under `ulimit -v`: room for torch, or one line
+            return args.run(args) or 0
     except FedlgrError as err:
-        print(f"fedlgr: error: {err}", file=sys.stderr)
+        print(f"fedlgr: error: {out_of_address_space(err, args.verb) or err}", file=sys.stderr)
         return 1
-    except RuntimeError as err:
-        # Python 3.11's pathlib says a symbolic link that loops (a config, data.path, a
-        # store's path ...) this way, where 3.13 raises OSError: said as one line all the same.
-        loop = re.fullmatch(r"Symlink loop from '(.*)'", str(err))
-        if loop is None:
+    except (MemoryError, ImportError, OSError, RuntimeError) as err:
+        problem = out_of_address_space(err, args.verb) or _symlink_loop(err)
+        if problem is None:
             raise
-        print(f"fedlgr: error: {loop.group(1)}: a symbolic link that loops", file=sys.stderr)
+        print(f"fedlgr: error: {problem}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as err:
         return _interrupted(err, exits=argv is None)
     finally:
         warnings.formatwarning = standard_format
+
+
+def _symlink_loop(err: BaseException) -> str | None:
+    """Python 3.11's pathlib says a symbolic link that loops (a config, data.path, a
+    store's path ...) with a RuntimeError, where 3.13 raises OSError: one line all the same."""
+    if not isinstance(err, RuntimeError):
+        return None
+    loop = re.fullmatch(r"Symlink loop from '(.*)'", str(err))
+    return None if loop is None else f"{loop.group(1)}: a symbolic link that loops"
 
 
 def _one_line_warning(message, category, filename, lineno, line=None) -> str:

@@ -10,9 +10,9 @@ one (the runtime's ``state_dict``, written by rank 0), restores a resumed run (i
 ``load_state_dict`` and the rounds so far), owns the checkpoint folder while the run goes
 on and removes it once the run has finished, and at the end saves results.csv, the curves
 and the cost summary and ends the run FINISHED. A run that raises - a round's error,
-Ctrl-C or SIGTERM, a hook that stops it (a sweep's pruner) - keeps what it had and is
-ended FAILED, or KILLED. In rank 0 it says on the console what the run does, and tells
-the caller's :class:`Hooks`.
+Ctrl-C or SIGTERM, a hook that stops it (a sweep's pruner) - keeps what it had (its
+summary so far in its description) and is ended FAILED, or KILLED. In rank 0 it says on
+the console what the run does, and tells the caller's :class:`Hooks`.
 """
 
 from __future__ import annotations
@@ -359,15 +359,23 @@ class RunLife:
         return result
 
     def _record_failure(self, tracker: Tracker, err: BaseException) -> None:
-        """Keep what the run had (results.csv, curves, costs) and end it KILLED or FAILED.
-        Every step may fail on its own (a diverged run's NaNs, a store gone away): the run
-        is still ended, and the original error is what the user sees."""
+        """Keep what the run had (results.csv, curves, its summary so far) and end it KILLED
+        or FAILED. Every step may fail on its own (a diverged run's NaNs, a store gone away):
+        the run is still ended, and the original error is what the user sees. The summary
+        goes to the run's description, not to ``mean/*`` metrics: a run resumed later logs
+        those once, at its end, and MLflow cannot take a logged point back."""
         result = self.result
         name = run_name(tracker.config)
+        killed = isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
+        spent = self.elapsed + time.perf_counter() - self.start
+        heading = (
+            f"{name}: {'KILLED' if killed else 'FAILED'} after {len(result.rounds)} of "
+            f"{self.total} rounds ({spent:.0f} s)"
+        )
         steps = [
             ("results.csv", lambda: tracker.save_results(result.rows(), None)),
             ("curves.png", lambda: tracker.save_results([], curves_png(result.rows(), name))),
-            ("cost summary", lambda: tracker.log_summary(result.cost_means(), len(result.rounds))),
+            ("summary", lambda: tracker.describe(heading, result.summary())),
         ]
         if result.rounds:
             for what, action in steps:
@@ -376,7 +384,6 @@ class RunLife:
                 except Exception as problem:  # reported; never raised over err
                     reason = first_line(problem, 200)
                     self.say(f"(while failing: could not record {what}: {reason})")
-        killed = isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
         try:
             tracker.fail(interrupted=killed)
         except Exception as problem:

@@ -6,13 +6,14 @@ artifacts under ``mlruns/`` (the plain file store is refused by MLflow 3);
 an ``mlflow server``. Params are the flattened resolved config; metrics are logged per
 round with ``step=round``; artifacts are the resolved config, the per-round/per-client
 results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` (at the step of
-the last round done) hold the costs per client per round averaged over clients and rounds
-(what Tables III/IV report). A run
-that fails is ended FAILED (KILLED on Ctrl-C or when a sweep prunes it) after saving what
-it had. What else a run records so that runs can be told apart - its name, MLflow's
-context tags (source, user, git commit), params without machine-local paths, the dataset
-input, system metrics - is in :mod:`fedlgr.shell.tracking.context`; an unreachable server is
-refused within seconds (:func:`fedlgr.shell.checks.stores.check_reachable`).
+the last round) hold the costs per client per round averaged over clients and rounds
+(what Tables III/IV report). A run that fails is ended FAILED (KILLED on Ctrl-C or when a
+sweep prunes it) after saving what it had, its summary so far in its description only: it
+may be resumed, and the resumed run's ``mean/*`` are then the only ones. What else a run
+records so that runs can be told apart - its name, MLflow's context tags (source, user,
+git commit), params without machine-local paths, the dataset input, system metrics - is in
+:mod:`fedlgr.shell.tracking.context`; an unreachable server is refused within seconds
+(:func:`fedlgr.shell.checks.stores.check_reachable`).
 
 A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``) and a heartbeat
 (``fedlgr.heartbeat``, seconds since the epoch, refreshed every ``tracking.heartbeat_s``
@@ -282,9 +283,9 @@ class Tracker:
 
     @_uncut
     def log_summary(self, metrics: dict[str, float], rounds: int) -> None:
-        """Run-level values over the ``rounds`` rounds done (e.g. ``mean/cost/cpu_s``), at
-        ``step=rounds``: a run that failed and was resumed logs them again at its last
-        round, so the latest value is the whole run's and no step is logged twice."""
+        """Run-level values over the ``rounds`` rounds of a finished run (e.g.
+        ``mean/cost/cpu_s``), at ``step=rounds``; a resumed run that had logged them before
+        it was stopped (at its end, before it was FINISHED) does not log them twice."""
         from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
 
         if self.done or self.partial:  # a resumed run: what did its first life log?
