@@ -519,6 +519,7 @@ def test_run_with_simulated_faults_is_refused_before_anything_is_submitted(
         "postgresql://me:S3cretPw@db.lab:5432/mlflow",
         "postgresql://db.lab/mlflow?user=me&password=S3cretPw",
         "https://me:S3cretPw@mlflow.lab",
+        "host=db.lab user=me password=S3cretPw dbname=mlflow",  # libpq's keyword form
     ],
 )
 @pytest.mark.parametrize("print_command", [[], ["--print-command"]])

@@ -239,3 +239,14 @@ def test_results_fault_column_says_what_went_wrong_with_each_client():
         "missing",
         "",
     ]
+
+
+def test_the_serverapp_refuses_simulated_faults_itself():
+    """fedlgr deploy run refuses faults where it can read the config; one submitted from a
+    machine that does not hold CONFIG reaches the ServerApp, which refuses it before it
+    speaks to any robot (it would otherwise run with no fault simulated, silently)."""
+    from fedlgr.shell.deploy.flower.server_app import FlowerRounds  # lazy: flwr, this test
+
+    config = load_config(None, ["deploy.roster=none", "federated.faults.dropout=0.5"])
+    with pytest.raises(ConfigError, match=r"federated.faults: faults are simulated in one"):
+        FlowerRounds(None, config)

@@ -263,9 +263,10 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
 ):
     """robot2 (client 2) is on the roster (at most 100 scenes) and trains honestly, but
     alters every upload it sends: NaN (round 1), x 1e6 (round 2), a tensor cut short
-    (round 3), a sample count of 10^12 (round 4), and with round 2's upload it reports its
+    (round 3), a sample count of 10^12 (round 4), client 0's (round 5), and with round 2's
+    upload it reports its
     round-1 scores as NaN. Each is refused and robot2 named, in the console, MLflow and
-    results.csv (a robot whose upload cannot be read is not scored in that round); the run
+    results.csv (a robot whose upload is not its own cannot be scored in that round); the run
     completes with robots 0 and 1, and the global model - the server's own scores of it
     each round, and every robot's - is the one-process run's whose client 2 sends x 1e6
     every round (refused there by its norm: the same mean without it)."""
@@ -275,11 +276,11 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
         dataclasses.replace(m, scenes=100) if m.name == "robot2" else m for m in roster.members
     ]
     roster.write()
-    plan = "nan,scale+scores,truncate,count"
+    plan = "nan,scale+scores,truncate,count,client"
     env = {"PYTHONPATH": str(BYZANTINE), "FEDLGR_BYZANTINE": plan}
     assert start_until_online(federation, "robot2", synth_dir, env=env)
     method = ["method=FedAvg", "federated.server_eval=on", "data.clients=3"]
-    method += ["federated.rounds=4", "seed=2"]  # seed 2: the one-process run's client 2
+    method += ["federated.rounds=5", "seed=2"]  # seed 2: the one-process run's client 2
     try:
         flower, out = flower_run(federation, synth_dir, store, "byzantine", *method)
     finally:
@@ -290,24 +291,25 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     robot_log = (federation.robot_dir("robot2") / "robot.log").read_text()
     assert "byzantine: train reply 2: scale+scores" in robot_log  # it did alter them
     who = "refused robot2 (client 2)'s"
-    assert f"round 1/4: {who} upload: " in out and "holds values that are not finite" in out
-    assert f"round 2/4: {who} upload: update norm " in out
-    assert f"round 3/4: {who} upload: cannot be read (ValueError: " in out
-    assert f"round 4/4: {who} upload: sample count 1000000000000 exceeds its 100" in out
-    [first] = [line for line in out.splitlines() if line.startswith(f"round 1/4: {who}")]
+    assert f"round 1/5: {who} upload: " in out and "holds values that are not finite" in out
+    assert f"round 2/5: {who} upload: update norm " in out
+    assert f"round 3/5: {who} upload: cannot be read (ValueError: " in out
+    assert f"round 4/5: {who} upload: sample count 1000000000000 exceeds its 100" in out
+    assert f"round 5/5: {who} upload: it claims to be client 0's" in out
+    [first] = [line for line in out.splitlines() if line.startswith(f"round 1/5: {who}")]
     assert "; scores: " in first and "= nan is not finite" in first, first  # one line each
     client = mlflow.MlflowClient(store)
     run_id = flower.info.run_id
     assert flower.info.status == "FINISHED"
-    assert history(client, run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4)]
+    assert history(client, run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4, 5)]
     assert flower.data.tags["fedlgr.not_taken"].startswith("round 1: robot2 (client 2) (upload: ")
-    # its round-1 scores refused, its round-3 upload unread
-    assert history(client, run_id, "round/missing_clients") == [(1, 1.0), (3, 1.0)]
+    # its round-1 scores refused, its round-3 and round-5 uploads not its own
+    assert history(client, run_id, "round/missing_clients") == [(1, 1.0), (3, 1.0), (5, 1.0)]
     faults = {(r["round"], r["client"]): r["fault"] for r in results_csv(client, run_id)}
     first = faults[("1", "2")]
     assert first.startswith("refused upload: ") and "; scores: " in first, first
     assert faults[("3", "2")].startswith("refused upload: cannot be read (ValueError: ")
-    assert all(faults[(str(r), c)] == "" for r in (1, 2, 3, 4) for c in ("0", "1"))
+    assert all(faults[(str(r), c)] == "" for r in range(1, 6) for c in ("0", "1"))
     byzantine = ["federated.faults.byzantine=1", "federated.faults.attack=scale"]
     local = run_experiment(
         fast_config(
@@ -322,7 +324,7 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
         )
     )
     assert local.config.federated.faults.byzantine == 1
-    assert history(client, local.run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4)]
+    assert history(client, local.run_id, "faults/refused") == [(r, 1.0) for r in range(1, 6)]
     local_run = client.get_run(local.run_id)
     keys = [k for k in local_run.data.metrics if k.startswith("server/test/")]
     keys += [k for k in local_run.data.metrics if k.startswith(("test/client0/", "test/client1/"))]
@@ -330,8 +332,8 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     for key in [*keys, "test/client2/rmse", "test/client2/pcc"]:
         ours = history(client, run_id, key)
         theirs = [p for p in history(client, local.run_id, key) if p[0] > 0]
-        if "client2" in key:  # not scored in rounds 1 and 3
-            theirs = [p for p in theirs if p[0] not in (1, 3)]
+        if "client2" in key:  # not scored in rounds 1, 3 and 5
+            theirs = [p for p in theirs if p[0] not in (1, 3, 5)]
         ours = [p for p in ours if p[0] > 0]
         assert [s for s, _ in ours] == [s for s, _ in theirs] and ours, (key, ours, theirs)
         for (_, a), (_, b) in zip(ours, theirs, strict=True):

@@ -147,3 +147,14 @@ def _model_fits(config: ExperimentConfig) -> None:
             "weights, gradients and Adam's two moments), more than this machine's "
             f"{format_bytes(have)} of memory (psutil.virtual_memory().total)"
         )
+
+
+def check_robots_are_real(config: ExperimentConfig) -> None:
+    """A run on robots (Flower) simulates no fault: its robots are real. Checked where the
+    run is submitted and again by the ServerApp (the config may live on its machine only)."""
+    faults = config.federated.faults
+    if faults != type(faults)():
+        raise ConfigError(
+            "federated.faults: faults are simulated in one process or Fabric's processes "
+            "(fedlgr run); robots on Flower are real and nothing is simulated there"
+        )

@@ -12,13 +12,16 @@ import time
 from pathlib import Path
 
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.checks.experiment import check_robots_are_real
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import absolute, add_print_command, add_sub_verb
 from fedlgr.shell.cli.parser import Verbs
-from fedlgr.shell.config import FaultsConfig, load_config
+from fedlgr.shell.config import load_config
 from fedlgr.shell.deploy.flower import APP_DIR
 from fedlgr.shell.tracking.uri import mask_password
 
+# a "...password = value" pair anywhere in a value (libpq's keyword connection strings)
+KEYWORD_PASSWORD = re.compile(r"(?i)(pass(?:word|%77ord)\s*=\s*)(?!\*\*\*)[^\s&;#]+")
 STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
 
 
@@ -83,9 +86,11 @@ def _refuse_passwords(overrides: list[str]) -> None:
     finds the password on the SuperLink's machine instead (docs/deployment.md)."""
     for override in overrides:
         key, _, value = override.partition("=")
-        if mask_password(value) != value:
+        # also libpq's keyword form, "host=db user=me password=..."
+        masked = KEYWORD_PASSWORD.sub(r"\1***", mask_password(value))
+        if masked != value:
             raise FedlgrError(
-                f"{key}={mask_password(value)}: a password on the command line would be "
+                f"{key}={masked}: a password on the command line would be "
                 "printed, kept in the SuperLink's database and sent to every robot with the "
                 "run's config: leave it out of the URI and keep it on the SuperLink's machine "
                 "(~/.pgpass or $PGPASSWORD of the user who runs fedlgr deploy superlink, or "
@@ -121,11 +126,7 @@ def _check_config(config: Path, overrides: list[str]) -> None:
     from fedlgr.shell.deploy.roster import roster_of  # lazy: cryptography and yaml
 
     loaded = load_config(config, overrides)
-    if loaded.federated.faults != FaultsConfig():
-        raise FedlgrError(
-            "federated.faults: faults are simulated in one process or Fabric's processes "
-            "(fedlgr run); robots on Flower are real and nothing is simulated there"
-        )
+    check_robots_are_real(loaded)
     roster_of(loaded)
 
 

@@ -59,6 +59,7 @@ from fedlgr.core.server.screen import figures_refusal
 from fedlgr.core.server.side import ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
 from fedlgr.errors import FedlgrError, first_line
+from fedlgr.shell.checks.experiment import check_robots_are_real
 from fedlgr.shell.config import ExperimentConfig, load_config, robot_yaml
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
@@ -79,6 +80,7 @@ class FlowerRounds:
     exchanges of messages with them)."""
 
     def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
+        check_robots_are_real(config)
         self.grid, self.config, self.echo = grid, config, echo
         self.run_id: str | None = None  # the MLflow run (for tags), once it exists
         self.tags: dict[str, str] = {}
@@ -230,6 +232,8 @@ class FlowerRounds:
             if res is None or node not in scoring:
                 continue
             if serving.get(node, self.nodes.slots.get(node)) != res.client:
+                claim = f"they claim to be client {res.client}'s"
+                self.refuse(round_, node, self.nodes.slots.get(node), "scores", claim)
                 continue
             if (why := figures_refusal(res.figures, self.server.round_keys)) is not None:
                 self.refuse(round_, node, res.client, "scores", why)
@@ -326,7 +330,7 @@ class FlowerRounds:
             return
         name = self.nodes.name
         if slot is not None and res.client != slot:
-            self.echo(f"round {round_}: {name(node)} sent client {res.client}'s upload; ignored")
+            self.refuse(round_, node, slot, "upload", f"it claims to be client {res.client}'s")
             return
         if res.client in trained:
             self.echo(
