@@ -487,6 +487,15 @@ def test_run_exit_status_follows_the_flower_run(tmp_path, fake_flwr, monkeypatch
         "fedlgr: error: Flower run 4242 ended finished:failed: "
         "ServerApp failed with exception: boom"
     ]
+    # Flower's words quoting the store's URI (a ServerApp that could not reach it): masked
+    monkeypatch.setenv(
+        "FAKE_STATUS",
+        "finished:failed|cannot reach postgresql://me:S3cretPw@db.lab/ml or host=db password=Pw2",
+    )
+    assert main(["deploy", "run", str(config)]) == 1
+    err = capsys.readouterr().err
+    assert "S3cretPw" not in err and "Pw2" not in err
+    assert "postgresql://me:***@db.lab/ml or host=db password=***" in err
 
 
 def test_run_reports_a_config_typo_before_anything_is_submitted(tmp_path, fake_flwr, capsys):

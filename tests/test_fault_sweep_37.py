@@ -187,3 +187,21 @@ def test_an_upload_that_makes_a_running_variance_negative_does_not_reach_the_glo
     )
     side.aggregate(uploads)
     assert bool((side.global_weights[key] >= 0).all()), side.global_weights[key][:3]
+
+
+def test_two_uploads_for_one_client_are_both_refused_and_an_unknown_client_too():
+    """The re-run sweep: two uploads claiming client 2 in one round (NaN, then honest)
+    left the global model NaN - the refusals were keyed by client, so the honest one's
+    verdict overwrote the NaN one's; and client 9 of a 5-client run was taken with any
+    sample count (no capacity is known for it)."""
+    side = server(5, "method=FedAvg")
+    uploads = [honest(side, c) for c in range(5)]
+    nan = honest(side, 2)
+    nan.weights = {k: v * math.nan if v.is_floating_point() else v for k, v in nan.weights.items()}
+    stranger = honest(side, 9, n=10**6)
+    side.aggregate([nan, *uploads, stranger])
+    assert side.refused == {
+        2: "upload: 2 uploads in one round",
+        9: "upload: no client 9 in data.clients=5",
+    }
+    assert finite(side.global_weights)

@@ -13,6 +13,7 @@ named in ``RoundLog.missing``.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
@@ -83,10 +84,19 @@ class ServerSide:
     ) -> dict[int, str]:
         """The uploads that cannot be aggregated, client -> why (:mod:`.screen`):
         ``capacity``, where the server knows it, bounds each client's sample count."""
+        results = list(results)
         bound, payload = capacity or {}, self.strategy.payload_template()
         found = {
             r.client: refusal(r, self.global_weights, bound.get(r.client), payload) for r in results
         }
+        counts = Counter(r.client for r in results)
+        for client in counts:
+            if counts[client] > 1:  # which one would be its? neither is taken
+                found[client] = f"{counts[client]} uploads in one round"
+            elif not (
+                isinstance(client, int | np.integer) and 0 <= client < self.config.data.clients
+            ):
+                found[client] = f"no client {client!r} in data.clients={self.config.data.clients}"
         return {client: why for client, why in found.items() if why is not None}
 
     def update_norms(self, results: Iterable[TrainRes], refused: Mapping[int, str]) -> dict:

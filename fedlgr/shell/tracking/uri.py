@@ -138,6 +138,18 @@ def masked_text(text: str, uri: str) -> str:
     return text
 
 
+_ANY_URI = re.compile(r"[A-Za-z][\w+.-]*://[^\s'\"<>]+")
+# a "...password = value" pair (libpq's keyword connection strings: host=db password=...)
+KEYWORD_PASSWORD = re.compile(r"(?i)(pass(?:word|%77ord)\s*=\s*)(?!\*\*\*)[^\s&;#'\"]+")
+
+
+def masked_uris(text: str) -> str:
+    """``text`` (another program's message) with the password of every URI in it, and of
+    every ``password=...`` pair, as ``***``."""
+    text = _ANY_URI.sub(lambda m: mask_password(m.group()), text)
+    return KEYWORD_PASSWORD.sub(r"\1***", text)
+
+
 def masked_echo(echo, *uris: str | None):
     """``echo`` (e.g. ``print``) that writes the passwords of ``uris`` as ``***``: what a
     command prints of its URIs (the study's storage, the tracking store)."""

@@ -18,10 +18,8 @@ from fedlgr.shell.cli.deploy.options import absolute, add_print_command, add_sub
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import load_config
 from fedlgr.shell.deploy.flower import APP_DIR
-from fedlgr.shell.tracking.uri import mask_password
+from fedlgr.shell.tracking.uri import masked_uris
 
-# a "...password = value" pair anywhere in a value (libpq's keyword connection strings)
-KEYWORD_PASSWORD = re.compile(r"(?i)(pass(?:word|%77ord)\s*=\s*)(?!\*\*\*)[^\s&;#]+")
 STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
 
 
@@ -73,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
     run_id = _stream(cmd, env, link)
     row = _final_status(flwr, link, run_id, env)
     if row["status"] != "finished:completed":
-        details = " ".join(str(row.get("status-details") or "no details").split())
+        # Flower's own words may quote a URI with its password (a ServerApp's error)
+        details = masked_uris(" ".join(str(row.get("status-details") or "no details").split()))
         raise FedlgrError(f"Flower run {run_id} ended {row['status']}: {details}")
     print(f"fedlgr: Flower run {run_id} finished:completed")
     return 0
@@ -87,7 +86,7 @@ def _refuse_passwords(overrides: list[str]) -> None:
     for override in overrides:
         key, _, value = override.partition("=")
         # also libpq's keyword form, "host=db user=me password=..."
-        masked = KEYWORD_PASSWORD.sub(r"\1***", mask_password(value))
+        masked = masked_uris(value)
         if masked != value:
             raise FedlgrError(
                 f"{key}={masked}: a password on the command line would be "
