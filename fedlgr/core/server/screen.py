@@ -56,8 +56,9 @@ def refusal(
     )
     if why is not None:
         return why
+    tensors = sent | extra  # every key checked present above
     for key, expected in (*shared.items(), *like.items()):
-        why = _tensor_refusal(key, (sent | extra)[key], expected)
+        why = _tensor_refusal(key, tensors[key], expected)
         if why is not None:
             return why
     return None
