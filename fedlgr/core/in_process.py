@@ -85,7 +85,7 @@ class Orchestrator:
         sums, total, payloads = self.server.sums(trained)
         if self.world > 1:  # one collective for everything
             like = self.server.global_weights
-            template = self.server.strategy.payload_template()
+            template = self.server.sum_template()
             flat = torch.cat(
                 [
                     *_parts(sums, like, self.server.keys),
@@ -148,7 +148,7 @@ class Orchestrator:
             table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
         seconds = time.perf_counter() - start
         log = self.server.round_log(plan, table.numpy(), seconds, participants=chosen)
-        log.server, log.initial, log.faults = server, initial, faults
+        log.server, log.initial, log.faults = server | self.server.figures(), initial, faults
         settings = self.config.federated.faults
         if settings.dropout:
             log.server["faults/dropped"] = float(sum(f == "dropped" for f in faults.values()))

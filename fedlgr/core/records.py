@@ -109,6 +109,8 @@ class RoundLog:
                 {n: None if math.isnan(v) else float(v) for n, v in zip(names, values, strict=True)}
             )
             row["fault"] = self.fault(client)
+            # the run's privacy so far (client-level DP), on each of the round's rows
+            row.update({column(k): v for k, v in self.server.items() if k.startswith("privacy/")})
             out.append(row)
         return out
 

@@ -13,6 +13,7 @@ from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, overload
 
 from fedlgr.core.messages import RoundPlan
+from fedlgr.core.privacy import releases_within
 
 if TYPE_CHECKING:
     from fedlgr.shell.config import ExperimentConfig
@@ -24,13 +25,22 @@ ALL = "all"  # the single task of plain FL
 class Schedule(Sequence[RoundPlan]):
     """The run's steps, made on demand: a run of a billion rounds holds no billion
     ``RoundPlan`` objects (``len`` and indexing are arithmetic). ``tasks[plan.task]`` is
-    a step's task name."""
+    a step's task name. ``stop``: the run ends after this many rounds, whatever its tasks
+    (a privacy budget spent: ``federated.dp.target_epsilon``)."""
 
-    def __init__(self, tasks: list[str], rounds_per_task: int, task_ends: bool = True):
+    def __init__(
+        self,
+        tasks: list[str],
+        rounds_per_task: int,
+        task_ends: bool = True,
+        stop: int | None = None,
+    ):
         self.tasks, self.per_task, self.task_ends = tasks, rounds_per_task, task_ends
+        self.planned = len(tasks) * rounds_per_task  # before any stop
+        self.stop = self.planned if stop is None else min(stop, self.planned)
 
     def __len__(self) -> int:
-        return len(self.tasks) * self.per_task
+        return self.stop
 
     def after(self, done: int) -> Iterator[RoundPlan]:
         """The steps after the first ``done``, one at a time."""
@@ -53,7 +63,16 @@ class Schedule(Sequence[RoundPlan]):
 
 
 def schedule(config: ExperimentConfig) -> Schedule:
+    """The run's steps; with ``federated.dp.target_epsilon``, only the rounds whose
+    releases keep the accountant's epsilon within it (one release a round)."""
     tasks = list(config.continual.tasks)
     if not tasks:
-        return Schedule([ALL], config.federated.rounds, task_ends=False)
-    return Schedule(tasks, config.continual.rounds_per_task)
+        steps = Schedule([ALL], config.federated.rounds, task_ends=False)
+    else:
+        steps = Schedule(tasks, config.continual.rounds_per_task)
+    dp = config.federated.dp
+    if dp.enabled and dp.target_epsilon > 0:
+        rate = config.federated.fraction
+        stop = releases_within(dp.target_epsilon, dp.noise_multiplier, rate, dp.delta, len(steps))
+        steps = Schedule(steps.tasks, steps.per_task, steps.task_ends, stop)
+    return steps

@@ -23,6 +23,7 @@ import torch
 from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes, Weights, nbytes
 from fedlgr.core.methods import plugin_metrics
 from fedlgr.core.metrics import Figures, combine, round_keys
+from fedlgr.core.privacy import UNCLIPPED, Privacy
 from fedlgr.core.records import RoundLog, table
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import initial_scholar, parameter_keys, shared_keys
@@ -37,7 +38,10 @@ if TYPE_CHECKING:
 
 
 class ServerSide:
-    def __init__(self, config: ExperimentConfig):
+    """``noise_from_os``: client-level DP's noise comes from the operating system (a real
+    deployment), not from the run's seed (:mod:`fedlgr.core.privacy`)."""
+
+    def __init__(self, config: ExperimentConfig, noise_from_os: bool = False):
         cfg = config
         self.config = config
         self.tasks = list(cfg.continual.tasks) or [ALL]
@@ -53,6 +57,9 @@ class ServerSide:
         self.round_keys = round_keys(self.tasks, self.plugin_keys)  # a round's columns
         # this round's refusals: client -> what and why ("upload: ...", "scores: ...")
         self.refused: dict[int, str] = {}
+        # federated.dp: clipped updates, noise on their sum, the accountant's epsilon
+        dp = cfg.federated.dp.enabled
+        self.privacy = Privacy(cfg, noise_from_os) if dp else None
 
     def to(self, device: torch.device) -> ServerSide:
         self.global_weights = {k: v.to(device) for k, v in self.global_weights.items()}
@@ -108,23 +115,46 @@ class ServerSide:
         """The uploads taken: not ``refused``, nor far larger than the round's others
         (``federated.norm_ratio`` over every process's ``norms``); the round's refusals
         are kept for its record."""
-        found = refused | oversized(norms, self.config.federated.norm_ratio)
+        # Under DP the clip norm bounds every update; a bound drawn from the others' norms
+        # would let one client decide whether another's update counts.
+        ratio = 0 if self.privacy is not None else self.config.federated.norm_ratio
+        found = refused | oversized(norms, ratio)
         self.refused = {client: f"upload: {why}" for client, why in found.items()}
         return [r for r in results if r.client not in self.refused]
 
     # ------------------------------------------------------------------ aggregation
 
+    def sum_template(self) -> Weights:
+        """Zeros shaped like the payloads' sums (:meth:`sums`), so that processes can add
+        them up: the strategy's, and under DP the count of unclipped updates."""
+        template = self.strategy.payload_template()
+        if self.privacy is not None:
+            like = next(iter(self.global_weights.values()))
+            zero = torch.zeros((), dtype=torch.float64, device=like.device)
+            template = template | {UNCLIPPED: zero}
+        return template
+
     def sums(self, results: Iterable[TrainRes]) -> tuple[Weights, float, Weights]:
         """Sample-weighted sums of the uploads the server took (:meth:`screen`: they hold
         exactly the shared tensors; float64), the sum of the weights, and the plain sums of
-        the plugins' payloads (float64)."""
+        the plugins' payloads (float64). Under DP each upload's update is clipped first
+        and weighs 1."""
         results = list(results)
+        if self.privacy is not None:
+            results = [self.privacy.clipped(r, self.global_weights) for r in results]
         sums, total = weighted_sum(((r.n_samples, r.weights) for r in results), self.keys)
         return sums, total, _payload_sums(results)
 
     def update(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
         """The next global tensors from the sums of every upload of the round's
-        ``senders`` clients; the strategy takes in their payloads."""
+        ``senders`` clients; the strategy takes in their payloads. Under DP the sums are
+        released with noise (every round, also one with no upload)."""
+        if self.privacy is not None:
+            payloads = {k: v.double() for k, v in self.sum_template().items()} | payloads
+            mean, payloads = self.privacy.mean(sums, total, payloads, self.global_weights)
+            self.global_weights = self.strategy.server_update(self.global_weights, mean)
+            self.strategy.take_payloads(payloads, senders, self.config.data.clients)
+            return
         mean = finish_mean(sums, total, like=self.global_weights)
         self.global_weights = self.strategy.server_update(self.global_weights, mean)
         self.strategy.take_payloads(payloads, senders, self.config.data.clients)
@@ -142,7 +172,7 @@ class ServerSide:
         results = list(results)
         refused = {**(refused or {}), **self.refusals(results, capacity)}
         results = self.screen(results, refused, self.update_norms(results, refused))
-        if not results:
+        if not results and self.privacy is None:
             return
         if self.strategy.needs_uploads:
             self.combine(sorted(results, key=lambda r: r.client), len(results))
@@ -161,11 +191,16 @@ class ServerSide:
         self.strategy.take_payloads(_payload_sums(results), senders, self.config.data.clients)
 
     def update_if_any(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
-        """:meth:`update`, where any upload was taken (``total`` > 0)."""
-        if total > 0:
+        """:meth:`update`, where any upload was taken (``total`` > 0); under DP, always."""
+        if total > 0 or self.privacy is not None:
             self.update(sums, total, payloads, senders)
 
     # ------------------------------------------------------------------ the record
+
+    def figures(self) -> dict[str, float]:
+        """The server's figures of the round besides its costs: under DP the accountant's
+        epsilon so far and the clip norm (``privacy/*``)."""
+        return {} if self.privacy is None else self.privacy.figures()
 
     def row(
         self, trained: TrainRes | None, evaluated: EvaluateRes, bytes_up: int, bytes_down: int
@@ -210,11 +245,16 @@ class ServerSide:
     # ------------------------------------------------------------------ checkpoints
 
     def state_dict(self) -> dict:
-        return {"global": self.global_weights, "strategy": self.strategy.state_dict()}
+        state = {"global": self.global_weights, "strategy": self.strategy.state_dict()}
+        if self.privacy is not None:
+            state["privacy"] = self.privacy.state_dict()
+        return state
 
     def load_state_dict(self, state: dict, device: torch.device | str) -> None:
         self.global_weights = {k: v.to(device) for k, v in state["global"].items()}
         self.strategy.load_state_dict(to_device(state["strategy"], device))
+        if self.privacy is not None:
+            self.privacy.load_state_dict(state["privacy"])
 
 
 def _payload_sums(results: list[TrainRes]) -> Weights:

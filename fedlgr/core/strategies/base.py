@@ -29,14 +29,20 @@ if TYPE_CHECKING:
     from fedlgr.shell.config import FederatedConfig
 
 
-def participants(round_: int, clients: int, fraction: float, seed: int) -> list[int]:
+def participants(
+    round_: int, clients: int, fraction: float, seed: int, poisson: bool = False
+) -> list[int]:
     """The clients that train in round ``round_``: all of them at ``fraction`` 1, else
     ``max(1, round(fraction * clients))`` drawn without replacement from the run's ``seed``
-    and the round (so a resumed run, and every runtime, draws the same), sorted."""
+    and the round (so a resumed run, and every runtime, draws the same), sorted. With
+    ``poisson`` (client-level DP) each client is drawn on its own with probability
+    ``fraction``: a round may have none, or all."""
     if fraction >= 1.0:
         return list(range(clients))
-    k = max(1, round(fraction * clients))
     rng = np.random.default_rng([seed, round_, 0x5E1EC7])
+    if poisson:
+        return [int(c) for c in np.flatnonzero(rng.random(clients) < fraction)]
+    k = max(1, round(fraction * clients))
     return sorted(int(c) for c in rng.choice(clients, size=k, replace=False))
 
 
@@ -58,8 +64,9 @@ class Strategy:
     def select(self, round_: int, clients: int, seed: int) -> list[int]:
         """The clients that train in round ``round_`` of ``clients`` (``federated.fraction``,
         drawn from the run's ``seed``: :func:`participants`); the others keep their state
-        and are still evaluated."""
-        return participants(round_, clients, self.config.fraction, seed)
+        and are still evaluated; under client-level DP, Poisson sampling)."""
+        poisson = self.config.dp.enabled  # what the accountant assumes
+        return participants(round_, clients, self.config.fraction, seed, poisson)
 
     def payload(self, client: int) -> Weights:
         """What a chosen client is sent besides the global tensors this round (read by this

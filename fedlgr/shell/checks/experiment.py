@@ -12,7 +12,7 @@ import itertools
 from typing import TYPE_CHECKING
 
 from fedlgr.core.data.columns import FEATURE_COLUMNS
-from fedlgr.core.methods import CONTINUAL, method_name
+from fedlgr.core.methods import CONTINUAL, STRATEGIES, method_name
 from fedlgr.errors import ConfigError
 from fedlgr.shell.checks.settings import MAX_ROUNDS, ROUNDS_BOUND
 from fedlgr.shell.checks.values import check_numbers, check_seed, format_bytes, machine_memory
@@ -36,6 +36,7 @@ def check_experiment(config: ExperimentConfig) -> None:
     _root_reads_images(config)
     _train_blocks(config)
     _model_fits(config)
+    _privacy_fits(config)
 
 
 def _rounds_in_all(config: ExperimentConfig) -> None:
@@ -158,3 +159,37 @@ def check_robots_are_real(config: ExperimentConfig) -> None:
             "federated.faults: faults are simulated in one process or Fabric's processes "
             "(fedlgr run); robots on Flower are real and nothing is simulated there"
         )
+
+
+def _privacy_fits(config: ExperimentConfig) -> None:
+    """Client-level DP (``federated.dp``) bounds what one client adds to a weighted sum:
+    a statistic of the uploads (a median, Krum's choice) has no such bound; adaptive
+    clipping's count noise must leave budget for the updates; delta below 1 / clients."""
+    dp, federated = config.federated.dp, config.federated
+    if not dp.enabled:
+        return
+    strategy = STRATEGIES[federated.strategy]
+    if strategy.load().needs_uploads:  # imports torch: with DP only
+        raise ConfigError(
+            f"federated.dp.clip={dp.clip:g} with federated.strategy={federated.strategy}: "
+            "DP-FedAvg bounds one client's effect on the mean of clipped updates, and a "
+            f"{strategy.key} aggregate of the uploads has no such bound (one client can "
+            "move it arbitrarily far in L2); use a mean-based strategy (avg, bn, prox, opt, "
+            "avgm, scaffold, distill)"
+        )
+    clients = config.data.clients
+    if dp.delta >= 1 / clients:
+        raise ConfigError(
+            f"federated.dp.delta={dp.delta:g}: must be below 1 / data.clients = "
+            f"{1 / clients:g} (a delta of 1/N allows one client's data to be released)"
+        )
+    if dp.clipping == "adaptive" and dp.noise_multiplier > 0:
+        count_std = dp.count_noise or federated.fraction * clients / 20
+        if 2 * count_std <= dp.noise_multiplier:
+            raise ConfigError(
+                f"federated.dp.clipping=adaptive: the noise on the unclipped count "
+                f"({count_std:g}{' = fraction x clients / 20' if not dp.count_noise else ''})"
+                f" must be over federated.dp.noise_multiplier / 2 = "
+                f"{dp.noise_multiplier / 2:g}, or it takes the whole privacy budget (Andrew "
+                "et al. 2021): set federated.dp.count_noise"
+            )

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from fedlgr.shell.config.settings import (
         ContinualConfig,
         DeployConfig,
+        DPConfig,
         FaultsConfig,
         FederatedConfig,
         ModelConfig,
@@ -143,6 +144,30 @@ def check_faults(faults: FaultsConfig) -> None:
     choice("federated.faults.attack", faults.attack, ATTACKS)
     if faults.noise < 0:
         raise ConfigError(f"federated.faults.noise={faults.noise}: must be 0 or more")
+
+
+CLIPPING = ("fixed", "adaptive")  # federated.dp.clipping
+
+
+def check_dp(dp: DPConfig) -> None:
+    check_numbers("federated.dp.", dp)
+    for name in ("clip", "noise_multiplier", "count_noise", "target_epsilon"):
+        nonnegative(f"federated.dp.{name}", getattr(dp, name))
+    if not 0.0 < dp.delta < 1.0:
+        raise ConfigError(f"federated.dp.delta={dp.delta}: must be in (0, 1)")
+    choice("federated.dp.clipping", dp.clipping, CLIPPING)
+    if not 0.0 < dp.quantile < 1.0:
+        raise ConfigError(
+            f"federated.dp.quantile={dp.quantile}: must be in (0, 1) (the share of updates "
+            "that adaptive clipping aims to leave unclipped)"
+        )
+    if dp.clip_lr <= 0:
+        raise ConfigError(f"federated.dp.clip_lr={dp.clip_lr}: must be over 0")
+    if dp.target_epsilon > 0 and dp.noise_multiplier == 0:
+        raise ConfigError(
+            f"federated.dp.target_epsilon={dp.target_epsilon:g} needs noise: with "
+            "federated.dp.noise_multiplier=0 epsilon is infinite from the first round"
+        )
 
 
 def check_runtime(runtime: RuntimeConfig) -> None:

@@ -16,6 +16,7 @@ from fedlgr.shell.checks.experiment import check_experiment
 from fedlgr.shell.checks.settings import (
     check_continual,
     check_deploy,
+    check_dp,
     check_faults,
     check_federated,
     check_model,
@@ -105,6 +106,30 @@ class FaultsConfig:
 
 
 @dataclass(frozen=True)
+class DPConfig:
+    """Client-level differential privacy (DP-FedAvg, :mod:`fedlgr.core.privacy`): each
+    client's update clipped to an L2 norm, Gaussian noise on their sum, the accountant's
+    epsilon for ``delta`` after every round. Off while ``clip`` is 0."""
+
+    clip: float = 0.0  # the L2 norm each update is clipped to (adaptive: the first one); 0: off
+    noise_multiplier: float = 1.0  # the noise's standard deviation over the clip norm
+    delta: float = 1e-5  # the delta epsilon is reported for (below 1 / clients)
+    clipping: str = "fixed"  # fixed | adaptive (Andrew et al. 2021: clip moves to a quantile)
+    quantile: float = 0.5  # adaptive: the share of updates the clip norm aims to leave unclipped
+    clip_lr: float = 0.2  # adaptive: the clip norm's geometric step
+    # adaptive: the noise on the count of unclipped updates (0: the expected clients / 20)
+    count_noise: float = 0.0
+    target_epsilon: float = 0.0  # over 0: the run stops before a round would exceed it
+
+    def __post_init__(self) -> None:
+        check_dp(self)
+
+    @property
+    def enabled(self) -> bool:
+        return self.clip > 0
+
+
+@dataclass(frozen=True)
 class _FederatedConfig:
     """What is shared (scope), how it is aggregated (strategy, with each strategy's
     settings under ``federated.<strategy>``: ``federated.prox.mu``), SPEC 4.1."""
@@ -125,6 +150,7 @@ class _FederatedConfig:
     # keys, shapes, dtypes, values and sample count are checked whatever this says.
     norm_ratio: float = 10.0
     faults: FaultsConfig = field(default_factory=FaultsConfig)
+    dp: DPConfig = field(default_factory=DPConfig)
 
     def __post_init__(self) -> None:
         # true/false as YAML or the command line give them: on/off

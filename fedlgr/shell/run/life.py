@@ -30,6 +30,7 @@ import numpy as np
 from fedlgr import __version__
 from fedlgr.core.forgetting import ForgettingTracker
 from fedlgr.core.metrics import SCORES
+from fedlgr.core.privacy import epsilon
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress, Rounds
 from fedlgr.core.schedule import Schedule, schedule
@@ -176,7 +177,7 @@ class RunLife:
         self.total = len(steps)
         replayed = self._restore(steps)
         self._open()
-        self._announce()
+        self._announce(steps)
         try:  # from here on the MLflow run exists: whatever happens, it is ended
             self._start(replayed)
             yield self.result
@@ -224,7 +225,7 @@ class RunLife:
         self.folder = ckpt.checkpoint_root(config, tracking_uri(config)) / str(tracker.run_id)
         self.result.run_id, self.result.data_digest = tracker.run_id, digest
 
-    def _announce(self) -> None:
+    def _announce(self, steps: Schedule) -> None:
         config = self.config
         tasks = list(config.continual.tasks)
         plan = (
@@ -236,6 +237,9 @@ class RunLife:
             f"{run_name(config)}: {plan} x {config.train.epochs} local epochs, "
             f"{config.data.clients} clients" + (f", {self.what}" if self.what else "")
         )
+        dp = config.federated.dp
+        if dp.enabled:
+            self.say(_privacy(config, steps))
         if self.resumed is not None:
             done = len(self.result.rounds)
             self.say(f"resuming run {self.resumed.run_id} after round {done} of {self.total}")
@@ -467,7 +471,25 @@ def _line(log: RoundLog) -> str:
     figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
     shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
     cpu = log.mean("cost/cpu_s")
-    return shown + f"  CPU {'-' if cpu is None else f'{cpu:.1f}'} s/client"
+    shown += f"  CPU {'-' if cpu is None else f'{cpu:.1f}'} s/client"
+    spent = log.server.get("privacy/epsilon")  # client-level DP: the budget spent so far
+    return shown if spent is None else shown + f"  epsilon {spent:.2f}"
+
+
+def _privacy(config: ExperimentConfig, steps: Schedule) -> str:
+    """The run's client-level DP and, with a target epsilon, where it stops."""
+    dp = config.federated.dp
+    clip = f"{dp.clipping} clipping at {dp.clip:g}"
+    line = f"client-level DP: {clip}, noise multiplier {dp.noise_multiplier:g}, delta {dp.delta:g}"
+    if dp.target_epsilon > 0:
+        rate = config.federated.fraction
+        spent = epsilon(dp.noise_multiplier, rate, len(steps), dp.delta)
+        line += f"; target epsilon {dp.target_epsilon:g}: "
+        if len(steps) < steps.planned:
+            line += f"stops after round {len(steps)} of {steps.planned} (epsilon {spent:.2f})"
+        else:
+            line += f"all {len(steps)} rounds fit (epsilon {spent:.2f})"
+    return line
 
 
 def _missing(log: RoundLog) -> str:

@@ -92,7 +92,7 @@ class FlowerRounds:
         # refused on receipt: round -> client -> why (uploads: aggregation's; scores: the record's)
         self.unread: dict[int, dict[int, str]] = {}
         self.bad_scores: dict[int, str] = {}
-        self.server = ServerSide(config)
+        self.server = ServerSide(config, noise_from_os=True)  # DP noise: not from the seed
         if config.federated.fraction < 1 and roster is None:
             raise FedlgrError(
                 f"federated.fraction={config.federated.fraction:g} on robots needs a roster "
@@ -170,7 +170,8 @@ class FlowerRounds:
         log = self.server.round_log(
             plan, table, time.perf_counter() - start, missing, participants=chosen
         )
-        log.server, log.initial, log.names = server, initial, dict(self.names)
+        log.server, log.initial = server | self.server.figures(), initial
+        log.names = dict(self.names)
         for client, why in self.bad_scores.items():  # their rows are left out
             said = log.refused.get(client)
             log.refused[client] = f"{said}; scores: {why}" if said else f"scores: {why}"
