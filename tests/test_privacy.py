@@ -1,0 +1,256 @@
+"""Client-level differential privacy (``federated.dp.*``, :mod:`fedlgr.core.privacy`):
+clipping and noise on hand numbers, the noise drawn again for a seed, adaptive clipping's
+step, the accountant against dp-accounting's for the same noise, sampling and rounds, and
+runs that log epsilon and stop at a target."""
+
+from __future__ import annotations
+
+import math
+
+import dp_accounting
+import mlflow
+import pytest
+import torch
+from dp_accounting import rdp
+
+from fedlgr.core import privacy
+from fedlgr.core.messages import TrainRes
+from fedlgr.core.privacy import UNCLIPPED, Privacy
+from fedlgr.core.schedule import schedule
+from fedlgr.core.strategies.base import participants
+from fedlgr.errors import ConfigError
+from fedlgr.shell.config import load_config
+from fedlgr.shell.run.experiment import run_experiment
+from tests.support.runs import fast_config, results_csv
+
+
+def dp_config(*overrides):
+    return load_config(None, ["data.clients=4", "federated.dp.delta=0.01", *overrides])
+
+
+def test_clip_scales_the_whole_update_as_one_vector_by_hand():
+    """(3, 4) and (12,) make one vector of norm 13: clipped to 6.5 it halves; a bound over
+    its norm leaves it as it is."""
+    update = {"a": torch.tensor([3.0, 4.0]), "b": torch.tensor([12.0])}
+    clipped, size = privacy.clip(update, 6.5)
+    assert size == 13.0
+    assert clipped["a"].tolist() == [1.5, 2.0] and clipped["b"].tolist() == [6.0]
+    same, _ = privacy.clip(update, 13.0)
+    assert same["a"].tolist() == [3.0, 4.0] and same["b"].tolist() == [12.0]
+
+
+def test_an_upload_is_clipped_around_the_global_tensors_with_its_payload_and_weighs_one():
+    """g = (1, 1), w = (4, 5): update (3, 4), payload (0,) + (12,): norm 13 over clip 2.6
+    -> scaled by 0.2: w' = (1.6, 1.8), payload 2.4; it was not within the clip norm."""
+    config = dp_config("federated.dp.clip=2.6")
+    server = Privacy(config)
+    shared = {"w": torch.tensor([1.0, 1.0])}
+    res = TrainRes(0, {"w": torch.tensor([4.0, 5.0])}, 37, payload={"c": torch.tensor([12.0])})
+    out = server.clipped(res, shared)
+    assert out.n_samples == 1
+    assert out.weights["w"].tolist() == pytest.approx([1.6, 1.8])
+    assert out.payload["c"].tolist() == pytest.approx([2.4])
+    assert out.payload[UNCLIPPED].item() == 0.0
+    small = TrainRes(0, {"w": torch.tensor([1.5, 1.0])}, 3)
+    assert server.clipped(small, shared).payload[UNCLIPPED].item() == 1.0
+
+
+def test_the_release_is_the_global_plus_the_noisy_sum_over_q_n_by_hand():
+    """Without noise: g = 1, two clipped uploads 2 and 4 (updates 1 and 3) of N = 4 clients
+    at fraction 1 -> g + (1 + 3) / 4 = 2. With noise z = 0.5 and C = 2 the release moves
+    by exactly the seeded draw of std 1, over 4."""
+    shared = {"w": torch.tensor([1.0])}
+    sums = {"w": torch.tensor([6.0], dtype=torch.float64)}  # 2 + 4
+    quiet = Privacy(dp_config("federated.dp.clip=2", "federated.dp.noise_multiplier=0"))
+    mean, _ = quiet.mean(sums, 2.0, {}, shared)
+    assert mean["w"].tolist() == [2.0]
+    noisy = Privacy(dp_config("federated.dp.clip=2", "federated.dp.noise_multiplier=0.5"))
+    mean, _ = noisy.mean(sums, 2.0, {}, shared)
+    draw = privacy.generator(0, 1, privacy._NOISE_TAG, from_os=False)
+    noise = torch.randn((1,), dtype=torch.float64, generator=draw) * 1.0
+    assert mean["w"].item() == pytest.approx(2.0 + noise.item() / 4, abs=1e-7)
+    assert noisy.releases == 1
+
+
+def test_the_noise_has_the_stated_deviation_and_a_seed_draws_it_again():
+    like = {"big": torch.zeros(200_000)}
+    draw = privacy.generator(3, 1, privacy._NOISE_TAG, from_os=False)
+    noise = privacy.gaussian(like, 0.7, draw)["big"]
+    assert noise.std().item() == pytest.approx(0.7, rel=0.01)
+    assert abs(noise.mean().item()) < 0.01
+    again = privacy.gaussian(like, 0.7, privacy.generator(3, 1, privacy._NOISE_TAG, False))
+    assert torch.equal(noise, again["big"])
+    other = privacy.gaussian(like, 0.7, privacy.generator(3, 2, privacy._NOISE_TAG, False))
+    assert not torch.equal(noise, other["big"])  # the next release, the next draw
+    from_os = [privacy.gaussian(like, 0.7, privacy.generator(3, 1, 0, True)) for _ in range(2)]
+    assert not torch.equal(from_os[0]["big"], from_os[1]["big"])  # deployment: the OS's
+
+
+def test_adaptive_clipping_moves_the_clip_norm_towards_its_quantile_by_hand():
+    """All 4 of 4 clients within C = 2, target quantile 0.5, step 0.2: C <- 2 exp(-0.2 x
+    0.5) (count noise 1e-9: none to speak of); the updates' noise multiplier is raised so
+    that both releases cost one Gaussian of z (Andrew et al., Th. 1)."""
+    config = dp_config(
+        "federated.dp.clip=2",
+        "federated.dp.noise_multiplier=0",
+        "federated.dp.clipping=adaptive",
+        "federated.dp.count_noise=1e-9",
+    )
+    server = Privacy(config)
+    shared = {"w": torch.tensor([0.0])}
+    server.mean({"w": torch.tensor([0.4], dtype=torch.float64)}, 4.0, {UNCLIPPED: 4.0}, shared)
+    assert server.bound == pytest.approx(2 * math.exp(-0.1))
+    assert privacy.update_multiplier(1.0, 1.0) == pytest.approx((1 - 0.25) ** -0.5)
+    with pytest.raises(ValueError, match="over noise_multiplier / 2"):
+        privacy.update_multiplier(1.0, 0.5)
+
+
+@pytest.mark.parametrize(("rate", "z", "releases"), [(1.0, 1.1, 5), (0.3, 0.8, 12)])
+def test_epsilon_is_dp_accountings_for_the_same_noise_sampling_and_rounds(rate, z, releases):
+    event = dp_accounting.SelfComposedDpEvent(
+        dp_accounting.PoissonSampledDpEvent(rate, dp_accounting.GaussianDpEvent(z)), releases
+    )
+    expected = rdp.RdpAccountant().compose(event).get_epsilon(1e-5)
+    assert privacy.epsilon(z, rate, releases, 1e-5) == pytest.approx(expected, rel=1e-12)
+    assert privacy.epsilon(z, rate, 0, 1e-5) == 0.0
+    assert privacy.epsilon(0.0, rate, 1, 1e-5) == math.inf
+    fits = privacy.releases_within(expected, z, rate, 1e-5, 100)
+    assert fits == releases  # the most rounds whose epsilon stays within it
+
+
+def test_clients_are_poisson_sampled_under_dp():
+    """Each client on its own with probability q: the counts vary round to round (none
+    at all in some), reproducibly for a seed; without DP exactly round(q N)."""
+    counts = [len(participants(r, 10, 0.2, 0, poisson=True)) for r in range(1, 201)]
+    assert counts == [len(participants(r, 10, 0.2, 0, poisson=True)) for r in range(1, 201)]
+    assert 0 in counts and max(counts) >= 4
+    assert sum(counts) / 2000 == pytest.approx(0.2, abs=0.03)
+    assert {len(participants(r, 10, 0.2, 0)) for r in range(1, 50)} == {2}
+
+
+def test_a_target_epsilon_cuts_the_schedule_before_the_round_that_would_exceed_it():
+    spent = [privacy.epsilon(3.0, 1.0, r, 0.01) for r in range(1, 11)]
+    target = (spent[2] + spent[3]) / 2  # three rounds fit, not four
+    config = dp_config(
+        "federated.rounds=10",
+        "federated.dp.clip=1",
+        "federated.dp.noise_multiplier=3",
+        f"federated.dp.target_epsilon={target}",
+    )
+    steps = schedule(config)
+    assert steps.planned == 10 and len(steps) == 3
+    assert [plan.round for plan in steps] == [1, 2, 3]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["federated.strategy=median"],
+            r"federated\.dp\.clip=1 with federated\.strategy=median: .*no such bound",
+        ),
+        (["federated.dp.delta=0.3"], r"federated\.dp\.delta=0\.3: must be below 1 / data\.clients"),
+        (
+            ["federated.dp.clipping=adaptive"],
+            r"federated\.dp\.clipping=adaptive: the noise on the unclipped count \(0\.2 = ",
+        ),
+        (["federated.dp.quantile=1"], r"federated\.dp\.quantile=1\.0: must be in \(0, 1\)"),
+        (
+            ["federated.dp.noise_multiplier=0", "federated.dp.target_epsilon=3"],
+            r"federated\.dp\.target_epsilon=3 needs noise",
+        ),
+    ],
+)
+def test_settings_dp_cannot_keep_are_refused_in_one_line(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        dp_config("federated.dp.clip=1", *overrides)
+
+
+def test_a_run_logs_the_accountants_epsilon_every_round_and_stops_at_its_target(
+    synth_dir, cache_dir, tmp_path, capsys
+):
+    """4 clients at fraction 0.5 (Poisson), z = 2: round r's epsilon in MLflow's history,
+    results.csv and the console is dp-accounting's after r releases; the target stops the
+    run after the rounds it allows, FINISHED."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    z, rate, delta = 2.0, 0.5, 0.01
+    target = privacy.epsilon(z, rate, 3, delta) + 1e-9  # three rounds fit, not four
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        store,
+        "data.clients=4",
+        "federated.rounds=6",
+        "federated.fraction=0.5",
+        "federated.dp.clip=0.5",
+        f"federated.dp.noise_multiplier={z}",
+        f"federated.dp.delta={delta}",
+        f"federated.dp.target_epsilon={target}",
+    )
+    result = run_experiment(config)
+    out = capsys.readouterr().out
+    assert "stops after round 3 of 6" in out
+    assert len(result.rounds) == 3
+    client = mlflow.MlflowClient(store)
+    run = client.get_run(result.run_id)
+    assert run.info.status == "FINISHED"
+    history = client.get_metric_history(result.run_id, "privacy/epsilon")
+    expected = [privacy.epsilon(z, rate, r, delta) for r in (1, 2, 3)]
+    assert [m.step for m in history] == [1, 2, 3]
+    assert [m.value for m in history] == pytest.approx(expected, rel=1e-9)
+    rows = results_csv(client, result.run_id)
+    by_round = {int(r["round"]): float(r["privacy_epsilon"]) for r in rows}
+    assert [by_round[r] for r in (1, 2, 3)] == pytest.approx(expected, rel=1e-9)
+    for r, eps in zip((1, 2, 3), expected, strict=True):
+        assert f"round {r}/3: " in out and f"epsilon {eps:.2f}" in out
+    clip = client.get_metric_history(result.run_id, "privacy/clip")
+    assert {m.value for m in clip} == {0.5}  # fixed clipping
+
+
+def test_a_dp_run_draws_the_same_noise_again_for_its_seed(synth_dir, cache_dir):
+    """Two runs of one seed give the same global model to the last bit; another seed
+    another one."""
+
+    def run(seed):
+        config = fast_config(
+            synth_dir,
+            cache_dir,
+            "sqlite://",
+            "tracking.enabled=false",
+            "federated.rounds=2",
+            f"seed={seed}",
+            "federated.dp.clip=1",
+            "federated.dp.noise_multiplier=0.1",
+            "federated.dp.delta=0.1",
+        )
+        return [r.mean("test/rmse") for r in run_experiment(config).rounds]
+
+    first = run(0)
+    assert run(0) == first
+    assert run(1) != first
+
+
+@pytest.mark.parametrize(
+    "method", ["FedRoot-EWC", "FedLGR", "SCAFFOLD", "FedRootOpt", "FedAvg-NR", "FedRootBN"]
+)
+def test_dp_composes_with_strategies_scopes_and_cl_methods(method, synth_dir, cache_dir):
+    """A two-task run (one round each; plain FL: two rounds) of each under DP: every round released (epsilon
+    after 2 releases), the shared tensors moved by the noisy mean, scores finite."""
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        "sqlite://",
+        "tracking.enabled=false",
+        f"method={method}",
+        "continual.rounds_per_task=1",
+        "federated.rounds=2",  # plain FL's (SCAFFOLD)
+        "continual.lgr.epochs=2",
+        "federated.dp.clip=1",
+        "federated.dp.noise_multiplier=0.5",
+        "federated.dp.delta=0.1",
+    )
+    assert config.federated.dp.enabled and config.total_rounds == 2
+    result = run_experiment(config)
+    spent = [r.server["privacy/epsilon"] for r in result.rounds]
+    assert spent == pytest.approx([privacy.epsilon(0.5, 1.0, r, 0.1) for r in (1, 2)])
+    assert all(math.isfinite(r.mean("test/rmse")) for r in result.rounds)
