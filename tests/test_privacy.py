@@ -234,8 +234,8 @@ def test_a_dp_run_draws_the_same_noise_again_for_its_seed(synth_dir, cache_dir):
     "method", ["FedRoot-EWC", "FedLGR", "SCAFFOLD", "FedRootOpt", "FedAvg-NR", "FedRootBN"]
 )
 def test_dp_composes_with_strategies_scopes_and_cl_methods(method, synth_dir, cache_dir):
-    """A two-task run (one round each; plain FL: two rounds) of each under DP: every round released (epsilon
-    after 2 releases), the shared tensors moved by the noisy mean, scores finite."""
+    """A two-task run (one round each; plain FL: two rounds) of each under DP: every round
+    released (epsilon after 2 releases), scores finite."""
     config = fast_config(
         synth_dir,
         cache_dir,
