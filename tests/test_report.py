@@ -524,3 +524,27 @@ def test_two_studies_of_one_sweep_are_reported_apart(store, tmp_path, monkeypatc
     assert rows["FedAvg"][1] == "**0.300** (lr_top=0.01)"
     with pytest.raises(ReportError, match="sweep `twice` has no study 'nope'"):
         make_report(store, sweep="twice", study="nope", out=tmp_path / "none")
+
+
+def test_runs_under_dp_are_rows_of_their_own_naming_epsilon_noise_and_clip(store, tmp_path):
+    """FedAvg plain and under two noise multipliers: three rows, the DP ones named by the
+    epsilon they spent; two seeds of one DP setting are averaged in one row."""
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("private", artifact_location=tmp_path.as_uri())
+    dp = ["federated.dp.clip=0.5", "federated.dp.delta=0.01"]
+    plans = [
+        (["method=FedAvg"], _scores(0.5)),
+        ([*dp, "federated.dp.noise_multiplier=1"], _scores(0.8) | {"privacy/epsilon": 3.456}),
+        (
+            [*dp, "federated.dp.noise_multiplier=1", "seed=1"],
+            _scores(0.6) | {"privacy/epsilon": 3.456},
+        ),
+        ([*dp, "federated.dp.noise_multiplier=4"], _scores(0.9) | {"privacy/epsilon": 0.5}),
+    ]
+    for k, (overrides, metrics) in enumerate(plans):
+        _tracked_run(client, experiment_id, overrides, metrics, start=k)
+    make_report(store, experiment="private", out=tmp_path / "out", log=False)
+    _, rows = markdown_blocks(tmp_path / "out" / "table1.md")["W/O augmentation"]
+    assert rows["FedAvg"][1] == "**0.500**"
+    assert rows["FedAvg, DP ε=3.46 (z=1.0, C=0.5)"][1].startswith("[0.700] (± 0.141, n=2)")
+    assert rows["FedAvg, DP ε=0.50 (z=4.0, C=0.5)"][1] == "0.900"

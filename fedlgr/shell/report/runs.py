@@ -53,7 +53,15 @@ class RunRecord:
 
     @property
     def method(self) -> str:
-        return self.tags["method"]
+        """The method's name; under client-level DP with the epsilon it spent and its noise
+        and clip norm (``FedAvg, DP ε=2.31 (z=1, C=0.5)``): a row of its own in the tables."""
+        spent = self.metrics.get("privacy/epsilon")
+        if spent is None:
+            return self.tags["method"]
+        z = self.params.get("federated.dp.noise_multiplier", "?")
+        clip = self.params.get("federated.dp.clip", "?")
+        adaptive = " adaptive" if self.params.get("federated.dp.clipping") == "adaptive" else ""
+        return f"{self.tags['method']}, DP ε={spent:.2f} (z={z}, C={clip}{adaptive})"
 
     @property
     def benchmark(self) -> str:

@@ -97,10 +97,23 @@ class ExperimentResult:
         text = table(headers, rows)
         if self.after_tasks:
             text += "\n\n" + self.task_summary()
-        for section in (self.replay_fidelity(), self.latent_drift()):
+        for section in (self.replay_fidelity(), self.latent_drift(), self.privacy()):
             if section:
                 text += "\n\n" + section
         return text
+
+    def privacy(self) -> str:
+        """Client-level DP: the epsilon the run spent, at its delta, after its rounds."""
+        spent = self.final.server.get("privacy/epsilon") if self.rounds else None
+        if spent is None:
+            return ""
+        dp = self.config.federated.dp
+        clip = self.final.server.get("privacy/clip", dp.clip)
+        return (
+            f"client-level DP: epsilon {spent:.3f} at delta {dp.delta:g} after "
+            f"{len(self.rounds)} rounds (noise multiplier {dp.noise_multiplier:g}, "
+            f"{dp.clipping} clipping, clip norm {clip:.4g} in the last round)"
+        )
 
     def latent_drift(self) -> str:
         """FedLGR: the root's latent drift after each round of a later task, mean over
