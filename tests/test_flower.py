@@ -83,15 +83,23 @@ def root_bytes(config) -> int:
     [
         ["method=FedLGR", "continual.rounds_per_task=1", "continual.lgr.epochs=3"],
         ["method=FedAvg", "federated.server_eval=on"],  # the server scores the global model
-        # control variates travel with the round, both ways, and steer rounds 2 and 3
-        ["method=SCAFFOLD", "federated.rounds=3"],
+        # control variates travel with the round, both ways, and steer rounds 2 and 3;
+        # under client-level DP's clipping (no noise: the OS's noise differs from a seed's)
+        # each update and control-variate change is clipped as one vector and weighs 1
+        [
+            "method=SCAFFOLD",
+            "federated.rounds=3",
+            "federated.dp.clip=0.05",
+            "federated.dp.noise_multiplier=0",
+            "federated.dp.delta=0.1",
+        ],
         # one robot of two trains each round (seed 0: client 1, then 0, then 1)
         ["method=FedAvg", "federated.fraction=0.5", "federated.rounds=3"],
         # a robust aggregate over every robot's root (of two, Krum keeps robot 0's)
         ["method=FedRootKrum", "federated.rounds=2"],
     ],
     # FedRootAvg: the resume test
-    ids=["FedLGR", "FedAvg-server-eval", "SCAFFOLD", "FedAvg-half", "FedRootKrum"],
+    ids=["FedLGR", "FedAvg-server-eval", "SCAFFOLD-dp-clipped", "FedAvg-half", "FedRootKrum"],
 )
 def test_flower_runs_compute_what_one_process_computes(
     federation, synth_dir, cache_dir, store, method, request
@@ -123,6 +131,9 @@ def assert_computes_what_one_process_computes(store, flower, local, rounds: int)
     if local.config.method == "FedLGR":
         assert "task/client1/arrow/rmse" in keys and "lgr/fd_latent" in local_run.data.metrics
         keys += ["lgr/fd_latent", "lgr/client1/recon_mse"]
+    if local.config.federated.dp.enabled:  # the clip norm each round (no epsilon: no noise)
+        assert "privacy/epsilon" not in local_run.data.metrics
+        keys += ["privacy/clip"]
     if local.config.federated.server_evaluates:  # before round 1 (step 0), then every round
         keys += [k for k in local_run.data.metrics if k.startswith("server/")]
         assert "server/test/rmse" in keys

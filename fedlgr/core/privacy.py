@@ -224,8 +224,10 @@ class Privacy:
         return epsilon(s.noise_multiplier, self.rate, self.releases, s.delta)
 
     def figures(self) -> dict[str, float]:
-        """What a round records: ``privacy/epsilon`` and the clip norm now (``privacy/clip``)."""
-        return {"privacy/epsilon": self.epsilon, "privacy/clip": self.bound}
+        """What a round records: ``privacy/epsilon`` and the clip norm now (``privacy/clip``);
+        without noise (clipping alone) no epsilon: there is no guarantee to report."""
+        spent = {} if self.settings.noise_multiplier == 0 else {"privacy/epsilon": self.epsilon}
+        return spent | {"privacy/clip": self.bound}
 
     def state_dict(self) -> dict:
         return {"bound": self.bound, "releases": self.releases}

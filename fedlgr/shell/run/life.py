@@ -481,6 +481,8 @@ def _privacy(config: ExperimentConfig, steps: Schedule) -> str:
     dp = config.federated.dp
     clip = f"{dp.clipping} clipping at {dp.clip:g}"
     line = f"client-level DP: {clip}, noise multiplier {dp.noise_multiplier:g}, delta {dp.delta:g}"
+    if dp.noise_multiplier == 0:
+        return f"client-level DP: {clip} and no noise - no privacy guarantee (epsilon infinite)"
     if dp.target_epsilon > 0:
         rate = config.federated.fraction
         spent = epsilon(dp.noise_multiplier, rate, len(steps), dp.delta)

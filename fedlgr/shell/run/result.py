@@ -104,10 +104,10 @@ class ExperimentResult:
 
     def privacy(self) -> str:
         """Client-level DP: the epsilon the run spent, at its delta, after its rounds."""
-        spent = self.final.server.get("privacy/epsilon") if self.rounds else None
-        if spent is None:
-            return ""
         dp = self.config.federated.dp
+        if not (dp.enabled and self.rounds):
+            return ""
+        spent = self.final.server.get("privacy/epsilon", math.inf)
         clip = self.final.server.get("privacy/clip", dp.clip)
         return (
             f"client-level DP: epsilon {spent:.3f} at delta {dp.delta:g} after "
