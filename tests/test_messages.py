@@ -106,7 +106,7 @@ def test_the_summary_averages_a_robot_s_costs_over_the_rounds_it_took_part_in(co
     cells = {line[:8].strip(): line[8:].split() for line in table.splitlines()[2:] if line.strip()}
     at = len(SCORES)
     cpu = {name: float(row[at]) for name, row in cells.items()}
-    assert cells["client 1"][at + 2 : at + 4] == ["2.0", "KB"]  # its upload, rounds 1 and 3
+    assert cells["client 1"][at + 2 : at + 4] == ["2.0", "KiB"]  # its upload, rounds 1 and 3
     assert cpu["client 0"] == (2 + 3 + 4) / 3  # rounds 1-3
     assert cpu["client 1"] == (3 + 5) / 2  # rounds 1 and 3: round 2 is missing
     assert cpu["mean"] == (2 + 3 + 4 + 3 + 5) / 5

@@ -198,8 +198,8 @@ def _nanmean(values) -> float:
 def _human_bytes(n: float | None) -> str:
     if n is None or math.isnan(n):
         return "-"
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
+    for unit in ("B", "KiB", "MiB", "GiB"):  # binary units, named as such
+        if n < 1024 or unit == "GiB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
     return str(n)

@@ -159,7 +159,7 @@ def remove_leftover(folder: Path, run_id: str) -> str:
     size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
     owner.release(folder)
     ckpt.remove(folder)
-    return f" (removed the checkpoint folder it left behind, {folder}: {size / 2**20:.0f} MB)"
+    return f" (removed the checkpoint folder it left behind, {folder}: {size / 2**20:.0f} MiB)"
 
 
 def checkpoint_folder(run, config: ExperimentConfig) -> Path:
