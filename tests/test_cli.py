@@ -300,3 +300,22 @@ def test_a_data_path_that_does_not_exist_is_named_before_torch_is_imported(tmp_p
         "holding the ratings CSV and images/; fedlgr data synth --out FOLDER writes one)"
     )
     assert done.stdout.strip() == "torch not imported"
+
+
+def test_run_help_names_every_setting_group_and_the_page_that_documents_it(capsys):
+    """Every section of the config (and federated.dp) is in ``fedlgr run --help``, each
+    with a docs page that exists."""
+    import dataclasses
+    from pathlib import Path
+
+    from fedlgr.shell.config import ExperimentConfig
+
+    out = _help(capsys, "run")
+    listed = out[out.index("settings, as key=value") :]
+    assert "  method, seed  " in listed
+    for f in dataclasses.fields(ExperimentConfig):
+        if f.name not in ("method", "seed"):
+            assert f"  {f.name}.*  " in listed, f.name
+    assert "  federated.dp.*" in listed
+    pages = set(re.findall(r"docs/\w+\.md", listed))
+    assert pages and all((Path(__file__).parents[1] / p).is_file() for p in pages), pages

@@ -13,6 +13,28 @@ from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.tracking.mlflow_run import tracking_uri
 
 
+# The setting groups and where each is documented (every setting with its default:
+# --print-config). Plain text: the help loads no config code.
+SETTINGS_EPILOG = """settings, as key=value (each one's default: fedlgr run --print-config):
+
+  method, seed         the paper's method name (FedRootAvg, FedLGR, ...); the seed
+                       docs/methods.md
+  data.*               the scenes (MANNERS-DB or synthetic), clients, split, tasks
+                       docs/data.md
+  model.*              the scholar: root, width, weights          docs/methods.md
+  train.*              local epochs, batches, learning rates      docs/methods.md
+  federated.*          strategy (+ federated.<strategy>.*), scope, rounds, fraction,
+                       server evaluation, norm checks, simulated faults
+                       docs/methods.md
+  federated.dp.*       client-level differential privacy          docs/privacy.md
+  continual.*          the task schedule, the CL method (+ continual.<method>.*)
+                       docs/fedlgr.md
+  runtime.*            processes, threads, devices, precision     docs/runtimes.md
+  tracking.*           the MLflow store, checkpoints, system metrics
+                       docs/tracking.md, docs/resume.md
+  deploy.*             robots behind Flower                       docs/deployment.md"""
+
+
 def add_parser(verbs: Verbs) -> None:
     parser = verbs.add_parser(
         "run",
@@ -20,6 +42,7 @@ def add_parser(verbs: Verbs) -> None:
         description="Run one federated experiment, tracked in MLflow. CONFIG is a YAML file "
         "(e.g. conf/experiment/table1/clients2_noaug.yaml); overrides are key=value, e.g. "
         "method=FedRootAvg data.path=/path/to/manners-db federated.rounds=5.",
+        epilog=SETTINGS_EPILOG,
     )
     parser.add_argument(
         "items",
