@@ -12,7 +12,6 @@ from fedlgr.shell.config import find_config, load_config, to_yaml
 from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.tracking.mlflow_run import tracking_uri
 
-
 # The setting groups and where each is documented (every setting with its default:
 # --print-config). Plain text: the help loads no config code.
 SETTINGS_EPILOG = """settings, as key=value (each one's default: fedlgr run --print-config):
