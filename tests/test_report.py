@@ -548,3 +548,30 @@ def test_runs_under_dp_are_rows_of_their_own_naming_epsilon_noise_and_clip(store
     assert rows["FedAvg"][1] == "**0.500**"
     assert rows["FedAvg, DP ε=3.46 (z=1.0, C=0.5)"][1].startswith("[0.700] (± 0.141, n=2)")
     assert rows["FedAvg, DP ε=0.50 (z=4.0, C=0.5)"][1] == "0.900"
+
+
+def test_paper_rows_give_the_published_values_under_each_method_unmarked(store, tmp_path):
+    """``--paper``: FedAvg's run, then the paper's FedAvg (Table I, W/O augmentation: 2
+    clients loss 0.264, RMSE 0.510, PCC 0.508; 10 clients 0.220, 0.467, 0.487), never marked
+    best; the paper's FedProx row under no run of it still shows; Table II's FedLGR row."""
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("side", artifact_location=tmp_path.as_uri())
+    _tracked_run(client, experiment_id, ["method=FedAvg"], _scores(0.9), start=1)
+    fcl = ["method=FedLGR", "continual.rounds_per_task=1"]
+    _tracked_run(client, experiment_id, fcl, {"after_task2/test/rmse": 0.7}, start=2)
+    assert main(["report", "--tracking-uri", store, "--experiment", "side", "--no-log",
+                 "--paper", "--out", str(tmp_path / "out")]) == 0  # fmt: skip
+    header, rows = markdown_blocks(tmp_path / "out" / "table1.md")["W/O augmentation"]
+    names = list(rows)
+    assert names.index("FedAvg (paper)") == names.index("FedAvg") + 1
+    assert rows["FedAvg"][1] == "**0.900**"
+    assert rows["FedAvg (paper)"][:3] == ["0.264", "0.510", "0.508"]
+    ten = header.index("10 clients · RMSE ▼") - 1
+    assert rows["FedAvg (paper)"][ten] == "0.467"
+    assert rows["FedAvg (paper)"][3] == "—"  # the paper has no CCC
+    assert rows["FedProx (paper)"][:3] == ["0.262", "0.507", "0.513"]  # unmarked
+    text = (tmp_path / "out" / "table1.md").read_text()
+    assert "published values (Churamani et al. 2024, arXiv:2405.15773, Table I" in text
+    _, rows2 = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
+    after = ["0.252", "0.499", "0.599", "—", "0.465", "0.677", "0.534", "—"]  # no CCC
+    assert rows2["FedLGR (paper)"][:8] == after

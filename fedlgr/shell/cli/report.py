@@ -61,6 +61,12 @@ def add_parser(verbs: Verbs) -> None:
         "--modality", choices=["image", "features"], help="only runs of this modality"
     )
     parser.add_argument("--no-log", action="store_true", help="write the files but log nothing")
+    parser.add_argument(
+        "--paper",
+        action="store_true",
+        help="Tables I and II also give the paper's published values (MANNERS-DB), a row "
+        "'METHOD (paper)' under each method's runs",
+    )
     parser.set_defaults(run=report)
 
 
@@ -85,6 +91,7 @@ def report(args: argparse.Namespace) -> int:
         modality=args.modality,
         where=where,
         log=not args.no_log,
+        paper=args.paper,
     )
     print(masked_text(result.summary(), uri))  # a database's password is not printed
     return 0

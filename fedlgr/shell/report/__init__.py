@@ -18,6 +18,7 @@ from fedlgr.shell.report.cells import best_per_cell, check_cells, newest_per_see
 from fedlgr.shell.report.plots import write_plots
 from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
 from fedlgr.shell.report.runs import ReportError, RunRecord, safe_name
+from fedlgr.shell.report.paper import with_paper
 from fedlgr.shell.report.tables import build_tables
 from fedlgr.shell.tracking.uri import mask_password
 
@@ -101,6 +102,7 @@ def make_report(
     modality: str | None = None,
     where: dict[str, str] | None = None,
     log: bool = True,
+    paper: bool = False,
 ) -> ReportResult:
     """Write the tables and plots of ``experiment`` or one study of ``sweep`` to ``out``
     (default ``reports/<experiment>`` or ``reports/sweeps/<sweep>/<study>-<parent run>``,
@@ -108,7 +110,8 @@ def make_report(
 
     Each cell averages replicates only (:mod:`~fedlgr.shell.report.cells`): repeats of one seed
     count once, runs of other settings in one cell are refused (narrow them with
-    ``where``, e.g. ``{"federated.rounds": "20"}``)."""
+    ``where``, e.g. ``{"federated.rounds": "20"}``). ``paper``: Tables I and II carry the
+    paper's published values under each method's runs (:mod:`~fedlgr.shell.report.paper`)."""
     if out is not None:  # before reading the store: a wrong --out fails at once
         _check_folder(Path(out))
     client = mlflow_runs.open_store(uri)
@@ -137,6 +140,7 @@ def make_report(
         raise ReportError(f"{out}: cannot create the report folder ({err.strerror})") from err
     result = ReportResult(out, selection.source, uri, len(records), notes=notes)
     for table in build_tables(records, selection.source, notes):
+        table = with_paper(table) if paper else table
         for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
             (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
         result.tables.append((table.name, table.runs))
