@@ -59,6 +59,7 @@ class Exchanges:
         self.grid, self.contents = grid, contents
         self.bytes: dict[str, float] = {}  # "secagg/setup_bytes_down" ...
         self.collected: dict[int, Message] = {}  # node -> its masked reply
+        self.failures: dict[int, str] = {}  # node -> its error reply, any stage
 
     def send_and_receive(self, messages, *, timeout: float | None = None) -> list[Message]:
         messages = list(messages)
@@ -77,6 +78,15 @@ class Exchanges:
                 replies.append(reply)
             if pending:
                 time.sleep(POLL_S)
+        for reply in replies:
+            if reply.has_error():
+                reason = " ".join(str(reply.error.reason).split())
+                self.failures[reply.metadata.src_node_id] = f"{stage}: {reason[:300]}"
+        late = {m.metadata.dst_node_id for m in messages} - {
+            r.metadata.src_node_id for r in replies
+        }
+        for node in late:
+            self.failures.setdefault(node, f"{stage}: no reply")
         if stage == Stage.COLLECT_MASKED_VECTORS:
             self.collected = {r.metadata.src_node_id: r for r in replies if not r.has_error()}
         else:
@@ -162,14 +172,16 @@ class SecureAggregation:
         started = time.monotonic()
         self.run_workflow(grid, adapter, plan.round)
         seconds = time.monotonic() - started
+        failed = "".join(f"; {rounds.nodes.name(n)}: {why}" for n, why in grid.failures.items())
         rounds.echo(
             f"round {plan.round}, secure train: {adapter.count} of {len(contents)} robots in "
-            f"the sum ({seconds:.1f} s)"
+            f"the sum ({seconds:.1f} s){failed}"
         )
         if adapter.mean is None:
             raise FedlgrError(
                 f"round {plan.round}: SecAgg+ gave no sum (fewer robots than its threshold "
                 f"answered within deploy.round_timeout_s={rounds.config.deploy.round_timeout_s:g})"
+                f"{failed}"
             )
         self.summed = (adapter.mean, adapter.count)
         self.figures = grid.bytes | {"secagg/seconds": seconds, "secagg/robots": adapter.count}
@@ -216,9 +228,15 @@ class SecureAggregation:
             return
         trained[client] = (node, TrainRes(client, {}, 0, figures, {}), size)
 
-    def release(self) -> None:
+    def release(self, unread: dict[int, str]) -> None:
         """The next global tensors from the round's sum (``ServerSide.update``, which
-        adds DP's noise), if the sum passes what a sum can be checked for."""
+        adds DP's noise), if the sum passes what a sum can be checked for. ``unread``:
+        robots whose clear records were refused (client -> why) - recorded, though their
+        updates are in the sum: SecAgg+ cannot take one out."""
+        self.server.refused = {
+            client: f"upload: {why} (its update is in the secure sum)"
+            for client, why in unread.items()
+        }
         mean, count = self.summed
         try:
             sums, total, payloads = unpack(mean * count, count, self.server, self.settings)

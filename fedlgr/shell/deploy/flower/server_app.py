@@ -159,7 +159,7 @@ class FlowerRounds:
 
         def aggregate() -> None:
             if self.secure is not None:
-                self.secure.release()
+                self.secure.release(unread)
             else:
                 uploads = (trained[c][1] for c in sorted(trained))
                 self.server.aggregate(uploads, self.capacity, unread)
