@@ -244,8 +244,9 @@ class SecureAggregation:
             self.rounds.echo(f"the round's secure sum is not taken: {err}")
             self.figures["secagg/sum_refused"] = 1.0
             return
-        dp = self.server.privacy is not None
-        self.figures["secagg/error_bound"] = masked.error_bound(self.settings, count, total, dp)
+        privacy = self.server.privacy  # under DP the sum is divided by q N, not by N / W
+        bound = masked.error_bound(self.settings, count, total, privacy is not None)
+        self.figures["secagg/error_bound"] = bound / (privacy.expected if privacy else 1)
         self.server.update(sums, total, payloads, count)
 
 
