@@ -20,6 +20,7 @@ import pytest
 from fedlgr.core.messages import nbytes
 from fedlgr.core.scope import initial_scholar
 from fedlgr.shell.deploy.roster import Roster
+from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.flower import Federation
 from tests.support.runs import FAST, fast_config, results_csv
@@ -484,3 +485,52 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
         )
     )
     assert_computes_what_one_process_computes(store, run, local, 6)
+
+
+def newest_global(store: str, run_id: str) -> dict:
+    """The global tensors of an in-process run's newest checkpoint (while it runs: a
+    finished run's checkpoints are removed)."""
+    folder = Path(store.removeprefix("sqlite:///")).parent / "checkpoints" / run_id
+    newest = max(folder.glob("round-*.ckpt"), key=lambda p: int(p.stem.split("-")[1]))
+    return ckpt.load(newest)["server"]["global"]
+
+
+def test_secure_aggregation_gives_the_plain_mean_within_its_quantisation_bound(
+    federation, synth_dir, cache_dir, store
+):
+    """FedAvg with deploy.secagg on two robots, one round: the server sees the sum of the
+    robots' masked vectors only (SecAgg+: 4 exchanges, then the evaluation), and its new
+    global tensors are the in-process run's (the same uploads, same seed) within the
+    quantisation bound it records (secagg/error_bound: robots x 2c/Q x max_samples / the
+    summed sample count; docs/deployment.md) plus one float32 rounding of each side."""
+    ensure_online(federation, synth_dir, "robot0", "robot1")
+    secagg = ["deploy.secagg.enabled=true", "deploy.secagg.max_samples=100"]
+    flower, out = flower_run(federation, synth_dir, store, "secagg", "method=FedAvg", *secagg)
+    assert "round 1, secure train: 2 of 2 robots in the sum" in out, out[-3000:]
+    ids, kept = [], []
+    run_experiment(
+        fast_config(synth_dir, cache_dir, store, "method=FedAvg", "tracking.run_name=local-sa"),
+        on_start=ids.append,
+        on_round=lambda _round, _metrics: kept.append(newest_global(store, ids[0])),
+    )
+    client = mlflow.MlflowClient(store)
+    [(_, bound)] = history(client, flower.info.run_id, "secagg/error_bound")
+    assert 0 < bound < 1e-4
+    [theirs] = kept
+    worst = 0.0
+    for robot, slot in (("robot0", 0), ("robot1", 1)):  # the global tensors each scored
+        state = federation.robot_dir(robot) / f"run-{flower.info.run_id}" / f"client-{slot}.ckpt"
+        ours = ckpt.load(state)["client"]["model"]
+        for key, value in theirs.items():
+            error = (ours[key].double() - value.double()).abs()
+            # the bound, and each side's float64 -> float32 rounding (half an ulp each)
+            assert bool((error <= bound + 2.0**-23 * value.double().abs()).all()), key
+            worst = max(worst, float(error.max()))
+    print(f"secagg: max error {worst:.3g}, bound {bound:.3g}")
+    # each robot's bytes up: its masked vector (int64 per value: twice the float32 upload)
+    up = history(client, flower.info.run_id, "cost/client0/bytes_up")[0][1]
+    assert up > 2 * sum(v.numel() * 4 for v in theirs.values())
+    # the key stages' messages, counted; the robots' training figures came in the clear
+    assert history(client, flower.info.run_id, "secagg/setup_bytes_up")[0][1] > 0
+    rows = {(r["round"], r["client"]): r for r in results_csv(client, flower.info.run_id)}
+    assert rows[("1", "0")]["train_loss"] != "" and rows[("1", "1")]["test_loss"] != ""

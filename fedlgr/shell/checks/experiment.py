@@ -37,6 +37,7 @@ def check_experiment(config: ExperimentConfig) -> None:
     _train_blocks(config)
     _model_fits(config)
     _privacy_fits(config)
+    _secure_aggregation_fits(config)
 
 
 def _rounds_in_all(config: ExperimentConfig) -> None:
@@ -147,6 +148,45 @@ def _model_fits(config: ExperimentConfig) -> None:
             f"parameters and buffers, {format_bytes(need)} to train (4 bytes each for the "
             "weights, gradients and Adam's two moments), more than this machine's "
             f"{format_bytes(have)} of memory (psutil.virtual_memory().total)"
+        )
+
+
+def _secure_aggregation_fits(config: ExperimentConfig) -> None:
+    """SecAgg+ (``deploy.secagg``) gives the server the sum of the chosen robots' updates
+    only: a statistic of the uploads cannot be taken; a round needs two robots or more
+    (one robot's "sum" is its update); the sum of the sample counts is rounded to a whole
+    number, which the quantisation error must leave unambiguous."""
+    secagg, federated = config.deploy.secagg, config.federated
+    if not secagg.enabled:
+        return
+    strategy = STRATEGIES[federated.strategy]
+    if strategy.load().needs_uploads:  # imports torch: with SecAgg only
+        raise ConfigError(
+            f"deploy.secagg.enabled with federated.strategy={federated.strategy}: a "
+            f"{strategy.key} aggregate needs every robot's upload, and SecAgg+ gives the "
+            "server their sum only; use a mean-based strategy (avg, bn, prox, opt, avgm, "
+            "scaffold, distill)"
+        )
+    clients, fraction = config.data.clients, federated.fraction
+    if federated.dp.enabled and fraction < 1:
+        raise ConfigError(
+            f"deploy.secagg.enabled with federated.dp and federated.fraction={fraction:g}: "
+            "DP samples each robot independently, so a round may choose one robot, whose "
+            "update SecAgg+ cannot hide; use federated.fraction=1"
+        )
+    if (chosen := max(1, round(fraction * clients))) < 2:
+        raise ConfigError(
+            f"deploy.secagg.enabled: a round chooses {chosen} robot (data.clients={clients}, "
+            f"federated.fraction={fraction:g}); SecAgg+ needs 2 or more to hide each update"
+        )
+    step = 2 * secagg.clipping_range / secagg.quantization_range  # one quantisation level
+    if clients * secagg.max_samples * step >= 0.5:
+        raise ConfigError(
+            f"deploy.secagg.max_samples={secagg.max_samples}: with clipping_range="
+            f"{secagg.clipping_range:g} and quantization_range={secagg.quantization_range} "
+            f"the summed sample count of {clients} robots is off by up to "
+            f"{clients * secagg.max_samples * step:.3g}, which cannot be rounded to the "
+            "whole count: raise quantization_range or lower max_samples"
         )
 
 

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
         FederatedConfig,
         ModelConfig,
         RuntimeConfig,
+        SecAggConfig,
         TrackingConfig,
         TrainConfig,
     )
@@ -205,6 +206,30 @@ def check_deploy(deploy: DeployConfig) -> None:
     for name in ("join_timeout_s", "round_timeout_s"):
         if not getattr(deploy, name) > 0:
             raise ConfigError(f"deploy.{name}={getattr(deploy, name)}: must be > 0")
+
+
+MODULUS = 2**32  # SecAgg+'s masks: sums of quantised values must stay below it
+
+
+def check_secagg(secagg: SecAggConfig) -> None:
+    """SecAgg+'s ranges (Flower's ``SecAggPlusWorkflow``): a sum of quantised values over
+    up to 1024 robots stays below the masks' modulus 2^32."""
+    check_numbers("deploy.secagg.", secagg)
+    if not secagg.clipping_range > 0:
+        raise ConfigError(f"deploy.secagg.clipping_range={secagg.clipping_range}: must be > 0")
+    if not 2 <= secagg.quantization_range <= MODULUS // 1024:
+        raise ConfigError(
+            f"deploy.secagg.quantization_range={secagg.quantization_range}: must be in [2, "
+            f"2^22] (1024 robots' quantised values must sum below SecAgg+'s modulus 2^32)"
+        )
+    positive("deploy.secagg.max_samples", secagg.max_samples)
+    of = {"shares": "the round's robots", "threshold": "the shares"}
+    for name, whole in of.items():
+        if not 0 < getattr(secagg, name) <= 1:
+            raise ConfigError(
+                f"deploy.secagg.{name}={getattr(secagg, name)}: must be in (0, 1] (a share "
+                f"of {whole})"
+            )
 
 
 def check_tracking(tracking: TrackingConfig) -> None:

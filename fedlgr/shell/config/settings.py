@@ -21,6 +21,7 @@ from fedlgr.shell.checks.settings import (
     check_federated,
     check_model,
     check_runtime,
+    check_secagg,
     check_tracking,
     check_train,
 )
@@ -206,6 +207,23 @@ class RuntimeConfig:
 
 
 @dataclass(frozen=True)
+class SecAggConfig:
+    """Secure aggregation on robots (Flower's SecAgg+, docs/deployment.md): the server
+    sees only the sum of the chosen robots' masked, clipped and quantised updates."""
+
+    enabled: bool = False
+    clipping_range: float = 1.0  # every value sent is clipped to [-this, this]
+    quantization_range: int = 4_194_304  # 2^22 levels over [-clipping_range, clipping_range]
+    # the most training samples a robot weighs: its update travels as n / max_samples x update
+    max_samples: int = 1000
+    shares: float = 1.0  # the share of the round's robots each robot's key is split among
+    threshold: float = 0.5  # the share of those shares that rebuilds a key (at least 2)
+
+    def __post_init__(self) -> None:
+        check_secagg(self)
+
+
+@dataclass(frozen=True)
 class DeployConfig:
     """Real robots behind a Flower SuperLink (``fedlgr deploy``; docs/deployment.md)."""
 
@@ -220,6 +238,7 @@ class DeployConfig:
     # its robots take part, each in its slot; "none": any node that joins (no SuperNode
     # authentication, --insecure test machines only)
     roster: str | None = None
+    secagg: SecAggConfig = field(default_factory=SecAggConfig)
 
     def __post_init__(self) -> None:
         check_deploy(self)

@@ -3,13 +3,18 @@
 It is deliberately thin (no torch): it passes the message to the robot's long-lived
 service (:mod:`.service`), which holds the robot's data, model and private state
 (:mod:`.robot`), and sends back its reply. A failure on the robot becomes Flower's error
-reply, which the server reports with the robot's message.
+reply, which the server reports with the robot's message. In a SecAgg+ round
+(``deploy.secagg``) Flower's ``secaggplus_mod`` answers the protocol's key stages itself
+and masks the robot's reply (:mod:`.masked`) before it leaves.
 """
 
 from __future__ import annotations
 
 from flwr.app import Context, Message
+from flwr.client.mod import secaggplus_mod
 from flwr.clientapp import ClientApp
+from flwr.clientapp.typing import ClientAppCallable
+from flwr.common.secure_aggregation.secaggplus_constants import RECORD_KEY_CONFIGS
 
 from fedlgr.shell.deploy.flower import service
 
@@ -35,7 +40,16 @@ def check_slot(node_config: dict, content) -> None:
         )
 
 
-@app.train()
+def secure_mod(msg: Message, context: Context, call_next: ClientAppCallable) -> Message:
+    """Flower's ``secaggplus_mod`` for the messages of a SecAgg+ round (``deploy.secagg``:
+    they carry its record); every other message goes to the robot unchanged - the mod
+    itself would refuse a train message without that record."""
+    if RECORD_KEY_CONFIGS in msg.content.config_records:
+        return secaggplus_mod(msg, context, call_next)
+    return call_next(msg, context)
+
+
+@app.train(mods=[secure_mod])
 def train(msg: Message, context: Context) -> Message:
     return _reply("train", msg, context)
 

@@ -39,7 +39,7 @@ from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.config import ExperimentConfig, check_sent_settings, config_from_data, to_yaml
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import FederatedSplit, make_split
-from fedlgr.shell.deploy.flower import wire
+from fedlgr.shell.deploy.flower import masked, wire
 from fedlgr.shell.deploy.flower.link import encode, state_dir
 from fedlgr.shell.machine import torch_threads
 from fedlgr.shell.run import checkpoint as ckpt
@@ -268,6 +268,21 @@ def _malformed(kind: str):
         ) from None
 
 
+def secure_reply(res, ins, settings, evaluated):
+    """A SecAgg+ round's reply (:mod:`.masked`): the update from the global tensors the
+    server sent with the message (it always sends them in such a round)."""
+    if ins.weights is None:
+        raise FedlgrError("a SecAgg+ train message without the global tensors: refused")
+    content, outside = masked.encode_secure_res(res, ins.weights, settings, evaluated)
+    if outside:
+        print(
+            f"round {ins.plan.round}: {outside} values outside deploy.secagg.clipping_range="
+            f"{float(settings['clipping_range']):g} are clipped by SecAgg+",
+            flush=True,
+        )
+    return content
+
+
 def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
     """The reply (Flower's encoding of its content) to a ``train`` or ``evaluate``
     message's content. The robot's state is kept under the run the server names (its
@@ -281,9 +296,13 @@ def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
         client = robot(run, node_config, config_yaml, slot)
         identity = ["train", ins.plan.round, -1 if evaluate is None else evaluate.plan.round]
 
+        secure = content.config_records.get(masked.RECORD)  # deploy.secagg: SecAgg+ round
+
         def work():
             evaluated = None if evaluate is None else client.evaluate(evaluate)  # last round's
-            return wire.encode_train_res(client.train(ins), evaluated)
+            if secure is None:
+                return wire.encode_train_res(client.train(ins), evaluated)
+            return secure_reply(client.train(ins), ins, secure, evaluated)
 
         return client.answer(identity, work)
     if kind == "evaluate":

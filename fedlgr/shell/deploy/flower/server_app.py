@@ -65,6 +65,7 @@ from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.deploy.flower import wire
 from fedlgr.shell.deploy.flower.nodes import Nodes, quorum
+from fedlgr.shell.deploy.flower.secure import SecureAggregation
 from fedlgr.shell.deploy.roster import roster_of
 from fedlgr.shell.run.life import Hooks, RunLife
 from fedlgr.shell.run.resume import resume_point
@@ -111,6 +112,7 @@ class FlowerRounds:
         # round, trained in the exchange that evaluated this one (with_next_round)
         self.pending: tuple[RoundPlan, dict, dict[int, int], dict[int, str]] | None = None
         self.missed: list[str] = []  # "round 2: robot1 (client 1)"
+        self.secure = SecureAggregation(self) if config.deploy.secagg.enabled else None
 
     # ------------------------------------------------------------------ MLflow tags
 
@@ -145,6 +147,8 @@ class FlowerRounds:
         chosen = self.server.chosen(plan)
         if self.pending is not None and self.pending[0] == plan:
             _, trained, down, failures = self.pending
+        elif self.secure is not None:  # deploy.secagg: the server gets the sum only
+            (trained, down), failures = self.secure.train(plan, chosen), {}
         else:
             trained, down = self.train(plan, chosen)
             failures = dict(self.nodes.failures)
@@ -152,14 +156,16 @@ class FlowerRounds:
         self.check_quorum(plan.round, trained, chosen, failures)
         # In client order, as in one process: the same sums to the last bit.
         unread = self.unread.pop(plan.round, {})
+
+        def aggregate() -> None:
+            if self.secure is not None:
+                self.secure.release(unread)
+            else:
+                uploads = (trained[c][1] for c in sorted(trained))
+                self.server.aggregate(uploads, self.capacity, unread)
+
         server, initial = serve_round(
-            self.server,
-            self.server_eval,
-            plan.round,
-            plan.task,
-            lambda: self.server.aggregate(
-                (trained[c][1] for c in sorted(trained)), self.capacity, unread
-            ),
+            self.server, self.server_eval, plan.round, plan.task, aggregate
         )
         self.bad_scores = {}
         rows = self.evaluate(plan, chosen, trained, down)
@@ -170,7 +176,8 @@ class FlowerRounds:
         log = self.server.round_log(
             plan, table, time.perf_counter() - start, missing, participants=chosen
         )
-        log.server, log.initial = server | self.server.figures(), initial
+        secure = {} if self.secure is None else self.secure.figures
+        log.server, log.initial = server | self.server.figures() | secure, initial
         log.names = dict(self.names)
         for client, why in self.bad_scores.items():  # their rows are left out
             said = log.refused.get(client)
@@ -300,6 +307,8 @@ class FlowerRounds:
     def next_plan(self, round_: int) -> RoundPlan | None:
         """The plan of the round after ``round_`` where its training goes with this
         round's evaluation (``deploy.evaluate=with_next_round``), else None."""
+        if self.secure is not None:  # SecAgg+'s exchanges train; the evaluation is its own
+            return None
         if self.config.deploy.evaluate != "with_next_round" or round_ >= len(self.steps):
             return None
         return self.steps[round_]  # steps are 1-based rounds: this is round_ + 1

@@ -206,10 +206,15 @@ def encode_train_res(res: TrainRes, evaluated: EvaluateRes | None = None) -> Rec
     content = RecordDict({"report": report, "figures": ConfigRecord(dict(res.figures))})
     put_weights(content, "shared", res.weights)
     _put_payload(content, res.payload)
+    put_evaluated(content, evaluated)
+    return content
+
+
+def put_evaluated(content: RecordDict, evaluated: EvaluateRes | None) -> None:
+    """The previous round's scores, where a train reply carries them."""
     if evaluated is not None:
         for name, record in _evaluate_records(evaluated).items():
             content[f"evaluated.{name}"] = record
-    return content
 
 
 def decode_train_res(content: RecordDict, device: torch.device | str = "cpu") -> TrainRes:

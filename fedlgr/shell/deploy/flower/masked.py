@@ -1,0 +1,111 @@
+"""What a robot puts into SecAgg+'s masked sum (``deploy.secagg``), and how the server
+reads the sum back: one float64 vector per robot, the same layout on both sides.
+
+The layout, in order: each shared tensor of the server's key order (the order of the
+global tensors in the train message), flattened; the strategy's payload tensors by sorted
+key; the robot's weight; under DP its "within the clip norm" bit
+(:data:`fedlgr.core.privacy.UNCLIPPED`).
+
+Without DP the robot sends its update (its shared tensors minus the global ones it trained
+from) times ``n / max_samples`` and its weight ``n / max_samples`` (``n``: its sample
+count), the payload as it is: the sum gives the sample-weighted sum of the updates, the sum
+of the counts and the plain sum of the payloads, as :meth:`ServerSide.sums` does. Under DP
+(``federated.dp``) it clips its update and payload together to the server's clip norm
+(:func:`fedlgr.core.privacy.clip`, as ``Privacy.clipped`` does on the server) and weighs 1.
+Flower's SecAgg+ weighs every robot 1 (``num_examples`` 1, ``max_weight`` 1), so no weight
+is quantised: the weights travel inside the vector.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import flwr.compat.common.recorddict_compat as compat
+import numpy as np
+import torch
+from flwr.app import ConfigRecord, RecordDict
+from flwr.common import Code, FitRes, Status, ndarrays_to_parameters
+
+from fedlgr.core.messages import EvaluateRes, TrainRes, Weights
+from fedlgr.core.privacy import UNCLIPPED, clip
+from fedlgr.shell.deploy.flower import wire
+
+WEIGHT = "secagg/weight"  # the robot's n / max_samples (1 under DP)
+RECORD = "fedlgr.secagg"  # the train message's SecAgg settings (a ConfigRecord)
+HIDDEN = ("train/samples",)  # figures a robot keeps to itself: its count is in the sum
+
+
+def layout(shared: Mapping[str, torch.Tensor], payload: Mapping[str, torch.Tensor], dp: bool):
+    """(key, shape) of each part of the vector, in its order."""
+    parts = [(f"w/{k}", tuple(t.shape)) for k, t in shared.items()]
+    parts += [(f"p/{k}", tuple(payload[k].shape)) for k in sorted(payload)]
+    parts.append((WEIGHT, ()))
+    if dp:
+        parts.append((UNCLIPPED, ()))
+    return parts
+
+
+def robot_vector(res: TrainRes, start: Weights, settings: Mapping) -> tuple[np.ndarray, int]:
+    """A robot's vector (float64) for its upload ``res`` trained from the global tensors
+    ``start``; ``settings``: the message's :data:`RECORD` (``clip`` > 0: DP's clip norm,
+    else ``max_samples``). Also: how many of its values SecAgg+ will clip to
+    ``clipping_range`` (0 unless the range is too small for this update)."""
+    update = {f"w/{k}": res.weights[k].double() - start[k].double() for k in start}
+    update |= {f"p/{k}": v.double() for k, v in res.payload.items()}
+    bound = float(settings["clip"])
+    if bound > 0:  # DP: clipped here, as the server would (it cannot: it sees the sum)
+        update, size = clip(update, bound)
+        update[WEIGHT] = torch.tensor(1.0, dtype=torch.float64)
+        update[UNCLIPPED] = torch.tensor(float(size <= bound), dtype=torch.float64)
+    else:
+        weight = float(res.n_samples) / int(settings["max_samples"])
+        update = {k: v * weight if k.startswith("w/") else v for k, v in update.items()}
+        update[WEIGHT] = torch.tensor(weight, dtype=torch.float64)
+    parts = layout(start, res.payload, bound > 0)
+    vector = np.concatenate([update[k].cpu().numpy().reshape(-1) for k, _ in parts])
+    outside = int(np.count_nonzero(np.abs(vector) > float(settings["clipping_range"])))
+    return vector.astype(np.float64), outside
+
+
+def split(vector: np.ndarray, parts: list[tuple[str, tuple[int, ...]]]) -> Weights:
+    """The vector's parts by key (float64 tensors); a length that is not the layout's is
+    refused."""
+    size = sum(int(np.prod(shape)) for _, shape in parts)
+    if vector.size != size:
+        raise ValueError(f"a SecAgg+ sum of {vector.size} values, the layout has {size}")
+    out, at = {}, 0
+    for key, shape in parts:
+        count = int(np.prod(shape))
+        out[key] = torch.from_numpy(vector[at : at + count].reshape(shape).copy()).double()
+        at += count
+    return out
+
+
+def error_bound(secagg, robots: int, total: float, dp: bool) -> float:
+    """The most one coordinate of the released mean update can be off from the plain
+    mean of the same updates (none clipped by ``clipping_range``): each robot's value is
+    stochastically rounded to a step of ``2 c / Q`` (off by less than one step), so the sum
+    of ``robots`` values is off by less than ``robots x 2c/Q``; without DP the sum is of
+    ``n / W x update`` and is divided by ``total / W`` (``total``: the summed sample
+    count), under DP it is the sum itself (divide by ``q N`` for the mean)."""
+    step = 2 * secagg.clipping_range / secagg.quantization_range
+    if dp:
+        return robots * step
+    return robots * step * secagg.max_samples / total
+
+
+def encode_secure_res(
+    res: TrainRes, start: Weights, settings: Mapping, evaluated: EvaluateRes | None = None
+) -> tuple[RecordDict, int]:
+    """A robot's SecAgg+ train reply before Flower's ``secaggplus_mod`` masks it: its
+    vector as a legacy ``FitRes`` (weight 1), and in the clear its client, its training
+    figures but its sample count (:data:`HIDDEN`) and the previous round's scores. Also: how many
+    values ``clipping_range`` clips (:func:`robot_vector`)."""
+    vector, outside = robot_vector(res, start, settings)
+    fit = FitRes(Status(Code.OK, ""), ndarrays_to_parameters([vector]), 1, {})
+    content = compat.fitres_to_recorddict(fit, keep_input=False)
+    content["report"] = ConfigRecord({"client": res.client})
+    clear = {k: v for k, v in res.figures.items() if k not in HIDDEN}
+    content["figures"] = ConfigRecord(clear)
+    wire.put_evaluated(content, evaluated)
+    return content, outside

@@ -1,0 +1,275 @@
+"""Secure aggregation on robots (``deploy.secagg``): a round's training through Flower's
+SecAgg+ (``flwr.server.workflow.SecAggPlusWorkflow``; the robots' ClientApp runs
+``flwr.client.mod.secaggplus_mod``), so that the server sees only the sum of the chosen
+robots' vectors (:mod:`.masked`: their updates, clipped and quantised, their weights and
+payloads), never one robot's.
+
+The workflow is Flower's own, run as it is, with two fedlgr pieces around it:
+:class:`Adapter`, a legacy ``Strategy`` whose ``configure_fit`` names the chosen robots'
+nodes and whose ``aggregate_fit`` keeps the unmasked vector; and :class:`Exchanges`, the
+grid the workflow talks through, which sends fedlgr's own train message (the wire
+encoding, with the global tensors and the SecAgg settings) in the stage that collects
+the masked vectors, polls every 0.2 s instead of 3 s, and counts each stage's bytes.
+
+The server checks what a sum allows - that it is finite, that two robots or more are in
+it, that the summed sample count is at least one per robot - and nothing of a single
+upload (docs/deployment.md, "Secure aggregation").
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from flwr.app import ArrayRecord, ConfigRecord, Context, Message, RecordDict
+from flwr.common import FitIns, parameters_to_ndarrays
+from flwr.common.secure_aggregation.secaggplus_constants import RECORD_KEY_CONFIGS, Key, Stage
+from flwr.server.compat.grid_client_proxy import GridClientProxy
+from flwr.server.compat.legacy_context import LegacyContext
+from flwr.server.strategy import Strategy
+from flwr.server.workflow import SecAggPlusWorkflow
+from flwr.server.workflow.constant import MAIN_CONFIGS_RECORD, MAIN_PARAMS_RECORD
+from flwr.server.workflow.constant import Key as WorkflowKey
+
+from fedlgr.core.messages import TrainRes
+from fedlgr.core.privacy import UNCLIPPED
+from fedlgr.errors import FedlgrError
+from fedlgr.shell.deploy.flower import masked, wire
+from fedlgr.shell.deploy.flower.link import encode
+from fedlgr.shell.deploy.flower.nodes import POLL_S
+
+if TYPE_CHECKING:
+    from flwr.serverapp import Grid
+
+    from fedlgr.core.messages import RoundPlan
+
+STAGES = {Stage.SETUP: "setup", Stage.SHARE_KEYS: "keys", Stage.UNMASK: "unmask"}
+# MALFORMED, and what Flower's arithmetic raises on a masked vector of another shape
+PROTOCOL_ERRORS = (*wire.MALFORMED, np.exceptions.AxisError)
+
+
+class Exchanges:
+    """The grid SecAgg+ talks through: the real one, polled every 0.2 s, each stage's
+    messages counted (their protobuf encoding, both ways); the collect stage's messages
+    are fedlgr's train messages (``contents``) and its replies are kept."""
+
+    def __init__(self, grid: Grid, contents: dict[int, RecordDict]):
+        self.grid, self.contents = grid, contents
+        self.bytes: dict[str, float] = {}  # "secagg/setup_bytes_down" ...
+        self.collected: dict[int, Message] = {}  # node -> its masked reply
+        self.failures: dict[int, str] = {}  # node -> its error reply, any stage
+
+    def send_and_receive(self, messages, *, timeout: float | None = None) -> list[Message]:
+        messages = list(messages)
+        stage = str(messages[0].content.config_records[RECORD_KEY_CONFIGS][Key.STAGE])
+        if stage == Stage.COLLECT_MASKED_VECTORS:
+            for m in messages:  # fedlgr's train message, with SecAgg's record added
+                record = m.content.config_records[RECORD_KEY_CONFIGS]
+                m.content = self.contents[m.metadata.dst_node_id]
+                m.content.config_records[RECORD_KEY_CONFIGS] = record
+        pending = {i for i in self.grid.push_messages(messages) if i}
+        replies: list[Message] = []
+        deadline = time.monotonic() + (timeout if timeout is not None else 1e9)
+        while pending and time.monotonic() < deadline:
+            for reply in self.grid.pull_messages(list(pending)):
+                pending.discard(reply.metadata.reply_to_message_id)
+                replies.append(reply)
+            if pending:
+                time.sleep(POLL_S)
+        for reply in replies:
+            if reply.has_error():
+                reason = " ".join(str(reply.error.reason).split())
+                self.failures[reply.metadata.src_node_id] = f"{stage}: {reason[:300]}"
+        late = {m.metadata.dst_node_id for m in messages} - {
+            r.metadata.src_node_id for r in replies
+        }
+        for node in late:
+            self.failures.setdefault(node, f"{stage}: no reply")
+        if stage == Stage.COLLECT_MASKED_VECTORS:
+            self.collected = {r.metadata.src_node_id: r for r in replies if not r.has_error()}
+        else:
+            name = STAGES.get(stage, stage)
+            down = sum(len(encode(m.content)) for m in messages)
+            up = sum(len(encode(r.content)) for r in replies if not r.has_error())
+            self.bytes[f"secagg/{name}_bytes_down"] = float(down)
+            self.bytes[f"secagg/{name}_bytes_up"] = float(up)
+        return replies
+
+
+class Adapter(Strategy):
+    """The legacy strategy SecAgg+ needs: ``configure_fit`` chooses the given nodes (what
+    they are sent is fedlgr's, :class:`Exchanges`), ``aggregate_fit`` keeps the sum."""
+
+    def __init__(self, grid: Grid, nodes: list[int], run_id: int):
+        self.proxies = [GridClientProxy(n, grid, run_id) for n in nodes]
+        self.mean: np.ndarray | None = None  # the unmasked vector over its robots
+        self.count = 0  # the robots in it
+
+    def configure_fit(self, server_round, parameters, client_manager):
+        return [(proxy, FitIns(parameters, {})) for proxy in self.proxies]
+
+    def aggregate_fit(self, server_round, results, failures):
+        if results:
+            [self.mean] = parameters_to_ndarrays(results[0][1].parameters)
+            self.count = len(results)
+        return None, {}
+
+    def initialize_parameters(self, client_manager):
+        return None
+
+    def configure_evaluate(self, server_round, parameters, client_manager):
+        return []
+
+    def aggregate_evaluate(self, server_round, results, failures):
+        return None, {}
+
+    def evaluate(self, server_round, parameters):
+        return None
+
+
+class SecureAggregation:
+    """A round's training and aggregation under SecAgg+ for :class:`FlowerRounds`
+    (``rounds``: its nodes, its refusals and the ServerSide)."""
+
+    def __init__(self, rounds):
+        self.rounds, self.server = rounds, rounds.server
+        self.settings = rounds.config.deploy.secagg
+        self.summed: tuple[np.ndarray, int] | None = None
+        self.figures: dict[str, float] = {}
+
+    def record(self) -> dict:
+        """The SecAgg settings a train message carries (:data:`masked.RECORD`)."""
+        privacy = self.server.privacy
+        return {
+            "clip": 0.0 if privacy is None else float(privacy.bound),
+            "max_samples": int(self.settings.max_samples),
+            "clipping_range": float(self.settings.clipping_range),
+        }
+
+    def train(self, plan: RoundPlan, chosen: list[int]) -> tuple[dict, dict]:
+        """The chosen robots' training, summed by SecAgg+: their figures by client
+        (``client -> (node, TrainRes without tensors, bytes of its masked vector)``) and
+        each node's bytes down (fedlgr's train message)."""
+        rounds = self.rounds
+        contents, down = {}, {}
+        for node in rounds.nodes.online():
+            slot = rounds.nodes.slots[node]
+            if slot is not None and slot not in chosen:
+                continue
+            ins = self.server.train_ins(plan, slot, holds_global=False)  # the update's origin
+            content = wire.encode_train_ins(ins, rounds.config_yaml, client=slot)
+            content[masked.RECORD] = ConfigRecord(self.record())
+            contents[node] = wire.stamp_run(content, rounds.run_id or "")
+            down[node] = wire.payload_bytes(content)
+        if len(contents) < 2:
+            raise FedlgrError(
+                f"round {plan.round}: {len(contents)} chosen robot online; deploy.secagg "
+                "needs 2 or more to hide each update"
+            )
+        grid, adapter = Exchanges(rounds.grid, contents), Adapter(rounds.grid, list(contents), 0)
+        started = time.monotonic()
+        self.run_workflow(grid, adapter, plan.round)
+        seconds = time.monotonic() - started
+        failed = "".join(f"; {rounds.nodes.name(n)}: {why}" for n, why in grid.failures.items())
+        rounds.echo(
+            f"round {plan.round}, secure train: {adapter.count} of {len(contents)} robots in "
+            f"the sum ({seconds:.1f} s){failed}"
+        )
+        if adapter.mean is None:
+            raise FedlgrError(
+                f"round {plan.round}: SecAgg+ gave no sum (fewer robots than its threshold "
+                f"answered within deploy.round_timeout_s={rounds.config.deploy.round_timeout_s:g})"
+                f"{failed}"
+            )
+        self.summed = (adapter.mean, adapter.count)
+        self.figures = grid.bytes | {"secagg/seconds": seconds, "secagg/robots": adapter.count}
+        trained = {}
+        for node, reply in grid.collected.items():
+            self.keep(trained, node, reply, plan.round)
+        return trained, down
+
+    def run_workflow(self, grid: Exchanges, adapter: Adapter, round_: int) -> None:
+        s = self.settings
+        workflow = SecAggPlusWorkflow(
+            s.shares,
+            s.threshold,
+            max_weight=1.0,  # every robot weighs 1: its weight is in its vector (.masked)
+            clipping_range=float(s.clipping_range),
+            quantization_range=int(s.quantization_range),
+            timeout=self.rounds.config.deploy.round_timeout_s,
+        )
+        state = RecordDict()
+        state[MAIN_CONFIGS_RECORD] = ConfigRecord({WorkflowKey.CURRENT_ROUND: round_})
+        state[MAIN_PARAMS_RECORD] = ArrayRecord()  # no global parameters: fedlgr sends its own
+        context = LegacyContext(Context(0, 0, {}, state, {}), strategy=adapter)
+        try:
+            workflow(grid, context)
+        except PROTOCOL_ERRORS as err:
+            raise FedlgrError(
+                f"round {round_}: SecAgg+ failed ({type(err).__name__}: {err}); a robot sent "
+                "a masked vector of another layout"
+            ) from None
+
+    def keep(self, trained: dict, node: int, reply: Message, round_: int) -> None:
+        """A robot's figures from its masked reply (in the clear beside the vector)."""
+        slot = self.rounds.nodes.slots.get(node)
+        try:
+            records = reply.content.config_records
+            client = int(records["report"]["client"])
+            figures = {str(k): float(v) for k, v in records["figures"].items()}
+            size = sum(len(b) for b in records[RECORD_KEY_CONFIGS][Key.MASKED_PARAMETERS])
+        except wire.MALFORMED as err:
+            self.rounds.refuse(round_, node, slot, "upload", f"cannot be read ({err!r:.200})")
+            return
+        if slot is not None and client != slot:
+            self.rounds.refuse(round_, node, slot, "upload", f"it claims to be client {client}'s")
+            return
+        trained[client] = (node, TrainRes(client, {}, 0, figures, {}), size)
+
+    def release(self, unread: dict[int, str]) -> None:
+        """The next global tensors from the round's sum (``ServerSide.update``, which
+        adds DP's noise), if the sum passes what a sum can be checked for. ``unread``:
+        robots whose clear records were refused (client -> why) - recorded, though their
+        updates are in the sum: SecAgg+ cannot take one out."""
+        self.server.refused = {
+            client: f"upload: {why} (its update is in the secure sum)"
+            for client, why in unread.items()
+        }
+        mean, count = self.summed
+        try:
+            sums, total, payloads = unpack(mean * count, count, self.server, self.settings)
+        except ValueError as err:
+            self.rounds.echo(f"the round's secure sum is not taken: {err}")
+            self.figures["secagg/sum_refused"] = 1.0
+            return
+        privacy = self.server.privacy  # under DP the sum is divided by q N, not by N / W
+        bound = masked.error_bound(self.settings, count, total, privacy is not None)
+        self.figures["secagg/error_bound"] = bound / (privacy.expected if privacy else 1)
+        self.server.update(sums, total, payloads, count)
+
+
+def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, float, dict]:
+    """What ``ServerSide.update`` takes, from the sum of ``count`` robots' vectors
+    (:mod:`.masked`): the sums of their weighted tensors (sum of weighted updates plus the
+    summed weight times the global tensors), the summed sample count (rounded: a whole
+    number; ``count`` under DP) and the payloads' sums (with DP's unclipped count, rounded).
+    A sum that is not finite, or whose sample count is under one per robot, is refused
+    (``ValueError``)."""
+    dp = server.privacy is not None
+    payload = server.strategy.payload_template()
+    parts = masked.layout(server.global_weights, payload, dp)
+    found = masked.split(np.asarray(summed, dtype=np.float64), parts)
+    if not all(bool(torch.isfinite(v).all()) for v in found.values()):
+        raise ValueError("it holds values that are not finite")
+    scale = 1 if dp else settings.max_samples
+    total = round(float(found.pop(masked.WEIGHT)) * scale)
+    if total < count:
+        raise ValueError(f"its sample count {total} is under one per robot ({count})")
+    g = server.global_weights
+    sums = {k: scale * found[f"w/{k}"] + total * g[k].double() for k in g}
+    payloads = {k: found[f"p/{k}"] for k in sorted(payload)}
+    if dp:
+        payloads[UNCLIPPED] = torch.tensor(float(round(float(found[UNCLIPPED]))))
+    return sums, float(total), payloads

@@ -1,0 +1,200 @@
+"""Secure aggregation (``deploy.secagg``) without processes: its settings refused in one
+line where SecAgg+ cannot apply, the robots' ClientApp mod passing plain messages through
+unchanged, and the vector layout - the server's release from the sum of the robots'
+vectors is ServerSide's aggregation of the same uploads, plain and under DP. The protocol
+itself runs on real processes in tests/test_flower.py."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from flwr.app import ConfigRecord, Context, Message, RecordDict
+from flwr.common.secure_aggregation.secaggplus_constants import RECORD_KEY_CONFIGS, Key, Stage
+from flwr.supercore.task_identity import TaskIdentity
+
+from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes
+from fedlgr.core.server.side import ServerSide
+from fedlgr.errors import ConfigError
+from fedlgr.shell.config import load_config
+from fedlgr.shell.deploy.flower import masked, wire
+from fedlgr.shell.deploy.flower.client_app import secure_mod
+from fedlgr.shell.deploy.flower.secure import unpack
+from tests.support.runs import FAST
+
+ON = "deploy.secagg.enabled=true"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["method=FedRootKrum"],
+            "deploy.secagg.enabled with federated.strategy=krum: a krum aggregate needs every",
+        ),
+        (["data.clients=1"], "deploy.secagg.enabled: a round chooses 1 robot (data.clients=1"),
+        (
+            [
+                "data.clients=4",
+                "federated.fraction=0.5",
+                "federated.dp.clip=1",
+                "federated.dp.delta=0.01",
+            ],
+            "deploy.secagg.enabled with federated.dp and federated.fraction=0.5: DP samples",
+        ),
+        (["deploy.secagg.max_samples=1000000"], "deploy.secagg.max_samples=1000000: with"),
+        (["deploy.secagg.threshold=0"], "deploy.secagg.threshold=0.0: must be in (0, 1]"),
+        (["deploy.secagg.quantization_range=8388608"], "deploy.secagg.quantization_range="),
+    ],
+    ids=["krum", "one-robot", "dp-poisson", "count-unreadable", "threshold", "modulus"],
+)
+def test_secagg_is_refused_in_one_line_where_it_cannot_apply(overrides, message):
+    with pytest.raises(ConfigError) as found:
+        load_config(FAST, [ON, *overrides])
+    assert str(found.value).startswith(message) and "\n" not in str(found.value)
+
+
+def test_secagg_is_off_by_default_and_allowed_with_adaptive_dp():
+    assert not load_config(FAST, []).deploy.secagg.enabled
+    dp = ["federated.dp.clip=1", "federated.dp.clipping=adaptive", "federated.dp.count_noise=1"]
+    assert load_config(FAST, [ON, *dp, "federated.dp.delta=0.1"]).deploy.secagg.enabled
+
+
+@pytest.fixture
+def robot_process(monkeypatch):
+    """What Flower sets in a ClientApp's process before it makes messages: its task's
+    run, node and task."""
+    monkeypatch.setattr(TaskIdentity, "_run_id", 1)
+    monkeypatch.setattr(TaskIdentity, "_node_id", 7)
+    monkeypatch.setattr(TaskIdentity, "_task_id", 1)
+
+
+def message(content: RecordDict) -> Message:
+    return Message(content, dst_node_id=7, message_type="train")
+
+
+def context() -> Context:
+    return Context(run_id=1, node_id=7, node_config={}, state=RecordDict(), run_config={})
+
+
+def test_the_robots_mod_passes_plain_messages_through_unchanged_and_answers_secagg_ones(
+    robot_process,
+):
+    """A fedlgr train message without SecAgg+'s record reaches the robot as it was sent
+    (the same object) and its reply leaves as the robot made it; a SecAgg+ setup message
+    is answered by Flower's mod (two public keys), never by the robot."""
+    plan = RoundPlan(1, 0, True, True)
+    content = wire.encode_train_ins(TrainIns(plan, {"w": torch.ones(3)}, {}), "seed: 0", client=0)
+    seen, replies = [], []
+
+    def robot(msg: Message, ctxt: Context) -> Message:
+        seen.append(msg)
+        replies.append(Message(RecordDict({"report": ConfigRecord({"client": 0})}), reply_to=msg))
+        return replies[-1]
+
+    plain = message(content)
+    assert secure_mod(plain, context(), robot) is replies[0]
+    assert seen == [plain] and seen[0].content is content
+    setup = {
+        Key.STAGE: Stage.SETUP,
+        Key.SAMPLE_NUMBER: 2,
+        Key.SHARE_NUMBER: 2,
+        Key.THRESHOLD: 2,
+        Key.CLIPPING_RANGE: 1.0,
+        Key.TARGET_RANGE: 1 << 22,
+        Key.MOD_RANGE: 1 << 32,
+        Key.MAX_WEIGHT: 1.0,
+    }
+    keys = secure_mod(
+        message(RecordDict({RECORD_KEY_CONFIGS: ConfigRecord(setup)})), context(), robot
+    )
+    answer = keys.content.config_records[RECORD_KEY_CONFIGS]
+    assert isinstance(answer[Key.PUBLIC_KEY_1], bytes) and len(seen) == 1
+
+
+def uploads(server: ServerSide, counts: list[int], scale: float) -> list[TrainRes]:
+    """Uploads of known updates: the global tensors plus seeded noise, payloads likewise."""
+    made = torch.Generator().manual_seed(3)
+    out = []
+    for client, n in enumerate(counts):
+        weights = {
+            k: g + scale * torch.randn(g.shape, generator=made).to(g.dtype)
+            for k, g in server.global_weights.items()
+        }
+        payload = {
+            k: 0.01 * torch.randn(t.shape, generator=made).to(t.dtype)
+            for k, t in server.strategy.payload_template().items()
+        }
+        out.append(TrainRes(client, weights, n, {}, payload))
+    return out
+
+
+def released(config, results: list[TrainRes]) -> tuple[ServerSide, ServerSide]:
+    """The same uploads aggregated by ServerSide (in the clear) and released from the sum
+    of the robots' vectors (no quantisation here: the sum is exact in float64)."""
+    plain, secure = ServerSide(config), ServerSide(config)
+    plain.aggregate(results)
+    record = {
+        "clip": 0.0 if secure.privacy is None else secure.privacy.bound,
+        "max_samples": config.deploy.secagg.max_samples,
+        "clipping_range": config.deploy.secagg.clipping_range,
+    }
+    vectors = [masked.robot_vector(r, secure.global_weights, record)[0] for r in results]
+    sums, total, payloads = unpack(
+        np.sum(vectors, axis=0), len(results), secure, config.deploy.secagg
+    )
+    secure.update(sums, total, payloads, len(results))
+    return plain, secure
+
+
+def assert_same_globals(plain: ServerSide, secure: ServerSide) -> None:
+    for key, value in plain.global_weights.items():
+        # the same sums to float64 rounding, then each side's cast to float32 and the
+        # strategy's float32 server step (SCAFFOLD's): two ulps at most, an ulp being at
+        # most 2^-23 of the value
+        error = (secure.global_weights[key].double() - value.double()).abs()
+        assert bool((error <= 2.0**-22 * value.double().abs() + 1e-12).all()), key
+
+
+def test_the_sum_of_the_robots_vectors_releases_the_sample_weighted_mean_and_payload_sums():
+    """SCAFFOLD (its control-variate changes travel as the payload, summed plainly), three
+    robots of 5, 9 and 12 samples: the global tensors and control variates released from
+    the vectors' sum are ServerSide's from the same uploads."""
+    config = load_config(FAST, [ON, "method=SCAFFOLD", "data.clients=3"])
+    plain, secure = released(config, uploads(ServerSide(config), [5, 9, 12], 0.01))
+    assert_same_globals(plain, secure)
+    for key, value in plain.strategy.state_dict()["control"].items():
+        theirs = secure.strategy.state_dict()["control"][key]
+        assert torch.allclose(theirs.double(), value.double(), rtol=0, atol=1e-9), key
+
+
+def test_under_dp_robots_clip_their_own_updates_and_adaptive_clipping_gets_the_count():
+    """DP with adaptive clipping and no noise (the count's noise is seeded): robots clip
+    their own updates (one is over the clip norm, one within) and send the unclipped bit
+    in the sum; the release and the next clip norm are those of the server that clipped
+    the same uploads itself."""
+    dp = ["federated.dp.clip=0.5", "federated.dp.noise_multiplier=0", "federated.dp.delta=0.1"]
+    dp += ["federated.dp.clipping=adaptive", "federated.dp.count_noise=0.5"]
+    config = load_config(FAST, [ON, "method=FedAvg", *dp])
+    server = ServerSide(config)
+    results = uploads(server, [5, 9], 0.0)
+    results[0] = dataclasses.replace(  # far over the clip norm
+        results[0], weights={k: g + 0.1 for k, g in server.global_weights.items()}
+    )
+    results[1] = dataclasses.replace(  # well within it
+        results[1], weights={k: g + 1e-6 for k, g in server.global_weights.items()}
+    )
+    plain, secure = released(config, results)
+    assert_same_globals(plain, secure)
+    assert secure.privacy.bound == pytest.approx(plain.privacy.bound, rel=1e-12)
+    assert secure.privacy.bound != 0.5  # it moved
+
+
+def test_the_error_bound_follows_the_quantisation_step():
+    """robots x 2c/Q, over the summed weight (n / max_samples) without DP."""
+    secagg = load_config(FAST, [ON]).deploy.secagg
+    step = 2 * secagg.clipping_range / secagg.quantization_range
+    assert masked.error_bound(secagg, 3, 3000.0, dp=False) == pytest.approx(3 * step * 1000 / 3000)
+    assert masked.error_bound(secagg, 3, 3.0, dp=True) == pytest.approx(3 * step)
