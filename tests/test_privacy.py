@@ -254,3 +254,16 @@ def test_dp_composes_with_strategies_scopes_and_cl_methods(method, synth_dir, ca
     spent = [r.server["privacy/epsilon"] for r in result.rounds]
     assert spent == pytest.approx([privacy.epsilon(0.5, 1.0, r, 0.1) for r in (1, 2)])
     assert all(math.isfinite(r.mean("test/rmse")) for r in result.rounds)
+
+
+def test_batchnorm_running_statistics_stay_on_the_clients_under_dp():
+    """Released with noise they broke the model (docs/privacy.md): under DP the shared
+    tensors are the scope's without them; BatchNorm's weights and biases still travel."""
+    from fedlgr.core.server.side import ServerSide
+
+    plain = ServerSide(dp_config()).keys
+    private = ServerSide(dp_config("federated.dp.clip=1")).keys
+    statistics = [k for k in plain if k.endswith(("running_mean", "running_var"))]
+    assert statistics and private == [k for k in plain if k not in statistics]
+    bn_weights = [k.replace("running_mean", "weight") for k in statistics if "mean" in k]
+    assert set(bn_weights) <= set(private)

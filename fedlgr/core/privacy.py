@@ -184,8 +184,7 @@ class Privacy:
         """The release of a round: the global tensors ``shared`` plus the noisy sum of the
         ``count`` clipped updates (``sums``: of their tensors, :meth:`clipped`) over the
         expected clients ``q N``; the payloads' sums with their noise. Adaptive clipping
-        then moves the clip norm for the next round. A BatchNorm variance the noise takes
-        below 0 is set to 0 (post-processing: no privacy cost)."""
+        then moves the clip norm for the next round."""
         self.releases += 1
         std = self.multiplier * self.bound
         draw = generator(self.seed, self.releases, _NOISE_TAG, self.from_os)
@@ -197,10 +196,7 @@ class Privacy:
             update = noise[k] - count * g.double()
             if k in sums:
                 update = update + sums[k]
-            value = g.double() + update / self.expected
-            if k.endswith("running_var"):
-                value = value.clamp_min(0.0)
-            mean[k] = value.to(g.dtype)
+            mean[k] = (g.double() + update / self.expected).to(g.dtype)
         noise = gaussian(payloads, std, draw)
         payloads = {k: p + noise[k] for k, p in payloads.items()}
         if self.adaptive:

@@ -4,6 +4,9 @@ Scope ``full`` shares the whole model; scope ``root`` (FedRoot, the paper's Fig.
 the tensors of the root only - the top never leaves the client. Within the scope the
 strategy may keep more local (FedBN: BatchNorm parameters and statistics). Only floating
 point tensors travel: BatchNorm's ``num_batches_tracked`` counters stay with each client.
+Under client-level DP (``federated.dp``) BatchNorm's running statistics stay too: they are
+the clients' data's statistics, and released with noise they broke the model (a variance
+pushed to 0 scales its layer's output without bound; docs/privacy.md).
 """
 
 from __future__ import annotations
@@ -32,12 +35,15 @@ def shared_keys(model: nn.Module, scope: str, strategy: Strategy) -> list[str]:
     """The state-dict keys a client uploads and downloads, in state-dict order."""
     prefix = SCOPE_PREFIX[scope]
     bn = batchnorm_keys(model)
+    private = strategy.config.dp.enabled  # running statistics stay on the clients
+    parameters = parameter_keys(model)
     return [
         key
         for key, value in model.state_dict().items()
         if key.startswith(prefix)
         and torch.is_floating_point(value)
         and strategy.shares(key, key in bn)
+        and not (private and key in bn and key not in parameters)
     ]
 
 
