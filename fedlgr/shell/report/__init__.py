@@ -15,10 +15,10 @@ from pathlib import Path
 from fedlgr.shell.checks.paths import broken_link
 from fedlgr.shell.report import runs as mlflow_runs
 from fedlgr.shell.report.cells import best_per_cell, check_cells, newest_per_seed
+from fedlgr.shell.report.paper import with_paper
 from fedlgr.shell.report.plots import write_plots
 from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
 from fedlgr.shell.report.runs import ReportError, RunRecord, safe_name
-from fedlgr.shell.report.paper import with_paper
 from fedlgr.shell.report.tables import build_tables
 from fedlgr.shell.tracking.uri import mask_password
 
