@@ -336,9 +336,12 @@ def test_sweep_report_shows_the_best_trial_per_cell_and_goes_into_the_parent_run
     result = make_report(store, sweep="s1", out=tmp_path / "out")
     # The grid's best trial by the sweep's objective (test/loss: trial 0), not the mean.
     assert result.runs == 1 and [n for n, _ in result.tables] == ["table2", "table4"]
-    _, rows = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
-    # ... and the value it won with (the method places it in the cell: not repeated).
-    assert rows["FedAvg-EWC"][0] == "**0.200** (ewc.lambda_=1)" and rows["FedAvg-EWC"][1] == "—"
+    header, rows = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
+    # ... and the value it won with (the method places it in the cell: not repeated). A
+    # sweep's table has only the rows and columns that hold values: its one method, the
+    # one score its trials logged.
+    assert header == ["Method", "2 clients · After Task 1 · Loss ▼"]
+    assert rows == {"FedAvg-EWC": ["**0.200** (ewc.lambda_=1)"]}
     _, rows = markdown_blocks(tmp_path / "out" / "table4.md")["2 clients, W/O augmentation"]
     assert rows["CPU usage (s) ▼"][0] == "10.00 (ewc.lambda_=1)"
     assert result.logged_to == parent

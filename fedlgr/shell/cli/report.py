@@ -1,5 +1,5 @@
-"""``fedlgr report [--experiment NAME | --sweep NAME [--study NAME]] [--where KEY=VALUE]
-[--out DIR] [--tracking-uri URI]``."""
+"""``fedlgr report [--experiment NAME | --sweep NAME [--study NAME] [--storage URL]]
+[--where KEY=VALUE] [--out DIR] [--tracking-uri URI]``."""
 
 from __future__ import annotations
 
@@ -37,6 +37,12 @@ def add_parser(verbs: Verbs) -> None:
         "--study",
         help="with --sweep: the study to report, by name or parent run id (default: the "
         "newest study of the sweep in this store)",
+    )
+    parser.add_argument(
+        "--storage",
+        help="with --sweep: the study's Optuna storage URL (default: the one its parent run "
+        "names, tag storage; give it where that is relative to another folder or has its "
+        "password masked)",
     )
     parser.add_argument(
         "--where",
@@ -92,6 +98,7 @@ def report(args: argparse.Namespace) -> int:
         where=where,
         log=not args.no_log,
         paper=args.paper,
+        storage=args.storage,
     )
     print(masked_text(result.summary(), uri))  # a database's password is not printed
     return 0

@@ -19,6 +19,7 @@ from fedlgr.shell.report.paper import with_paper
 from fedlgr.shell.report.plots import write_plots
 from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
 from fedlgr.shell.report.runs import ReportError, RunRecord, safe_name
+from fedlgr.shell.report.sweep import SweepViews, without_empty, write_sweep_views
 from fedlgr.shell.report.tables import build_tables
 from fedlgr.shell.tracking.uri import mask_password
 
@@ -43,6 +44,7 @@ class ReportResult:
     plots: list[str] = field(default_factory=list)
     logged_to: str | None = None  # the MLflow run holding the report
     notes: list[str] = field(default_factory=list)  # said once: the study, repeats left out
+    sweep: SweepViews | None = None  # a sweep's trials table and Optuna's plots
 
     def summary(self) -> str:
         s = "s" if self.runs != 1 else ""
@@ -57,6 +59,13 @@ class ReportResult:
         for benchmark in sorted({"FL", "FCL"} - written):
             names = [n for n, b in BENCHMARK.items() if b == benchmark]
             lines.append(f"  {' and '.join(names)}: not written, no finished {benchmark} runs")
+        if self.sweep is not None:
+            views = self.sweep
+            lines.append(
+                f"  {'trials (the sweep)':<22} trials.md/.csv: {views.trials} trials, best "
+                f"first, from the {views.source}"
+            )
+            lines += [f"  {note}" for note in views.notes]
         lines.append(f"  plots: {', '.join(self.plots) or 'none (no data)'}")
         where = f"written to {self.out}"
         if self.logged_to:
@@ -103,6 +112,7 @@ def make_report(
     where: dict[str, str] | None = None,
     log: bool = True,
     paper: bool = False,
+    storage: str | None = None,
 ) -> ReportResult:
     """Write the tables and plots of ``experiment`` or one study of ``sweep`` to ``out``
     (default ``reports/<experiment>`` or ``reports/sweeps/<sweep>/<study>-<parent run>``,
@@ -111,7 +121,11 @@ def make_report(
     Each cell averages replicates only (:mod:`~fedlgr.shell.report.cells`): repeats of one seed
     count once, runs of other settings in one cell are refused (narrow them with
     ``where``, e.g. ``{"federated.rounds": "20"}``). ``paper``: Tables I and II carry the
-    paper's published values under each method's runs (:mod:`~fedlgr.shell.report.paper`)."""
+    paper's published values under each method's runs (:mod:`~fedlgr.shell.report.paper`).
+
+    A sweep's report also has a row per trial (``trials.md``/``.csv``) and Optuna's plots
+    (:mod:`~fedlgr.shell.report.sweep`), its study read from ``storage`` (default: the one
+    its parent run names), and its paper tables only the rows and columns with values."""
     if out is not None:  # before reading the store: a wrong --out fails at once
         _check_folder(Path(out))
     client = mlflow_runs.open_store(uri)
@@ -140,6 +154,11 @@ def make_report(
         raise ReportError(f"{out}: cannot create the report folder ({err.strerror})") from err
     result = ReportResult(out, selection.source, uri, len(records), notes=notes)
     for table in build_tables(records, selection.source, notes):
+        if selection.sweep:  # only the rows and columns its trials filled
+            table = without_empty(table)
+            if not table.columns:
+                result.notes.append(f"{table.name}: not written, no run logged its values")
+                continue
         table = with_paper(table) if paper else table
         for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
             (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
@@ -147,6 +166,9 @@ def make_report(
     metrics = ("test/rmse", "test/pcc")
     histories = {m: mlflow_runs.metric_histories(client, records, m) for m in metrics}
     result.plots = write_plots(records, histories, out)
+    if selection.sweep:
+        result.sweep = write_sweep_views(selection, out, storage)
+        result.plots += result.sweep.plots if result.sweep else []
     if log:
         result.logged_to = mlflow_runs.log_report(selection, out, len(records))
     return result

@@ -118,7 +118,7 @@ def task1_forgetting(run: RunRecord, metric: str) -> float | None:
 # --------------------------------------------------------------------------- drawing
 
 
-def _pyplot():
+def pyplot():
     """matplotlib's pyplot, drawing to files only."""
     import matplotlib  # lazy: matplotlib (seconds), only when a report draws its plots
 
@@ -133,8 +133,8 @@ def curves_plot(path: Path, title: str, panels: dict[str, Series], order: list[s
     settings = sorted({s for series in panels.values() for s in series})
     if not settings:
         return False
-    plt = _pyplot()
-    from matplotlib.ticker import MaxNLocator  # lazy: matplotlib, as in _pyplot
+    plt = pyplot()
+    from matplotlib.ticker import MaxNLocator  # lazy: matplotlib, as in pyplot
 
     colors = {m: f"C{i % 10}" for i, m in enumerate(order)}
     fig, axes = plt.subplots(
@@ -175,7 +175,7 @@ def bar_plot(path: Path, title: str, panels: dict[str, Bars], order: list[str]) 
     panels = {label: bars for label, bars in panels.items() if any(bars.values())}
     if not panels:
         return False
-    plt = _pyplot()
+    plt = pyplot()
     methods = [m for m in order if any(m in b for bars in panels.values() for b in bars.values())]
     fig, axes = plt.subplots(
         len(panels),

@@ -169,13 +169,13 @@ def select_runs(
     if experiment is not None:
         found = client.get_experiment_by_name(experiment)
         if found is None or found.lifecycle_stage != "active":
-            known = ", ".join(repr(e.name) for e in _pages(client.search_experiments)) or "none"
+            known = ", ".join(repr(e.name) for e in pages(client.search_experiments)) or "none"
             raise ReportError(
                 f"no MLflow experiment named {experiment!r} at {uri} (experiments there: {known})"
             )
         ids = [found.experiment_id]
     else:
-        ids = [e.experiment_id for e in _pages(client.search_experiments)]
+        ids = [e.experiment_id for e in pages(client.search_experiments)]
     end_dead_runs(client, ids)  # runs killed outright: KILLED, not "still running"
     where = dict(where or {})
     filters = {**{k: v for k, v in (("dataset", dataset), ("modality", modality)) if v}, **where}
@@ -184,7 +184,7 @@ def select_runs(
     source = f"sweep `{sweep}`{within}" if sweep else f"experiment `{experiment}`"
     base = f"tags.sweep = {_quote(sweep)}" if sweep else ""
     finished = " and ".join(f for f in (base, "attributes.status = 'FINISHED'") if f)
-    runs = list(_pages(client.search_runs, ids, finished))
+    runs = list(pages(client.search_runs, ids, finished))
     _remove_leftover_checkpoints(runs)
     records = [_record(run) for run in runs if _is_experiment(run)]
     for tag, wanted in (("dataset", dataset), ("modality", modality)):
@@ -224,7 +224,7 @@ def _one_study(
     in this store, a line naming the one reported and the others."""
     parents = {
         run.info.run_id: run
-        for run in _pages(
+        for run in pages(
             client.search_runs, ids, f"tags.`{KIND}` = 'sweep' and tags.sweep = {_quote(sweep)}"
         )
     }
@@ -316,7 +316,7 @@ def _record(run) -> RunRecord:
 
 
 def _no_runs_message(client, ids, base, source, filters: str) -> str:
-    every = [r for r in _pages(client.search_runs, ids, base) if _is_experiment(r)]
+    every = [r for r in pages(client.search_runs, ids, base) if _is_experiment(r)]
     states = Counter(r.info.status for r in every if r.info.status != "FINISHED")
     unfinished = ", ".join(f"{n} {s}" for s, n in states.most_common())
     message = f"{source} has no finished fedlgr runs" + (f" with {filters}" if filters else "")
@@ -327,7 +327,7 @@ def _no_runs_message(client, ids, base, source, filters: str) -> str:
     return message
 
 
-def _pages(search, *args) -> list:
+def pages(search, *args) -> list:
     """Every result of an MLflow search, page after page."""
     out, token = [], None
     while True:

@@ -1,0 +1,244 @@
+"""A sweep's own report: each trial's swept settings against the objective and the scores.
+
+The paper's tables show a study's best trial per cell; this answers the sweep's question -
+how the objective moves with the settings it searched. :func:`read_trials` reads the study
+from its Optuna storage, found as the sweep wrote it down (its parent run's tags ``storage``
+and ``study``; ``--storage`` for another URL, e.g. where a password was masked), and each
+trial's test scores from its MLflow run. When the storage cannot be reached, the trials come
+from the parent run's child runs in MLflow instead (tags ``trial`` and ``swept``), which the
+report says in one line. :func:`write_trials` writes them as ``trials.md`` and
+``trials.csv``, a row per trial, best first; :mod:`~fedlgr.shell.report.sweep_plots` draws
+Optuna's plots of the same study.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fedlgr.shell.checks.stores import check_database
+from fedlgr.shell.config import short_setting
+from fedlgr.shell.report.runs import Selection, pages
+from fedlgr.shell.report.sweep_plots import write_study_plots
+from fedlgr.shell.report.tables import Table
+from fedlgr.shell.tracking.uri import mask_password, server_database, sqlite_file
+
+# The headline scores each row shows besides the objective, with their headings.
+HEADLINE = (("test/rmse", "test RMSE ▼"), ("test/pcc", "test PCC ▲"), ("test/ccc", "test CCC ▲"))
+PARENT_ATTR = "mlflow_parent_run_id"  # the study's user attribute naming its parent run
+MLFLOW_STATES = {"FINISHED": "COMPLETE", "KILLED": "PRUNED", "FAILED": "FAIL"}
+
+
+@dataclass
+class TrialRow:
+    number: int
+    params: dict[str, Any]
+    value: float | None  # the objective, as Optuna recorded it (or the run's metric)
+    scores: dict[str, float]  # the headline scores of its MLflow run
+    state: str  # Optuna's: COMPLETE, PRUNED, FAIL, RUNNING, WAITING
+
+
+@dataclass
+class Trials:
+    """One study's trials, best first, and where they were read from."""
+
+    metric: str
+    direction: str  # minimize or maximize
+    params: list[str]  # the swept settings, in the sweep's order
+    rows: list[TrialRow]
+    source: str  # "Optuna storage URL" or "MLflow"
+    study: Any = None  # the optuna Study, for the plots (None when read from MLflow)
+    notes: list[str] = field(default_factory=list)
+
+
+def read_trials(selection: Selection, storage: str | None = None) -> Trials | None:
+    """The trials of the reported study; None for trials without a parent run."""
+    client, parent_id = selection.client, selection.parent_run_id
+    if parent_id is None:
+        return None
+    parent = client.get_run(parent_id)
+    tags = parent.data.tags
+    direction, _, metric = (tags.get("objective") or "minimize test/rmse").partition(" ")
+    runs = pages(
+        client.search_runs, selection.experiment_ids, f"tags.`mlflow.parentRunId` = '{parent_id}'"
+    )
+    by_id = {run.info.run_id: run for run in runs}
+    url = storage or tags.get("storage", "")
+    study, why = _load_study(url, tags.get("study", selection.name), parent_id)
+    if study is not None:
+        rows = [_optuna_row(t, by_id) for t in study.get_trials(deepcopy=False)]
+        rows = [r for r in rows if r is not None]
+        trials = Trials(metric, direction, [], rows, f"Optuna storage {mask_password(url)}", study)
+    else:
+        rows = [_mlflow_row(run, metric) for run in runs if "trial" in run.data.tags]
+        trials = Trials(metric, direction, [], rows, "MLflow")
+        trials.notes.append(
+            f"The trials are read from MLflow, not from the study's Optuna storage ({why}): "
+            "only trials that started a run, and no Optuna plots."
+        )
+    space = json.loads(parent.data.params.get("space", "{}") or "{}")
+    seen = [k for r in rows for k in r.params]
+    trials.params = [
+        *[k for k in space if k in seen],
+        *dict.fromkeys(k for k in seen if k not in space),
+    ]
+    trials.rows.sort(key=lambda r: _rank(r, direction))
+    return trials
+
+
+def _load_study(url: str, name: str, parent_id: str):
+    """The study and None, or None and why it cannot be read."""
+    if not url:
+        return None, "its parent run records none (tag storage)"
+    shown = mask_password(url)
+    if "***" in url:
+        return None, f"{shown}: its password is masked; give it with --storage URL"
+    try:
+        path = sqlite_file(url)
+        if path is not None and not path.is_file():
+            return None, f"{shown}: no file {path} here; report where the sweep ran, or --storage"
+        if server_database(url):
+            check_database(url, "--storage")
+        import optuna  # lazy: optuna (~1 s), only for a sweep's report
+
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        study = optuna.load_study(study_name=name, storage=url)
+    except Exception as err:  # unreachable, no such study: the MLflow trials
+        text = str(err).strip().splitlines()
+        return None, f"{shown}: {text[0] if text else type(err).__name__}"
+    if study.user_attrs.get(PARENT_ATTR) != parent_id:
+        owner = study.user_attrs.get(PARENT_ATTR)
+        return None, f"{shown}: its study {name!r} belongs to another parent run ({owner})"
+    return study, None
+
+
+def _optuna_row(trial, runs: dict[str, Any]) -> TrialRow | None:
+    """A row per trial, but a grid point another trial already covered (skipped)."""
+    if "duplicate_of" in trial.user_attrs:
+        return None
+    run = runs.get(trial.user_attrs.get("mlflow_run_id", ""))
+    metrics = run.data.metrics if run is not None else {}
+    scores = {m: metrics[m] for m, _ in HEADLINE if m in metrics}
+    return TrialRow(trial.number, dict(trial.params), trial.value, scores, trial.state.name)
+
+
+def _mlflow_row(run, metric: str) -> TrialRow:
+    metrics = run.data.metrics
+    try:
+        params = json.loads(run.data.tags.get("swept", "{}"))
+    except ValueError:
+        params = {}
+    state = MLFLOW_STATES.get(run.info.status, run.info.status)
+    value = metrics.get(metric) if state == "COMPLETE" else None
+    scores = {m: metrics[m] for m, _ in HEADLINE if m in metrics}
+    return TrialRow(int(run.data.tags["trial"]), params, value, scores, state)
+
+
+def _rank(row: TrialRow, direction: str) -> tuple:
+    """Completed trials by their value, best first; then the others by number."""
+    value = row.value
+    if value is None or not math.isfinite(value):
+        return (1, 0.0, row.number)
+    return (0, value if direction == "minimize" else -value, row.number)
+
+
+# --------------------------------------------------------------------------- files
+
+
+def columns(trials: Trials) -> list[tuple[str, str]]:
+    """(CSV header, Markdown heading) of each column."""
+    arrow = "▼" if trials.direction == "minimize" else "▲"
+    return [
+        ("trial", "trial"),
+        *[(p, short_setting(p)) for p in trials.params],
+        (f"objective: {trials.metric}", f"objective: {trials.metric} {arrow}"),
+        *HEADLINE,
+        ("state", "state"),
+    ]
+
+
+def _cells(trials: Trials, row: TrialRow, shown: bool) -> list[str]:
+    def number(v: float | None) -> str:
+        if v is None:
+            return "—" if shown else ""
+        return f"{v:.4f}" if shown else repr(float(v))
+
+    params = [str(row.params[p]) if p in row.params else "" for p in trials.params]
+    scores = [number(row.scores.get(m)) for m, _ in HEADLINE]
+    return [str(row.number), *params, number(row.value), *scores, row.state]
+
+
+def to_markdown(trials: Trials, sweep: str) -> str:
+    """The trials as a Markdown table, best first, the best in bold."""
+    heads = [h.replace("|", r"\|") for _, h in columns(trials)]
+    lines = [f"## Sweep `{sweep}`: every trial, best first by its objective", ""]
+    lines += ["| " + " | ".join(heads) + " |", "| " + " | ".join(["---:"] * len(heads)) + " |"]
+    for k, row in enumerate(trials.rows):
+        cells = _cells(trials, row, shown=True)
+        if k == 0 and row.value is not None:
+            cells = [f"**{c}**" for c in cells]
+        lines.append("| " + " | ".join(c.replace("|", r"\|") for c in cells) + " |")
+    lines += ["", f"Read from the {trials.source}; the scores are each trial's MLflow run's."]
+    return "\n".join([*lines, *(f"\n{n}" for n in trials.notes), ""])
+
+
+def to_csv(trials: Trials) -> str:
+    """The same rows, unrounded; an empty cell where there is no value."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow([key for key, _ in columns(trials)])
+    for row in trials.rows:
+        writer.writerow(_cells(trials, row, shown=False))
+    return buffer.getvalue()
+
+
+# --------------------------------------------------------------------------- the report
+
+
+@dataclass
+class SweepViews:
+    """What a sweep's report adds to the paper's tables."""
+
+    files: list[str]  # trials.md, trials.csv
+    plots: list[str]  # Optuna's PNGs
+    trials: int
+    source: str
+    notes: list[str]
+
+
+def write_sweep_views(selection: Selection, out: Path, storage: str | None) -> SweepViews | None:
+    """``trials.md``/``.csv`` and Optuna's plots of the reported study into ``out``; None
+    for trials without a parent run (there is no study to read)."""
+    trials = read_trials(selection, storage)
+    if trials is None:
+        return None
+    plots: list[str] = []
+    if trials.study is not None:
+        plots, notes = write_study_plots(trials.study, trials.metric, trials.params, out)
+        trials.notes += notes
+    (out / "trials.md").write_text(to_markdown(trials, selection.name), encoding="utf-8")
+    (out / "trials.csv").write_text(to_csv(trials), encoding="utf-8")
+    files = ["trials.md", "trials.csv"]
+    return SweepViews(files, plots, len(trials.rows), trials.source, trials.notes)
+
+
+def without_empty(table: Table) -> Table:
+    """A sweep's paper table with only the rows and columns that hold a value: a sweep of
+    one method has no business showing the paper's other methods as rows of dashes (an
+    experiment's report keeps them: it reproduces the paper's layout)."""
+    rows = [row for block in table.blocks for _, row in block.rows]
+    keep = [j for j in range(len(table.columns)) if any(r[j].value is not None for r in rows)]
+    table.columns = [table.columns[j] for j in keep]
+    for block in table.blocks:
+        block.rows = [
+            (label, [row[j] for j in keep])
+            for label, row in block.rows
+            if any(row[j].value is not None for j in keep)
+        ]
+    table.blocks = [block for block in table.blocks if block.rows]
+    return table
