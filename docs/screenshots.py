@@ -1,11 +1,11 @@
-"""Screenshots of what a researcher sees of a small sweep in the MLflow UI (docs/tracking.md).
+"""Screenshots of what a researcher sees of the demo's runs in the MLflow UI (docs/tracking.md).
 
-A 4-trial sweep (FedAvg and FedRootAvg x two learning rates, 3 rounds on 48 synthetic
-scenes at 32 px, ~2 minutes on 2 cores) logs to a fresh store; a real ``mlflow server``
-serves it, and headless Chromium photographs the runs table, a trial's run page and its
-model-metrics tab, the chart view and the compare view of the trials:
+``fedlgr demo`` (FedAvg and FedRootAvg on the synthetic living room, 1000 scenes at 128 px,
+system metrics on; ``--rounds`` of its 9, ~25 s each on 2 cores) logs to a fresh store; a
+real ``mlflow server`` serves it, and headless Chromium photographs the runs table, a run's
+page and its model-metrics tab, the chart view and the compare view of the runs:
 
-    uv run python docs/screenshots.py docs/img/after
+    uv run python docs/screenshots.py docs/img/mlflow/after --rounds 4
 
 Needs Debian's Chromium (``apt-get install chromium``); downloads nothing.
 """
@@ -26,18 +26,7 @@ from pathlib import Path
 
 from fedlgr.shell.tracking.store import runs_link
 
-REPO = Path(__file__).resolve().parent.parent
-SWEEP = """\
-description: the screenshots' sweep (docs/screenshots.py)
-base: {base}
-experiment: screenshots
-overrides: [data.image_size=32, model.width=0.1, federated.rounds=3, train.max_batches=2,
-            data.augment=false, runtime.threads=1, tracking.system_metrics=false]
-objective: {{metric: test/rmse, direction: minimize}}
-space:
-  method: [FedAvg, FedRootAvg]
-  train.lr_top: [0.001, 0.01]
-"""
+EXPERIMENT = "demo"  # conf/experiment/demo.yaml's
 CHROMIUM_FLAGS = [  # as the machine notes start it: no sandbox as root, no Google hosts
     "--headless",
     "--no-sandbox",
@@ -98,8 +87,7 @@ def shoot(chromium: str, page: str, out: Path, profile: Path, size: str) -> None
 
 def pages(url: str, experiment_id: str, runs: list[dict]) -> dict[str, str]:
     """The views to photograph, by file name."""
-    trials = [r for r in runs if "mlflow.parentRunId" in {t["key"] for t in r["data"]["tags"]}]
-    trials.sort(key=lambda r: r["info"]["run_name"])
+    trials = sorted(runs, key=lambda r: r["info"]["run_name"])
     trial = trials[0]["info"]["run_id"]
     base = f"{url}/#/experiments/{experiment_id}"
     ids = json.dumps([r["info"]["run_id"] for r in trials])
@@ -121,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         "--work", type=Path, help="keep the data and store here (a second call reuses them)"
     )
     parser.add_argument("--size", default="1920,1080", help="window size (default: 1920,1080)")
+    parser.add_argument("--rounds", type=int, default=9, help="the demo's rounds (default: 9)")
     args = parser.parse_args(argv)
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
@@ -131,13 +120,11 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         store = f"sqlite:///{work}/mlflow.db"
         if not (work / "mlflow.db").exists():
-            fedlgr("data", "synth", "--out", "synth", "--scenes", "48", "--size", "32", cwd=work)
-            sweep = work / "screens.yaml"
-            sweep.write_text(SWEEP.format(base=REPO / "conf" / "experiment" / "demo.yaml"))
-            fedlgr("sweep", str(sweep), "data.path=synth", "--tracking-uri", store, cwd=work)
+            rounds = f"federated.rounds={args.rounds}"
+            fedlgr("demo", "--data", "synth", "--tracking-uri", store, rounds, cwd=work)
         server, url = start_server(store, work / "artifacts")
         try:
-            experiment = urllib.parse.urlencode({"experiment_name": "screenshots"})
+            experiment = urllib.parse.urlencode({"experiment_name": EXPERIMENT})
             with urllib.request.urlopen(
                 f"{url}/api/2.0/mlflow/experiments/get-by-name?{experiment}", timeout=30
             ) as answer:

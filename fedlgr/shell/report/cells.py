@@ -19,6 +19,7 @@ from collections import Counter
 from collections.abc import Sequence
 
 from fedlgr.shell.report.runs import ReportError, RunRecord
+from fedlgr.shell.tracking.context import used_settings
 
 # The seeds: model initialisation, batch order and augmentation (``seed``), and the split of
 # the scenes into clients and train/test (``data.seed``). Runs differing only here are
@@ -47,13 +48,15 @@ def describe(cell: Cell) -> str:
 
 
 def settings(record: RunRecord) -> dict[str, str] | None:
-    """The run's settings that a cell must share: its params but the seeds and the
-    :data:`IGNORED` ones; None for a run that logged no params."""
+    """The run's settings that a cell must share: the params it uses (a run that logged
+    every setting, as fedlgr did before, is read as if it had logged only those) but the
+    seeds and the :data:`IGNORED` ones; None for a run that logged no params."""
     if not record.params:
         return None
+    used = used_settings(record.params, record.tags.get("runtime") == "flower")
     return {
         k: v
-        for k, v in record.params.items()
+        for k, v in used.items()
         if k not in SEEDS and k not in IGNORED and not k.startswith(IGNORED_PREFIXES)
     }
 

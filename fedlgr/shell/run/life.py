@@ -271,7 +271,7 @@ class RunLife:
         tracker.save_results(result.rows(), curves_png(result.rows(), name))
         tracker.log_summary(result.cost_means(), len(result.rounds))
         heading = f"{name} after {self.total} rounds ({result.seconds:.0f} s)"
-        tracker.describe(heading, result.summary())
+        tracker.describe(heading, result.summary(), result.final_metrics())
         tracker.finish()
 
     def _clean_up(self) -> None:
@@ -379,7 +379,10 @@ class RunLife:
         steps = [
             ("results.csv", lambda: tracker.save_results(result.rows(), None)),
             ("curves.png", lambda: tracker.save_results([], curves_png(result.rows(), name))),
-            ("summary", lambda: tracker.describe(heading, result.summary())),
+            (
+                "summary",
+                lambda: tracker.describe(heading, result.summary(), result.final_metrics()),
+            ),
         ]
         if result.rounds:
             for what, action in steps:

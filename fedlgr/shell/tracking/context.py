@@ -9,18 +9,23 @@ machine's load while it ran.
   (:func:`mlflow.tracking.context.registry.resolve_tags`, what ``mlflow.start_run`` uses)
   adds ``mlflow.user``, ``mlflow.source.name`` / ``type`` and ``mlflow.source.git.commit``
   (of the command's checkout, else of fedlgr's own, see :func:`run_tags`).
-* **Params**: the flattened config without machine-local paths (the data folder, the
-  image cache, the store, the checkpoint folder: they differ from machine to machine and
-  say nothing about the method; ``config.yaml`` keeps them); pretrained weights by file
-  name.
+* **Params**: the settings the run uses (:func:`used_settings`: its strategy's and its
+  continual method's own settings, not every registered method's; ``federated.dp.*`` only
+  under DP, ``deploy.*`` only on Flower), without machine-local paths (the data folder,
+  the image cache, the store, the checkpoint folder: they differ from machine to machine
+  and say nothing about the method); pretrained weights by file name. ``config.yaml``
+  keeps every setting.
 * **Dataset**: one ``log_input`` of the scenes table (one row per scene, ratings
   averaged) with the data folder as its source: name, digest, schema and row count, no
   data uploaded (none where the folder is not on this machine, e.g. a Flower server).
 * **System metrics**: MLflow's :class:`SystemMetricsMonitor` (CPU, memory, disk,
   network, NVIDIA/AMD GPU when there is one) attached to the run by id, every
   ``tracking.system_metrics_s`` seconds; one last sample when the run ends, so even a
-  short run shows some. Machine-wide figures, not per client (per-client costs are the
-  ``cost/*`` metrics).
+  short run shows some. Sampled from the start but written only once the run's first
+  scores are (:meth:`SystemMetrics.release`): MLflow lists a run's metrics in the order
+  their keys were first written (below), and a sample written before round 1 put
+  ``system/cpu_utilization_percentage`` first. Machine-wide figures, not per client
+  (per-client costs are the ``cost/*`` metrics).
 """
 
 from __future__ import annotations
@@ -29,12 +34,14 @@ import dataclasses
 import hashlib
 import json
 import logging
+import threading
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from fedlgr.core.data.columns import CSV_NAME
+from fedlgr.core.methods import CONTINUAL, STRATEGIES
 from fedlgr.errors import first_line
 from fedlgr.shell.config import ExperimentConfig, flatten, short_setting
 from fedlgr.shell.tracking.store import store_lock
@@ -46,6 +53,11 @@ LOCAL_PATHS = frozenset({"data.path", "data.cache_dir", "tracking.uri", "trackin
 # params that differ, sorted by name).
 NOT_PARAMS = LOCAL_PATHS | {"tracking.run_name"}
 NAMED_WEIGHTS = ("none", "imagenet")
+# Every method's settings section: a run uses its own strategy's and CL method's only.
+SECTIONS = {
+    "federated": {m.section for m in STRATEGIES.values() if m.settings is not None},
+    "continual": {m.section for m in CONTINUAL.values() if m.settings is not None},
+}
 
 
 def run_name(config: ExperimentConfig) -> str:
@@ -92,13 +104,40 @@ def run_tags(tags: Mapping[str, str]) -> dict[str, str]:
     return out
 
 
-def run_params(config: ExperimentConfig) -> dict[str, str]:
-    """The flattened config as params, without machine-local paths and the run's name."""
+def run_params(config: ExperimentConfig, flower: bool = False) -> dict[str, str]:
+    """The settings the run uses (:func:`used_settings`) as params, without machine-local
+    paths and the run's name; ``flower``: the clients run on Flower (``deploy.*``)."""
     params = {k: v for k, v in flatten(config).items() if k not in NOT_PARAMS}
     weights = config.model.weights
     if weights not in NAMED_WEIGHTS:
         params["model.weights"] = Path(weights).name
-    return params
+    return used_settings(params, flower)
+
+
+def used_settings(params: Mapping[str, str], flower: bool = False) -> dict[str, str]:
+    """``params`` (a flattened config, as strings) without the settings the run does not
+    use: other strategies' (``federated.prox.*`` on a FedAvg run) and other CL methods'
+    sections (every ``continual.*`` without a task schedule), ``federated.dp.*`` without DP
+    (``federated.dp.clip`` 0), ``deploy.*`` unless ``flower``. MLflow lists ~130 params
+    otherwise, most of them unused. Reads only ``params``, so the reports apply it to runs
+    that logged every setting too (:mod:`fedlgr.shell.report.cells`)."""
+    strategy = STRATEGIES.get(params.get("federated.strategy", ""))
+    method = CONTINUAL.get(params.get("continual.method", ""))
+    fcl = params.get("continual.tasks", "[]") not in ("[]", "()", "")
+    dropped = [f"federated.{s}." for s in SECTIONS["federated"] - {strategy and strategy.section}]
+    if fcl:
+        dropped += [f"continual.{s}." for s in SECTIONS["continual"] - {method and method.section}]
+    else:
+        dropped.append("continual.")
+    try:
+        private = float(params.get("federated.dp.clip", "0")) > 0
+    except ValueError:  # not a number: kept, as it was logged
+        private = True
+    if not private:
+        dropped.append("federated.dp.")
+    if not flower:
+        dropped.append("deploy.")
+    return {k: v for k, v in params.items() if not k.startswith(tuple(dropped))}
 
 
 def data_digest(config: ExperimentConfig) -> str:
@@ -180,8 +219,17 @@ def one_line_logs(*names: str) -> None:
 
 class SystemMetrics:
     """MLflow's system-metrics monitor on run ``run_id`` (no active run needed): sampled
-    every ``interval`` seconds in a background thread; :meth:`stop` joins it and logs a
-    last sample. ``resume``: go on from the run's last system-metrics step."""
+    every ``interval`` seconds in a background thread, held until :meth:`release` (a
+    resumed run: from the start); :meth:`stop` joins it and logs a last sample.
+    ``resume``: go on from the run's last system-metrics step.
+
+    Why held: MLflow's stores return a run's latest metrics in the order their keys were
+    first written (sqlite: the ``latest_metrics`` rows in insertion order), and its UI keeps
+    that order: the run page's metrics table within each group, and the compare page's
+    parallel-coordinates plot, which draws ``sharedMetricKeys.slice(0, 1)``, the first
+    key of that list (MLflow 3.17's JavaScript). A sample written before round 1's scores
+    made that ``system/cpu_utilization_percentage``. Held samples keep the time they were
+    taken (MLflow's ``BatchMetricsLogger`` stamps a sample when it is recorded)."""
 
     def __init__(self, run_id: str, uri: str, interval: float, resume: bool = False):
         # lazy: mlflow (seconds), only once a run starts
@@ -195,7 +243,17 @@ class SystemMetrics:
         self.monitor = SystemMetricsMonitor(
             run_id, sampling_interval=interval, resume_logging=resume, tracking_uri=uri
         )
+        self.released = threading.Event()
+        if resume:  # the order of its keys was fixed by its first life
+            self.released.set()
+        logger = self.monitor.mlflow_logger  # records samples, writes when _should_flush
+        due = logger._should_flush
+        logger._should_flush = lambda: self.released.is_set() and due()
         self.monitor.start()
+
+    def release(self) -> None:
+        """The run's scores are written: its samples may be too (at the next sample)."""
+        self.released.set()
 
     def stop(self) -> None:
         """Stop sampling and log what was sampled since the last step (a short run's only

@@ -100,9 +100,20 @@ def _uncut(method):
 
 SENTINEL = "round/seconds"  # logged last in each round: the round is wholly logged
 # What a researcher compares runs by, logged first (every score, metrics.HEADLINE, then
-# these costs): MLflow's run page lists a run's metrics in the order they were logged, and
-# its compare view plots the first one by default.
+# these costs). MLflow's stores give a run's latest metrics in the order their keys were
+# first written (sqlite: insertion order of its latest_metrics rows); the UI keeps it in the
+# run page's metrics table (model metrics; MLflow 3.17 lists a "System metrics" group above
+# them whatever the order) and the compare page plots the first key
+# (``sharedMetricKeys.slice(0, 1)`` in its JavaScript). The run page's chart tab sorts
+# charts by name in sections by prefix, and draws a line chart for a metric whose latest
+# step is 1 or more (a bar otherwise): every score is logged at step = round.
 HEADLINE_COSTS = ("cost/cpu_s", "cost/gpu_util", "cost/bytes_up")
+# The figures a run's description opens with (those of the runs table's shared view).
+HEADLINE_NOTE = (
+    *(m for m in HEADLINE if m != "test/loss"),
+    "mean/cost/cpu_s",
+    "mean/cost/bytes_up",
+)
 _CLIENT = re.compile(r"(^|/)client\d+(/|$)")
 
 
@@ -199,7 +210,8 @@ class Tracker:
             tags=context.run_tags(run_tags),
         )
         self.run_id = run.info.run_id
-        items = [Param(k, v[:6000]) for k, v in context.run_params(config).items()]
+        flower = run_tags["runtime"] == "flower"
+        items = [Param(k, v[:6000]) for k, v in context.run_params(config, flower).items()]
         for i in range(0, len(items), 100):  # the REST API takes 100 params per batch
             self.client.log_batch(self.run_id, params=items[i : i + 100])
         self._log_bytes(to_yaml(config).encode(), "config.yaml")
@@ -264,6 +276,7 @@ class Tracker:
         items = [Metric(k, float(metrics[k]), now, round_) for k in keys]
         for i in range(0, len(items), 1000):  # the REST API takes 1000 metrics per batch
             self.client.log_batch(self.run_id, metrics=items[i : i + 1000])
+        self._release_system_metrics()
         self.heartbeat()
 
     @_uncut
@@ -277,6 +290,13 @@ class Tracker:
         now = int(time.time() * 1000)
         items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
         self.client.log_batch(self.run_id, metrics=items)
+        self._release_system_metrics()
+
+    def _release_system_metrics(self) -> None:
+        """The run's first scores are written: system metrics may follow (see
+        :class:`~fedlgr.shell.tracking.context.SystemMetrics`)."""
+        if self.system_metrics is not None:
+            self.system_metrics.release()
 
     def _logged_at(self, key: str, step: int) -> bool:
         return any(m.step == step for m in self.client.get_metric_history(self.run_id, key))
@@ -307,12 +327,19 @@ class Tracker:
             self._log_bytes(curves_png, "curves.png")
 
     @_uncut
-    def describe(self, heading: str, summary: str) -> None:
-        """The run's description (MLflow's note, at the top of its run page): the summary
-        table the console printed at the end."""
+    def describe(self, heading: str, summary: str, metrics: dict[str, float] | None = None) -> None:
+        """The run's description (MLflow's note, at the top of its run page, above its
+        metrics table, which lists system metrics first): the headline figures of
+        ``metrics`` by their MLflow keys, then the summary table the console printed."""
         from mlflow.utils.mlflow_tags import MLFLOW_RUN_NOTE  # lazy: mlflow (seconds)
 
-        note = f"**{heading}**\n\n```text\n{summary}\n```\n"
+        shown = [k for k in HEADLINE_NOTE if k in (metrics or {})]
+        table = ""
+        if shown:
+            values = [f"{metrics[k]:.4g}" for k in shown]
+            rows = [shown, ["---"] * len(shown), values]
+            table = "".join(f"| {' | '.join(row)} |\n" for row in rows) + "\n"
+        note = f"**{heading}**\n\n{table}```text\n{summary}\n```\n"
         self.client.set_tag(self.run_id, MLFLOW_RUN_NOTE, note)
 
     def _log_bytes(self, data: bytes, name: str) -> None:

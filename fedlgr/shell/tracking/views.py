@@ -10,13 +10,21 @@ loads it. fedlgr writes such a view, :data:`VIEW`, to every experiment it logs t
   per round (``mean/cost/cpu_s``, ``mean/cost/bytes_up``) as columns, with the method and
   each sweep's swept settings, sorted by ``test/rmse``; a sweep's trials are shown (their
   parent run expanded);
-- the chart view opens on a "headline" section: ``test/rmse`` and ``test/pcc`` of each
-  run side by side and a parallel-coordinates plot of the method and swept settings
-  against both.
+- the chart view opens on a "headline" section: per-round curves (line charts, step =
+  round) of ``test/rmse``, ``test/pcc`` and ``test/ccc`` for every run, a scatter of the
+  runs' final ``test/rmse`` against ``test/pcc``, and a parallel-coordinates plot of the
+  method and swept settings against both. Line and scatter charts fit their axes to the
+  values (0.810 and 0.811 are told apart); MLflow's bar charts start at 0 and have no
+  range setting (its BAR card holds a metric key only), so there are none.
 
-The state is the MLflow UI's own format (MLflow 3.17: ``selectedColumns`` as
-``metrics.`key``` / ``params.`key```, chart cards by type); a UI that no longer reads a
-field ignores it, and "Exit shared view" gives MLflow's default page.
+The state is the MLflow UI's own format (MLflow 3.17): ``selectedColumns`` as
+``metrics.`key``` / ``params.`key```, chart cards by type, ``columnOrder`` and
+``columnWidths`` (pixels by column id) - the fields its runs page persists
+(``["selectedColumns", "columnOrder", "columnWidths", "runsExpanded", ...,
+"compareRunCharts", "compareRunSections", ...]`` in its JavaScript bundle); a UI that no
+longer reads a field ignores it, and "Exit shared view" gives MLflow's default page.
+What MLflow does not take from a shared view - a run page's charts, its metrics table, the
+compare page - is ordered by what a run logs (:mod:`fedlgr.shell.tracking.mlflow_run`).
 """
 
 from __future__ import annotations
@@ -32,8 +40,25 @@ SECTION = "fedlgr-headline"
 # the runs table's metric columns: every score but the loss (the square of the RMSE), then
 # the costs; the table sorts them by name and shows about six in a 1400-pixel window
 COLUMNS = (*(m for m in HEADLINE if m != "test/loss"), "mean/cost/cpu_s", "mean/cost/bytes_up")
+# The runs table's metric columns are 100 pixels wide unless a view says otherwise: 0.8100731
+# and a header such as mean/cost/bytes_up were cut ("0.81007307..."). Wide enough for 7
+# significant digits and the longest header in the table's font.
+METRIC_WIDTH = 150
 MAX_PARAMS = 6  # in the parallel-coordinates plot, the runs table's columns too
 MAX_EXPANDED = 40  # the newest sweeps' parent runs (an experiment tag holds 5000 characters)
+
+
+# Per-round curves, in the chart view's first row.
+CURVES = ("test/rmse", "test/pcc", "test/ccc")
+LINE = {  # MLflow's LINE card: x the step, linear axes, no fixed range (fitted)
+    "xAxisKey": "step",
+    "scaleType": "linear",
+    "xAxisScaleType": "linear",
+    "lineSmoothness": 0,
+    "useGlobalXaxisKey": False,
+    "useGlobalLineSmoothing": False,
+    "range": {"xMin": None, "xMax": None, "yMin": None, "yMax": None},
+}
 
 
 def _card(uuid: str, kind: str, **fields) -> dict:
@@ -45,20 +70,33 @@ def view_state(params: Iterable[str], expanded: Iterable[str]) -> dict:
     """The shared state: ``params`` as columns and plot axes, the runs ``expanded`` (sweep
     parent runs) open."""
     params = list(dict.fromkeys(params))[:MAX_PARAMS]
-    charts = [
-        _card("fedlgr-rmse", "BAR", metricKey="test/rmse", displayName="test/rmse"),
-        _card("fedlgr-pcc", "BAR", metricKey="test/pcc", displayName="test/pcc"),
-        _card(
-            "fedlgr-parallel",
-            "PARALLEL",
-            selectedParams=params,
-            selectedMetrics=["test/rmse", "test/pcc"],
-            showAllRuns=False,
-        ),
+    lines = [  # x: the round (step), y: fitted to the values
+        _card(f"fedlgr-{m.rsplit('/', 1)[-1]}", "LINE", metricKey=m, displayName=m, **LINE)
+        for m in CURVES
     ]
+    scatter = _card(
+        "fedlgr-scatter",
+        "SCATTER",
+        xaxis={"key": "test/rmse", "type": "METRIC"},
+        yaxis={"key": "test/pcc", "type": "METRIC"},
+        runsCountToCompare=100,
+    )
+    parallel = _card(
+        "fedlgr-parallel",
+        "PARALLEL",
+        selectedParams=params,
+        selectedMetrics=["test/rmse", "test/pcc"],
+        showAllRuns=False,
+    )
+    charts = [*lines, scatter, parallel]
     section = {"uuid": SECTION, "name": "headline", "display": True, "isReordered": True}
+    metrics = [f"metrics.`{m}`" for m in COLUMNS]
     return {
-        "selectedColumns": [f"metrics.`{m}`" for m in COLUMNS] + [f"params.`{p}`" for p in params],
+        "selectedColumns": metrics + [f"params.`{p}`" for p in params],
+        # ids of the columns whose width is set (MLflow applies widths in this order; a
+        # column it does not list keeps MLflow's place and width)
+        "columnOrder": metrics,
+        "columnWidths": dict.fromkeys(metrics, METRIC_WIDTH),
         "orderByKey": "metrics.`test/rmse`",
         "orderByAsc": True,
         "runsExpanded": {run_id: True for run_id in expanded},
