@@ -105,7 +105,15 @@ def release(round_: Round, clip: float = 0.0, noise: float = 0.0) -> Weights:
     dp = dataclasses.replace(config.federated.dp, clip=clip, noise_multiplier=noise)
     config = dataclasses.replace(config, federated=dataclasses.replace(config.federated, dp=dp))
     server = ServerSide(config)
-    server.aggregate(round_.uploads)
+    # what the robots upload under that config: under DP BatchNorm's running statistics
+    # stay on them (fedlgr.core.scope), so their uploads hold the server's keys only
+    uploads = [
+        dataclasses.replace(r, weights={k: r.weights[k] for k in server.keys})
+        for r in round_.uploads
+    ]
+    server.aggregate(uploads)
+    if server.refused:  # a refused upload would leave a release of noise alone
+        raise RuntimeError(f"the server refused uploads: {server.refused}")
     return server.global_weights
 
 

@@ -155,25 +155,29 @@ def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
     assert "shared view" in dom
     for metric in ("test/rmse", "test/pcc", "test/ccc", "mean/cost/cpu_s"):
         assert f">{metric}<" in dom, metric
-    # ... and the first charts of the chart view, beside a parallel-coordinates plot.
-    titles = [f">{t}<" for t in ("test/rmse", "test/pcc", "Parallel Coordinates")]
+    # ... and the first charts of the chart view: the per-round curves (the scatter and the
+    # parallel-coordinates plot below them are drawn when scrolled to)
+    titles = [f">{t}<" for t in ("test/rmse", "test/pcc", "test/ccc")]
     for budget in (15000, 40000):  # a busy machine draws the charts later: wait longer once
         charts = rendered(f"{link}&compareRunsMode=CHART", tmp_path / f"charts{budget}", budget)
         if all(t in charts for t in titles):
             break
     headline = charts.index(">headline<")
-    assert charts[headline:].startswith('>headline</div><div class="') and ">(3)<" in charts
+    # per-round curves of RMSE, PCC and CCC, their final values' scatter, the parallel plot
+    assert charts[headline:].startswith('>headline</div><div class="') and ">(5)<" in charts
     for title in titles:
         assert title in charts and headline < charts.index(title), (title, charts[-3000:])
-    # A run's page opens on its summary table, then its metrics, headline first.
+    # A run's page opens on its headline and summary tables, then its metrics, headline first.
     run_id = runs[0]["info"]["run_id"]
     page = rendered(
         f"{mlflow_server}/#/experiments/{experiment_id}/runs/{run_id}", tmp_path / "run"
     )
     summary = page.index("client    loss   RMSE   PCC")
-    assert (
-        summary < page.index(">test/rmse<") < page.index(">test/pcc<") < page.index(">test/loss<")
-    )
+
+    def listed(key: str) -> int:  # in the metrics table, below the description
+        return page.index(f">{key}<", summary)
+
+    assert listed("test/rmse") < listed("test/pcc") < listed("test/loss")
     assert ">test/rmse/vacuum<" not in page and ">test/client0/rmse<" not in page
 
 
