@@ -95,6 +95,7 @@ def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path,
     table = out[out.index("FedAvg vs FedRootAvg") :].splitlines()
     assert table[1].split()[:4] == ["method", "loss", "RMSE", "PCC"]
     assert table[3].startswith("FedAvg ") and table[4].startswith("FedRootAvg ")
+    assert_readme_shows_the_demo_table(table)
     import mlflow
 
     client = mlflow.MlflowClient(store)
@@ -106,6 +107,32 @@ def test_demo_synthesises_when_absent_trains_both_methods_and_compares(tmp_path,
     assert main(args) == 0
     assert "synthesising" not in capsys.readouterr().out
     assert (data / "all_data.csv").read_bytes() == csv_before
+
+
+def assert_readme_shows_the_demo_table(table: list[str]) -> None:
+    """The README's demo table is in the format the demo prints (caption, headers, a row
+    per method, CPU seconds and MiB), and its seed-0 scores lie in the ranges over seeds
+    it states."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    shown = readme[readme.index("FedAvg vs FedRootAvg on data/manners-synth after 9") :]
+    shown = shown.splitlines()[:5]
+    assert shown[0].split(" rounds ", 1)[1] == table[0].split(" rounds ", 1)[1]
+    assert shown[1].split() == table[1].split()
+    row = re.compile(r"^(FedAvg|FedRootAvg) +(\d\.\d{3}  ){4}\d+\.\d{3}  \d\.\d\d MiB +\d+$")
+    assert all(row.match(line) for line in shown[3:5]), shown[3:5]
+    assert all(row.match(line) for line in table[3:5]), table[3:5]
+    for method in ("FedAvg", "FedRootAvg"):
+        stated = re.search(
+            rf"{method} RMSE\s+(\d\.\d+)-(\d\.\d+), PCC (\d\.\d+)-(\d\.\d+)", readme
+        )
+        assert stated is not None, method
+        low_rmse, high_rmse, low_pcc, high_pcc = map(float, stated.groups())
+        values = next(line for line in shown if line.startswith(f"{method} ")).split()
+        assert low_rmse <= float(values[2]) <= high_rmse
+        assert low_pcc <= float(values[3]) <= high_pcc
 
 
 # --------------------------------------------------------------------------- polish (issue 13)

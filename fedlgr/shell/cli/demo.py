@@ -8,7 +8,7 @@ scores and per-client costs.
 ``fedlgr demo --fcl`` shows forgetting instead: FedRoot without a CL method (FedRoot-FT)
 vs FedLGR, circle then arrow (``conf/experiment/demo_fcl.yaml``). By default on the
 scenes' descriptors (``--modality features``: an MLP root, 8 rounds per task, about
-35 s), where FedLGR's latent space stays put and replay protects circle; with
+40 s), where FedLGR's latent space stays put and replay protects circle; with
 ``--modality image`` on the images, from a root pretrained once, offline, on another
 synthetic set's descriptors (``fedlgr.shell.pretrain``) - there a MobileNetV2 root's
 latents drift in Task 2 and replay protects circle only in part (bench/README.md).
@@ -60,7 +60,7 @@ def add_parser(verbs: Verbs) -> None:
         "--modality",
         choices=["features", "image"],
         default="features",
-        help="--fcl: the descriptors (MLP root, about 35 s) or the images "
+        help="--fcl: the descriptors (MLP root, about 40 s) or the images "
         "(a root pretrained once, about 4 minutes)",
     )
     parser.add_argument(
