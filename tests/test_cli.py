@@ -125,9 +125,7 @@ def assert_readme_shows_the_demo_table(table: list[str]) -> None:
     assert all(row.match(line) for line in shown[3:5]), shown[3:5]
     assert all(row.match(line) for line in table[3:5]), table[3:5]
     for method in ("FedAvg", "FedRootAvg"):
-        stated = re.search(
-            rf"{method} RMSE\s+(\d\.\d+)-(\d\.\d+), PCC (\d\.\d+)-(\d\.\d+)", readme
-        )
+        stated = re.search(rf"{method} RMSE\s+(\d\.\d+)-(\d\.\d+), PCC (\d\.\d+)-(\d\.\d+)", readme)
         assert stated is not None, method
         low_rmse, high_rmse, low_pcc, high_pcc = map(float, stated.groups())
         values = next(line for line in shown if line.startswith(f"{method} ")).split()
