@@ -163,7 +163,12 @@ def assert_computes_what_one_process_computes(store, flower, local, rounds: int)
         {a.path for a in client.list_artifacts(r)} for r in (flower.info.run_id, local.run_id)
     ]
     assert artifacts[0] == artifacts[1] and "results.csv" in artifacts[0]
-    assert set(flower.data.params) == set(local_run.data.params) | {"deploy.roster"}
+    # the same settings, and a Flower run's deploy.* settings (only it uses them)
+    deploy = {p for p in flower.data.params if p.startswith("deploy.")}
+    assert set(flower.data.params) - deploy == set(local_run.data.params)
+    assert "deploy.roster" in deploy and not any(
+        p.startswith("deploy.") for p in local_run.data.params
+    )
 
 
 def count(path, text: str) -> int:

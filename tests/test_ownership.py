@@ -132,7 +132,7 @@ def test_a_finished_runs_leftover_checkpoints_are_removed_by_resume_and_report(
         find_checkpoint(config, run_id, client)
     assert str(refused.value) == (
         f"--resume: run {run_id} has finished; there is nothing to resume (removed the "
-        f"checkpoint folder it left behind, {folder}: 3 MB)"
+        f"checkpoint folder it left behind, {folder}: 3 MiB)"
     )
     assert not folder.exists()
     leave()

@@ -343,8 +343,10 @@ MEASURED = ("CPU usage", "GPU usage", "Wall time")  # table3's rows that are tim
 
 
 def _reported(out: Path) -> dict[str, list[list[str]]]:
-    """The CSV tables of the report in ``out``, less the rows of measured times."""
-    tables = {p.name: read_rows(p) for p in sorted(out.glob("*.csv"))}
+    """The CSV tables of the report in ``out``, less the rows of measured times and a
+    sweep's trials.csv (a study whose worker was killed has one more, failed, trial and
+    numbers its trials otherwise)."""
+    tables = {p.name: read_rows(p) for p in sorted(out.glob("*.csv")) if p.name != "trials.csv"}
     return {
         name: [row for row in rows if not (len(row) > 1 and row[1].startswith(MEASURED))]
         for name, rows in tables.items()
