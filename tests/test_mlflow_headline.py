@@ -4,8 +4,6 @@ uses as params, and reports that still compare runs by their settings."""
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 import time
 
 import mlflow
@@ -17,20 +15,9 @@ from fedlgr.shell.report.runs import ReportError, RunRecord
 from fedlgr.shell.tracking.context import NOT_PARAMS, run_params
 from fedlgr.shell.tracking.mlflow_run import Tracker
 from fedlgr.shell.tracking.views import view_state
+from tests.support.chromium import CHROMIUM, rendered
 from tests.support.runs import FAST, fast_config
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-HEADLESS = [  # as tests/test_mlflow_ui.py starts it
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--window-size=1400,900",
-]
 SCORES = {"test/rmse": 0.81, "test/pcc": 0.53, "test/ccc": 0.45, "test/loss": 0.66}
 
 
@@ -93,15 +80,6 @@ def test_the_shared_view_draws_the_headline_on_fitted_axes():
     assert cards["fedlgr-rmse"]["xAxisKey"] == "step"  # a curve over the rounds
     assert cards["fedlgr-scatter"]["xaxis"]["key"] == "test/rmse"
     assert state["columnWidths"]["metrics.`test/rmse`"] >= 150  # 0.8100731 uncut
-
-
-def rendered(link: str, profile, budget: int = 15000) -> str:
-    flags = [*HEADLESS, f"--virtual-time-budget={budget}", f"--user-data-dir={profile}"]
-    page = subprocess.run(
-        [CHROMIUM, *flags, "--dump-dom", link], capture_output=True, text=True, timeout=120
-    )
-    assert page.returncode == 0, page.stderr[-2000:]
-    return page.stdout
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (.ci/run installs Debian's)")

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from fedlgr.shell.config import load_config
 from fedlgr.shell.tracking.context import run_name, trial_config
 from fedlgr.shell.tracking.mlflow_run import headline_first
 from fedlgr.shell.tracking.store import runs_hint
+from tests.support.chromium import CHROMIUM, rendered
 from tests.support.ports import free_port
 from tests.support.runs import FAST
 
@@ -107,21 +107,6 @@ def test_runs_on_a_server_are_told_apart_and_the_printed_link_opens_their_experi
         )
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-HEADLESS = [  # as the machine notes start it: no sandbox as root, no calls to Google's hosts
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--window-size=1400,900",
-    "--virtual-time-budget=15000",  # let the UI's JavaScript fetch and render the runs
-]
-
-
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (.ci/run installs Debian's)")
 @pytest.mark.slow
 def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
@@ -179,21 +164,6 @@ def test_the_printed_link_shows_the_runs_table_in_headless_chromium(
 
     assert listed("test/rmse") < listed("test/pcc") < listed("test/loss")
     assert ">test/rmse/vacuum<" not in page and ">test/client0/rmse<" not in page
-
-
-def rendered(link: str, profile: Path, budget: int = 15000) -> str:
-    """The DOM headless Chromium renders at ``link``, with a new browser profile, after
-    ``budget`` ms of the page's virtual time."""
-    flags = [f for f in HEADLESS if not f.startswith("--virtual-time-budget")]
-    time_budget, user = f"--virtual-time-budget={budget}", f"--user-data-dir={profile}"
-    page = subprocess.run(
-        [CHROMIUM, *flags, time_budget, user, "--dump-dom", link],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert page.returncode == 0, page.stderr[-2000:]
-    return page.stdout
 
 
 def run_name_prefix(synth_dir, cache_dir) -> str:

@@ -159,13 +159,11 @@ def _secure_aggregation_fits(config: ExperimentConfig) -> None:
     secagg, federated = config.deploy.secagg, config.federated
     if not secagg.enabled:
         return
-    strategy = STRATEGIES[federated.strategy]
-    if strategy.load().needs_uploads:  # imports torch: with SecAgg only
+    if _aggregates_a_statistic(federated):
         raise ConfigError(
             f"deploy.secagg.enabled with federated.strategy={federated.strategy}: a "
-            f"{strategy.key} aggregate needs every robot's upload, and SecAgg+ gives the "
-            "server their sum only; use a mean-based strategy (avg, bn, prox, opt, avgm, "
-            "scaffold, distill)"
+            f"{federated.strategy} aggregate needs every robot's upload, and SecAgg+ gives "
+            f"the server their sum only; {MEAN_BASED}"
         )
     clients, fraction = config.data.clients, federated.fraction
     if federated.dp.enabled and fraction < 1:
@@ -208,14 +206,12 @@ def _privacy_fits(config: ExperimentConfig) -> None:
     dp, federated = config.federated.dp, config.federated
     if not dp.enabled:
         return
-    strategy = STRATEGIES[federated.strategy]
-    if strategy.load().needs_uploads:  # imports torch: with DP only
+    if _aggregates_a_statistic(federated):
         raise ConfigError(
             f"federated.dp.clip={dp.clip:g} with federated.strategy={federated.strategy}: "
             "DP-FedAvg bounds one client's effect on the mean of clipped updates, and a "
-            f"{strategy.key} aggregate of the uploads has no such bound (one client can "
-            "move it arbitrarily far in L2); use a mean-based strategy (avg, bn, prox, opt, "
-            "avgm, scaffold, distill)"
+            f"{federated.strategy} aggregate of the uploads has no such bound (one client "
+            f"can move it arbitrarily far in L2); {MEAN_BASED}"
         )
     clients = config.data.clients
     if dp.delta >= 1 / clients:
@@ -233,3 +229,12 @@ def _privacy_fits(config: ExperimentConfig) -> None:
                 f"{dp.noise_multiplier / 2:g}, or it takes the whole privacy budget (Andrew "
                 "et al. 2021): set federated.dp.count_noise"
             )
+
+
+MEAN_BASED = "use a mean-based strategy (avg, bn, prox, opt, avgm, scaffold, distill)"
+
+
+def _aggregates_a_statistic(federated) -> bool:
+    """Is the strategy's aggregate a statistic of every upload (a median, Krum's choice)
+    rather than a mean? Imports the strategy (torch): asked under DP or SecAgg only."""
+    return STRATEGIES[federated.strategy].load().needs_uploads

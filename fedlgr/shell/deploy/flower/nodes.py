@@ -161,16 +161,22 @@ class Nodes:
         """The replies to ``messages`` that arrive within ``deploy.round_timeout_s``.
         Grid.send_and_receive polls every 3 s: up to 6 s idle per round for two exchanges.
         The same push/pull with a 0.2 s poll."""
-        pending = {i for i in self.grid.push_messages(messages) if i}
-        replies = []
-        deadline = time.monotonic() + self.config.deploy.round_timeout_s
-        while pending and time.monotonic() < deadline:
-            for reply in self.grid.pull_messages(list(pending)):
-                pending.discard(reply.metadata.reply_to_message_id)
-                replies.append(reply)
-            if pending:
-                time.sleep(POLL_S)
-        return replies
+        return push_and_pull(self.grid, messages, self.config.deploy.round_timeout_s)
+
+
+def push_and_pull(grid, messages: list[Message], timeout: float) -> list[Message]:
+    """Push ``messages`` and pull their replies every ``POLL_S`` until all are in or
+    ``timeout`` seconds have passed; the replies that came."""
+    pending = {i for i in grid.push_messages(messages) if i}
+    replies: list[Message] = []
+    deadline = time.monotonic() + timeout
+    while pending and time.monotonic() < deadline:
+        for reply in grid.pull_messages(list(pending)):
+            pending.discard(reply.metadata.reply_to_message_id)
+            replies.append(reply)
+        if pending:
+            time.sleep(POLL_S)
+    return replies
 
 
 def _fingerprint(public_key: bytes) -> str:

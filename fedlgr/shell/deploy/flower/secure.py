@@ -38,7 +38,7 @@ from fedlgr.core.privacy import UNCLIPPED
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.deploy.flower import masked, wire
 from fedlgr.shell.deploy.flower.link import encode
-from fedlgr.shell.deploy.flower.nodes import POLL_S
+from fedlgr.shell.deploy.flower.nodes import push_and_pull
 
 if TYPE_CHECKING:
     from flwr.serverapp import Grid
@@ -69,15 +69,7 @@ class Exchanges:
                 record = m.content.config_records[RECORD_KEY_CONFIGS]
                 m.content = self.contents[m.metadata.dst_node_id]
                 m.content.config_records[RECORD_KEY_CONFIGS] = record
-        pending = {i for i in self.grid.push_messages(messages) if i}
-        replies: list[Message] = []
-        deadline = time.monotonic() + (timeout if timeout is not None else 1e9)
-        while pending and time.monotonic() < deadline:
-            for reply in self.grid.pull_messages(list(pending)):
-                pending.discard(reply.metadata.reply_to_message_id)
-                replies.append(reply)
-            if pending:
-                time.sleep(POLL_S)
+        replies = push_and_pull(self.grid, messages, timeout if timeout is not None else 1e9)
         for reply in replies:
             if reply.has_error():
                 reason = " ".join(str(reply.error.reason).split())
