@@ -15,6 +15,21 @@ from fedlgr.core.data.augment import normalize
 from fedlgr.core.schedule import ALL
 
 
+def scored_clients(config) -> Callable[[list[int]], tuple[int, ...] | None]:
+    """``federated.evaluate``: which clients score the new global tensors in a round, given
+    the round's chosen clients: all of them (None), the chosen ones, or a sample of
+    ``federated.eval_clients`` drawn once from the run's seed (the same every round)."""
+    federated, clients = config.federated, config.data.clients
+    if federated.evaluate == "chosen":
+        return tuple
+    if federated.evaluate == "sample":
+        rng = np.random.default_rng([config.seed, 0xE7A1])
+        n = min(federated.eval_clients, clients)
+        sample = tuple(sorted(int(c) for c in rng.choice(clients, size=n, replace=False)))
+        return lambda chosen: sample
+    return lambda chosen: None
+
+
 @dataclass
 class EvalSet:
     """The shared test scenes, ready for a model: inputs (normalised images or

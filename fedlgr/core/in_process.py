@@ -23,14 +23,16 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 import torch.distributed as dist
 
 from fedlgr.core.client.side import ClientSide
+from fedlgr.core.evaluation import scored_clients
 from fedlgr.core.faults import Faults
-from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainRes, Weights, nbytes
+from fedlgr.core.messages import EvaluateIns, EvaluateRes, RoundPlan, TrainRes, Weights, nbytes
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress
 from fedlgr.core.server.evaluate import ServerEvaluation, serve_round
@@ -44,16 +46,25 @@ if TYPE_CHECKING:
 
 
 class Orchestrator:
-    def __init__(self, fabric, config: ExperimentConfig, scenes: Scenes, split: FederatedSplit):
+    def __init__(
+        self,
+        fabric,
+        config: ExperimentConfig,
+        scenes: Scenes,
+        split: FederatedSplit,
+        spill: Path | None = None,
+    ):
         self.fabric, self.config = fabric, config
         self.device = fabric.device
         self.rank, self.world = fabric.global_rank, fabric.world_size
         self.server = ServerSide(config).to(self.device)
         mine = [s.client for s in split.clients if s.client % self.world == self.rank]
         self.indices = set(mine)
-        self.client_side = ClientSide(config, scenes, split, mine, self.device, fabric.autocast)
+        self.client_side = ClientSide(
+            config, scenes, split, mine, self.device, fabric.autocast, spill=spill
+        )
         self.config = self.client_side.config  # its runtime settings resolved
-        self.clients = self.client_side.clients
+        self.scored = scored_clients(config)  # federated.evaluate
         self.faults = Faults(config.federated.faults, config.data.clients, config.seed)
         # federated.server_eval: rank 0, which logs, scores the global model.
         self.server_eval = (
@@ -62,11 +73,12 @@ class Orchestrator:
             else None
         )
 
-    def aggregate(self, trained: list[TrainRes]) -> None:
+    def aggregate(self, trained: list[TrainRes], task: int = 0) -> None:
         """Sample-weighted mean over the uploads of all processes that the server takes
         (:meth:`ServerSide.screen`: each process checks its own clients', against the
-        scenes they hold), their plugins' payloads summed, then the server update."""
-        capacity = {c.index: c.n_samples for c in self.clients}
+        scenes they hold in ``task``), their plugins' payloads summed, then the server
+        update."""
+        capacity = {c: self.client_side.n_samples(c, task) for c in self.indices}
         refused = self.server.refusals(trained, capacity)
         norms = self.server.update_norms(trained, refused)
         if self.world > 1:  # every process decides on the round's norms, all of them
@@ -102,7 +114,11 @@ class Orchestrator:
     @property
     def local_clients(self) -> int:
         """The clients that train in this process (with ``runtime.devices=N``, its share)."""
-        return len(self.clients)
+        return len(self.indices)
+
+    def close(self) -> None:
+        """Let go of the idle clients' files."""
+        self.client_side.close()
 
     def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
         """One round of ``plan``: the clients the strategy chose train, the server
@@ -130,18 +146,24 @@ class Orchestrator:
             self.server_eval,
             round_,
             task,
-            lambda: self.aggregate(on_time),
+            lambda: self.aggregate(on_time, task),
         )
-        evaluated = self.client_side.evaluate(EvaluateIns(plan, self.server.global_weights))
+        scored = self.scored(chosen)
+        ins_eval = EvaluateIns(plan, self.server.global_weights, scored)
+        evaluated = {e.client: e for e in self.client_side.evaluate(ins_eval)}
         rows = {}
-        for e in evaluated:  # a chosen client moves its payloads too
-            t = trained.get(e.client)
-            if t is None:
-                rows[e.client] = self.server.row(None, e, 0, self.server.bytes_down(round_, False))
-            else:
+        for c in sorted(self.indices):  # a client with no figures has a row of NaN
+            t, e = trained.get(c), evaluated.get(c)
+            if t is None and e is None:
+                rows[c] = {}
+            elif t is None:
+                rows[c] = self.server.row(None, e, 0, self.server.bytes_down(round_, False))
+            else:  # a chosen client moves its payloads too
                 up = nbytes(t.weights) + nbytes(t.payload)
-                down = self.server.bytes_down(round_) + nbytes(ins[e.client].payload)
-                rows[e.client] = self.server.row(t, e, up, down)
+                # not scoring: it fetched only the global tensors it trained from
+                down = self.server.bytes_down(round_) if e else self.server.initial_bytes
+                down += nbytes(ins[c].payload)
+                rows[c] = self.server.row(t, e or EvaluateRes(c), up, down)
         # Rows of other processes are zero here: the sum over processes fills them in.
         table = torch.from_numpy(self.server.table(rows, fill=0.0))
         if self.world > 1:
@@ -181,7 +203,7 @@ class Orchestrator:
         every client of every process) and this process's random generators."""
         self.server.load_state_dict(state["server"], self.device)
         mine = {i: s for i, s in state["clients"].items() if i in self.indices}
-        self.client_side.load_state_dict(to_device(mine, self.device))
+        self.client_side.load_state_dict(mine, self.server.global_weights)
         set_rng_states(state["rng"][self.rank])
 
 

@@ -63,6 +63,7 @@ class TrainRes:
 class EvaluateIns:
     plan: RoundPlan
     weights: Weights  # the new global tensors
+    clients: tuple[int, ...] | None = None  # the clients that score them (None: all)
 
 
 @dataclass

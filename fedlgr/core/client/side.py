@@ -14,11 +14,14 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import tempfile
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
+from fedlgr.core.client.idle import IdleStates, compact, complete, idle_keeping
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.client.pool import ClientPool, resolve
 from fedlgr.core.client.stacked import refuse_plugins, train_batched
@@ -40,6 +43,7 @@ from fedlgr.core.meters.scores import regression_scores
 from fedlgr.core.metrics import Figures, shared_out
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import SCOPE_PREFIX, initial_scholar, shared_keys
+from fedlgr.core.state import to_device
 from fedlgr.core.strategies import build_strategy
 from fedlgr.errors import FedlgrError
 
@@ -49,9 +53,17 @@ if TYPE_CHECKING:
     from fedlgr.shell.data.splits import FederatedSplit
 
 
+CPU = torch.device("cpu")
+
+
 def _poisoned(targets: torch.Tensor, label: float) -> torch.Tensor:
     """Every scene rated ``label`` for every action (``federated.faults.attack=labels``)."""
     return torch.full_like(targets, label)
+
+
+def _measures_rounds(plugin: ClientPlugin) -> bool:
+    """Does ``plugin`` measure something every round (``round_metrics``)?"""
+    return type(plugin).round_metrics is not ClientPlugin.round_metrics
 
 
 def client_seed(seed: int, client: int) -> int:
@@ -59,6 +71,10 @@ def client_seed(seed: int, client: int) -> int:
 
 
 class ClientSide:
+    """``spill``: where the folder of idle clients' states is made, for those beyond
+    ``runtime.idle_memory_mb`` (:mod:`fedlgr.core.client.idle`; None: the system's
+    temporary folder)."""
+
     def __init__(
         self,
         config: ExperimentConfig,
@@ -67,6 +83,7 @@ class ClientSide:
         indices: list[int],
         device: torch.device,
         autocast=contextlib.nullcontext,
+        spill: Path | None = None,
     ):
         # How this process's clients train, made explicit (runtime.concurrency, workers)
         cfg = config = resolve(config, device, len(indices))
@@ -74,9 +91,36 @@ class ClientSide:
         self.pool = ClientPool(cfg.runtime.workers, torch.get_num_threads(), device)
         self.device, self.autocast = device, autocast
         self.tasks = list(cfg.continual.tasks) or [ALL]
-        strategy = build_strategy(cfg.federated)  # its client part
-        initial = initial_scholar(cfg).to(device)
-        self.keys = shared_keys(initial, cfg.federated.scope, strategy)
+        self.strategy = build_strategy(cfg.federated)  # its client part
+        self.initial = initial = initial_scholar(cfg).to(device)
+        self.keys = shared_keys(initial, cfg.federated.scope, self.strategy)
+        self._model_kinds(initial)
+        self.channels_last = cfg.model.channels_last and scenes.images is not None
+        self.augment = Augment() if cfg.data.augment and scenes.images is not None else None
+        self.copies = cfg.data.augment_copies if self.augment is not None else 1
+        faults = cfg.federated.faults  # attack=labels: these clients train on poisoned labels
+        self.poisoned = Faults(faults, cfg.data.clients, cfg.seed).poisoned
+        self.shards = {s.client: s for s in split.clients if s.client in indices}
+        self._check_batched()
+        # The global tensors the clients hold (the initial ones until the first download)
+        state = initial.state_dict()
+        self.shared: Weights = {k: state[k] for k in self.keys}
+        self.keeping = idle_keeping(cfg.runtime, len(self.shards))
+        budget = {"memory": None, "disk": 0}.get(self.keeping, cfg.runtime.idle_memory_mb * 2**20)
+        self._spill = None  # the folder idle clients' states spill to, removed by close()
+        if self.keeping != "live":
+            if spill is not None:
+                spill.mkdir(parents=True, exist_ok=True)
+            self._spill = tempfile.TemporaryDirectory(prefix=".idle-clients-", dir=spill)
+        self.idle = IdleStates(budget, self._spill and Path(self._spill.name))
+        self.awake: dict[int, Client] = {}
+        self._global: torch.nn.Module | None = None  # see global_model
+        for index in self.shards:
+            self.rest(self.wake(index))
+        self._prepare_test_set()
+        self._warm_up(initial)
+
+    def _model_kinds(self, initial: torch.nn.Module) -> None:
         float_keys = {k for k, v in initial.state_dict().items() if torch.is_floating_point(v)}
         # With nothing kept locally every client holds the same model after aggregation:
         # one evaluation gives every client's (identical) figures.
@@ -85,50 +129,96 @@ class ClientSide:
         # with any strategy that shares the whole root): see ``predictions``.
         root_keys = {k for k in float_keys if k.startswith("root.")}
         self.root_keys = sorted(root_keys) if root_keys <= set(self.keys) else []
-        self.channels_last = cfg.model.channels_last and scenes.images is not None
-        augment = Augment() if cfg.data.augment and scenes.images is not None else None
-        copies = cfg.data.augment_copies if augment is not None else 1
-        faults = cfg.federated.faults  # attack=labels: these clients train on poisoned labels
-        poisoned = Faults(faults, cfg.data.clients, cfg.seed).poisoned
-        self.clients: list[Client] = []
-        for shard in split.clients:
-            if shard.client not in indices:
-                continue
-            model = copy.deepcopy(initial)
-            seed = client_seed(cfg.seed, shard.client)
-            data = {
-                task: SceneBatches(
-                    scenes.inputs,
-                    _poisoned(scenes.targets, faults.label)
-                    if shard.client in poisoned
-                    else scenes.targets,
-                    shard.train if task == ALL else shard.tasks[task],
-                    cfg.train.batch_size,
-                    copies=copies,
-                    augment=augment,
-                    seed=seed + t,
-                    device=device,
-                )
-                for t, task in enumerate(self.tasks)
-            }
-            plugins = [
-                *strategy.client_plugins(shard.client),
-                *continual_plugins(cfg.continual, shard.client, cfg.seed),
-            ]
-            optimizer = model.configure_optimizers()
-            self.clients.append(
-                Client(shard.client, model, optimizer, data, plugins, scaler=self._scaler())
+
+    def _check_batched(self) -> None:
+        """``runtime.concurrency=batched``: refused before any run is started (not at round
+        1) where a client has plugins or scales its losses."""
+        if self.config.runtime.concurrency != "batched" or not self.shards:
+            return
+        refuse_plugins([self.build(next(iter(self.shards)))])
+        if self._scaler() is not None:
+            raise FedlgrError(
+                "runtime.concurrency=batched does not scale losses yet: with "
+                "train.precision=16-mixed on a GPU use runtime.concurrency=threads or "
+                "sequential, or train.precision=bf16-mixed"
             )
-        if cfg.runtime.concurrency == "batched":
-            refuse_plugins(self.clients)  # before any run is started, not at round 1
-            if any(c.scaler is not None for c in self.clients):
-                raise FedlgrError(
-                    "runtime.concurrency=batched does not scale losses yet: with "
-                    "train.precision=16-mixed on a GPU use runtime.concurrency=threads or "
-                    "sequential, or train.precision=bf16-mixed"
-                )
-        self._prepare_test_set()
-        self._warm_up(initial)
+
+    def build(self, index: int) -> Client:
+        """Client ``index`` as it starts the run: the initial model, a fresh optimiser, its
+        plugins, its batches of each task (their generators seeded per client)."""
+        cfg, shard = self.config, self.shards[index]
+        seed = client_seed(cfg.seed, index)
+        targets = self.scenes.targets
+        if index in self.poisoned:
+            targets = _poisoned(targets, cfg.federated.faults.label)
+        data = {
+            task: SceneBatches(
+                self.scenes.inputs,
+                targets,
+                shard.train if task == ALL else shard.tasks[task],
+                cfg.train.batch_size,
+                copies=self.copies,
+                augment=self.augment,
+                seed=seed + t,
+                device=self.device,
+            )
+            for t, task in enumerate(self.tasks)
+        }
+        plugins = [
+            *self.strategy.client_plugins(index),
+            *continual_plugins(cfg.continual, index, cfg.seed),
+        ]
+        model = copy.deepcopy(self.initial)
+        optimizer = model.configure_optimizers()
+        return Client(index, model, optimizer, data, plugins, scaler=self._scaler())
+
+    # ------------------------------------------------------------------ idle clients
+
+    @property
+    def clients(self) -> list[Client]:
+        """This side's clients, whole (``runtime.idle_clients=live``; elsewhere those
+        awake now)."""
+        return [self.awake[i] for i in sorted(self.awake)]
+
+    def wake(self, index: int) -> Client:
+        """Client ``index``, whole: as it is if awake, else built again and given its kept
+        state and the global tensors it holds. Building draws nothing from the
+        process's random generators (a generator's layers are made by its plugin)."""
+        if index in self.awake:
+            return self.awake[index]
+        if index not in self.idle:  # never built yet
+            self.awake[index] = self.build(index)
+            return self.awake[index]
+        state = to_device(complete(self.idle.take(index), self.shared), self.device)
+        with torch.random.fork_rng(devices=[]):
+            client = self.build(index)
+            client.load_state_dict(state)
+        self.awake[index] = client
+        return client
+
+    def rest(self, client: Client) -> None:
+        """``client`` goes idle: whole with ``runtime.idle_clients=live``, else as its
+        compact state (:mod:`.idle`) and its model, optimiser and plugins let go."""
+        if self.keeping == "live":
+            return
+        state = to_device(compact(client.state_dict(), self.shared), CPU)
+        self.idle.put(client.index, state, set(self.keys))
+        del self.awake[client.index]
+
+    def rest_all(self) -> None:
+        for client in self.clients:
+            self.rest(client)
+
+    def n_samples(self, index: int, task: int) -> int:
+        """Client ``index``'s training scenes in ``task`` (its aggregation weight)."""
+        shard, name = self.shards[index], self.tasks[task]
+        return len(shard.train if name == ALL else shard.tasks[name])
+
+    def close(self) -> None:
+        """Remove the idle clients' folder and files."""
+        self.idle.clear()
+        if self._spill is not None:
+            self._spill.cleanup()
 
     def _scaler(self) -> torch.amp.GradScaler | None:
         """A client's loss scaler: float16 autocast on a GPU needs one (small gradients
@@ -150,9 +240,10 @@ class ClientSide:
         """One untimed training step on a throwaway copy, so that kernel selection and
         allocator set-up are not billed to the first client's first round (in every
         worker of the pool: kernels are chosen per thread count)."""
-        if not self.clients:
+        if not self.shards:
             return
-        x, y = next(iter(self.clients[0].batches.peek()))
+        client = self.clients[0] if self.clients else self.build(next(iter(self.shards)))
+        x, y = next(iter(client.batches.peek()))
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
 
@@ -202,8 +293,8 @@ class ClientSide:
         what they upload."""
         cfg = self.config
         if isinstance(ins, TrainIns):
-            ins = {c.index: ins for c in self.clients}
-        chosen = [c for c in self.clients if c.index in ins]
+            ins = dict.fromkeys(self.shards, ins)
+        chosen = [self.wake(i) for i in sorted(ins) if i in self.shards]  # awake to evaluate
         for client in chosen:
             message = ins[client.index]
             if message.weights is not None:
@@ -290,56 +381,124 @@ class ClientSide:
         return weights
 
     def evaluate(self, ins: EvaluateIns) -> list[EvaluateRes]:
-        """Every client takes the new global tensors, ends the task at its last round
-        (measured as its work), and scores its model."""
+        """Every client takes the new global tensors; at a task's last round every client
+        ends the task (measured as its work); the clients ``ins`` names (all by default)
+        score their models. The others send nothing back. Idle clients go back to rest."""
         plan = ins.plan
         prefix = SCOPE_PREFIX[self.config.federated.scope]
         check_shared(ins.weights, self.keys, "the server's download", prefix)
         for client in self.clients:
             client.download(ins.weights)
-        ended = self._side_by_side(lambda c: self.finish_round(c, plan), self.clients)
-        predictions = self.predictions(ins.weights)
+        self.shared = ins.weights
+        self.idle.download(set(self.keys))
+        scored = sorted(self.shards if ins.clients is None else set(ins.clients) & set(self.shards))
+        ended = self._finish_rounds(plan, scored)
+        predictions = self.predictions(ins.weights, scored)
+        out = []
+        for index in sorted(set(scored) | set(ended)):
+            usage, figures = ended.get(index, (None, {}))
+            if index in predictions:
+                figures = self.scores(predictions[index], plan.task) | figures
+            out.append(EvaluateRes(index, figures | ({} if usage is None else usage.figures())))
+        self.rest_all()
+        return out
+
+    def _finish_rounds(self, plan, scored: list[int]) -> dict[int, tuple[Usage | None, Figures]]:
+        """:meth:`finish_round` of every client at a task's last round, else of the scored
+        ones where a plugin measures something each round: a few at a time where idle
+        clients rest compact, each put back to rest after."""
+        if plan.last_of_task:
+            ending = list(self.shards)
+        elif any(_measures_rounds(p) for p in self.build_plugins()):
+            ending = scored
+        else:
+            return {}
+        width = len(ending) if self.keeping == "live" else self.pool.workers
+        out = {}
+        for at in range(0, len(ending), max(width, 1)):
+            clients = [self.wake(i) for i in ending[at : at + width]]
+            done = self._side_by_side(lambda c: self.finish_round(c, plan), clients)
+            for client, result in zip(clients, done, strict=True):
+                out[client.index] = result
+                self.rest(client)
+        return out
+
+    def build_plugins(self) -> list[ClientPlugin]:
+        """A client's plugins as they start the run (every client has the same kinds)."""
+        cfg = self.config
+        index = next(iter(self.shards), 0)
         return [
-            EvaluateRes(
-                client.index,
-                self.scores(pred, plan.task) | figures | ({} if usage is None else usage.figures()),
-            )
-            for client, pred, (usage, figures) in zip(self.clients, predictions, ended, strict=True)
+            *self.strategy.client_plugins(index),
+            *continual_plugins(cfg.continual, index, cfg.seed),
         ]
 
-    def predictions(self, received: Weights) -> list[torch.Tensor]:
-        """Every client's outputs on the test scenes. Clients that hold the same model
-        share one pass (nothing kept locally); clients that hold the same root (FedRoot,
-        the root as received) share the root's pass over the test set and add their own
-        top's: one root pass plus N tops instead of N whole models."""
+    def predictions(self, received: Weights, scored: list[int]) -> dict[int, torch.Tensor]:
+        """The ``scored`` clients' outputs on the test scenes. Clients that hold the same
+        model share one pass (nothing kept locally); clients that hold the same root
+        (FedRoot, the root as received) share the root's pass over the test set and add
+        their own top's: one root pass plus N tops instead of N whole models, and an idle
+        client lends only its top."""
         cfg, autocast, map_ = self.config.train, self.autocast, self.pool.map
+        if not scored:
+            return {}
         if self.identical_models:
-            model = self.clients[0].model
+            model = self.global_model(received)
             pred = predict(model, self.test_inputs, cfg.eval_batch_size, autocast, map_)
-            return [pred] * len(self.clients)
-        if (
-            self.root_keys
-            and len(self.clients) > 1
-            and all(self.holds_root(c, received) for c in self.clients)
-        ):
-            tops = [c.model.top for c in self.clients]
-            root = self.clients[0].model.root
-            return predict_tops(root, tops, self.test_inputs, cfg.eval_batch_size, autocast, map_)
-        return self.pool.map(
-            lambda c: predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast),
-            self.clients,
-        )
+            return dict.fromkeys(scored, pred)
+        if self.root_keys and len(scored) > 1 and all(self.holds_root(i) for i in scored):
+            tops = [self.top(i) for i in scored]
+            root = self.global_model(received).root
+            preds = predict_tops(root, tops, self.test_inputs, cfg.eval_batch_size, autocast, map_)
+            return dict(zip(scored, preds, strict=True))
+        width = len(scored) if self.keeping == "live" else self.pool.workers
+        out = {}
+        for at in range(0, len(scored), max(width, 1)):
+            clients = [self.wake(i) for i in scored[at : at + width]]
+            preds = self.pool.map(
+                lambda c: predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast),
+                clients,
+            )
+            out |= {c.index: p for c, p in zip(clients, preds, strict=True)}
+            for client in clients:
+                self.rest(client)
+        return out
 
-    def holds_root(self, client: Client, received: Weights) -> bool:
-        """Is the client's root exactly the one received (no task end changed it)?"""
-        state = client.model.state_dict()
-        return all(torch.equal(state[k], received[k]) for k in self.root_keys)
+    def global_model(self, received: Weights) -> torch.nn.Module:
+        """A model holding the global tensors ``received`` (outputs need nothing else where
+        every floating-point tensor is shared, or of the root alone): with whole clients
+        the first one's, as it downloaded them; else one kept for this."""
+        if self.keeping == "live" and self.clients:
+            return self.clients[0].model
+        if self._global is None:
+            self._global = copy.deepcopy(self.initial)
+        state = self._global.state_dict()
+        with torch.no_grad():
+            for key, value in received.items():
+                state[key].copy_(value)
+        return self._global
+
+    def holds_root(self, index: int) -> bool:
+        """Is the client's root exactly the global one (no task end changed it)?"""
+        if index in self.awake:
+            state = self.awake[index].model.state_dict()
+            return all(torch.equal(state[k], self.shared[k]) for k in self.root_keys)
+        kept = self.idle.get(index)["model"]
+        return not any(k in kept for k in self.root_keys)
+
+    def top(self, index: int) -> torch.nn.Module:
+        """Client ``index``'s top: its own module if awake, else one given its kept top."""
+        if index in self.awake:
+            return self.awake[index].model.top
+        kept = complete(self.idle.get(index), self.shared)["model"]
+        top = copy.deepcopy(self.initial.top)
+        top.load_state_dict({k[4:]: v for k, v in kept.items() if k.startswith("top.")})
+        return top
 
     def finish_round(self, client: Client, plan) -> tuple[Usage | None, Figures]:
         """The plugins' round figures on the received model, then, at a task's last
         round, the task end (its usage, and its costs and figures)."""
         figures = {}
-        if any(type(p).round_metrics is not ClientPlugin.round_metrics for p in client.plugins):
+        if any(_measures_rounds(p) for p in client.plugins):
             ctx = self.context(client, plan.round, plan.task)
             figures = {  # outside any measurement: diagnostics are not the client's work
                 f"{p.name}/{k}": v for p in client.plugins for k, v in p.round_metrics(ctx).items()
@@ -378,9 +537,22 @@ class ClientSide:
     # ------------------------------------------------------------------ private state
 
     def state_dict(self) -> dict[int, dict]:
-        """Every client's private state (model, optimiser, plugins, generators)."""
-        return {c.index: c.state_dict() for c in self.clients}
+        """Every client's private state (model, optimiser, plugins, generators); an idle
+        client's as it is kept: compact, without the global tensors (the server's state
+        holds them)."""
+        states = {c.index: c.state_dict() for c in self.clients}
+        return states | {i: self.idle.get(i) for i in self.shards if i not in states}
 
-    def load_state_dict(self, states: dict[int, dict]) -> None:
-        for client in self.clients:
-            client.load_state_dict(states[client.index])
+    def load_state_dict(self, states: dict[int, dict], shared: Weights | None = None) -> None:
+        """Restore :meth:`state_dict`'s states of this side's clients; ``shared``: the
+        global tensors the clients hold, for states kept compact (None: they are whole)."""
+        if shared is not None:
+            self.shared = {k: shared[k].to(self.device) for k in self.keys}
+        for index in self.shards:
+            state = states[index] if shared is None else complete(states[index], self.shared)
+            if index in self.awake:
+                self.awake[index].load_state_dict(to_device(state, self.device))
+                continue
+            self.idle.take(index)
+            state = compact(to_device(state, CPU), to_device(self.shared, CPU))
+            self.idle.put(index, state, set(self.keys))

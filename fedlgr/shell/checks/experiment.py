@@ -103,6 +103,12 @@ def _processes_have_clients(config: ExperimentConfig) -> None:
         raise ConfigError(
             f"deploy.min_clients={config.deploy.min_clients} exceeds data.clients={clients}"
         )
+    federated = config.federated
+    if federated.evaluate == "sample" and federated.eval_clients > clients:
+        raise ConfigError(
+            f"federated.eval_clients={federated.eval_clients} exceeds data.clients={clients} "
+            "(federated.evaluate=sample scores that many clients each round)"
+        )
 
 
 def _root_reads_images(config: ExperimentConfig) -> None:

@@ -125,8 +125,13 @@ def check_federated(federated: FederatedConfig) -> None:
     choice("federated.scope", federated.scope, tuple(SCOPES))
     rounds("federated.rounds", federated.rounds)
     choice("federated.server_eval", federated.server_eval, SERVER_EVAL)
+    choice("federated.evaluate", federated.evaluate, EVALUATED)
+    positive("federated.eval_clients", federated.eval_clients)
     _method_settings(federated, "federated", STRATEGIES)
 
+
+EVALUATED = ("all", "chosen", "sample")  # federated.evaluate
+IDLE_CLIENTS = ("auto", "live", "memory", "disk")  # runtime.idle_clients
 
 ATTACKS = ("sign_flip", "noise", "scale", "labels")
 
@@ -176,6 +181,12 @@ def check_runtime(runtime: RuntimeConfig) -> None:
     choice("runtime.accelerator", runtime.accelerator, ("auto", "cpu", "gpu", "cuda"))
     choice("runtime.launcher", runtime.launcher, ("ddp", "ddp_spawn"))
     choice("runtime.concurrency", runtime.concurrency, CONCURRENCY)
+    choice("runtime.idle_clients", runtime.idle_clients, IDLE_CLIENTS)
+    if not runtime.idle_memory_mb >= 0:
+        raise ConfigError(
+            f"runtime.idle_memory_mb={runtime.idle_memory_mb}: must be 0 or more (MiB of idle "
+            "clients' state held in memory before the rest goes to disk)"
+        )
     positive("runtime.devices", runtime.devices)
     positive("runtime.num_nodes", runtime.num_nodes)
     for name in ("devices", "threads", "workers"):

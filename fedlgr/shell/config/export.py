@@ -96,6 +96,8 @@ SAFE_KEYS = frozenset(
     {
         "runtime.progress",
         "runtime.timeout_s",
+        "runtime.idle_clients",  # where idle clients wait: the same numbers either way
+        "runtime.idle_memory_mb",
         "tracking.uri",
         "tracking.checkpoint",
         "tracking.keep_checkpoints",

@@ -146,6 +146,12 @@ class _FederatedConfig:
     # 1; else max(1, round(fraction x clients)) drawn from the run's seed each round. The
     # others keep their state and are still evaluated.
     fraction: float = 1.0
+    # Which clients score the global tensors each round (docs/runtimes.md, "Many
+    # clients"): all (the paper's protocol), chosen (the round's participants), sample (a
+    # fixed subset of eval_clients clients drawn once from the seed). The round's test
+    # scores are the mean over the clients evaluated.
+    evaluate: str = "all"
+    eval_clients: int = 10
     # An upload whose update (its tensors minus the global ones) has a norm over this many
     # times the median of the round's other updates is refused (0: no such check). Every upload's
     # keys, shapes, dtypes, values and sample count are checked whatever this says.
@@ -193,6 +199,14 @@ class RuntimeConfig:
     concurrency: str = "auto"
     workers: int | None = None  # clients at once with threads (default: min(clients, threads))
     progress: bool = True
+    # Where a client not at work in a round keeps its state (docs/runtimes.md, "Many
+    # clients"): live (whole, as a model, optimiser and plugins), memory (compact: only
+    # what differs from the global tensors, its optimiser, plugins' and generators' state),
+    # disk (compact, in files under the checkpoint folder); auto: live up to 32 clients
+    # per process, else compact in memory up to idle_memory_mb, the rest on disk. The
+    # results are the same whichever holds them.
+    idle_clients: str = "auto"
+    idle_memory_mb: float = 1024.0
     # How long a process of a multi-process run waits for the others: for all of them to
     # join at the start (a node never started), and at each exchange of a round (torch's
     # default, 30 min, lets a slow process's clients finish their round).

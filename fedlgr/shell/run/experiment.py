@@ -34,6 +34,7 @@ from fedlgr.shell.console import Progress
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.machine import available_cores, torch_threads
+from fedlgr.shell.run.checkpoint import checkpoint_root
 from fedlgr.shell.run.life import Hooks, RunLife
 from fedlgr.shell.run.result import ExperimentResult
 from fedlgr.shell.run.resume import adopt_settings, left_to_machine, resume_point
@@ -160,7 +161,10 @@ def _main(
     with Progress("decoding images", "img", show) as bar:  # only when not cached yet
         scenes = load_scenes(config.data, progress=bar)
     split = make_split(scenes.table, config.data)
-    orchestrator = Orchestrator(fabric, config, scenes, split)
+    spill = None  # idle clients' states beyond runtime.idle_memory_mb: by the checkpoints
+    if config.tracking.enabled:
+        spill = checkpoint_root(config, tracking_uri(config))
+    orchestrator = Orchestrator(fabric, config, scenes, split, spill=spill)
     config = orchestrator.config  # with how its clients train made explicit
     processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
     life = RunLife(
@@ -174,7 +178,10 @@ def _main(
         resumed=resumed,
         start=start,
     )
-    return life.run(orchestrator)
+    try:
+        return life.run(orchestrator)
+    finally:
+        orchestrator.close()
 
 
 def _threads(fabric, config: ExperimentConfig) -> tuple[ExperimentConfig, int | None]:

@@ -14,6 +14,9 @@ from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import table
 
 
+SHOWN_CLIENTS = 20  # the summary's per-client rows, up to this many clients
+
+
 @dataclass
 class ExperimentResult:
     config: ExperimentConfig
@@ -72,13 +75,14 @@ class ExperimentResult:
         costs = [c for c in COSTS if c.summary]
         # Over the rounds a client took part in (a robot that dropped out has NaN rows).
         per_round = {c.key: np.stack([r.column(c.key) for r in self.rounds]) for c in costs}
+        clients = len(last.table)
         rows = [
             [
                 f"client {c}",
                 *(float(last.column(n)[c]) for n in scores),
                 *(_nanmean(per_round[cost.key][:, c]) for cost in costs),
             ]
-            for c in range(len(last.table))
+            for c in range(clients if clients <= SHOWN_CLIENTS else 0)
         ]
         rows.append(
             [
@@ -87,20 +91,37 @@ class ExperimentResult:
                 *(_nanmean(per_round[cost.key]) for cost in costs),
             ]
         )
-        for row in rows:  # a cost measured in no round shows as "-"
+        for row in rows:  # a figure measured in no round (a client not scored) shows as "-"
+            for i in range(1, 1 + len(scores)):
+                row[i] = "-" if row[i] is None or math.isnan(row[i]) else row[i]
             for i, cost in enumerate(costs, start=1 + len(scores)):
                 if cost.key.startswith("cost/bytes"):
                     row[i] = _human_bytes(row[i])
                 elif math.isnan(row[i]):
                     row[i] = "-"
         headers = ["client", *(s.label for s in SCORES), *(c.summary for c in costs)]
-        text = table(headers, rows)
+        text = table(headers, rows) + self._scored_note()
         if self.after_tasks:
             text += "\n\n" + self.task_summary()
         for section in (self.replay_fidelity(), self.latent_drift(), self.privacy()):
             if section:
                 text += "\n\n" + section
         return text
+
+    def _scored_note(self) -> str:
+        """What the summary's rows stand for where they are not every client's scores."""
+        last, evaluate = self.final, self.config.federated.evaluate
+        clients = len(last.table)
+        scored = int((~np.isnan(last.column("test/rmse"))).sum())
+        notes = []
+        if clients > SHOWN_CLIENTS:
+            notes.append(f"{clients} clients: each one's row is in results.csv")
+        if scored < clients:
+            notes.append(
+                f"test scores: the mean over the {scored} clients scored in the last round "
+                f"(federated.evaluate={evaluate})"
+            )
+        return "".join(f"\n{n}" for n in notes)
 
     def privacy(self) -> str:
         """Client-level DP: the epsilon the run spent, at its delta, after its rounds."""

@@ -100,6 +100,12 @@ class FlowerRounds:
                 "(deploy.roster): the server chooses clients, so it must know which robot "
                 "is which client"
             )
+        if config.federated.evaluate != "all":
+            raise FedlgrError(
+                f"federated.evaluate={config.federated.evaluate} on robots: every robot "
+                "scores each round's global tensors on Flower (the scores come with its "
+                "next exchange); use federated.evaluate=all"
+            )
         # federated.server_eval: the server scores the global model on its own copy of the
         # test scenes (data.path on the SuperLink's machine).
         self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
