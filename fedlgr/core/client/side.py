@@ -153,6 +153,8 @@ class ClientSide:
         if not self.clients:
             return
         x, y = next(iter(self.clients[0].batches.peek()))
+        if len(x) < 2:  # a client of one scene (BatchNorm cannot train on a single sample)
+            x, y = torch.cat([x, x]), torch.cat([y, y])
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
 
