@@ -3,7 +3,9 @@
 ``load_scenes(config)`` reads ``all_data.csv`` (validated, ratings averaged per stamp) and,
 for the image modality, the decode-once image store. The result holds, in stamp order,
 the targets (mean rating of the 8 actions), the features-modality inputs (27 descriptors
-+ 2 mode flags) and, for images, a uint8 ``(N, 3, S, S)`` tensor.
++ 2 mode flags) and, for images, a uint8 ``(N, 3, S, S)`` tensor. ``load_split`` also
+splits them, from the CSV before any image is decoded, so a split that cannot be used is
+refused in a moment.
 """
 
 from __future__ import annotations
