@@ -1,7 +1,8 @@
 """Bad settings and bad data refused in one line before anything is allocated (issue 20,
 points 8 and 9): seeds, non-finite floats, floats for integers, sizes that cannot fit,
 MLflow's name limit, thread intervals, rounds, a report folder that is a file, two scenes
-under one stamp and degenerate images."""
+under one stamp, degenerate images, and a task schedule some client holds no scenes of
+(issue 40)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from PIL import Image
 
 import fedlgr.shell.checks.experiment as experiment_checks
 import fedlgr.shell.config as config_module
+import fedlgr.shell.data.dataset as dataset_module
 import fedlgr.shell.data.images as images_module
 import fedlgr.shell.report.runs as report_runs
 from fedlgr.errors import ConfigError, DataError
@@ -21,7 +23,9 @@ from fedlgr.shell.cli import main
 from fedlgr.shell.config import DataConfig, FederatedConfig, ModelConfig, load_config
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.ratings import read_ratings
+from fedlgr.shell.data.splits import make_split, task_clients
 from tests.support.data import HEADER, rating_row, write_rows
+from tests.support.runs import FAST
 
 
 def refused(overrides: list[str], error=ConfigError) -> str:
@@ -239,6 +243,51 @@ def test_an_image_store_larger_than_the_memory_is_refused_before_decoding(tmp_pa
     )
 
 
+def test_a_schedule_some_client_cannot_train_is_refused_before_any_image_is_decoded(
+    tmp_path, synth_dir, cache_dir, capsys, monkeypatch
+):
+    """FCL trains every client on each scheduled task in turn: 20 clients on the 36
+    training scenes leave some without one. The split is refused in one line from
+    all_data.csv - no image decoded, no MLflow run - with how many clients lack each task
+    and the most clients that give every client both (they do; one more does not)."""
+
+    def never(*args, **kwargs):
+        raise AssertionError("images decoded before the split was checked")
+
+    monkeypatch.setattr(dataset_module, "load_image_store", never)
+    monkeypatch.setattr(images_module, "decode", never)
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    argv = ["run", str(FAST), f"data.path={synth_dir}", f"data.cache_dir={cache_dir}"]
+    assert main([*argv, "--tracking-uri", store, "method=FedAvg-EWC", "data.clients=20"]) == 1
+    err = capsys.readouterr().err.strip()
+
+    # What it must say, from plain splits (which allow a client without a task).
+    table = read_ratings(synth_dir)
+    both = ("circle", "arrow")
+
+    def held(clients: int) -> dict[str, int]:
+        return task_clients(make_split(table, DataConfig(clients=clients)))
+
+    lacking = sorted(((20 - k, t) for t, k in held(20).items()), key=lambda kt: -kt[0])
+    assert all(k > 0 for k, _ in lacking)
+    most = max(k for k in range(1, 20) if held(k) == {"circle": k, "arrow": k})
+    assert 1 < most < 19
+    assert err == (
+        f"fedlgr: error: data.clients=20: {lacking[0][0]} clients hold no training scenes of "
+        f"task {lacking[0][1]!r} and {lacking[1][0]} none of {lacking[1][1]!r} (continual.tasks "
+        "needs every client to hold each task it trains); "
+        f"data.clients={most} is the most that give every client scenes of every task with "
+        "data.seed=0, or use fewer continual.tasks / plain FL"
+    )
+    split = make_split(table, DataConfig(clients=most), both)
+    assert all(len(c.tasks[t]) for c in split.clients for t in both)
+    with pytest.raises(ConfigError, match=f"^data.clients={most + 1}: "):
+        make_split(table, DataConfig(clients=most + 1), both)
+    assert not cache_dir.exists()
+    client = mlflow.MlflowClient(store)
+    assert not client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+
 def test_an_empty_config_file_is_refused(tmp_path):
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
@@ -254,7 +303,6 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
     import torch
 
     from fedlgr.shell.config import SWEEPS_DIR
-    from tests.support.runs import FAST
 
     fast, sweep = str(FAST), str(SWEEPS_DIR / "fedlgr.yaml")
     assert "runtime.threads=1000000: at most 1024" in refused(["runtime.threads=1000000"])
@@ -287,8 +335,6 @@ def test_found_by_the_third_sweep_are_one_line_before_any_work(
     same path: a traceback from the owner's lock and a FAILED run), is refused before the
     MLflow run exists; `fedlgr data synth --size 100000` drew for minutes and ignored
     SIGTERM; `fedlgr report --out ''` filled the current folder with the report."""
-    from tests.support.runs import FAST
-
     store = tmp_path / "mlflow.db"
     afile = tmp_path / "ckfile"
     afile.write_text("x")

@@ -9,14 +9,17 @@ import subprocess
 import sys
 import types
 
+import numpy as np
 import pytest
 import yaml
 from PIL import Image
 
 from fedlgr.shell.cli import build_parser, main
 from fedlgr.shell.cli.sweep import shipped_sweeps
-from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, load_config, to_plain
+from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, DataConfig, load_config, to_plain
 from fedlgr.shell.console import Progress, duration
+from fedlgr.shell.data.ratings import read_ratings
+from fedlgr.shell.data.splits import make_split
 from tests.support.runs import FAST
 
 
@@ -67,6 +70,37 @@ def test_synth_refuses_a_non_empty_folder(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == f"fedlgr: error: {tmp_path}: folder is not empty; pass --force to overwrite it\n"
     assert (tmp_path / "keep.txt").read_text() == "mine"
+
+
+def test_check_summarises_a_split_of_over_20_clients(synth_dir, cache_dir, capsys):
+    """One row per client up to 20; beyond, the first 10 rows and a summary: scenes per
+    client (min, median, max) and how many clients hold none of each task."""
+    argv = ["data", "check", str(synth_dir), "--modality", "features", "--clients"]
+    split = make_split(read_ratings(synth_dir), DataConfig(clients=30))
+    sizes = np.array(
+        [[len(c.train), len(c.tasks["circle"]), len(c.tasks["arrow"])] for c in split.clients]
+    )
+    assert main([*argv, "30"]) == 0
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    rows = [line.split() for line in lines if line.startswith("client ")]
+    assert rows == [["client", str(c), *map(str, sizes[c])] for c in range(10)]
+    assert "(20 more clients)" in lines
+    assert lines[-7] == "per client, over all 30 clients:"
+    summary = {line[:17].strip(): line[17:].split() for line in lines[-4:]}
+    median = [f"{m:g}" for m in np.median(sizes, axis=0)]
+    assert summary == {
+        "min": [str(v) for v in sizes.min(axis=0)],
+        "median": median,
+        "max": [str(v) for v in sizes.max(axis=0)],
+        "clients with none": [str(v) for v in (sizes == 0).sum(axis=0)],
+    }
+    assert summary["clients with none"][1:] != ["0", "0"]  # some client lacks a task
+
+    assert main([*argv, "20"]) == 0
+    out = capsys.readouterr().out
+    assert sum(line.startswith("client ") for line in out.splitlines()) == 20
+    assert "more clients" not in out and "per client" not in out
 
 
 def test_impossible_split_names_the_setting(synth_dir, cache_dir, capsys):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +19,13 @@ from fedlgr.core.data.columns import (
 )
 from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.config import DEFAULT_TASKS, DataConfig, TaskSpec
+from fedlgr.shell.data import splits
 from fedlgr.shell.data.ratings import SceneTable, read_ratings
 from fedlgr.shell.data.splits import (
     make_split,
     shard_clients,
     split_tasks,
+    task_clients,
     task_members,
     train_test_split,
 )
@@ -258,12 +263,113 @@ def test_shard_without_scenes_of_a_task_is_a_data_error_naming_client_and_task()
     assert "'arrow'" in str(err.value) and "'circle'" not in str(err.value)
 
 
-def test_make_split_reports_a_client_left_without_a_task():
+# --- small shards: a client without a task --------------------------------------------
+
+BOTH = ("circle", "arrow")  # the FCL schedule of the default tasks
+RULE = "(continual.tasks needs every client to hold each task it trains)"
+
+
+def test_plain_fl_lets_a_client_hold_no_training_scenes_of_a_task():
     # Dirichlet over the task with alpha ~ 0: each client holds one task only.
     table = make_table(np.arange(40) % 2 == 0)
     config = DataConfig(clients=2, partition="dirichlet", dirichlet_alpha=1e-3)
-    with pytest.raises(DataError, match=r"client [01]: no scenes for task\(s\) '(circle|arrow)'"):
-        make_split(table, config)
+    split = make_split(table, config)
+    held = [{k for k, idx in c.tasks.items() if len(idx)} for c in split.clients]
+    assert sorted(map(sorted, held)) == [["arrow"], ["circle"]]
+    for c in split.clients:
+        assert_partition([idx for idx in c.tasks.values() if len(idx)], c.train)
+    assert task_clients(split) == {"circle": 1, "arrow": 1}
+    assert {k: len(v) for k, v in split.test_tasks.items()} == {"circle": 5, "arrow": 5}
+
+
+def test_a_client_without_a_scheduled_task_is_refused_with_the_clients_that_would_do():
+    table = make_table(np.arange(40) % 2 == 0)
+    config = DataConfig(clients=2, partition="dirichlet", dirichlet_alpha=1e-3)
+    with pytest.raises(ConfigError) as caught:
+        make_split(table, config, BOTH)
+    assert str(caught.value) == (
+        f"data.clients=2: 1 client holds no training scenes of task 'circle' and 1 none of "
+        f"'arrow' {RULE}; data.clients=1 is the most that give every client scenes of every "
+        "task with data.seed=0, or use fewer continual.tasks / plain FL / a larger "
+        "data.dirichlet_alpha"
+    )
+
+
+def test_only_the_scheduled_tasks_must_be_held_by_every_client():
+    # 36 circle and 4 arrow scenes: 27 and 3 of them train, over 6 IID clients of 5 scenes,
+    # so every client holds circle scenes and at least 3 hold no arrow scene.
+    table = make_table(np.arange(40) >= 4)
+    config = DataConfig(clients=6, seed=3)
+    plain = make_split(table, config)
+    lacking = 6 - task_clients(plain)["arrow"]
+    assert task_clients(plain)["circle"] == 6 and lacking >= 3
+    circle_only = make_split(table, config, ("circle",))
+    assert all(
+        np.array_equal(a.train, b.train)
+        for a, b in zip(plain.clients, circle_only.clients, strict=True)
+    )
+    with pytest.raises(ConfigError) as caught:
+        make_split(table, config, ("arrow",))
+    message = str(caught.value)
+    found = re.fullmatch(
+        rf"data\.clients=6: {lacking} clients hold no training scenes of task 'arrow' "
+        rf"{re.escape(RULE)}; data\.clients=(\d) is the most that give every client scenes "
+        r"of every task with data\.seed=3, or use fewer continual\.tasks / plain FL",
+        message,
+    )
+    assert found, message
+    most = int(found.group(1))
+    assert 1 <= most <= 3  # 3 arrow scenes train
+    split = make_split(table, dataclasses.replace(config, clients=most), ("arrow",))
+    assert all(len(c.tasks["arrow"]) for c in split.clients)
+    for clients in range(most + 1, 6):  # every count above it leaves a client without
+        fewer = dataclasses.replace(config, clients=clients)
+        assert task_clients(make_split(table, fewer))["arrow"] < clients
+        with pytest.raises(ConfigError, match=f"^data.clients={clients}: "):
+            make_split(table, fewer, ("arrow",))
+
+
+def test_where_no_client_count_gives_every_client_a_task_it_is_said():
+    # 2 arrow scenes, both in the test set at test_fraction 0.9: no client can train on one.
+    table = make_table(np.arange(40) >= 2)
+    config = DataConfig(clients=2, test_fraction=0.9)
+    assert task_clients(make_split(table, config)) == {"circle": 2, "arrow": 0}
+    with pytest.raises(ConfigError) as caught:
+        make_split(table, config, BOTH)
+    assert str(caught.value) == (
+        f"data.clients=2: 2 clients hold no training scenes of task 'arrow' {RULE}; no smaller "
+        "data.clients gives every client scenes of every task with data.seed=0: use fewer "
+        "continual.tasks / plain FL"
+    )
+
+
+def test_the_search_for_a_client_count_stops_after_its_time(monkeypatch):
+    monkeypatch.setattr(splits, "_SEARCH_S", 0.0)  # stops after the first count it tries
+    table = make_table(np.arange(400) % 2 == 0)
+    with pytest.raises(ConfigError) as caught:
+        make_split(table, DataConfig(clients=300), BOTH)
+    assert re.fullmatch(
+        rf"data\.clients=300: \d+ clients hold no training scenes of task '\w+' and \d+ none "
+        rf"of '\w+' {re.escape(RULE)}; no data\.clients from 299 down to 299 gives every "
+        r"client scenes of every task with data\.seed=0 \(the search stops after 0 s\): try "
+        r"fewer clients, or use fewer continual\.tasks / plain FL",
+        str(caught.value),
+    ), str(caught.value)
+
+
+def test_750_clients_on_1000_scenes_are_refused_with_a_count_that_works_in_a_moment():
+    circle = np.random.default_rng(5).random(1000) < 0.5
+    table = make_table(circle)
+    start = time.perf_counter()
+    with pytest.raises(ConfigError) as caught:
+        make_split(table, DataConfig(clients=750), BOTH)
+    seconds = time.perf_counter() - start
+    assert seconds < 3.0  # the search is cut at 1.5 s; an IID one takes milliseconds
+    most = int(re.search(r"; data\.clients=(\d+) is the most", str(caught.value)).group(1))
+    split = make_split(table, DataConfig(clients=most), BOTH)
+    assert task_clients(split) == {"circle": most, "arrow": most}
+    with pytest.raises(ConfigError, match=f"^data.clients={most + 1}: "):
+        make_split(table, DataConfig(clients=most + 1), BOTH)
 
 
 # --- make_split --------------------------------------------------------------------------

@@ -98,6 +98,36 @@ def test_features_modality_needs_only_the_csv(method, synth_dir, tmp_path, cache
     _, run, artifacts = read_run(store, result.run_id)
     assert run.info.status == "FINISHED" and run.data.tags["modality"] == "features"
     assert math.isfinite(run.data.metrics["test/pcc"]) and "results.csv" in artifacts
+    assert "fedlgr.task_clients" not in run.data.tags  # both clients hold both tasks
+
+
+def test_plain_fl_runs_clients_of_one_scene_and_says_how_many_hold_each_task(
+    synth_dir, cache_dir, store, capsys
+):
+    """36 clients on the 36 training scenes: one scene each, so every client holds one task
+    only (client 0 too, whose single scene once broke the warm-up step). Plain FL trains a
+    client on all its scenes at once, so the run goes through; its header and its tag
+    ``fedlgr.task_clients`` say how many clients hold each task."""
+    config = fast_config(synth_dir, cache_dir, store, "data.modality=features", "data.clients=36")
+    split = make_split(load_scenes(config.data).table, config.data)
+    assert [len(c.train) for c in split.clients] == [1] * 36
+    held = {t: sum(len(c.tasks[t]) > 0 for c in split.clients) for t in ("circle", "arrow")}
+    assert held["circle"] + held["arrow"] == 36 and min(held.values()) > 0
+
+    result = run_experiment(config)
+    client, run, _ = read_run(store, result.run_id)
+    assert run.info.status == "FINISHED"
+    tag = f"circle:{held['circle']}/36, arrow:{held['arrow']}/36"
+    assert run.data.tags["fedlgr.task_clients"] == tag
+    lines = capsys.readouterr().out.splitlines()
+    header = next(
+        i for i, line in enumerate(lines) if line.startswith("FedAvg-36c-noaug-features:")
+    )
+    assert lines[header + 1] == (
+        f"clients with training scenes of each task: circle {held['circle']} of 36, "
+        f"arrow {held['arrow']} of 36"
+    )
+    assert sorted(int(r["client"]) for r in results_csv(client, result.run_id)) == list(range(36))
 
 
 def test_root_scope_keeps_each_top_and_uploads_the_root(synth_dir, cache_dir):

@@ -244,6 +244,8 @@ class ClientSide:
             return
         client = self.clients[0] if self.clients else self.build(next(iter(self.shards)))
         x, y = next(iter(client.batches.peek()))
+        if len(x) < 2:  # a client of one scene (BatchNorm cannot train on a single sample)
+            x, y = torch.cat([x, x]), torch.cat([y, y])
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
 

@@ -101,16 +101,15 @@ def show(args: argparse.Namespace) -> int:
 def summarise(config) -> None:
     """Load the dataset of ``config`` (decoding images at most once), print it and its split."""
     # lazy: torch, PIL and numpy
-    from fedlgr.shell.data.dataset import load_scenes
-    from fedlgr.shell.data.splits import make_split
+    from fedlgr.shell.data.dataset import load_split
     from fedlgr.shell.data.summary import describe_scenes, describe_split
 
     start = time.perf_counter()
     with Progress("decoding images", unit="img") as bar:
-        scenes = load_scenes(config, progress=bar)
+        scenes, split = load_split(config, progress=bar)
     print(describe_scenes(scenes))
     print(f"\nloaded in {time.perf_counter() - start:.2f} s\n")
-    print(describe_split(make_split(scenes.table, config)))
+    print(describe_split(split))
 
 
 def check(args: argparse.Namespace) -> int:

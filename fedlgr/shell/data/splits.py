@@ -9,10 +9,16 @@ deterministic for a seed. The test set is shared by every client.
   shards where each client's share of every group is drawn from Dirichlet(alpha)
   (Hsu et al. 2019): small alpha gives clients dominated by one group.
 * ``split_tasks``: the scenes of each task, in the schedule's order.
+* ``make_split``: all of it for a :class:`~fedlgr.shell.config.DataConfig`. A client may
+  hold no training scenes of a task (plain FL trains on all of a client's scenes at once),
+  except of the tasks a continual-learning schedule trains each client on in turn: those
+  are refused with the largest ``data.clients`` that gives every client each of them.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +28,9 @@ from fedlgr.shell.config import DataConfig, TaskSpec
 from fedlgr.shell.data.ratings import SceneTable
 
 _DIRICHLET_TRIES = 100
+# How long make_split looks for a client count that gives every client every scheduled
+# task: an IID split is checked in microseconds per count, a Dirichlet one redraws.
+_SEARCH_S = 1.5
 
 
 def train_test_split(
@@ -55,9 +64,9 @@ def shard_clients(
         raise ConfigError(
             f"data.clients={n_clients}: more clients than the {len(train)} training scenes"
         )
-    rng = np.random.default_rng([seed, 2])
     if partition == "iid":
-        return [np.sort(s) for s in np.array_split(rng.permutation(train), n_clients)]
+        return [np.sort(s) for s in np.array_split(_iid_order(train, seed), n_clients)]
+    rng = np.random.default_rng([seed, 2])
     if groups is None or len(groups) != len(train):
         raise ValueError("dirichlet partition needs one group id per training scene")
     for _ in range(_DIRICHLET_TRIES):
@@ -74,6 +83,12 @@ def shard_clients(
         f"data.dirichlet_alpha={alpha}: {_DIRICHLET_TRIES} draws each left some of the "
         f"{n_clients} clients without scenes; raise the alpha or lower data.clients"
     )
+
+
+def _iid_order(train: np.ndarray, seed: int) -> np.ndarray:
+    """The training scenes in the order whose consecutive runs are the IID shards: the same
+    for every client count."""
+    return np.random.default_rng([seed, 2]).permutation(train)
 
 
 def task_members(table: SceneTable, tasks: tuple[TaskSpec, ...]) -> np.ndarray:
@@ -96,11 +111,18 @@ def task_members(table: SceneTable, tasks: tuple[TaskSpec, ...]) -> np.ndarray:
     return member
 
 
+def tasks_of(
+    positions: np.ndarray, member: np.ndarray, tasks: tuple[TaskSpec, ...]
+) -> dict[str, np.ndarray]:
+    """The entries of ``positions`` per task (empty for a task it holds none of)."""
+    return {task.name: positions[member[positions] == t] for t, task in enumerate(tasks)}
+
+
 def split_tasks(
     positions: np.ndarray, member: np.ndarray, tasks: tuple[TaskSpec, ...], where: str
 ) -> dict[str, np.ndarray]:
     """The entries of ``positions`` per task; a task with no scene there is an error."""
-    out = {task.name: positions[member[positions] == t] for t, task in enumerate(tasks)}
+    out = tasks_of(positions, member, tasks)
     empty = [name for name, idx in out.items() if len(idx) == 0]
     if empty:
         raise DataError(
@@ -114,7 +136,8 @@ def split_tasks(
 class ClientShard:
     client: int
     train: np.ndarray  # positions into the Scenes
-    tasks: dict[str, np.ndarray]  # task name -> positions, a partition of train's task scenes
+    # task name -> positions, a partition of train's task scenes (some may be empty)
+    tasks: dict[str, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -130,17 +153,97 @@ def _label_quartile(table: SceneTable) -> np.ndarray:
     return np.searchsorted(np.quantile(mean_label, [0.25, 0.5, 0.75]), mean_label)
 
 
-def make_split(table: SceneTable, config: DataConfig) -> FederatedSplit:
+def make_split(
+    table: SceneTable, config: DataConfig, scheduled: Sequence[str] = ()
+) -> FederatedSplit:
     """Train/test, client shards and per-client tasks for ``config``, seeded by
-    ``config.seed``."""
+    ``config.seed``. The shared test set must hold every task. A client may hold no
+    training scenes of a task, except of those ``scheduled`` (``continual.tasks``: a
+    continual-learning schedule trains every client on each of them in turn)."""
     member = task_members(table, config.tasks)
     train, test = train_test_split(member, config.test_fraction, config.seed)
-    groups = member if config.partition_key == "task" else _label_quartile(table)
-    shards = shard_clients(
-        train, config.clients, config.seed, config.partition, groups[train], config.dirichlet_alpha
-    )
+    test_tasks = split_tasks(test, member, config.tasks, "test set")
+    groups = (member if config.partition_key == "task" else _label_quartile(table))[train]
+    shards = _shards(train, groups, config, config.clients)
+    needed = [t for t, task in enumerate(config.tasks) if task.name in scheduled]
+    lacking = _lacking(member[np.concatenate(shards)], [len(s) for s in shards], needed)
+    if any(lacking):
+        names = [config.tasks[t].name for t in needed]
+        found, lowest = _most_clients(member, train, groups, config, needed)
+        raise ConfigError(_refusal(config, dict(zip(names, lacking, strict=True)), found, lowest))
     clients = [
-        ClientShard(c, shard, split_tasks(shard, member, config.tasks, f"client {c}"))
+        ClientShard(c, shard, tasks_of(shard, member, config.tasks))
         for c, shard in enumerate(shards)
     ]
-    return FederatedSplit(train, test, split_tasks(test, member, config.tasks, "test set"), clients)
+    return FederatedSplit(train, test, test_tasks, clients)
+
+
+def task_clients(split: FederatedSplit) -> dict[str, int]:
+    """For each task, how many clients hold training scenes of it."""
+    return {task: sum(len(c.tasks[task]) > 0 for c in split.clients) for task in split.test_tasks}
+
+
+def _shards(train: np.ndarray, groups: np.ndarray, config: DataConfig, n: int) -> list[np.ndarray]:
+    return shard_clients(train, n, config.seed, config.partition, groups, config.dirichlet_alpha)
+
+
+def _lacking(labels: np.ndarray, sizes: Sequence[int], needed: Sequence[int]) -> list[int]:
+    """For each task in ``needed``, how many shards hold none of it. The shards are the
+    consecutive runs of ``labels`` (each scene's task) of ``sizes`` (none empty)."""
+    starts = np.cumsum([0, *sizes[:-1]])
+    return [
+        int((np.add.reduceat((labels == t).astype(np.int64), starts) == 0).sum()) for t in needed
+    ]
+
+
+def _most_clients(
+    member: np.ndarray, train: np.ndarray, groups: np.ndarray, config: DataConfig, needed
+) -> tuple[int | None, int]:
+    """The largest client count below ``config.clients`` whose split gives every client
+    scenes of every task in ``needed`` (None: none found), and the smallest count tried
+    (the search stops after ``_SEARCH_S`` seconds)."""
+    stop = time.perf_counter() + _SEARCH_S
+    order = member[_iid_order(train, config.seed)]  # the IID shards of any client count
+    for n in range(config.clients - 1, 0, -1):
+        if config.partition == "iid":
+            labels, (q, r) = order, divmod(len(order), n)
+            sizes = [q + 1] * r + [q] * (n - r)  # np.array_split's
+            if not any(_lacking(labels, sizes, needed)):
+                return n, n
+        else:
+            try:
+                shards = _shards(train, groups, config, n)
+            except ConfigError:  # every draw left a client without scenes
+                shards = []
+            sizes = [len(s) for s in shards]
+            if shards and not any(_lacking(member[np.concatenate(shards)], sizes, needed)):
+                return n, n
+        if time.perf_counter() > stop:
+            return None, n
+    return None, 1
+
+
+def _refusal(config: DataConfig, lacking: dict[str, int], found: int | None, lowest: int) -> str:
+    """One line: how many clients lack which scheduled task, and what would do."""
+    counts = sorted(((k, name) for name, k in lacking.items() if k), key=lambda kn: -kn[0])
+    (k, name), rest = counts[0], counts[1:]
+    parts = [f"{k} client{' holds' if k == 1 else 's hold'} no training scenes of task {name!r}"]
+    parts += [f"{k} none of {name!r}" for k, name in rest]
+    said = parts[0] if not rest else ", ".join(parts[:-1]) + " and " + parts[-1]
+    advice = "use fewer continual.tasks / plain FL" + (
+        " / a larger data.dirichlet_alpha" if config.partition == "dirichlet" else ""
+    )
+    every = f"every client scenes of every task with data.seed={config.seed}"
+    if found is not None:
+        hint = f"data.clients={found} is the most that give {every}, or {advice}"
+    elif lowest > 1:
+        hint = (
+            f"no data.clients from {config.clients - 1} down to {lowest} gives {every} (the "
+            f"search stops after {_SEARCH_S:g} s): try fewer clients, or {advice}"
+        )
+    else:
+        hint = f"no smaller data.clients gives {every}: {advice}"
+    return (
+        f"data.clients={config.clients}: {said} (continual.tasks needs every client to hold "
+        f"each task it trains); {hint}"
+    )

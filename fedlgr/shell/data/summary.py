@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES
 from fedlgr.shell.console import table
 from fedlgr.shell.data.dataset import Scenes
@@ -33,11 +35,28 @@ def describe_scenes(scenes: Scenes) -> str:
     return head + "\n\n" + table(["action", "mean", "sd", "min", "max"], rows)
 
 
-def describe_split(split: FederatedSplit) -> str:
+def describe_split(split: FederatedSplit, most: int = 20) -> str:
+    """One row per client and one for the shared test set. Over ``most`` clients, the
+    first ``most // 2`` rows, then the scenes per client (min, median, max) and how many
+    clients hold no training scenes of each task (plain FL allows it, SPEC 2.3)."""
     tasks = list(split.test_tasks)
-    rows = [
-        (f"client {c.client}", len(c.train), *(len(c.tasks[k]) for k in tasks))
-        for c in split.clients
-    ]
+    clients = split.clients
+    shown = clients if len(clients) <= most else clients[: most // 2]
+    rows = [(f"client {c.client}", len(c.train), *(len(c.tasks[k]) for k in tasks)) for c in shown]
+    if len(shown) < len(clients):
+        rows.append((f"({len(clients) - len(shown)} more clients)", *[""] * (1 + len(tasks))))
     rows.append(("test (shared)", len(split.test), *(len(split.test_tasks[k]) for k in tasks)))
-    return table(["shard", "scenes", *(f"task {k}" for k in tasks)], rows)
+    headers = ["shard", "scenes", *(f"task {k}" for k in tasks)]
+    out = table(headers, rows)
+    if len(shown) == len(clients):
+        return out
+    sizes = np.array([[len(c.train), *(len(c.tasks[k]) for k in tasks)] for c in clients])
+    summary = [
+        ("min", *sizes.min(axis=0)),
+        ("median", *(f"{m:g}" for m in np.median(sizes, axis=0))),
+        ("max", *sizes.max(axis=0)),
+        ("clients with none", *(sizes == 0).sum(axis=0)),
+    ]
+    return f"{out}\n\nper client, over all {len(clients)} clients:\n" + table(
+        ["", *headers[1:]], summary
+    )

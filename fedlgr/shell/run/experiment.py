@@ -31,8 +31,8 @@ from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import Progress
-from fedlgr.shell.data.dataset import load_scenes
-from fedlgr.shell.data.splits import make_split
+from fedlgr.shell.data.dataset import load_split
+from fedlgr.shell.data.splits import FederatedSplit, task_clients
 from fedlgr.shell.machine import available_cores, torch_threads
 from fedlgr.shell.run.checkpoint import checkpoint_root
 from fedlgr.shell.run.life import Hooks, RunLife
@@ -159,14 +159,17 @@ def _main(
     seed_everything(config.seed, verbose=False)
     show = fabric.global_rank == 0 and config.runtime.progress
     with Progress("decoding images", "img", show) as bar:  # only when not cached yet
-        scenes = load_scenes(config.data, progress=bar)
-    split = make_split(scenes.table, config.data)
+        # split before decoding: a split the schedule cannot train is refused in a moment
+        scenes, split = load_split(config.data, config.continual.tasks, progress=bar)
     spill = None  # idle clients' states beyond runtime.idle_memory_mb: by the checkpoints
     if config.tracking.enabled:
         spill = checkpoint_root(config, tracking_uri(config))
     orchestrator = Orchestrator(fabric, config, scenes, split, spill=spill)
     config = orchestrator.config  # with how its clients train made explicit
     processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
+    held = _task_clients(split)
+    if held is not None:
+        tags = {**(tags or {}), "fedlgr.task_clients": held[1]}
     life = RunLife(
         config,
         hooks,
@@ -175,6 +178,7 @@ def _main(
         parent_run_id=parent_run_id,
         what=f"{len(split.train)} training / {len(split.test)} test scenes{processes}, "
         + _threads_text(config, share),
+        notes=[held[0]] if held is not None else [],
         resumed=resumed,
         start=start,
     )
@@ -182,6 +186,20 @@ def _main(
         return life.run(orchestrator)
     finally:
         orchestrator.close()
+
+
+def _task_clients(split: FederatedSplit) -> tuple[str, str] | None:
+    """Where some client holds no training scenes of a task (plain FL trains on all of a
+    client's scenes at once, so small shards are legal): the header's line and the tag
+    ``fedlgr.task_clients`` saying how many clients hold each task. None where all do."""
+    held, n = task_clients(split), len(split.clients)
+    if min(held.values()) == n:
+        return None
+    return (
+        "clients with training scenes of each task: "
+        + ", ".join(f"{task} {k} of {n}" for task, k in held.items()),
+        ", ".join(f"{task}:{k}/{n}" for task, k in held.items()),
+    )
 
 
 def _threads(fabric, config: ExperimentConfig) -> tuple[ExperimentConfig, int | None]:

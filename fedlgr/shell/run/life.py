@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -102,6 +102,7 @@ class Resumed:
 class RunLife:
     """One run's life: :meth:`run` a runtime's rounds. ``start``: when the run's work began
     (``perf_counter``; default: now); ``what``: the header's account of the runtime;
+    ``notes``: further lines of the header (e.g. how many clients hold each task);
     ``fabric``: the processes that checkpoint together (None: this process alone)."""
 
     def __init__(
@@ -113,12 +114,14 @@ class RunLife:
         tags: dict[str, str] | None = None,
         parent_run_id: str | None = None,
         what: str = "",
+        notes: Sequence[str] = (),
         resumed: Resumed | None = None,
         start: float | None = None,
     ):
         self.config, self.hooks, self.fabric = config, hooks, fabric
         self.rank0 = fabric is None or fabric.global_rank == 0
         self.tags, self.parent_run_id, self.what = tags, parent_run_id, what
+        self.notes = list(notes)
         self.resumed = resumed
         self.start = time.perf_counter() if start is None else start
         self.elapsed = resumed.elapsed if resumed is not None else 0.0  # before this launch
@@ -237,6 +240,8 @@ class RunLife:
             f"{run_name(config)}: {plan} x {config.train.epochs} local epochs, "
             f"{config.data.clients} clients" + (f", {self.what}" if self.what else "")
         )
+        for note in self.notes:
+            self.say(note)
         dp = config.federated.dp
         if dp.enabled:
             self.say(_privacy(config, steps))

@@ -13,7 +13,6 @@ from fedlgr.core.records import RoundLog
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import table
 
-
 SHOWN_CLIENTS = 20  # the summary's per-client rows, up to this many clients
 
 

@@ -73,7 +73,7 @@ class Robot:
         seed_everything(config.seed, verbose=False)
         scenes = load_scenes(config.data)
         split = own_split(scenes.table, config, client) if own_data else None
-        split = split or make_split(scenes.table, config.data)
+        split = split or make_split(scenes.table, config.data, config.continual.tasks)
         self.side = ClientSide(config, scenes, split, [client], fabric.device, fabric.autocast)
         self.client = self.side.clients[0]
         self.path = folder / f"client-{client}.ckpt"
@@ -167,7 +167,7 @@ def own_split(table, config: ExperimentConfig, client: int):
     """A robot's own folder as its whole shard: its scenes split into train and test by
     ``data.seed`` and ``data.test_fraction``, its tasks as configured - the split of a
     one-client run, labelled ``client``."""
-    one = make_split(table, dataclasses.replace(config.data, clients=1))
+    one = make_split(table, dataclasses.replace(config.data, clients=1), config.continual.tasks)
     shard = dataclasses.replace(one.clients[0], client=client)
     return FederatedSplit(one.train, one.test, one.test_tasks, [shard])
 

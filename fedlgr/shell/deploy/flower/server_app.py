@@ -419,7 +419,8 @@ def _upload(state: dict) -> TrainRes:
 
 def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
     """The server's own copy of the test scenes (``federated.server_eval``), read from
-    ``data.path`` on the SuperLink's machine and split as the robots split them."""
+    ``data.path`` on the SuperLink's machine and split as the robots split them (only
+    the shared test set is used: the robots' shards are theirs to check)."""
     scenes = load_scenes(config.data)
     split = make_split(scenes.table, config.data)
     tasks = list(config.continual.tasks) or [ALL]
