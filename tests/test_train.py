@@ -277,22 +277,22 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
     orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
     orch.run_round(RoundPlan(1))
     side, received = orch.client_side, orch.server.global_weights
-    assert side.root_keys and all(side.holds_root(c, received) for c in side.clients)
+    assert side.root_keys and all(side.holds_root(c.index) for c in side.clients)
     passes = [0] * 3
     for k, client in enumerate(side.clients):
         client.model.root.register_forward_hook(
             lambda *_, k=k: passes.__setitem__(k, passes[k] + 1)
         )
-    shared = side.predictions(received)
+    shared = side.predictions(received, [0, 1, 2])
     batches = -(-len(side.test_inputs) // 5)
     assert passes == [batches, 0, 0]  # one root pass over the test set for three clients
-    for client, pred in zip(side.clients, shared, strict=True):
-        assert torch.equal(pred, predict(client.model, side.test_inputs, 5))  # bit for bit
+    for client in side.clients:  # bit for bit
+        assert torch.equal(shared[client.index], predict(client.model, side.test_inputs, 5))
     assert not torch.equal(shared[0], shared[1])  # each with its own top
     with torch.no_grad():  # a client whose root is not the one received is scored alone
         side.clients[2].model.root.features[0][0].weight.add_(1.0)
     passes[:] = [0, 0, 0]
-    side.predictions(received)
+    side.predictions(received, [0, 1, 2])
     assert passes == [batches, batches, batches]
 
 

@@ -112,6 +112,12 @@ class Orchestrator:
         self.server.update_if_any(sums, total, payloads, senders)
 
     @property
+    def clients(self):
+        """This process's clients that are whole now (all of them with whole idle clients,
+        ``runtime.idle_clients=live``)."""
+        return self.client_side.clients
+
+    @property
     def local_clients(self) -> int:
         """The clients that train in this process (with ``runtime.devices=N``, its share)."""
         return len(self.indices)

@@ -95,8 +95,10 @@ class IdleStates:
         os.replace(path.with_suffix(".tmp"), path)
         self.on_disk.add(client)
 
-    def get(self, client: int) -> dict:
-        """``client``'s kept state (it stays kept)."""
+    def get(self, client: int) -> dict | None:
+        """``client``'s kept state (it stays kept); None for a client never put here."""
+        if client not in self:
+            return None
         if client in self.memory:
             return self.memory[client]
         # our own file, written by :meth:`put`: optimiser and plugin states are not only

@@ -54,6 +54,7 @@ if TYPE_CHECKING:
 
 
 CPU = torch.device("cpu")
+SPARE_MODELS = 32  # rested clients' models kept to wake others with, at most
 
 
 def _poisoned(targets: torch.Tensor, label: float) -> torch.Tensor:
@@ -101,6 +102,8 @@ class ClientSide:
         faults = cfg.federated.faults  # attack=labels: these clients train on poisoned labels
         self.poisoned = Faults(faults, cfg.data.clients, cfg.seed).poisoned
         self.shards = {s.client: s for s in split.clients if s.client in indices}
+        self._global: torch.nn.Module | None = None  # see global_model
+        self.spare: list[torch.nn.Module] = []  # rested clients' models, to wake others with
         self._check_batched()
         # The global tensors the clients hold (the initial ones until the first download)
         state = initial.state_dict()
@@ -114,9 +117,9 @@ class ClientSide:
             self._spill = tempfile.TemporaryDirectory(prefix=".idle-clients-", dir=spill)
         self.idle = IdleStates(budget, self._spill and Path(self._spill.name))
         self.awake: dict[int, Client] = {}
-        self._global: torch.nn.Module | None = None  # see global_model
-        for index in self.shards:
-            self.rest(self.wake(index))
+        if self.keeping == "live":  # else a client is built when it is first woken
+            for index in self.shards:
+                self.wake(index)
         self._prepare_test_set()
         self._warm_up(initial)
 
@@ -168,9 +171,23 @@ class ClientSide:
             *self.strategy.client_plugins(index),
             *continual_plugins(cfg.continual, index, cfg.seed),
         ]
-        model = copy.deepcopy(self.initial)
+        model = self._initial_model()
         optimizer = model.configure_optimizers()
         return Client(index, model, optimizer, data, plugins, scaler=self._scaler())
+
+    def _initial_model(self) -> torch.nn.Module:
+        """A copy of the initial model: a rested client's model given the initial state,
+        flags and no gradients (as a new copy has them), else a new copy."""
+        if not self.spare:
+            return copy.deepcopy(self.initial)
+        model = self.spare.pop()
+        model.load_state_dict(self.initial.state_dict())
+        for p, q in zip(model.parameters(), self.initial.parameters(), strict=True):
+            p.grad = None
+            p.requires_grad_(q.requires_grad)
+        for m, n in zip(model.modules(), self.initial.modules(), strict=True):
+            m.training = n.training
+        return model
 
     # ------------------------------------------------------------------ idle clients
 
@@ -186,13 +203,14 @@ class ClientSide:
         process's random generators (a generator's layers are made by its plugin)."""
         if index in self.awake:
             return self.awake[index]
-        if index not in self.idle:  # never built yet
-            self.awake[index] = self.build(index)
-            return self.awake[index]
-        state = to_device(complete(self.idle.take(index), self.shared), self.device)
         with torch.random.fork_rng(devices=[]):
             client = self.build(index)
-            client.load_state_dict(state)
+            if index in self.idle:
+                client.load_state_dict(
+                    to_device(complete(self.idle.take(index), self.shared), self.device)
+                )
+            else:  # never woken yet: as it started the run, holding the global tensors
+                client.download(self.shared)
         self.awake[index] = client
         return client
 
@@ -202,8 +220,13 @@ class ClientSide:
         if self.keeping == "live":
             return
         state = to_device(compact(client.state_dict(), self.shared), CPU)
+        reuse = len(self.spare) < SPARE_MODELS
+        if reuse:  # the kept tensors must not be the model's own, which another will use
+            state["model"] = {k: v.clone() for k, v in state["model"].items()}
         self.idle.put(client.index, state, set(self.keys))
         del self.awake[client.index]
+        if reuse:
+            self.spare.append(client.model)
 
     def rest_all(self) -> None:
         for client in self.clients:
@@ -484,16 +507,17 @@ class ClientSide:
         if index in self.awake:
             state = self.awake[index].model.state_dict()
             return all(torch.equal(state[k], self.shared[k]) for k in self.root_keys)
-        kept = self.idle.get(index)["model"]
-        return not any(k in kept for k in self.root_keys)
+        kept = self.idle.get(index)
+        return kept is None or not any(k in kept["model"] for k in self.root_keys)
 
     def top(self, index: int) -> torch.nn.Module:
         """Client ``index``'s top: its own module if awake, else one given its kept top."""
         if index in self.awake:
             return self.awake[index].model.top
-        kept = complete(self.idle.get(index), self.shared)["model"]
         top = copy.deepcopy(self.initial.top)
-        top.load_state_dict({k[4:]: v for k, v in kept.items() if k.startswith("top.")})
+        if (kept := self.idle.get(index)) is not None:  # else never woken: the initial top
+            model = complete(kept, self.shared)["model"]
+            top.load_state_dict({k[4:]: v for k, v in model.items() if k.startswith("top.")})
         return top
 
     def finish_round(self, client: Client, plan) -> tuple[Usage | None, Figures]:
@@ -543,7 +567,8 @@ class ClientSide:
         client's as it is kept: compact, without the global tensors (the server's state
         holds them)."""
         states = {c.index: c.state_dict() for c in self.clients}
-        return states | {i: self.idle.get(i) for i in self.shards if i not in states}
+        # a client never woken yet has none: it starts as every client starts the run
+        return states | {i: self.idle.get(i) for i in self.shards if i in self.idle}
 
     def load_state_dict(self, states: dict[int, dict], shared: Weights | None = None) -> None:
         """Restore :meth:`state_dict`'s states of this side's clients; ``shared``: the
@@ -551,10 +576,13 @@ class ClientSide:
         if shared is not None:
             self.shared = {k: shared[k].to(self.device) for k in self.keys}
         for index in self.shards:
+            if index not in states:  # never woken (see state_dict)
+                continue
             state = states[index] if shared is None else complete(states[index], self.shared)
             if index in self.awake:
                 self.awake[index].load_state_dict(to_device(state, self.device))
                 continue
-            self.idle.take(index)
+            if index in self.idle:
+                self.idle.take(index)
             state = compact(to_device(state, CPU), to_device(self.shared, CPU))
             self.idle.put(index, state, set(self.keys))
