@@ -372,3 +372,20 @@ def test_partial_participation_trains_the_chosen_clients_and_scores_every_client
         for key, value in orch.clients[other].model.top.state_dict().items():
             assert torch.equal(value, top[key]), key  # kept, bit for bit
     assert [participants(r, 2, 0.5, 0) for r in (1, 2, 3)] == [[1], [0], [1]]
+
+
+def test_the_result_says_what_recording_each_round_cost(synth_dir, cache_dir, store):
+    """Issue 40: the seconds of each round's MLflow logging and checkpoint, and of the
+    end's results.csv, are on the result (for ``bench/scale.py``), one entry per round; a
+    round with no checkpoint due (every 2 rounds, and after the last) spent none."""
+    config = fast_config(synth_dir, cache_dir, store, "federated.rounds=3", "tracking.checkpoint=2")
+    result = run_experiment(config)
+    assert len(result.tracking_seconds) == len(result.rounds) == 3
+    assert all(s > 0 for s in result.tracking_seconds)
+    assert len(result.checkpoint_seconds) == 3
+    assert result.checkpoint_seconds[0] == 0.0
+    assert all(s > 0 for s in result.checkpoint_seconds[1:])
+    assert result.results_seconds > 0
+    client, _, _ = read_run(store, result.run_id)
+    logged = client.get_run(result.run_id).data.metrics
+    assert not [k for k in logged if "tracking" in k or "checkpoint" in k]  # not logged

@@ -161,8 +161,11 @@ class RunLife:
                 with _local_training(label, rounds.local_clients, self.config, shown) as progress:
                     log = rounds.run_round(plan, progress)
                 metrics = self.record(plan, log)
+                saving, spent = time.perf_counter(), 0.0
                 if self.checkpoint_due(plan.round):
                     self.checkpoint(rounds)
+                    spent = time.perf_counter() - saving
+                self.result.checkpoint_seconds.append(spent)
                 self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta.step()}){_missing(log)}")
                 for client, why in sorted(log.refused.items()):
                     self.say(f"{label}: refused {log.who(client)}'s {why}")
@@ -273,10 +276,12 @@ class RunLife:
         if tracker is None:
             return
         name = run_name(self.config)
+        saving = time.perf_counter()
         tracker.save_results(result.rows(), curves_png(result.rows(), name))
         tracker.log_summary(result.cost_means(), len(result.rounds))
         heading = f"{name} after {self.total} rounds ({result.seconds:.0f} s)"
         tracker.describe(heading, result.summary(), result.final_metrics())
+        result.results_seconds = time.perf_counter() - saving
         tracker.finish()
 
     def _clean_up(self) -> None:
@@ -305,6 +310,7 @@ class RunLife:
             metrics.update(self.forgetting.end_of_task(log, plan.task))
             self.result.after_tasks = self.forgetting.after
         tracker = self.tracker
+        logging = time.perf_counter()
         if tracker is not None:
             if log.initial:  # federated.server_eval: the initial model, at step 0
                 tracker.log_initial(log.initial)
@@ -318,6 +324,7 @@ class RunLife:
                 ]
                 refused = "; ".join(self.refused)
                 tracker.client.set_tag(tracker.run_id, "fedlgr.not_taken", refused[-5000:])
+        self.result.tracking_seconds.append(time.perf_counter() - logging)
         return metrics
 
     def checkpoint_due(self, round_: int) -> bool:

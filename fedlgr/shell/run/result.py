@@ -24,6 +24,13 @@ class ExperimentResult:
     data_digest: str = ""  # of the data the run trained on (recorded in its checkpoints)
     seconds: float = 0.0
     after_tasks: list[dict[str, float]] = field(default_factory=list)  # FCL: per finished task
+    # What recording cost, in this process's rounds (a resumed run's restored rounds have
+    # none), one entry per round: the round's MLflow logging (its metrics and tags), and
+    # its checkpoint (0.0 where none was due); then the end's results.csv, curves, summary
+    # metrics and description. Kept here, not logged: they measure the store, not the method.
+    tracking_seconds: list[float] = field(default_factory=list)
+    checkpoint_seconds: list[float] = field(default_factory=list)
+    results_seconds: float = 0.0
 
     @property
     def final(self) -> RoundLog:
