@@ -434,6 +434,18 @@ def test_posterior_sampler_draws_codes_like_the_training_codes():
     assert torch.equal(vae.code_chol, torch.eye(3))
 
 
+def test_a_client_of_one_training_latent_keeps_drawing_codes_from_the_prior():
+    """A client that holds one scene of a task (small shards, issue 40): torch.cov of one
+    code is NaN and its Cholesky failed; the prior stays and samples are finite."""
+    g = torch.Generator().manual_seed(0)
+    latents = torch.relu(torch.randn(1, 10, generator=g))
+    vae = LatentVAE(10, hidden=16, latent=3, lr=1e-2)
+    vae.fit(latents, 2, 32, g)
+    vae.fit_code_density(latents)
+    assert torch.equal(vae.code_mean, torch.zeros(3)) and torch.equal(vae.code_chol, torch.eye(3))
+    assert torch.isfinite(vae.sample(4, torch.Generator().manual_seed(1))).all()
+
+
 # --------------------------------------------------------------------------- 7. config
 
 

@@ -99,7 +99,11 @@ class LatentVAE(L.LightningModule):
         """Draw codes from a Gaussian fitted to the posterior means of ``latents`` instead of
         N(0, I) (ex-post density estimation, Ghosh et al. 2020, "From Variational to
         Deterministic Autoencoders"): with a few hundred training latents the aggregate
-        posterior does not fill the prior, and prior samples decode off the data."""
+        posterior does not fill the prior, and prior samples decode off the data. Under two
+        latents (a client of one scene in the task) no covariance is estimable: the codes
+        stay drawn from the prior."""
+        if len(latents) < 2:
+            return
         was = self.training
         self.eval()
         codes = self(latents)[1].double()
