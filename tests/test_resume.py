@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.data.synth import synthesize
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.processes import DETAIL, run_args
@@ -162,6 +163,40 @@ def test_a_killed_fcl_run_resumes_bit_for_bit_in_the_same_mlflow_run(
     assert resumed.info.run_id == run.info.run_id and resumed.info.status == "FINISHED"
     _same_as_reference(client, run.info.run_id, reference, result.run_id)
     assert not folder.exists()  # a finished run keeps no checkpoint
+
+
+@pytest.mark.slow
+def test_a_killed_100_client_run_with_idle_clients_on_disk_resumes_bit_for_bit(cache_dir, tmp_path):
+    """A cross-device run (issue 40): 100 clients, 10 a round, the idle ones' states in
+    files (compact: the clients never woken have none), SIGKILLed after round 2 of 4;
+    the checkpoint holds the woken clients' compact states and the resumed run computes
+    what an uninterrupted one whose idle clients stayed whole computes."""
+    data = tmp_path / "data"
+    synthesize(data, scenes=200, seed=7, size=32)
+    extra = [
+        "method=FedRootAvg",
+        "data.clients=100",
+        "federated.fraction=0.1",
+        "federated.rounds=4",
+    ]
+    reference = f"sqlite:///{tmp_path}/reference.db"
+    result = run_experiment(
+        fast_config(data, cache_dir, reference, *extra, "runtime.idle_clients=live")
+    )
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = run_args(data, cache_dir, store, *extra, "runtime.idle_clients=disk")
+    folder = _killed_after_checkpoint(args, tmp_path)
+    state = ckpt.load(folder / "round-0002.ckpt")
+    woken = state["clients"]
+    assert 10 <= len(woken) <= 20  # those chosen in rounds 1 and 2, not the 100
+    for kept in woken.values():  # the root is the global one: only its step counters
+        assert all(not v.is_floating_point() for k, v in kept["model"].items() if "root." in k)
+        assert any(k.startswith("top.") for k in kept["model"])
+    done = _finish([*args, "--resume"], tmp_path)
+    assert "after round 2 of 4" in done.stdout
+    client, run = _only_run(store)
+    _same_as_reference(client, run.info.run_id, reference, result.run_id)
+    assert not list((tmp_path / "checkpoints").glob(".idle-clients-*"))
 
 
 @pytest.mark.slow

@@ -15,6 +15,8 @@ memory or on disk (``tests/test_idle_clients.py``).
 from __future__ import annotations
 
 import os
+import shutil
+import socket
 from pathlib import Path
 
 import torch
@@ -30,6 +32,31 @@ def idle_keeping(runtime, clients: int) -> str:
     if runtime.idle_clients != "auto":
         return runtime.idle_clients
     return "live" if clients <= LIVE_UP_TO else "auto"
+
+
+def spill_prefix() -> str:
+    """The name a process's folder of idle states starts with: its machine and process."""
+    return f".idle-clients-{socket.gethostname()}-{os.getpid()}-"
+
+
+def remove_stale(parent: Path) -> None:
+    """Remove the folders of idle states under ``parent`` left by killed processes of this
+    machine (a process that ends otherwise removes its own)."""
+    host = f".idle-clients-{socket.gethostname()}-"
+    for folder in parent.glob(f"{host}*"):
+        pid = folder.name.removeprefix(host).split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    return True
 
 
 def compact(state: dict, shared: Weights) -> dict:

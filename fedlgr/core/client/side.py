@@ -21,7 +21,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from fedlgr.core.client.idle import IdleStates, compact, complete, idle_keeping
+from fedlgr.core.client.idle import (
+    IdleStates,
+    compact,
+    complete,
+    idle_keeping,
+    remove_stale,
+    spill_prefix,
+)
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.client.pool import ClientPool, resolve
 from fedlgr.core.client.stacked import refuse_plugins, train_batched
@@ -114,7 +121,8 @@ class ClientSide:
         if self.keeping != "live":
             if spill is not None:
                 spill.mkdir(parents=True, exist_ok=True)
-            self._spill = tempfile.TemporaryDirectory(prefix=".idle-clients-", dir=spill)
+                remove_stale(spill)
+            self._spill = tempfile.TemporaryDirectory(prefix=spill_prefix(), dir=spill)
         self.idle = IdleStates(budget, self._spill and Path(self._spill.name))
         self.awake: dict[int, Client] = {}
         if self.keeping == "live":  # else a client is built when it is first woken

@@ -18,6 +18,7 @@ the distance is computed here (float64, via symmetric eigen-decompositions).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -29,7 +30,10 @@ def _sqrt_psd(matrix: torch.Tensor) -> torch.Tensor:
 
 
 def frechet_distance(a: torch.Tensor, b: torch.Tensor) -> float:
-    """The Fréchet distance between Gaussians fitted to the rows of ``a`` and of ``b``."""
+    """The Fréchet distance between Gaussians fitted to the rows of ``a`` and of ``b``;
+    NaN where either has under two rows (a client of one scene: no covariance)."""
+    if len(a) < 2 or len(b) < 2:
+        return math.nan
     a, b = a.double(), b.double()
     mu_a, mu_b = a.mean(dim=0), b.mean(dim=0)
     cov_a, cov_b = torch.cov(a.T).reshape(a.shape[1], -1), torch.cov(b.T).reshape(b.shape[1], -1)
