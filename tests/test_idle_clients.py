@@ -63,7 +63,8 @@ def test_the_numbers_are_the_same_whether_idle_clients_are_whole_compact_or_on_d
     files: every score, loss, byte count and plugin figure is the same, bit for bit."""
     whole = _untimed(_run(synth_dir, cache_dir, tmp_path, "live", *extra))
     assert np.isfinite(whole[:, :, 0]).any()
-    for keeping in ("memory", "disk"):
+    # memory and disk keep the same compact states; disk adds the files' round trip
+    for keeping in ("memory", "disk") if "method=FedRootAvg" in extra else ("disk",):
         found = _untimed(_run(synth_dir, cache_dir, tmp_path, keeping, *extra))
         assert np.array_equal(found, whole, equal_nan=True), keeping
     assert not list(tmp_path.glob("checkpoints/.idle-clients-*"))  # removed at the end
