@@ -78,7 +78,10 @@ class Orchestrator:
         (:meth:`ServerSide.screen`: each process checks its own clients', against the
         scenes they hold in ``task``), their plugins' payloads summed, then the server
         update."""
-        capacity = {c: self.client_side.n_samples(c, task) for c in self.indices}
+        side = self.client_side
+        capacity = {
+            r.client: side.n_samples(r.client, task) for r in trained if r.client in side.shards
+        }
         refused = self.server.refusals(trained, capacity)
         norms = self.server.update_norms(trained, refused)
         if self.world > 1:  # every process decides on the round's norms, all of them

@@ -112,6 +112,8 @@ class ClientSide:
         self._global: torch.nn.Module | None = None  # see global_model
         self.spare: list[torch.nn.Module] = []  # rested clients' models, to wake others with
         self._check_batched()
+        # does a plugin measure something every round (every client has the same kinds)?
+        self.measures_rounds = any(_measures_rounds(p) for p in self._plugins(0))
         # The global tensors the clients hold (the initial ones until the first download)
         state = initial.state_dict()
         self.shared: Weights = {k: state[k] for k in self.keys}
@@ -175,10 +177,7 @@ class ClientSide:
             )
             for t, task in enumerate(self.tasks)
         }
-        plugins = [
-            *self.strategy.client_plugins(index),
-            *continual_plugins(cfg.continual, index, cfg.seed),
-        ]
+        plugins = self._plugins(index)
         model = self._initial_model()
         optimizer = model.configure_optimizers()
         return Client(index, model, optimizer, data, plugins, scaler=self._scaler())
@@ -442,28 +441,34 @@ class ClientSide:
         clients rest compact, each put back to rest after."""
         if plan.last_of_task:
             ending = list(self.shards)
-        elif any(_measures_rounds(p) for p in self.build_plugins()):
+        elif self.measures_rounds:
             ending = scored
         else:
             return {}
-        width = len(ending) if self.keeping == "live" else self.pool.workers
-        out = {}
-        for at in range(0, len(ending), max(width, 1)):
-            clients = [self.wake(i) for i in ending[at : at + width]]
-            done = self._side_by_side(lambda c: self.finish_round(c, plan), clients)
-            for client, result in zip(clients, done, strict=True):
-                out[client.index] = result
-                self.rest(client)
-        return out
+        finish = lambda c: self.finish_round(c, plan)  # noqa: E731
+        done = self._in_turns(ending, lambda clients: self._side_by_side(finish, clients))
+        return dict(zip(ending, done, strict=True))
 
-    def build_plugins(self) -> list[ClientPlugin]:
-        """A client's plugins as they start the run (every client has the same kinds)."""
+    def _plugins(self, index: int) -> list[ClientPlugin]:
+        """Client ``index``'s plugins as they start the run: the strategy's, the CL method's."""
         cfg = self.config
-        index = next(iter(self.shards), 0)
         return [
             *self.strategy.client_plugins(index),
             *continual_plugins(cfg.continual, index, cfg.seed),
         ]
+
+    def _in_turns(self, indices: list[int], work) -> list:
+        """``work(clients)`` over ``indices``' clients, woken: all at once where idle
+        clients stay whole, else a pool's width at a time, each turn put back to rest
+        after its work (so a fleet is never whole at once); the results in order."""
+        width = len(indices) if self.keeping == "live" else self.pool.workers
+        out = []
+        for at in range(0, len(indices), max(width, 1)):
+            clients = [self.wake(i) for i in indices[at : at + width]]
+            out += work(clients)
+            for client in clients:
+                self.rest(client)
+        return out
 
     def predictions(self, received: Weights, scored: list[int]) -> dict[int, torch.Tensor]:
         """The ``scored`` clients' outputs on the test scenes. Clients that hold the same
@@ -483,18 +488,14 @@ class ClientSide:
             root = self.global_model(received).root
             preds = predict_tops(root, tops, self.test_inputs, cfg.eval_batch_size, autocast, map_)
             return dict(zip(scored, preds, strict=True))
-        width = len(scored) if self.keeping == "live" else self.pool.workers
-        out = {}
-        for at in range(0, len(scored), max(width, 1)):
-            clients = [self.wake(i) for i in scored[at : at + width]]
-            preds = self.pool.map(
+        preds = self._in_turns(
+            scored,
+            lambda clients: self.pool.map(
                 lambda c: predict(c.model, self.test_inputs, cfg.eval_batch_size, autocast),
                 clients,
-            )
-            out |= {c.index: p for c, p in zip(clients, preds, strict=True)}
-            for client in clients:
-                self.rest(client)
-        return out
+            ),
+        )
+        return dict(zip(scored, preds, strict=True))
 
     def global_model(self, received: Weights) -> torch.nn.Module:
         """A model holding the global tensors ``received`` (outputs need nothing else where
