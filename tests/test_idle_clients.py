@@ -10,7 +10,7 @@ import torch
 from fedlgr.core.client.idle import IdleStates, compact, complete, nbytes_of
 from fedlgr.core.client.side import ClientSide
 from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainIns
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, FedlgrError
 from fedlgr.shell.config import load_config
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
@@ -181,3 +181,11 @@ def test_more_scored_clients_than_clients_is_refused_by_name():
         )
     with pytest.raises(ConfigError, match=r"runtime.idle_clients"):
         load_config(FAST, ["runtime.idle_clients=swap"])
+
+
+def test_a_folder_for_idle_states_that_cannot_be_made_is_one_line(synth_dir, cache_dir, tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("not a folder")
+    with pytest.raises(FedlgrError, match=r"runtime.idle_clients=disk: cannot make a folder "):
+        _side(synth_dir, cache_dir, blocked, "disk")
+    assert blocked.read_text() == "not a folder"

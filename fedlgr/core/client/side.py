@@ -69,6 +69,24 @@ def _poisoned(targets: torch.Tensor, label: float) -> torch.Tensor:
     return torch.full_like(targets, label)
 
 
+def _spill_folder(parent: Path | None, keeping: str) -> tempfile.TemporaryDirectory:
+    """A new folder for idle clients' states under ``parent`` (None: the system's temporary
+    folder), after removing those killed processes left there; a folder that cannot be
+    made is one line naming it."""
+    try:
+        if parent is not None:
+            parent.mkdir(parents=True, exist_ok=True)
+            remove_stale(parent)
+        return tempfile.TemporaryDirectory(prefix=spill_prefix(), dir=parent)
+    except OSError as err:
+        where = parent or Path(tempfile.gettempdir())
+        raise FedlgrError(
+            f"runtime.idle_clients={keeping}: cannot make a folder for idle clients' states "
+            f"in {where} ({err.strerror or err}); choose another with "
+            "tracking.checkpoint_dir, or keep them in memory (runtime.idle_clients=memory)"
+        ) from None
+
+
 def _measures_rounds(plugin: ClientPlugin) -> bool:
     """Does ``plugin`` measure something every round (``round_metrics``)?"""
     return type(plugin).round_metrics is not ClientPlugin.round_metrics
@@ -121,10 +139,7 @@ class ClientSide:
         budget = {"memory": None, "disk": 0}.get(self.keeping, cfg.runtime.idle_memory_mb * 2**20)
         self._spill = None  # the folder idle clients' states spill to, removed by close()
         if self.keeping != "live":
-            if spill is not None:
-                spill.mkdir(parents=True, exist_ok=True)
-                remove_stale(spill)
-            self._spill = tempfile.TemporaryDirectory(prefix=spill_prefix(), dir=spill)
+            self._spill = _spill_folder(spill, self.keeping)
         self.idle = IdleStates(budget, self._spill and Path(self._spill.name))
         self.awake: dict[int, Client] = {}
         if self.keeping == "live":  # else a client is built when it is first woken
