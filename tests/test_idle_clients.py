@@ -4,10 +4,18 @@ whole ones give; which clients score a round (``federated.evaluate``)."""
 from __future__ import annotations
 
 import numpy as np
+import psutil
 import pytest
 import torch
 
-from fedlgr.core.client.idle import IdleStates, compact, complete, nbytes_of
+from fedlgr.core.client.idle import (
+    IdleStates,
+    _malloc_trim,
+    compact,
+    complete,
+    give_back_freed_memory,
+    nbytes_of,
+)
 from fedlgr.core.client.side import ClientSide
 from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainIns
 from fedlgr.errors import ConfigError, FedlgrError
@@ -189,3 +197,20 @@ def test_a_folder_for_idle_states_that_cannot_be_made_is_one_line(synth_dir, cac
     with pytest.raises(FedlgrError, match=r"runtime.idle_clients=disk: cannot make a folder "):
         _side(synth_dir, cache_dir, blocked, "disk")
     assert blocked.read_text() == "not a folder"
+
+
+@pytest.mark.skipif(_malloc_trim() is None, reason="not glibc: nothing to trim")
+def test_memory_freed_between_kept_states_goes_back_to_the_system():
+    """States freed between kept ones stay resident (glibc's arenas) until the trim that
+    follows each turn of clients put to rest."""
+    rss = lambda: psutil.Process().memory_info().rss / 2**20  # noqa: E731
+    large = torch.ones(8 * 2**20, dtype=torch.uint8)
+    del large  # a large free: glibc's mmap threshold rises to its size
+    freed, kept = [], []
+    for _ in range(200):  # 1 MiB states, each followed by a 64 KiB one that stays
+        freed.append(torch.ones(2**20, dtype=torch.uint8))
+        kept.append(torch.ones(2**16, dtype=torch.uint8))
+    del freed
+    before = rss()
+    give_back_freed_memory()
+    assert before - rss() > 100  # MiB, of the 200 freed

@@ -50,13 +50,15 @@ def test_the_server_scores_the_global_weights_every_round_and_before_the_first(
     initial = {k: v.clone() for k, v in orch.server.global_weights.items()}
     for round_ in (1, 2):
         log = orch.run_round(RoundPlan(round_))
-        expected = by_hand(config, orch.server.global_weights, side.test_inputs, side.test_targets)
+        expected = by_hand(
+            config, orch.server.global_weights, side.test_inputs.whole(), side.test_targets
+        )
         for name, value in expected.items():
             assert log.server[f"server/test/{name}"] == pytest.approx(value, abs=1e-5), name
         assert log.metrics()["server/test/rmse"] == log.server["server/test/rmse"]
         assert log.server["cost/server_cpu_s"] > 0 and log.server["cost/server_wall_s"] > 0
         if round_ == 1:  # and, in round 1, the initial model
-            before = by_hand(config, initial, side.test_inputs, side.test_targets)
+            before = by_hand(config, initial, side.test_inputs.whole(), side.test_targets)
             for name, value in before.items():
                 assert log.initial[f"server/test/{name}"] == pytest.approx(value, abs=1e-5)
             assert before["rmse"] != pytest.approx(expected["rmse"], abs=1e-6)

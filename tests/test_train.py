@@ -296,6 +296,30 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
     assert passes == [batches, batches, batches]
 
 
+def test_the_test_images_stay_uint8_and_are_normalised_a_batch_at_a_time_with_the_same_numbers(
+    synth_dir, cache_dir
+):
+    from fedlgr.core.data.augment import normalize
+    from fedlgr.core.evaluation import predict
+
+    config = fast_config(
+        synth_dir, cache_dir, "sqlite://", "data.clients=2", "tracking.enabled=false"
+    )
+    scenes = load_scenes(config.data)
+    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    inputs = orch.client_side.test_inputs
+    assert inputs.raw.dtype == torch.uint8 and inputs.images
+    whole = normalize(inputs.raw)  # every scene at once, as before
+    assert inputs.raw.nbytes * 4 == whole.nbytes
+    for start, stop in [(0, 3), (3, 7), (len(inputs) - 2, len(inputs))]:
+        assert torch.equal(inputs.batch(start, stop), whole[start:stop])  # bit for bit
+    model = orch.client_side.clients[0].model
+    if inputs.channels_last:
+        whole = whole.contiguous(memory_format=torch.channels_last)
+        assert inputs.batch(0, 3).is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(predict(model, inputs, 4), predict(model, whole, 4))
+
+
 @pytest.mark.slow
 def test_the_fast_config_shows_learning_in_its_default_run(tmp_path):
     """conf/debug/fast.yaml is the smoke test a user runs first: as shipped (no override

@@ -25,6 +25,7 @@ from fedlgr.core.client.idle import (
     IdleStates,
     compact,
     complete,
+    give_back_freed_memory,
     idle_keeping,
     remove_stale,
     spill_prefix,
@@ -251,8 +252,11 @@ class ClientSide:
             self.spare.append(client.model)
 
     def rest_all(self) -> None:
+        if self.keeping == "live":
+            return
         for client in self.clients:
             self.rest(client)
+        give_back_freed_memory()
 
     def n_samples(self, index: int, task: int) -> int:
         """Client ``index``'s training scenes in ``task`` (its aggregation weight)."""
@@ -476,13 +480,16 @@ class ClientSide:
         """``work(clients)`` over ``indices``' clients, woken: all at once where idle
         clients stay whole, else a pool's width at a time, each turn put back to rest
         after its work (so a fleet is never whole at once); the results in order."""
-        width = len(indices) if self.keeping == "live" else self.pool.workers
+        live = self.keeping == "live"
+        width = len(indices) if live else self.pool.workers
         out = []
         for at in range(0, len(indices), max(width, 1)):
             clients = [self.wake(i) for i in indices[at : at + width]]
             out += work(clients)
             for client in clients:
                 self.rest(client)
+            if not live:
+                give_back_freed_memory()
         return out
 
     def predictions(self, received: Weights, scored: list[int]) -> dict[int, torch.Tensor]:
