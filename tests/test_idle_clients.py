@@ -214,3 +214,59 @@ def test_memory_freed_between_kept_states_goes_back_to_the_system():
     before = rss()
     give_back_freed_memory()
     assert before - rss() > 100  # MiB, of the 200 freed
+
+
+def _scored_rounds(result) -> list[int]:
+    return [r.round for r in result.rounds if r.mean("test/rmse") is not None]
+
+
+def test_clients_score_every_kth_round_and_the_last_with_the_same_numbers(
+    synth_dir, cache_dir, tmp_path, capsys
+):
+    """federated.eval_every=2 over 5 rounds: rounds 2, 4 and 5 (the last) are scored, with
+    the numbers of a run scored every round; rounds 1 and 3 have no test scores."""
+    runs = {}
+    for every in (1, 2):
+        runs[every] = _run(
+            synth_dir,
+            cache_dir,
+            tmp_path / str(every),
+            "auto",
+            "method=FedRootAvg",
+            "federated.rounds=5",
+            f"federated.eval_every={every}",
+        )
+    assert _scored_rounds(runs[1]) == [1, 2, 3, 4, 5]
+    assert _scored_rounds(runs[2]) == [2, 4, 5]
+    for a, b in zip(runs[1].rounds, runs[2].rounds, strict=True):
+        assert np.array_equal(a.column("train/loss"), b.column("train/loss"), equal_nan=True)
+        if b.round in (2, 4, 5):
+            assert np.array_equal(a.column("test/rmse"), b.column("test/rmse"), equal_nan=True)
+        else:
+            assert np.isnan(b.column("test/rmse")).all() and "test/rmse" not in b.metrics()
+    out = capsys.readouterr().out
+    assert "round 3/5: not scored" in out and "round 4/5: loss " in out
+
+
+def test_each_tasks_last_round_is_scored_whatever_eval_every_says(synth_dir, cache_dir, tmp_path):
+    result = _run(
+        synth_dir,
+        cache_dir,
+        tmp_path,
+        "auto",
+        "method=FedAvg-EWC",
+        "continual.tasks=[circle,arrow]",
+        "continual.rounds_per_task=3",
+        "federated.eval_every=5",
+    )
+    assert _scored_rounds(result) == [3, 5, 6]  # circle's end, the 5th, arrow's end
+
+
+def test_eval_every_is_checked_and_refused_on_robots():
+    from fedlgr.shell.deploy.flower.server_app import FlowerRounds  # lazy: flwr, this test
+
+    with pytest.raises(ConfigError, match=r"federated.eval_every=0: must be >= 1"):
+        load_config(FAST, ["federated.eval_every=0"])
+    config = load_config(None, ["deploy.roster=none", "federated.eval_every=3"])
+    with pytest.raises(FedlgrError, match=r"federated.eval_every=3 on robots: every robot"):
+        FlowerRounds(None, config)

@@ -12,22 +12,34 @@ import torch
 from torch import nn
 
 from fedlgr.core.data.augment import normalize
-from fedlgr.core.schedule import ALL
+from fedlgr.core.messages import RoundPlan
+from fedlgr.core.schedule import ALL, schedule
 
 
-def scored_clients(config) -> Callable[[list[int]], tuple[int, ...] | None]:
-    """``federated.evaluate``: which clients score the new global tensors in a round, given
-    the round's chosen clients: all of them (None), the chosen ones, or a sample of
-    ``federated.eval_clients`` drawn once from the run's seed (the same every round)."""
+def scored_clients(config) -> Callable[[RoundPlan, list[int]], tuple[int, ...] | None]:
+    """``federated.evaluate`` and ``federated.eval_every``: which clients score the new
+    global tensors in a round, given its plan and its chosen clients: all of them (None),
+    the chosen ones, or a sample of ``federated.eval_clients`` drawn once from the run's
+    seed (the same every round); none (``()``) in a round off ``eval_every``'s beat, unless
+    it ends a task or the run."""
     federated, clients = config.federated, config.data.clients
+    every, last = federated.eval_every, len(schedule(config))
     if federated.evaluate == "chosen":
-        return tuple
-    if federated.evaluate == "sample":
+        who = tuple
+    elif federated.evaluate == "sample":
         rng = np.random.default_rng([config.seed, 0xE7A1])
         n = min(federated.eval_clients, clients)
         sample = tuple(sorted(int(c) for c in rng.choice(clients, size=n, replace=False)))
-        return lambda chosen: sample
-    return lambda chosen: None
+        who = lambda chosen: sample  # noqa: E731
+    else:
+        who = lambda chosen: None  # noqa: E731
+
+    def scored(plan: RoundPlan, chosen: list[int]) -> tuple[int, ...] | None:
+        if plan.round % every and not plan.last_of_task and plan.round != last:
+            return ()
+        return who(chosen)
+
+    return scored
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,7 @@ class Orchestrator:
             config, scenes, split, mine, self.device, fabric.autocast, spill=spill
         )
         self.config = self.client_side.config  # its runtime settings resolved
-        self.scored = scored_clients(config)  # federated.evaluate
+        self.scored = scored_clients(config)  # federated.evaluate, eval_every
         self.faults = Faults(config.federated.faults, config.data.clients, config.seed)
         # federated.server_eval: rank 0, which logs, scores the global model.
         self.server_eval = (
@@ -157,7 +157,7 @@ class Orchestrator:
             task,
             lambda: self.aggregate(on_time, task),
         )
-        scored = self.scored(chosen)
+        scored = self.scored(plan, chosen)
         ins_eval = EvaluateIns(plan, self.server.global_weights, scored)
         evaluated = {e.client: e for e in self.client_side.evaluate(ins_eval)}
         rows = {}

@@ -127,6 +127,7 @@ def check_federated(federated: FederatedConfig) -> None:
     choice("federated.server_eval", federated.server_eval, SERVER_EVAL)
     choice("federated.evaluate", federated.evaluate, EVALUATED)
     positive("federated.eval_clients", federated.eval_clients)
+    positive("federated.eval_every", federated.eval_every)
     _method_settings(federated, "federated", STRATEGIES)
 
 

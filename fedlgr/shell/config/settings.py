@@ -152,6 +152,9 @@ class _FederatedConfig:
     # scores are the mean over the clients evaluated.
     evaluate: str = "all"
     eval_clients: int = 10
+    # Clients score every eval_every-th round, each task's last one and the run's last
+    # one; no client scores the others (no test/* figures for them). 1: every round.
+    eval_every: int = 1
     # An upload whose update (its tensors minus the global ones) has a norm over this many
     # times the median of the round's other updates is refused (0: no such check). Every upload's
     # keys, shapes, dtypes, values and sample count are checked whatever this says.

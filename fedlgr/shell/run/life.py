@@ -482,9 +482,12 @@ def _count(n: int, noun: str) -> str:
 
 def _line(log: RoundLog) -> str:
     """One round's line: every score's mean over the clients (a score that is not a
-    number, a diverged run's, shows as such) and the CPU per client."""
+    number, a diverged run's, shows as such; a round no client scored says so) and the
+    CPU per client."""
     figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
     shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
+    if all(v is None for _, v in figures):  # federated.eval_every, or every scorer missing
+        shown = "not scored"
     cpu = log.mean("cost/cpu_s")
     shown += f"  CPU {'-' if cpu is None else f'{cpu:.1f}'} s/client"
     spent = log.server.get("privacy/epsilon")  # client-level DP: the budget spent so far

@@ -106,6 +106,11 @@ class FlowerRounds:
                 "scores each round's global tensors on Flower (the scores come with its "
                 "next exchange); use federated.evaluate=all"
             )
+        if config.federated.eval_every != 1:
+            raise FedlgrError(
+                f"federated.eval_every={config.federated.eval_every} on robots: every robot "
+                "scores each round's global tensors on Flower; use federated.eval_every=1"
+            )
         # federated.server_eval: the server scores the global model on its own copy of the
         # test scenes (data.path on the SuperLink's machine).
         self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
