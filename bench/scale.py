@@ -466,7 +466,7 @@ def _commit(root: Path) -> str:
 def plot(results: list[dict], sizes: dict, path: Path) -> None:
     """Per-round wall time and peak RSS against clients (log x): a line per family and code
     (this checkout's solid, the reference's dashed); B as a star; 4 GB dotted."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.4))
     for ax, key, label in zip(
         axes, ("round_s", "rss_mib"), ("wall time a round (s)", "peak RSS (MiB)"), strict=True
     ):
@@ -490,7 +490,6 @@ def plot(results: list[dict], sizes: dict, path: Path) -> None:
             ax.legend(handles=ax.get_lines()[-1:], fontsize=8, loc="center right")
         else:
             ax.set_yscale("log")
-            ax.legend(fontsize=7)
         clients = sorted({r["clients"] for r in results})
         ax.set_xscale("log")
         ax.set_xticks(clients, [str(n) for n in clients])
@@ -498,7 +497,9 @@ def plot(results: list[dict], sizes: dict, path: Path) -> None:
         ax.set_xlabel("clients")
         ax.set_ylabel(label)
     fig.suptitle(f"A thousand clients: {sizes['scenes']} synthetic scenes, one batch a client")
-    fig.tight_layout()
+    # the lines' legend below both panels, where it hides no point
+    fig.legend(handles=axes[0].get_lines(), fontsize=8, ncol=3, loc="lower center")
+    fig.tight_layout(rect=(0, 0.17, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
