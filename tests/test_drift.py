@@ -25,11 +25,10 @@ from tests.support.lgr import (
     BN_BUFFERS,
     after_task_one,
     fedlgr_config,
-    orchestrator,
     small_lgr,
     state,
 )
-from tests.support.runs import read_run, results_csv
+from tests.support.runs import orchestrator, read_run, results_csv
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -30,12 +30,11 @@ from tests.support.lgr import (
     context,
     fedlgr_config,
     make_client,
-    orchestrator,
     small_lgr,
     state,
     tiny_scholar,
 )
-from tests.support.runs import read_run, results_csv
+from tests.support.runs import orchestrator, read_run, results_csv
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -8,16 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from fedlgr.core.in_process import Orchestrator
 from fedlgr.core.messages import RoundPlan
 from fedlgr.core.scope import initial_scholar
 from fedlgr.core.server.evaluate import ServerEvaluation
 from fedlgr.errors import ConfigError
 from fedlgr.shell.config import load_config
-from fedlgr.shell.data.dataset import load_scenes
-from fedlgr.shell.data.splits import make_split
-from fedlgr.shell.run.experiment import make_fabric, run_experiment
-from tests.support.runs import FAST, fast_config, read_run
+from fedlgr.shell.run.experiment import run_experiment
+from tests.support.runs import FAST, fast_config, orchestrator, read_run
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -44,8 +41,7 @@ def test_the_server_scores_the_global_weights_every_round_and_before_the_first(
     config = fast_config(
         synth_dir, cache_dir, "unused", "federated.server_eval=true", "tracking.enabled=false"
     )
-    scenes = load_scenes(config.data)
-    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    orch = orchestrator(config)
     side = orch.client_side
     initial = {k: v.clone() for k, v in orch.server.global_weights.items()}
     for round_ in (1, 2):

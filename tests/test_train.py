@@ -12,14 +12,13 @@ import pytest
 import torch
 
 from fedlgr.core.client.side import ClientSide
-from fedlgr.core.in_process import Orchestrator
 from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainIns, nbytes
 from fedlgr.core.methods import STRATEGIES
 from fedlgr.shell.config import METHODS, load_config
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
-from fedlgr.shell.run.experiment import make_fabric, run_experiment
-from tests.support.runs import FAST, fast_config, read_run, results_csv
+from fedlgr.shell.run.experiment import run_experiment
+from tests.support.runs import FAST, fast_config, orchestrator, read_run, results_csv
 
 ACTIONS = ("vacuum", "conversation")
 
@@ -140,8 +139,7 @@ def test_root_scope_keeps_each_top_and_uploads_the_root(synth_dir, cache_dir):
             "tracking.enabled=false",
         ],
     )
-    scenes = load_scenes(config.data)
-    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    orch = orchestrator(config)
     trained = orch.client_side.train(TrainIns(RoundPlan(1)))
     tops = [{k: v.clone() for k, v in c.model.top.state_dict().items()} for c in orch.clients]
     roots = [{k: v.clone() for k, v in c.model.root.state_dict().items()} for c in orch.clients]
@@ -273,8 +271,7 @@ def test_fedroot_clients_share_one_pass_of_the_root_over_the_test_set(synth_dir,
         "train.eval_batch_size=5",
         "tracking.enabled=false",
     )
-    scenes = load_scenes(config.data)
-    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    orch = orchestrator(config)
     orch.run_round(RoundPlan(1))
     side, received = orch.client_side, orch.server.global_weights
     assert side.root_keys and all(side.holds_root(c.index) for c in side.clients)
@@ -305,8 +302,7 @@ def test_the_test_images_stay_uint8_and_are_normalised_a_batch_at_a_time_with_th
     config = fast_config(
         synth_dir, cache_dir, "sqlite://", "data.clients=2", "tracking.enabled=false"
     )
-    scenes = load_scenes(config.data)
-    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    orch = orchestrator(config)
     inputs = orch.client_side.test_inputs
     assert inputs.raw.dtype == torch.uint8 and inputs.images
     whole = normalize(inputs.raw)  # every scene at once, as before
@@ -352,10 +348,7 @@ def test_training_gflops_count_one_batch_and_scale_it_the_same_for_fedavg_and_fe
     figures = {}
     for method in ("FedAvg", "FedRootAvg"):
         config = fast_config(synth_dir, cache_dir, "sqlite://", f"method={method}")
-        scenes = load_scenes(config.data)
-        orch = Orchestrator(
-            make_fabric(config), config, scenes, make_split(scenes.table, config.data)
-        )
+        orch = orchestrator(config)
         figures[method] = [t.figures for t in orch.client_side.train(TrainIns(RoundPlan(1)))]
     # the count of one step, by hand: the initial model on a batch of 4 images
     model = initial_scholar(config).train()
@@ -379,8 +372,7 @@ def test_partial_participation_trains_the_chosen_clients_and_scores_every_client
     config = fast_config(
         synth_dir, cache_dir, "sqlite://", "method=FedRootAvg", "federated.fraction=0.5"
     )
-    scenes = load_scenes(config.data)
-    orch = Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
+    orch = orchestrator(config)
     for round_ in (1, 2, 3):
         chosen = participants(round_, 2, 0.5, config.seed)
         (other,) = {0, 1} - set(chosen)

@@ -1,5 +1,5 @@
 """FedLGR on tiny clients with hand-checkable numbers (an MLP root over 4 inputs, two
-tasks of random scenes), and FedLGR's in-process orchestrator on the fast config."""
+tasks of random scenes), and FedLGR's fast config."""
 
 from __future__ import annotations
 
@@ -88,13 +88,3 @@ def fedlgr_config(synth_dir, cache_dir, store, *overrides):
         "runtime.threads=1",
         *overrides,
     )
-
-
-def orchestrator(config):
-    from fedlgr.core.in_process import Orchestrator
-    from fedlgr.shell.data.dataset import load_scenes
-    from fedlgr.shell.data.splits import make_split
-    from fedlgr.shell.run.experiment import make_fabric
-
-    scenes = load_scenes(config.data)
-    return Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))

@@ -1,5 +1,5 @@
-"""Training runs: the fast-dev-run config on the test data, a run read back from MLflow,
-and a Ctrl-C raised inside a run."""
+"""Training runs: the fast-dev-run config on the test data, an in-process orchestrator of
+a config, a run read back from MLflow, and a Ctrl-C raised inside a run."""
 
 from __future__ import annotations
 
@@ -7,7 +7,11 @@ import csv
 
 import mlflow
 
+from fedlgr.core.in_process import Orchestrator
 from fedlgr.shell.config import CONF_DIR, load_config
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
+from fedlgr.shell.run.experiment import make_fabric
 
 FAST = CONF_DIR / "debug" / "tiny.yaml"  # the cheapest run through the image path
 
@@ -22,6 +26,12 @@ def fast_config(synth_dir, cache_dir, store, *overrides):
             *overrides,
         ],
     )
+
+
+def orchestrator(config) -> Orchestrator:
+    """The in-process rounds of ``config``, on its scenes and its split (one process)."""
+    scenes = load_scenes(config.data)
+    return Orchestrator(make_fabric(config), config, scenes, make_split(scenes.table, config.data))
 
 
 def read_run(store: str, run_id: str):
