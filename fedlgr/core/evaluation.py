@@ -23,7 +23,8 @@ def scored_clients(config) -> Callable[[RoundPlan, list[int]], tuple[int, ...] |
     seed (the same every round); none (``()``) in a round off ``eval_every``'s beat, unless
     it ends a task or the run."""
     federated, clients = config.federated, config.data.clients
-    every, last = federated.eval_every, len(schedule(config))
+    every = federated.eval_every
+    last = len(schedule(config)) if every > 1 else 1  # the schedule: DP's target may cut it
     if federated.evaluate == "chosen":
         who = tuple
     elif federated.evaluate == "sample":

@@ -251,10 +251,12 @@ class ClientSide:
         if reuse:
             self.spare.append(client.model)
 
-    def rest_all(self) -> None:
+    def rest_all(self, clients: list[Client] | None = None) -> None:
+        """Put ``clients`` (every awake one by default) to rest, then hand the memory they
+        freed back to the system (:func:`.idle.give_back_freed_memory`)."""
         if self.keeping == "live":
             return
-        for client in self.clients:
+        for client in self.clients if clients is None else clients:
             self.rest(client)
         give_back_freed_memory()
 
@@ -480,16 +482,12 @@ class ClientSide:
         """``work(clients)`` over ``indices``' clients, woken: all at once where idle
         clients stay whole, else a pool's width at a time, each turn put back to rest
         after its work (so a fleet is never whole at once); the results in order."""
-        live = self.keeping == "live"
-        width = len(indices) if live else self.pool.workers
+        width = len(indices) if self.keeping == "live" else self.pool.workers
         out = []
         for at in range(0, len(indices), max(width, 1)):
             clients = [self.wake(i) for i in indices[at : at + width]]
             out += work(clients)
-            for client in clients:
-                self.rest(client)
-            if not live:
-                give_back_freed_memory()
+            self.rest_all(clients)
         return out
 
     def predictions(self, received: Weights, scored: list[int]) -> dict[int, torch.Tensor]:
@@ -505,8 +503,8 @@ class ClientSide:
             model = self.global_model(received)
             pred = predict(model, self.test_inputs, cfg.eval_batch_size, autocast, map_)
             return dict.fromkeys(scored, pred)
-        if self.root_keys and len(scored) > 1 and all(self.holds_root(i) for i in scored):
-            tops = [self.top(i) for i in scored]
+        tops = self._tops_on_the_global_root(scored) if self.root_keys and len(scored) > 1 else None
+        if tops is not None:
             root = self.global_model(received).root
             preds = predict_tops(root, tops, self.test_inputs, cfg.eval_batch_size, autocast, map_)
             return dict(zip(scored, preds, strict=True))
@@ -535,21 +533,35 @@ class ClientSide:
 
     def holds_root(self, index: int) -> bool:
         """Is the client's root exactly the global one (no task end changed it)?"""
-        if index in self.awake:
-            state = self.awake[index].model.state_dict()
-            return all(torch.equal(state[k], self.shared[k]) for k in self.root_keys)
-        kept = self.idle.get(index)
-        return kept is None or not any(k in kept["model"] for k in self.root_keys)
+        return self.top(index) is not None
 
-    def top(self, index: int) -> torch.nn.Module:
-        """Client ``index``'s top: its own module if awake, else one given its kept top."""
+    def top(self, index: int) -> torch.nn.Module | None:
+        """Client ``index``'s top where its root is the global one (no task end changed it),
+        else None: its own module if awake, else one given its kept top (a kept state is
+        read once: from its file, if it spilled)."""
         if index in self.awake:
-            return self.awake[index].model.top
+            model = self.awake[index].model
+            state = model.state_dict()
+            held = all(torch.equal(state[k], self.shared[k]) for k in self.root_keys)
+            return model.top if held else None
+        kept = self.idle.get(index)
+        if kept is not None and any(k in kept["model"] for k in self.root_keys):
+            return None
         top = copy.deepcopy(self.initial.top)
-        if (kept := self.idle.get(index)) is not None:  # else never woken: the initial top
+        if kept is not None:  # else never woken: the initial top
             model = complete(kept, self.shared)["model"]
             top.load_state_dict({k[4:]: v for k, v in model.items() if k.startswith("top.")})
         return top
+
+    def _tops_on_the_global_root(self, scored: list[int]) -> list[torch.nn.Module] | None:
+        """The ``scored`` clients' tops, if every one holds the global root; else None."""
+        tops = []
+        for index in scored:
+            top = self.top(index)
+            if top is None:
+                return None
+            tops.append(top)
+        return tops
 
     def finish_round(self, client: Client, plan) -> tuple[Usage | None, Figures]:
         """The plugins' round figures on the received model, then, at a task's last
