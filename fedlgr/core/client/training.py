@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import torch
 from torch import nn
-from torch.utils.flop_counter import FlopCounterMode
 
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.data.augment import SceneBatches
+from fedlgr.core.meters.flops import flop_counter
 from fedlgr.core.metrics import Figures
 from fedlgr.errors import FedlgrError
 
@@ -168,7 +168,8 @@ def train_locally(
 def flops_per_sample(model: nn.Module, x: torch.Tensor) -> float:
     """The floating-point operations of one training step of ``model`` on batch ``x`` -
     its forward, and its backward to the parameters that train - per sample, counted by
-    torch's FlopCounterMode on a copy of the model on the meta device: shapes only, nothing
+    torch's FlopCounterMode (with :mod:`fedlgr.core.meters.flops`'s formula for a grouped
+    convolution's backward pass) on a copy of the model on the meta device: shapes only, nothing
     computed, and the client's own arithmetic untouched (counting on the real step changes
     the rounding of its convolutions). Counted once per model structure, sample shape and
     set of trained parameters (a count takes about four real steps' time)."""
@@ -180,7 +181,7 @@ def flops_per_sample(model: nn.Module, x: torch.Tensor) -> float:
     )
     if key not in _COUNTED:
         ghost = _without_hooks(model).to("meta")
-        with FlopCounterMode(display=False) as counter:
+        with flop_counter() as counter:
             ghost(torch.empty_like(x, device="meta")).float().sum().backward()
         if len(_COUNTED) >= 64:  # structures seen in one process: a handful
             _COUNTED.clear()
