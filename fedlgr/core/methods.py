@@ -185,8 +185,11 @@ class EWCSettings(Settings):
     """EWC and EWC-Online: lambda_ * sum F (theta - theta*)^2."""
 
     lambda_: float = setting(100.0, least=0)
-    # empirical: gradients of the MSE to the labels | model
-    fisher: str = setting("empirical", choices=("empirical", "model"))
+    # the Fisher, each scene's squared gradient averaged over the task's scenes: empirical
+    # (of its MSE to the labels, Kirkpatrick et al.'s) | model (to outputs + N(0, 1) noise) |
+    # batch (each mini-batch's squared gradient, and no 1/2 in the penalty: fedlgr before
+    # issue 48, about 1/batch-size of the others)
+    fisher: str = setting("empirical", choices=("empirical", "model", "batch"))
     gamma: float = setting(0.9, least=0, most=1)  # EWC-Online: decay of the running Fisher
 
 
@@ -194,11 +197,20 @@ class EWCSettings(Settings):
 class SISettings(Settings):
     c: float = setting(1.0, least=0)  # penalty coefficient
     xi: float = setting(0.1, least=0)  # damping
+    # none (Zenke et al.'s eq. 5) | task (each task's gain clamped at 0: fedlgr before issue
+    # 48) | total (the summed importance clamped at 0: the authors' code)
+    clamp: str = setting("none", choices=("none", "task", "total"))
+    # the gradient in the path integral: loss (without SI's penalty, as published) |
+    # loss+penalty (fedlgr before issue 48)
+    path_gradient: str = setting("loss", choices=("loss", "loss+penalty"))
 
 
 @dataclass(frozen=True)
 class MASSettings(Settings):
     lambda_: float = setting(1.0, least=0)  # penalty coefficient
+    # sample (|gradient of each scene's squared output norm|, averaged: Aljundi et al.'s) |
+    # batch (of each mini-batch's mean: fedlgr before issue 48)
+    importance: str = setting("sample", choices=("sample", "batch"))
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterable
 
 import torch
 from torch import nn
+from torch.func import functional_call, grad, vmap
 
 from fedlgr.core.client.plugins import ClientPlugin
 
@@ -20,7 +21,9 @@ Tensors = dict[str, torch.Tensor]
 
 
 class QuadraticPenalty(ClientPlugin):
-    """Holds ``(importance, anchor)`` terms; subclasses fill them in ``on_task_end``."""
+    """Holds ``(importance, anchor)`` terms; subclasses fill them in ``on_task_end``.
+    ``coefficient`` multiplies the sum: EWC's ``lambda / 2`` (Kirkpatrick et al., eq. 3),
+    MAS's ``lambda`` and SI's ``c``."""
 
     def __init__(self, coefficient: float):
         self.coefficient = coefficient
@@ -53,6 +56,56 @@ def snapshot(model: nn.Module) -> Tensors:
     return {n: p.detach().clone() for n, p in model.named_parameters() if p.requires_grad}
 
 
+# A per-sample objective: (the outputs of one scene (outputs,), its targets (outputs,),
+# a tensor of that scene's own (noise, or nothing)) -> a scalar.
+SampleObjective = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def per_sample_importance(
+    model: nn.Module,
+    batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
+    objective: SampleObjective,
+    reduce: Callable[[torch.Tensor], torch.Tensor] = torch.square,
+    max_batches: int | None = None,
+    extra: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> Tensors:
+    """Mean over the scenes of ``reduce(d objective / d theta)``, one gradient per scene,
+    per trainable parameter: the empirical Fisher's diagonal with ``torch.square`` over
+    each scene's loss (Kirkpatrick et al. 2017), MAS's importance with ``torch.abs`` over
+    each scene's squared output norm (Aljundi et al. 2018, eq. 4).
+
+    The gradients are ``torch.func.vmap`` of ``grad`` over each batch's scenes (one call per
+    batch, not one backward per scene), with the model in eval mode: BatchNorm uses its
+    running statistics, so a scene's gradient does not depend on the other scenes of its
+    batch, and they are left untouched. ``extra(targets)`` draws a tensor per scene passed
+    to the objective (the ``model`` Fisher's noise), in the batches' order.
+    """
+    was_training = model.training
+    model.eval()
+    trained = {n: p.detach() for n, p in model.named_parameters() if p.requires_grad}
+    fixed = {n: p.detach() for n, p in model.named_parameters() if not p.requires_grad}
+    fixed |= dict(model.named_buffers())
+
+    def scene(params: Tensors, x: torch.Tensor, y: torch.Tensor, e: torch.Tensor):
+        out = functional_call(model, (params, fixed), (x.unsqueeze(0),))
+        return objective(out.squeeze(0).float(), y, e)
+
+    per_scene = vmap(grad(scene), in_dims=(None, 0, 0, 0))
+    total = {n: torch.zeros_like(p) for n, p in trained.items()}
+    count = 0
+    try:
+        for step, (x, y) in enumerate(batches):
+            if max_batches is not None and step >= max_batches:
+                break
+            e = extra(y) if extra is not None else torch.zeros(len(x), device=x.device)
+            for n, g in per_scene(trained, x, y, e).items():
+                total[n] += reduce(g).sum(dim=0)
+            count += len(x)
+    finally:
+        model.train(was_training)
+    return {n: t / max(count, 1) for n, t in total.items()}
+
+
 def gradient_importance(
     model: nn.Module,
     batches: Iterable[tuple[torch.Tensor, torch.Tensor]],
@@ -64,7 +117,9 @@ def gradient_importance(
 
     ``objective(outputs, y)`` is a scalar per batch; gradients are per mini-batch (as in
     Avalanche's EWC and MAS plugins), with the model in eval mode so that BatchNorm
-    statistics are used and left untouched.
+    statistics are used and left untouched. The published methods take one gradient per
+    scene (:func:`per_sample_importance`); this form stays for reproducing runs made with
+    it (``continual.ewc.fisher=batch``, ``continual.mas.importance=batch``).
     """
     was_training = model.training
     model.eval()

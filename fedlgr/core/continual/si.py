@@ -1,10 +1,23 @@
 """SI, Synaptic Intelligence (Zenke et al. 2017).
 
 During a task every optimiser step adds, per parameter, ``-g * delta`` to a running path
-integral omega (g: the gradient that step used, delta: the change the step made). At the
-end of the task the importance grows by ``max(omega / (Delta^2 + xi), 0)`` with Delta the
-parameter's total change over the task and xi the damping; parameters that did not move
-gain nothing. The penalty is c * sum_i Omega_i (theta_i - theta*_i)^2.
+integral omega (g: the gradient of the loss that step followed, delta: the change the step
+made). At the end of the task the importance grows by ``omega / (Delta^2 + xi)`` with
+Delta the parameter's total change over the task and xi the damping (Zenke et al., eq. 5);
+parameters that did not move gain nothing. The penalty is c * sum_i Omega_i (theta_i -
+theta*_i)^2 (eq. 4).
+
+As published (and in the authors' code, ganguli-lab/pathint: ``unreg_grads``), g is the
+gradient of the loss *without* SI's own penalty: omega measures how much a parameter
+lowered the loss. The penalty's gradient, ``2 c sum Omega (theta - theta*)``, is known in
+closed form and taken off the step's gradient. An optimiser step that does not follow the
+gradient (Adam's) can make omega negative, and so a parameter's importance; eq. 5 keeps it.
+
+The forms fedlgr used before issue 48 stay as settings, to reproduce its runs:
+``continual.si.clamp=task`` (each task's gain clamped at 0) and
+``continual.si.path_gradient=loss+penalty`` (g including SI's penalty). ``clamp=total``
+clamps the summed importance at 0 after each task, as the authors' code does
+(``tf.nn.relu`` of the running sum in pathint/protocols.py), not their paper.
 """
 
 from __future__ import annotations
@@ -14,13 +27,16 @@ import torch
 from fedlgr.core.client.plugins import LocalContext
 from fedlgr.core.continual.penalty import QuadraticPenalty, snapshot
 
+CLAMPS = ("none", "task", "total")
+PATH_GRADIENTS = ("loss", "loss+penalty")
+
 
 class SI(QuadraticPenalty):
     name = "si"
 
-    def __init__(self, c: float, xi: float):
+    def __init__(self, c: float, xi: float, clamp: str = "none", path_gradient: str = "loss"):
         super().__init__(c)
-        self.xi = xi
+        self.xi, self.clamp, self.path_gradient = xi, clamp, path_gradient
         self.omega: dict[str, torch.Tensor] = {}
         self.start: dict[str, torch.Tensor] = {}
         self._before: dict[str, torch.Tensor] = {}
@@ -28,18 +44,29 @@ class SI(QuadraticPenalty):
 
     @classmethod
     def from_settings(cls, settings, continual, seed: int) -> SI:
-        return cls(settings.c, settings.xi)
+        return cls(settings.c, settings.xi, settings.clamp, settings.path_gradient)
 
     def on_task_start(self, ctx: LocalContext) -> None:
         self.start = snapshot(ctx.model)
         self.omega = {n: torch.zeros_like(p) for n, p in self.start.items()}
 
+    def penalty_gradient(self, name: str, param: torch.Tensor) -> torch.Tensor | None:
+        """d penalty / d param: ``2 c sum_terms Omega (param - anchor)`` (None: no penalty)."""
+        if not self.terms or self.coefficient == 0:
+            return None
+        total = sum(w[name] * (param - a[name]) for w, a in self.terms if name in w)
+        return 2 * self.coefficient * total
+
     def before_step(self, ctx: LocalContext) -> None:
         self._before, self._grads = {}, {}
         for n, p in ctx.model.named_parameters():
             if p.grad is not None and n in self.omega:
+                g = p.grad.detach().clone()
+                own = None
+                if self.path_gradient == "loss":
+                    own = self.penalty_gradient(n, p.detach())
                 self._before[n] = p.detach().clone()
-                self._grads[n] = p.grad.detach().clone()
+                self._grads[n] = g if own is None else g - own
 
     def after_step(self, ctx: LocalContext) -> None:
         params = dict(ctx.model.named_parameters())
@@ -49,13 +76,14 @@ class SI(QuadraticPenalty):
 
     def on_task_end(self, ctx: LocalContext) -> None:
         end = snapshot(ctx.model)
-        gained = {
-            n: torch.clamp(self.omega[n] / ((end[n] - self.start[n]) ** 2 + self.xi), min=0.0)
-            for n in end
-        }
+        gained = {n: self.omega[n] / ((end[n] - self.start[n]) ** 2 + self.xi) for n in end}
+        if self.clamp == "task":
+            gained = {n: torch.clamp(w, min=0.0) for n, w in gained.items()}
         if self.terms:
             old, _ = self.terms[0]
             gained = {n: old[n] + w for n, w in gained.items()}
+        if self.clamp == "total":
+            gained = {n: torch.clamp(w, min=0.0) for n, w in gained.items()}
         self.terms = [(gained, end)]
 
     def state_dict(self) -> dict:
