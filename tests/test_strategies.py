@@ -112,24 +112,87 @@ def test_fedprox_adds_the_proximal_gradient():
     ]
 
 
-def test_fedopt_takes_a_server_adam_step():
-    config = FederatedConfig(strategy="opt", opt=OptSettings(lr=0.1, betas=(0.9, 0.99), tau=0.01))
-    strategy = FedOpt(config)
+def _fedopt(**settings) -> FedOpt:
+    opt = OptSettings(lr=0.1, betas=(0.9, 0.99), tau=0.01, **settings)
+    strategy = FedOpt(FederatedConfig(strategy="opt", opt=opt))
     strategy.bind(["w", "stat"], parameters={"w", "other"})
+    return strategy
+
+
+def test_fedadam_first_two_server_steps_start_the_second_moment_at_tau_squared():
+    """Reddi et al. 2021, Algorithm 2 (FedAdam), by hand: m_-1 = 0, v_-1 = tau^2 = 1e-4;
+    m <- 0.9 m + 0.1 Delta; v <- 0.99 v + 0.01 Delta^2; x <- x + 0.1 m / (sqrt(v) + 0.01)."""
+    strategy = _fedopt()
     assert strategy.trainable == {"w"}
     x = {"w": torch.tensor([1.0, 1.0]), "stat": torch.tensor([3.0])}
-    mean = {"w": torch.tensor([1.5, 0.0]), "stat": torch.tensor([5.0])}
-    new = strategy.server_update(x, mean)
-    # Delta = (0.5, -1); m = 0.1 * Delta; v = 0.01 * Delta^2; x + 0.1 m / (sqrt(v) + 0.01)
-    expected = [1.0 + 0.1 * 0.05 / (0.05 + 0.01), 1.0 + 0.1 * -0.1 / (0.1 + 0.01)]
-    assert torch.allclose(new["w"], torch.tensor(expected))
-    assert torch.equal(new["stat"], mean["stat"])  # running statistics: plain mean
-    # Second round: the moments carry over.
+    new = strategy.server_update(x, {"w": torch.tensor([1.5, 0.0]), "stat": torch.tensor([5.0])})
+    # Delta = (0.5, -1): m = (0.05, -0.1); v = (0.000099 + 0.0025, 0.000099 + 0.01)
+    #   = (0.002599, 0.010099); sqrt(v) = (0.0509804, 0.1004938)
+    step1 = [0.1 * 0.05 / (0.002599**0.5 + 0.01), 0.1 * -0.1 / (0.010099**0.5 + 0.01)]
+    assert step1 == pytest.approx([0.0819936, -0.0905028], abs=1e-7)  # the hand figures
+    # float32 arithmetic on values ~1: a few ulps (1.2e-7) apart
+    assert new["w"].tolist() == pytest.approx([1.0 + step1[0], 1.0 + step1[1]], abs=1e-6)
+    assert torch.equal(new["stat"], torch.tensor([5.0]))  # running statistics: plain mean
+    # Second round, Delta = (1, 1): the moments carry over.
     new2 = strategy.server_update(new, {"w": new["w"] + 1.0, "stat": torch.tensor([5.0])})
-    m = 0.9 * 0.1 * torch.tensor([0.5, -1.0]) + 0.1 * 1.0
-    v = 0.99 * 0.01 * torch.tensor([0.25, 1.0]) + 0.01 * 1.0
-    assert torch.allclose(new2["w"], new["w"] + 0.1 * m / (v.sqrt() + 0.01))
+    m = [0.9 * 0.05 + 0.1, 0.9 * -0.1 + 0.1]  # (0.145, 0.01)
+    v = [0.99 * 0.002599 + 0.01, 0.99 * 0.010099 + 0.01]  # (0.01257301, 0.01999801)
+    step2 = [0.1 * mi / (vi**0.5 + 0.01) for mi, vi in zip(m, v, strict=True)]
+    assert new2["w"].tolist() == pytest.approx(
+        [w + s for w, s in zip(new["w"].tolist(), step2, strict=True)], abs=1e-6
+    )
     assert set(strategy.state_dict()["m"]) == {"w"}
+
+
+def test_fedadam_with_v0_zero_is_the_form_before_issue_48():
+    """v_-1 = 0: v = 0.01 Delta^2, so the first step is 0.1 x 0.1 Delta / (0.1 |Delta| + 0.01)
+    - 1.2x to 2x the paper's where |Delta| <= 10 tau."""
+    strategy = _fedopt(v0="zero")
+    x = {"w": torch.tensor([1.0, 1.0]), "stat": torch.tensor([3.0])}
+    new = strategy.server_update(x, {"w": torch.tensor([1.5, 0.0]), "stat": torch.tensor([5.0])})
+    expected = [1.0 + 0.1 * 0.05 / (0.05 + 0.01), 1.0 + 0.1 * -0.1 / (0.1 + 0.01)]
+    assert new["w"].tolist() == pytest.approx(expected, abs=1e-6)
+    # Delta = 0.001 = tau / 10: the old first step over the paper's is ~2x
+    small = _fedopt(v0="zero").server_update(
+        {"w": torch.zeros(1, dtype=torch.float64), "stat": torch.zeros(1)},
+        {"w": torch.full((1,), 1e-3, dtype=torch.float64), "stat": torch.zeros(1)},
+    )
+    paper = _fedopt().server_update(
+        {"w": torch.zeros(1, dtype=torch.float64), "stat": torch.zeros(1)},
+        {"w": torch.full((1,), 1e-3, dtype=torch.float64), "stat": torch.zeros(1)},
+    )
+    ratio = (small["w"] / paper["w"]).item()
+    # (sqrt(0.99e-4 + 1e-8) + 0.01) / (1e-4 + 0.01) = 0.0199999 / 0.0101 = 1.980
+    assert ratio == pytest.approx((math.sqrt(0.99e-4 + 1e-8) + 0.01) / 0.0101, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "variant, v1, v2",
+    [
+        # FedYogi: v <- v - 0.01 Delta^2 sign(v - Delta^2). Round 1, Delta^2 = (0.25, 1) >
+        # v = 1e-4: v + 0.01 Delta^2 = (0.0026, 0.0101). Round 2, Delta = (0.05, 0.05),
+        # Delta^2 = 0.0025 < v: v - 0.01 x 0.0025 = (0.002575, 0.010075).
+        ("yogi", [0.0026, 0.0101], [0.002575, 0.010075]),
+        # FedAdagrad: v <- v + Delta^2: (0.2501, 1.0001), then + 0.0025.
+        ("adagrad", [0.2501, 1.0001], [0.2526, 1.0026]),
+        # FedAdam: v <- 0.99 v + 0.01 Delta^2: (0.002599, 0.010099), then
+        # (0.00257301 + 0.000025, 0.00999801 + 0.000025).
+        ("adam", [0.002599, 0.010099], [0.00259801, 0.01002301]),
+    ],
+)
+def test_fedopt_variants_second_moment_updates_by_hand(variant, v1, v2):
+    """Reddi et al. 2021, Algorithm 2: each variant's v from v_-1 = tau^2 = 1e-4, over two
+    rounds whose mean updates are (0.5, -1) and (0.05, 0.05); the step uses the same m."""
+    strategy = _fedopt(variant=variant)
+    x = {"w": torch.zeros(2, dtype=torch.float64), "stat": torch.zeros(1)}
+    mean = {"w": torch.tensor([0.5, -1.0], dtype=torch.float64), "stat": torch.zeros(1)}
+    first = strategy.server_update(x, mean)
+    assert strategy.v["w"].tolist() == pytest.approx(v1, rel=1e-12)
+    m = torch.tensor([0.05, -0.1], dtype=torch.float64)
+    v = torch.tensor(v1, dtype=torch.float64)
+    assert torch.allclose(first["w"], 0.1 * m / (v.sqrt() + 0.01), rtol=1e-12, atol=0)
+    strategy.server_update(first, {"w": first["w"] + 0.05, "stat": torch.zeros(1)})
+    assert strategy.v["w"].tolist() == pytest.approx(v2, rel=1e-12)
 
 
 def test_fedavgm_adds_server_momentum_to_the_mean_update():

@@ -109,11 +109,15 @@ class ProxSettings(Settings):
 
 @dataclass(frozen=True)
 class OptSettings(Settings):
-    """FedAdam's server optimiser: x <- x + lr m / (sqrt(v) + tau)."""
+    """FedOpt's server optimiser (Reddi et al. 2021, Algorithm 2): x <- x + lr m / (sqrt(v)
+    + tau), v by the variant (FedAdam, FedYogi, FedAdagrad; adagrad reads betas[0] only)."""
 
     lr: float = setting(0.01, above=0)
     betas: tuple[float, float] = setting((0.9, 0.99), kind="betas")
     tau: float = setting(1e-3, above=0)
+    variant: str = setting("adam", choices=("adam", "yogi", "adagrad"))
+    # the second moment's start: tau2 (the paper's v_-1 = tau^2) | zero (fedlgr before issue 48)
+    v0: str = setting("tau2", choices=("tau2", "zero"))
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,21 @@
-"""FedOpt as FedAdam (Reddi et al. 2021, Algorithm 2): server-side Adam on the mean update.
+"""FedOpt (Reddi et al. 2021, Algorithm 2): an adaptive server optimiser on the mean update,
+as FedAdam, FedYogi or FedAdagrad (``federated.opt.variant``).
 
 With x the global weights and Delta = mean(client weights) - x:
-m <- b1 m + (1 - b1) Delta;  v <- b2 v + (1 - b2) Delta^2;  x <- x + eta m / (sqrt(v) + tau)
-(no bias correction, as published). Trainable parameters take the Adam step; BatchNorm
-running statistics, which are not parameters, are averaged as in FedAvg. The paper's
-reference code never runs this server step; here it does.
+m <- b1 m + (1 - b1) Delta, then the second moment v by the variant:
+
+* adam:    v <- b2 v + (1 - b2) Delta^2
+* yogi:    v <- v - (1 - b2) Delta^2 sign(v - Delta^2)
+* adagrad: v <- v + Delta^2
+
+and x <- x + eta m / (sqrt(v) + tau) (no bias correction, as published). The first moment
+starts at 0 and the second at tau^2 (the paper's ``v_-1 >= tau^2``);
+``federated.opt.v0=zero`` starts it at 0, the form fedlgr used before issue 48: FedAdam's
+first server step is then ``eta (1-b1) / (sqrt(1-b2) |Delta| + tau)`` per unit of Delta
+instead of ``eta (1-b1) / (sqrt(b2 tau^2 + (1-b2) Delta^2) + tau)``, between 1.2x and 2x the
+paper's wherever |Delta| <= 10 tau at the default betas (docs/methods.md). Trainable parameters
+take the step; BatchNorm running statistics, which are not parameters, are averaged as in
+FedAvg. The paper's reference code never runs this server step; here it does.
 """
 
 from __future__ import annotations
@@ -12,6 +23,18 @@ from __future__ import annotations
 import torch
 
 from fedlgr.core.strategies.base import ServerOptimizer, Weights
+
+VARIANTS = ("adam", "yogi", "adagrad")
+
+
+def second_moment(variant: str, v: torch.Tensor, delta: torch.Tensor, b2: float) -> torch.Tensor:
+    """The next second moment of ``variant`` (Reddi et al., Algorithm 2), in place on ``v``."""
+    square = delta * delta
+    if variant == "adam":
+        return v.mul_(b2).add_(square, alpha=1 - b2)
+    if variant == "yogi":
+        return v.sub_((1 - b2) * square * torch.sign(v - square))
+    return v.add_(square)  # adagrad
 
 
 class FedOpt(ServerOptimizer):
@@ -21,9 +44,12 @@ class FedOpt(ServerOptimizer):
         self.v: Weights = {}
 
     def step(self, key: str, weight: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        (b1, b2), eta, tau = self.settings.betas, self.settings.lr, self.settings.tau
+        s = self.settings
+        (b1, b2), eta, tau = s.betas, s.lr, s.tau
         m = self.m.get(key, torch.zeros_like(delta)).mul_(b1).add_(delta, alpha=1 - b1)
-        v = self.v.get(key, torch.zeros_like(delta)).mul_(b2).addcmul_(delta, delta, value=1 - b2)
+        start = tau**2 if s.v0 == "tau2" else 0.0
+        v = self.v.get(key, torch.full_like(delta, start))
+        v = second_moment(s.variant, v, delta, b2)
         self.m[key], self.v[key] = m, v
         return weight + eta * m / (v.sqrt() + tau)
 
