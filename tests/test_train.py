@@ -205,13 +205,15 @@ def _cli_run(args, cwd):
 
 
 # FedMedian: a statistic of every upload, which the processes gather instead of summing;
-# FedRootProx under client-level DP: the clipped sums and the unclipped count reduced, then
-# the same seeded noise in every process
+# FedRootProx under client-level DP with adaptive clipping: the clipped sums and the sum of
+# the centred "within the clip norm" bits reduced, then the same seeded noise in every
+# process (the clip norm it moves, privacy/clip, compared)
 TWO_PROCESSES = {
     "FedRootProx": [
         "federated.dp.clip=1",
         "federated.dp.noise_multiplier=0.05",
         "federated.dp.delta=0.1",
+        "federated.dp.clipping=adaptive",
     ],
     "FedMedian": [],
 }
@@ -338,11 +340,11 @@ def test_the_fast_config_shows_learning_in_its_default_run(tmp_path):
 def test_training_gflops_count_one_batch_and_scale_it_the_same_for_fedavg_and_fedroot(
     synth_dir, cache_dir
 ):
-    """``cost/gflops``: torch's FlopCounterMode on the round's first batch (forward and
-    backward), per sample, x the samples the round trained on - the same work for a FedAvg
-    and a FedRootAvg client, which the CPU seconds of a shared machine blur."""
-    from torch.utils.flop_counter import FlopCounterMode
-
+    """``cost/gflops``: fedlgr's flop counter (torch's FlopCounterMode with grouped
+    convolutions' backward counted right) on the round's first batch (forward and backward),
+    per sample, x the samples the round trained on - the same work for a FedAvg and a
+    FedRootAvg client, which the CPU seconds of a shared machine blur."""
+    from fedlgr.core.meters.flops import flop_counter
     from fedlgr.core.scope import initial_scholar
 
     figures = {}
@@ -353,7 +355,7 @@ def test_training_gflops_count_one_batch_and_scale_it_the_same_for_fedavg_and_fe
     # the count of one step, by hand: the initial model on a batch of 4 images
     model = initial_scholar(config).train()
     x = torch.rand(4, 3, config.data.image_size, config.data.image_size)
-    with FlopCounterMode(display=False) as counter:
+    with flop_counter() as counter:
         torch.nn.functional.mse_loss(model(x), torch.zeros(4, 8)).backward()
     per_sample = counter.get_total_flops() / 4
     for fedavg, fedroot in zip(figures["FedAvg"], figures["FedRootAvg"], strict=True):
