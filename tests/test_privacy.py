@@ -1,10 +1,13 @@
 """Client-level differential privacy (``federated.dp.*``, :mod:`fedlgr.core.privacy`):
 clipping and noise on hand numbers, the noise drawn again for a seed, adaptive clipping's
 step, the accountant against dp-accounting's for the same noise, sampling and rounds, and
-runs that log epsilon and stop at a target."""
+runs that log epsilon and stop at a target. Adaptive clipping's count of centred bits and
+the epsilon of the mechanism that runs were checked against independent reference code
+in the methods review of issue 48."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import dp_accounting
@@ -17,8 +20,9 @@ from fedlgr.core import privacy
 from fedlgr.core.messages import TrainRes
 from fedlgr.core.privacy import UNCLIPPED, Privacy
 from fedlgr.core.schedule import schedule
+from fedlgr.core.server.side import ServerSide
 from fedlgr.core.strategies.base import participants
-from fedlgr.errors import ConfigError
+from fedlgr.errors import ConfigError, FedlgrError
 from fedlgr.shell.config import load_config
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config, results_csv
@@ -41,7 +45,8 @@ def test_clip_scales_the_whole_update_as_one_vector_by_hand():
 
 def test_an_upload_is_clipped_around_the_global_tensors_with_its_payload_and_weighs_one():
     """g = (1, 1), w = (4, 5): update (3, 4), payload (0,) + (12,): norm 13 over clip 2.6
-    -> scaled by 0.2: w' = (1.6, 1.8), payload 2.4; it was not within the clip norm."""
+    -> scaled by 0.2: w' = (1.6, 1.8), payload 2.4; it was not within the clip norm: its
+    centred bit is 0 - 1/2 (1 - 1/2 for one within)."""
     config = dp_config("federated.dp.clip=2.6")
     server = Privacy(config)
     shared = {"w": torch.tensor([1.0, 1.0])}
@@ -50,9 +55,9 @@ def test_an_upload_is_clipped_around_the_global_tensors_with_its_payload_and_wei
     assert out.n_samples == 1
     assert out.weights["w"].tolist() == pytest.approx([1.6, 1.8])
     assert out.payload["c"].tolist() == pytest.approx([2.4])
-    assert out.payload[UNCLIPPED].item() == 0.0
+    assert out.payload[UNCLIPPED].item() == -0.5
     small = TrainRes(0, {"w": torch.tensor([1.5, 1.0])}, 3)
-    assert server.clipped(small, shared).payload[UNCLIPPED].item() == 1.0
+    assert server.clipped(small, shared).payload[UNCLIPPED].item() == 0.5
 
 
 def test_the_release_is_the_global_plus_the_noisy_sum_over_q_n_by_hand():
@@ -87,9 +92,10 @@ def test_the_noise_has_the_stated_deviation_and_a_seed_draws_it_again():
 
 
 def test_adaptive_clipping_moves_the_clip_norm_towards_its_quantile_by_hand():
-    """All 4 of 4 clients within C = 2, target quantile 0.5, step 0.2: C <- 2 exp(-0.2 x
-    0.5) (count noise 1e-9: none to speak of); the updates' noise multiplier is raised so
-    that both releases cost one Gaussian of z (Andrew et al., Th. 1)."""
+    """All 4 of 4 clients within C = 2 (centred bits: 4 x 1/2 = 2), target quantile 0.5,
+    step 0.2: share 2 / 4 + 1/2 = 1, C <- 2 exp(-0.2 x 0.5) (count noise 1e-9: none to
+    speak of); the updates' noise multiplier is raised so that both releases cost one
+    Gaussian of z (Andrew et al., Th. 1: the count's multiplier is 2 sigma_b)."""
     config = dp_config(
         "federated.dp.clip=2",
         "federated.dp.noise_multiplier=0",
@@ -98,11 +104,176 @@ def test_adaptive_clipping_moves_the_clip_norm_towards_its_quantile_by_hand():
     )
     server = Privacy(config)
     shared = {"w": torch.tensor([0.0])}
-    server.mean({"w": torch.tensor([0.4], dtype=torch.float64)}, 4.0, {UNCLIPPED: 4.0}, shared)
+    server.mean({"w": torch.tensor([0.4], dtype=torch.float64)}, 4.0, {UNCLIPPED: 2.0}, shared)
     assert server.bound == pytest.approx(2 * math.exp(-0.1))
     assert privacy.update_multiplier(1.0, 1.0) == pytest.approx((1 - 0.25) ** -0.5)
     with pytest.raises(ValueError, match="over noise_multiplier / 2"):
         privacy.update_multiplier(1.0, 0.5)
+
+
+ADAPTIVE = ["federated.dp.clip=1", "federated.dp.clipping=adaptive", "federated.dp.count_noise=1"]
+
+
+def upload(server: ServerSide, client: int, size: float) -> TrainRes:
+    """An upload whose update is ``size`` in L2: the global tensors with ``size`` added to
+    one value."""
+    weights = {k: g.clone().contiguous() for k, g in server.global_weights.items()}
+    first = next(iter(weights))
+    weights[first].view(-1)[0] += size
+    return TrainRes(client, weights, 10)
+
+
+def released_count(sizes: list[float]) -> float:
+    """The count adaptive clipping releases in round 1 (seed 0) when clients of updates
+    ``sizes`` upload, through the server's own path: screening, clipping, the sum of the
+    centred bits, the noise (``Privacy.count``)."""
+    server = ServerSide(dp_config(*ADAPTIVE, "data.modality=features"))  # a small model
+    server.aggregate([upload(server, c, size) for c, size in enumerate(sizes)])
+    return server.privacy.count
+
+
+def step_of(a: float, b: float, step: float) -> bool:
+    """Is ``b - a`` the count's ``step``? The bits' sums are exact (halves); each count is
+    one rounding of sum + noise and the difference one more: off by at most 2^-53 (|a| +
+    |b|) + 2^-53 |b - a|, which 2^-52 (|a| + |b| + 1) covers."""
+    return abs((b - a) - step) <= 2.0**-52 * (abs(a) + abs(b) + 1)
+
+
+@functools.cache
+def measured_sensitivity() -> float:
+    """What one client adds to the released count, measured on the server's path (a
+    client within the clip norm added to a round of none): ``COUNT_SENSITIVITY``."""
+    assert step_of(released_count([]), released_count([0.5]), privacy.COUNT_SENSITIVITY)
+    return privacy.COUNT_SENSITIVITY
+
+
+@pytest.mark.parametrize("others", [[], [0.5, 3.0, 0.25]], ids=["alone", "with-others"])
+def test_one_client_moves_the_released_count_of_adaptive_clipping_by_exactly_one_half(others):
+    """Neighbouring datasets, one client added (within the clip norm 1, or over it): the
+    released counts, with the same seeded noise, differ by +1/2 or -1/2 - the sensitivity
+    Andrew et al.'s Theorem 1 (the updates' noise z_u) assumes. With 0/1 bits it was 1."""
+    count = released_count(others)
+    within = released_count([*others, 0.5])
+    over = released_count([*others, 3.0])
+    assert step_of(count, within, 0.5) and step_of(count, over, -0.5)
+
+
+# N, q, z, sigma_b (0: the default q N / 20), rounds, delta; the reported epsilon (of z)
+# and the epsilon of what ran before the bits were centred (0/1 bits), both to 2 decimals
+TABLE = [
+    (100, 0.5, 1.0, 0.0, 20, 1e-3, 12.67, 13.85),
+    (1000, 0.1, 1.0, 5.0, 100, 1e-4, 6.82, 7.01),
+    (40, 0.25, 1.0, 0.6, 20, 1e-3, 6.48, 19.34),
+    (200, 0.2, 0.8, 2.0, 50, 1e-4, 14.85, 16.53),
+]
+
+
+def single_gaussian_epsilon(multiplier: float, rate: float, releases: int, delta: float) -> float:
+    """dp-accounting's RDP epsilon of ``releases`` Poisson-sampled Gaussians, asked directly."""
+    event = dp_accounting.SelfComposedDpEvent(
+        dp_accounting.PoissonSampledDpEvent(rate, dp_accounting.GaussianDpEvent(multiplier)),
+        releases,
+    )
+    return rdp.RdpAccountant().compose(event).get_epsilon(delta)
+
+
+def mechanism_multiplier(server: Privacy, sensitivity: float) -> float:
+    """The one Gaussian a round of adaptive clipping is: the updates' multiplier z_u (norm
+    C, noise z_u C) beside the count's sigma_b / s, for a count of sensitivity ``s``."""
+    return (server.multiplier**-2 + (server.count_std / sensitivity) ** -2) ** -0.5
+
+
+@pytest.mark.parametrize(("n", "q", "z", "sigma_b", "rounds", "delta", "reported", "old"), TABLE)
+def test_adaptive_clippings_epsilon_is_the_mechanisms_on_issue_48s_table(
+    n, q, z, sigma_b, rounds, delta, reported, old
+):
+    """fedlgr's updates' multiplier z_u (``update_multiplier``) with the count's noise at
+    the sensitivity measured on the server's path (1/2) make one Gaussian of multiplier
+    z, so the epsilon fedlgr reports is
+    dp-accounting's for the mechanism (to 1e-3, issue 48's acceptance); with the old 0/1
+    bits (sensitivity 1) the mechanism cost the right-hand column."""
+    config = load_config(
+        None,
+        [
+            f"data.clients={n}",
+            f"federated.fraction={q}",
+            "federated.dp.clip=1",
+            "federated.dp.clipping=adaptive",
+            f"federated.dp.noise_multiplier={z}",
+            f"federated.dp.count_noise={sigma_b}",
+            f"federated.dp.delta={delta}",
+        ],
+    )
+    server = Privacy(config)
+    assert server.count_std == (sigma_b or q * n / 20)
+    assert server.multiplier == privacy.update_multiplier(z, server.count_std)
+    running = mechanism_multiplier(server, measured_sensitivity())
+    # z_u^-2 = z^-2 - (2 sigma_b)^-2 then back: about 8 roundings of 2^-53, the subtraction
+    # amplifying them by at most z^-2 / z_u^-2
+    amplified = z**-2 / server.multiplier**-2
+    assert abs(running - z) <= 16 * amplified * 2.0**-53 * z
+    server.load_state_dict({"bound": 1.0, "releases": rounds, "bits": "centred"})
+    mechanism = single_gaussian_epsilon(running, q, rounds, delta)
+    assert abs(server.epsilon - mechanism) <= 1e-3
+    assert abs(server.epsilon - reported) <= 0.005  # the table's last digit
+    before = privacy.epsilon(mechanism_multiplier(server, 1.0), q, rounds, delta)
+    assert abs(before - old) <= 0.005 and before > server.epsilon
+
+
+def test_an_adaptive_runs_target_epsilon_stops_where_the_accountant_puts_the_mechanism(
+    synth_dir, cache_dir
+):
+    """4 clients at fraction 0.5, z = 2, count noise 1.5: the run stops after the rounds
+    whose epsilon of the mechanism (z_u with the count at the sensitivity measured on the
+    server's path, asked of dp-accounting directly) fit the target, and reports that
+    epsilon every round."""
+    z, rate, delta = 2.0, 0.5, 0.01
+    server = Privacy(
+        dp_config(
+            *ADAPTIVE,
+            f"federated.dp.noise_multiplier={z}",
+            "federated.dp.count_noise=1.5",
+            "federated.fraction=0.5",
+        )
+    )
+    running = mechanism_multiplier(server, measured_sensitivity())
+    spent = [single_gaussian_epsilon(running, rate, r, delta) for r in range(1, 7)]
+    target = (spent[2] + spent[3]) / 2  # three rounds fit, not four
+    config = fast_config(
+        synth_dir,
+        cache_dir,
+        "sqlite://",
+        "tracking.enabled=false",
+        "data.modality=features",  # the scenes' descriptors: the cheapest run
+        "data.clients=4",
+        "federated.rounds=6",
+        f"federated.fraction={rate}",
+        *ADAPTIVE,
+        "federated.dp.count_noise=1.5",
+        f"federated.dp.noise_multiplier={z}",
+        f"federated.dp.delta={delta}",
+        f"federated.dp.target_epsilon={target}",
+    )
+    assert len(schedule(config)) == 3
+    result = run_experiment(config)
+    assert [r.round for r in result.rounds] == [1, 2, 3]
+    reported = [r.server["privacy/epsilon"] for r in result.rounds]
+    assert all(abs(a - b) <= 1e-3 for a, b in zip(reported, spent[:3], strict=True))
+    assert len({r.server["privacy/clip"] for r in result.rounds}) == 3  # the clip norm moved
+
+
+def test_an_adaptive_checkpoint_of_0_1_bits_is_not_resumed():
+    """Its releases cost more than the epsilon reported for them; fixed clipping's, and
+    the centred bits', resume."""
+    adaptive = Privacy(dp_config(*ADAPTIVE))
+    with pytest.raises(FedlgrError, match="3 adaptive-clipping releases summed 0/1 bits"):
+        adaptive.load_state_dict({"bound": 0.7, "releases": 3})
+    adaptive.load_state_dict({"bound": 0.7, "releases": 0})  # nothing released yet
+    adaptive.load_state_dict(Privacy(dp_config(*ADAPTIVE)).state_dict() | {"releases": 3})
+    assert (adaptive.bound, adaptive.releases) == (1.0, 3)
+    fixed = Privacy(dp_config("federated.dp.clip=1"))
+    fixed.load_state_dict({"bound": 1.0, "releases": 3})
+    assert fixed.releases == 3
 
 
 @pytest.mark.parametrize(("rate", "z", "releases"), [(1.0, 1.1, 5), (0.3, 0.8, 12)])
@@ -259,8 +430,6 @@ def test_dp_composes_with_strategies_scopes_and_cl_methods(method, synth_dir, ca
 def test_batchnorm_running_statistics_stay_on_the_clients_under_dp():
     """Released with noise they broke the model (docs/privacy.md): under DP the shared
     tensors are the scope's without them; BatchNorm's weights and biases still travel."""
-    from fedlgr.core.server.side import ServerSide
-
     plain = ServerSide(dp_config()).keys
     private = ServerSide(dp_config("federated.dp.clip=1")).keys
     statistics = [k for k in plain if k.endswith(("running_mean", "running_var"))]

@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 import torch
 from flwr.app import ConfigRecord, Context, Message, RecordDict
+from flwr.common.secure_aggregation.quantization import dequantize, quantize
 from flwr.common.secure_aggregation.secaggplus_constants import RECORD_KEY_CONFIGS, Key, Stage
 from flwr.supercore.task_identity import TaskIdentity
 
 from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes
+from fedlgr.core.privacy import UNCLIPPED
 from fedlgr.core.server.side import ServerSide
 from fedlgr.errors import ConfigError
 from fedlgr.shell.config import load_config
@@ -45,10 +47,28 @@ ON = "deploy.secagg.enabled=true"
             "deploy.secagg.enabled with federated.dp and federated.fraction=0.5: DP samples",
         ),
         (["deploy.secagg.max_samples=1000000"], "deploy.secagg.max_samples=1000000: with"),
+        (
+            [
+                "deploy.secagg.clipping_range=0.4",
+                "federated.dp.clip=1",
+                "federated.dp.clipping=adaptive",
+                "federated.dp.count_noise=1",
+                "federated.dp.delta=0.1",
+            ],
+            "deploy.secagg.clipping_range=0.4 with federated.dp: each robot's weight 1 (and",
+        ),
         (["deploy.secagg.threshold=0"], "deploy.secagg.threshold=0.0: must be in (0, 1]"),
         (["deploy.secagg.quantization_range=8388608"], "deploy.secagg.quantization_range="),
     ],
-    ids=["krum", "one-robot", "dp-poisson", "count-unreadable", "threshold", "modulus"],
+    ids=[
+        "krum",
+        "one-robot",
+        "dp-poisson",
+        "count-unreadable",
+        "bit-clipped",
+        "threshold",
+        "modulus",
+    ],
 )
 def test_secagg_is_refused_in_one_line_where_it_cannot_apply(overrides, message):
     with pytest.raises(ConfigError) as found:
@@ -190,6 +210,53 @@ def test_under_dp_robots_clip_their_own_updates_and_adaptive_clipping_gets_the_c
     assert_same_globals(plain, secure)
     assert secure.privacy.bound == pytest.approx(plain.privacy.bound, rel=1e-12)
     assert secure.privacy.bound != 0.5  # it moved
+
+
+def secagg_sum(vectors: list[np.ndarray], secagg) -> np.ndarray:
+    """The sum SecAgg+ gives the server: each robot's vector quantised as Flower's mod does
+    it (weight 1: ratio 1), the integers summed (the masks cancel), dequantised and shifted
+    as Flower's workflow does it, times the robots (the workflow gives their mean)."""
+    c, levels = secagg.clipping_range, secagg.quantization_range
+    state = np.random.get_state()  # quantize rounds stochastically with numpy's generator
+    np.random.seed(0)
+    try:
+        ints = sum(quantize([v], c, levels)[0].astype(np.int64) for v in vectors)
+    finally:
+        np.random.set_state(state)
+    return dequantize([ints], c, levels)[0] - (len(vectors) - 1) * c
+
+
+def test_the_centred_bits_sum_is_read_back_exactly_from_a_quantised_secure_sum():
+    """Adaptive clipping under SecAgg+ with Q = 2^22 - 1 levels over [-1, 1], where +-1/2
+    falls between two of them: three robots, one update over the clip norm and two
+    within, send -1/2, +1/2, +1/2; the sum the server reads is off by under 3 levels, and
+    is read back as 2 - 3/2 = 1/2 exactly - the count the server that clips itself
+    releases, so the clip norm moves the same."""
+    dp = ["federated.dp.clip=0.5", "federated.dp.noise_multiplier=0", "federated.dp.delta=0.1"]
+    dp += ["federated.dp.clipping=adaptive", "federated.dp.count_noise=0.5"]
+    config = load_config(
+        FAST,
+        [ON, "method=FedAvg", "data.clients=3", "deploy.secagg.quantization_range=4194303", *dp],
+    )
+    plain, secure = ServerSide(config), ServerSide(config)
+    results = uploads(plain, [5, 9, 12], 1e-7)
+    results[0] = dataclasses.replace(  # far over the clip norm
+        results[0], weights={k: g + 0.1 for k, g in plain.global_weights.items()}
+    )
+    plain.aggregate(results)
+    record = {"clip": 0.5, "max_samples": config.deploy.secagg.max_samples, "clipping_range": 1}
+    vectors = [masked.robot_vector(r, secure.global_weights, record)[0] for r in results]
+    assert [v[-1] for v in vectors] == [-0.5, 0.5, 0.5]  # the layout's last value: the bit
+    summed = secagg_sum(vectors, config.deploy.secagg)
+    step = 2 / config.deploy.secagg.quantization_range
+    # each robot's value stochastically rounded: off by under one level each (the float
+    # arithmetic of dequantising adds ~1e-16, far below a level of 4.8e-7)
+    assert summed[-1] != 0.5 and abs(summed[-1] - 0.5) < 3 * step
+    sums, total, payloads = unpack(summed, 3, secure, config.deploy.secagg)
+    assert total == 3.0 and payloads[UNCLIPPED].item() == 0.5
+    secure.update(sums, total, payloads, 3)
+    assert secure.privacy.count == plain.privacy.count
+    assert secure.privacy.bound == plain.privacy.bound != 0.5
 
 
 def test_the_error_bound_follows_the_quantisation_step():

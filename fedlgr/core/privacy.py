@@ -12,12 +12,19 @@ are sampled as the paper does: each independently with probability ``q`` (Poisso
 sampling), so the accountant's sampled Gaussian is exactly the mechanism run, and a round
 with no client still releases its noise.
 
-Adaptive clipping: each client also reports whether its update's norm was at most ``C``;
-the server sums these bits with Gaussian noise of standard deviation ``sigma_b`` and moves
-``C`` geometrically towards the ``quantile`` of the update norms,
-``C <- C * exp(-lr * (b - quantile))``; the updates' noise multiplier is raised so that
-both releases together cost what one Gaussian of multiplier ``z`` costs (Andrew et al.,
-Theorem 1: ``z_updates = (z^-2 - (2 sigma_b)^-2)^-1/2``).
+Adaptive clipping (Andrew et al., NeurIPS 2021, Algorithm 1 as TensorFlow Privacy's
+``QuantileEstimatorQuery`` runs it): each client also reports ``b - 1/2``, where ``b`` is 1
+if its update's norm was at most ``C`` and 0 if not (:func:`centred_bit`); the server
+releases the share ``(sum(b - 1/2) + N(0, sigma_b^2)) / (q N) + 1/2`` and moves ``C``
+geometrically towards the ``quantile`` of the update norms,
+``C <- C * exp(-lr * (share - quantile))``. Adding or removing one client moves the sum of
+centred bits by exactly 1/2 (:data:`COUNT_SENSITIVITY`), so the count is a Gaussian of
+multiplier ``sigma_b / (1/2) = 2 sigma_b``; the updates' noise multiplier is raised to
+``z_u = (z^-2 - (2 sigma_b)^-2)^-1/2`` (:func:`update_multiplier`, their Theorem 1), and the
+two releases of a round together are one Gaussian of multiplier
+``(z_u^-2 + (2 sigma_b)^-2)^-1/2 = z`` on the same Poisson sample: the accountant's epsilon
+for ``z`` is the mechanism's. (Summing 0/1 bits instead would move the count by 1 and
+cost more than ``z`` says.)
 
 The accountant is Google's dp-accounting (RDP), for the add-or-remove-one-client relation:
 epsilon after ``T`` noisy releases of a Poisson-sampled Gaussian of rate ``q`` and
@@ -43,11 +50,15 @@ import numpy as np
 import torch
 
 from fedlgr.core.messages import TrainRes, Weights
+from fedlgr.errors import FedlgrError
 
 if TYPE_CHECKING:
     from fedlgr.shell.config import ExperimentConfig
 
-UNCLIPPED = "dp/unclipped"  # the count of updates within the clip norm, summed with the payloads
+# a client's centred "within the clip norm" bit, b - 1/2 (adaptive clipping), summed with the
+# payloads: the sum over clients is the count of updates within the clip norm minus half of them
+UNCLIPPED = "dp/unclipped"
+COUNT_SENSITIVITY = 0.5  # what one client adds to or takes from the sum of centred bits
 _NOISE_TAG = 0xD1FF
 _COUNT_TAG = 0xC0DE
 
@@ -87,13 +98,22 @@ def generator(seed: int, release: int, tag: int, from_os: bool) -> torch.Generat
     return made
 
 
+def centred_bit(size: float, bound: float) -> float:
+    """What a client reports for adaptive clipping: ``b - 1/2``, with ``b`` 1 if its
+    update's norm ``size`` is within the clip norm ``bound``, else 0 (+-1/2: so that one
+    client moves the sum by :data:`COUNT_SENSITIVITY`, as Andrew et al.'s Theorem 1 needs)."""
+    return 0.5 if size <= bound else -0.5
+
+
 def update_multiplier(noise_multiplier: float, count_std: float) -> float:
-    """The updates' noise multiplier under adaptive clipping so that the updates and the
-    noisy count together cost one Gaussian of ``noise_multiplier`` (Andrew et al., Th. 1);
-    ``count_std``: the count's noise, which must exceed ``noise_multiplier / 2``."""
+    """The updates' noise multiplier ``z_u`` under adaptive clipping so that the updates
+    and the noisy count together cost one Gaussian of ``noise_multiplier`` ``z`` (Andrew et
+    al., Th. 1): the count of centred bits has sensitivity 1/2, so its noise ``count_std``
+    is a Gaussian of multiplier ``2 count_std``, and ``z_u^-2 + (2 count_std)^-2 = z^-2``;
+    ``count_std`` must exceed ``z / 2``."""
     if noise_multiplier == 0:
         return 0.0
-    rest = noise_multiplier**-2 - (2 * count_std) ** -2
+    rest = noise_multiplier**-2 - (count_std / COUNT_SENSITIVITY) ** -2
     if rest <= 0:
         raise ValueError(
             f"the count's noise {count_std:g} leaves no budget for the updates: it must be "
@@ -157,13 +177,15 @@ class Privacy:
         self.multiplier = update_multiplier(z, self.count_std) if self.adaptive else z
         self.bound = settings.clip  # the clip norm now
         self.releases = 0
+        # adaptive: the last round's released count, sum(b - 1/2) + N(0, sigma_b^2)
+        self.count: float | None = None
 
     # ------------------------------------------------------------------ on each upload
 
     def clipped(self, result: TrainRes, shared: Weights) -> TrainRes:
         """``result`` with its update (tensors minus ``shared``, and its payload) clipped
-        to the clip norm, weighing 1; its payload says whether it was within the norm
-        (``UNCLIPPED``, for adaptive clipping)."""
+        to the clip norm, weighing 1; its payload says whether it was within the norm,
+        as ``b - 1/2`` (``UNCLIPPED``, :func:`centred_bit`: for adaptive clipping)."""
         delta = {k: result.weights[k].double() - shared[k].double() for k in shared}
         update = {f"w/{k}": v for k, v in delta.items()}
         update |= {f"p/{k}": v.double() for k, v in result.payload.items()}
@@ -171,7 +193,7 @@ class Privacy:
         weights = {k: shared[k].double() + small[f"w/{k}"] for k in shared}
         payload = {k: small[f"p/{k}"] for k in result.payload}
         device = next(iter(shared.values())).device
-        within = torch.tensor(float(size <= self.bound), dtype=torch.float64, device=device)
+        within = torch.tensor(centred_bit(size, self.bound), dtype=torch.float64, device=device)
         return dataclasses.replace(
             result, weights=weights, payload=payload | {UNCLIPPED: within}, n_samples=1
         )
@@ -184,12 +206,13 @@ class Privacy:
         """The release of a round: the global tensors ``shared`` plus the noisy sum of the
         ``count`` clipped updates (``sums``: of their tensors, :meth:`clipped`) over the
         expected clients ``q N``; the payloads' sums with their noise. Adaptive clipping
-        then moves the clip norm for the next round."""
+        then moves the clip norm for the next round from the sum of the clients' centred
+        bits (``payloads[UNCLIPPED]``; none: no client)."""
         self.releases += 1
         std = self.multiplier * self.bound
         draw = generator(self.seed, self.releases, _NOISE_TAG, self.from_os)
         payloads = dict(payloads)
-        unclipped = payloads.pop(UNCLIPPED, None)
+        centred = payloads.pop(UNCLIPPED, None)
         noise = gaussian(shared, std, draw)
         mean = {}
         for k, g in shared.items():
@@ -200,22 +223,30 @@ class Privacy:
         noise = gaussian(payloads, std, draw)
         payloads = {k: p + noise[k] for k, p in payloads.items()}
         if self.adaptive:
-            self.adapt(0.0 if unclipped is None else float(unclipped))
+            self.adapt(0.0 if centred is None else float(centred))
         return mean, payloads
 
-    def adapt(self, unclipped: float) -> None:
+    def adapt(self, centred: float) -> float:
         """Move the clip norm towards the target quantile from the noisy share of updates
-        that were within it."""
+        that were within it, and return that share. ``centred``: the sum of the clients'
+        ``b - 1/2``, which one client moves by 1/2; released with N(0, sigma_b^2) noise
+        (:attr:`count`), then over ``q N`` plus 1/2 back (TensorFlow Privacy's
+        ``QuantileEstimatorQuery``): post-processing of the release, no further cost."""
         draw = generator(self.seed, self.releases, _COUNT_TAG, self.from_os)
         noise = float(torch.randn((), dtype=torch.float64, generator=draw)) * self.count_std
-        share = (unclipped + noise) / self.expected
+        self.count = centred + noise
+        share = self.count / self.expected + 0.5
         self.bound *= math.exp(-self.settings.clip_lr * (share - self.settings.quantile))
+        return share
 
     # ------------------------------------------------------------------ the record
 
     @property
     def epsilon(self) -> float:
-        """The accountant's epsilon after the releases so far."""
+        """The accountant's epsilon after the releases so far: of one Poisson-sampled
+        Gaussian of multiplier ``z`` per release, which is what a release is with fixed
+        clipping and, with adaptive clipping, what the updates' noise ``z_u`` and the
+        count of centred bits together are (:func:`update_multiplier`)."""
         s = self.settings
         return epsilon(s.noise_multiplier, self.rate, self.releases, s.delta)
 
@@ -226,7 +257,16 @@ class Privacy:
         return spent | {"privacy/clip": self.bound}
 
     def state_dict(self) -> dict:
-        return {"bound": self.bound, "releases": self.releases}
+        return {"bound": self.bound, "releases": self.releases, "bits": "centred"}
 
     def load_state_dict(self, state: dict) -> None:
+        """The clip norm and the releases so far. An adaptive run checkpointed before its
+        bits were centred (no ``bits``) is refused: its releases cost more than the
+        accountant's epsilon for ``z``, which it would go on reporting."""
+        if self.adaptive and int(state["releases"]) > 0 and state.get("bits") != "centred":
+            raise FedlgrError(
+                f"this checkpoint's {int(state['releases'])} adaptive-clipping releases "
+                "summed 0/1 bits, whose privacy cost is above the epsilon fedlgr reported "
+                "for them (docs/privacy.md); start the run again"
+            )
         self.bound, self.releases = float(state["bound"]), int(state["releases"])

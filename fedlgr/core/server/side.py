@@ -126,7 +126,8 @@ class ServerSide:
 
     def sum_template(self) -> Weights:
         """Zeros shaped like the payloads' sums (:meth:`sums`), so that processes can add
-        them up: the strategy's, and under DP the count of unclipped updates."""
+        them up: the strategy's, and under DP the sum of the clients' centred "within the
+        clip norm" bits (``UNCLIPPED``: b - 1/2 each, 0 for no client)."""
         template = self.strategy.payload_template()
         if self.privacy is not None:
             like = next(iter(self.global_weights.values()))

@@ -161,7 +161,8 @@ def _secure_aggregation_fits(config: ExperimentConfig) -> None:
     """SecAgg+ (``deploy.secagg``) gives the server the sum of the chosen robots' updates
     only: a statistic of the uploads cannot be taken; a round needs two robots or more
     (one robot's "sum" is its update); the sum of the sample counts is rounded to a whole
-    number, which the quantisation error must leave unambiguous."""
+    number, which the quantisation error must leave unambiguous; under DP each robot's
+    weight 1 (and its +-1/2 bit) must fit in ``clipping_range``."""
     secagg, federated = config.deploy.secagg, config.federated
     if not secagg.enabled:
         return
@@ -182,6 +183,12 @@ def _secure_aggregation_fits(config: ExperimentConfig) -> None:
         raise ConfigError(
             f"deploy.secagg.enabled: a round chooses {chosen} robot (data.clients={clients}, "
             f"federated.fraction={fraction:g}); SecAgg+ needs 2 or more to hide each update"
+        )
+    if federated.dp.enabled and secagg.clipping_range < 1:
+        raise ConfigError(
+            f"deploy.secagg.clipping_range={secagg.clipping_range:g} with federated.dp: "
+            "each robot's weight 1 (and adaptive clipping's +-1/2 bit) travels in its "
+            "vector and would be clipped, so the sums' counts would be wrong; use 1 or more"
         )
     step = 2 * secagg.clipping_range / secagg.quantization_range  # one quantisation level
     if clients * secagg.max_samples * step >= 0.5:
@@ -208,7 +215,8 @@ def check_robots_are_real(config: ExperimentConfig) -> None:
 def _privacy_fits(config: ExperimentConfig) -> None:
     """Client-level DP (``federated.dp``) bounds what one client adds to a weighted sum:
     a statistic of the uploads (a median, Krum's choice) has no such bound; adaptive
-    clipping's count noise must leave budget for the updates; delta below 1 / clients."""
+    clipping's count noise must leave budget for the updates (over ``z / 2``: the count of
+    centred bits, :func:`fedlgr.core.privacy.update_multiplier`); delta below 1 / clients."""
     dp, federated = config.federated.dp, config.federated
     if not dp.enabled:
         return
@@ -232,8 +240,9 @@ def _privacy_fits(config: ExperimentConfig) -> None:
                 f"federated.dp.clipping=adaptive: the noise on the unclipped count "
                 f"({count_std:g}{' = fraction x clients / 20' if not dp.count_noise else ''})"
                 f" must be over federated.dp.noise_multiplier / 2 = "
-                f"{dp.noise_multiplier / 2:g}, or it takes the whole privacy budget (Andrew "
-                "et al. 2021): set federated.dp.count_noise"
+                f"{dp.noise_multiplier / 2:g}, or it takes the whole privacy budget (one "
+                "client moves the count of centred bits by 1/2: Andrew et al. 2021, Th. 1): "
+                "set federated.dp.count_noise"
             )
 
 

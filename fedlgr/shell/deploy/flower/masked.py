@@ -3,15 +3,17 @@ reads the sum back: one float64 vector per robot, the same layout on both sides.
 
 The layout, in order: each shared tensor of the server's key order (the order of the
 global tensors in the train message), flattened; the strategy's payload tensors by sorted
-key; the robot's weight; under DP its "within the clip norm" bit
-(:data:`fedlgr.core.privacy.UNCLIPPED`).
+key; the robot's weight; under DP its centred "within the clip norm" bit, +-1/2
+(:data:`fedlgr.core.privacy.UNCLIPPED`, :func:`fedlgr.core.privacy.centred_bit`).
 
 Without DP the robot sends its update (its shared tensors minus the global ones it trained
 from) times ``n / max_samples`` and its weight ``n / max_samples`` (``n``: its sample
 count), the payload as it is: the sum gives the sample-weighted sum of the updates, the sum
 of the counts and the plain sum of the payloads, as :meth:`ServerSide.sums` does. Under DP
 (``federated.dp``) it clips its update and payload together to the server's clip norm
-(:func:`fedlgr.core.privacy.clip`, as ``Privacy.clipped`` does on the server) and weighs 1.
+(:func:`fedlgr.core.privacy.clip`, as ``Privacy.clipped`` does on the server), weighs 1
+and adds its bit (with fixed clipping too, unused there: the vector's length depends on
+``federated.dp`` alone, one value more than without DP).
 Flower's SecAgg+ weighs every robot 1 (``num_examples`` 1, ``max_weight`` 1), so no weight
 is quantised: the weights travel inside the vector.
 """
@@ -27,7 +29,7 @@ from flwr.app import ConfigRecord, RecordDict
 from flwr.common import Code, FitRes, Status, ndarrays_to_parameters
 
 from fedlgr.core.messages import EvaluateRes, TrainRes, Weights
-from fedlgr.core.privacy import UNCLIPPED, clip
+from fedlgr.core.privacy import UNCLIPPED, centred_bit, clip
 from fedlgr.shell.deploy.flower import wire
 
 WEIGHT = "secagg/weight"  # the robot's n / max_samples (1 under DP)
@@ -56,7 +58,7 @@ def robot_vector(res: TrainRes, start: Weights, settings: Mapping) -> tuple[np.n
     if bound > 0:  # DP: clipped here, as the server would (it cannot: it sees the sum)
         update, size = clip(update, bound)
         update[WEIGHT] = torch.tensor(1.0, dtype=torch.float64)
-        update[UNCLIPPED] = torch.tensor(float(size <= bound), dtype=torch.float64)
+        update[UNCLIPPED] = torch.tensor(centred_bit(size, bound), dtype=torch.float64)
     else:
         weight = float(res.n_samples) / int(settings["max_samples"])
         update = {k: v * weight if k.startswith("w/") else v for k, v in update.items()}

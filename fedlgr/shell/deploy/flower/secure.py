@@ -246,9 +246,12 @@ def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, floa
     """What ``ServerSide.update`` takes, from the sum of ``count`` robots' vectors
     (:mod:`.masked`): the sums of their weighted tensors (sum of weighted updates plus the
     summed weight times the global tensors), the summed sample count (rounded: a whole
-    number; ``count`` under DP) and the payloads' sums (with DP's unclipped count, rounded).
-    A sum that is not finite, or whose sample count is under one per robot, is refused
-    (``ValueError``)."""
+    number; ``count`` under DP) and the payloads' sums. Under DP the sum of the robots'
+    centred bits (``UNCLIPPED``, +-1/2 each) is ``k - total / 2`` for the ``k`` robots
+    within the clip norm: it is rounded to that, exactly, as ``k`` is rounded to a whole
+    number (quantisation leaves it off by under ``total x 2c/Q`` < 1/2, checked at config
+    time). A sum that is not finite, or whose sample count is under one per robot, is
+    refused (``ValueError``)."""
     dp = server.privacy is not None
     payload = server.strategy.payload_template()
     parts = masked.layout(server.global_weights, payload, dp)
@@ -263,5 +266,6 @@ def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, floa
     sums = {k: scale * found[f"w/{k}"] + total * g[k].double() for k in g}
     payloads = {k: found[f"p/{k}"] for k in sorted(payload)}
     if dp:
-        payloads[UNCLIPPED] = torch.tensor(float(round(float(found[UNCLIPPED]))))
+        within = round(float(found[UNCLIPPED]) + total / 2)  # k, a whole number
+        payloads[UNCLIPPED] = torch.tensor(within - total / 2, dtype=torch.float64)
     return sums, float(total), payloads
