@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import pytest
 import torch
 
 from fedlgr.core.meters.costs import measure, nvml_available
-from fedlgr.core.meters.scores import regression_scores
+from fedlgr.core.meters.scores import compat_order, regression_scores
 
 
 def test_scores_by_hand():
@@ -51,17 +52,74 @@ def test_ccc_counts_a_shift_and_a_scale_that_pcc_forgives():
     assert figures["test/ccc"] == pytest.approx(0.8) and figures["test/pcc"] == pytest.approx(1)
 
 
-def test_batch_compat_mode_averages_per_batch():
-    torch.manual_seed(0)
-    target = torch.rand(40, 8) * 4 + 1
-    pred = target + 0.5 * torch.randn(40, 8)
+def _three_batches() -> tuple[torch.Tensor, torch.Tensor]:
+    """50 rows: three batches of 16 and 2 rows the LEAP-HRI'24 code drops (drop_last).
+    Every column's ratings alternate 2, 4 in each batch. Batch 1 is off by +1 everywhere
+    (RMSE 1, PCC 1); batch 2 is right on actions 0-3 and off by +1 on 4-7 (flattened MSE
+    0.5, RMSE sqrt(0.5); the mean of its per-action RMSE is 0.5; PCC 1); batch 3 is the
+    ratings mirrored, 6 - t, off by -2 and +2 (RMSE 2, PCC -1); the 2 left over are 100."""
+    target = torch.tensor([2.0, 4.0]).repeat(25)[:, None].expand(50, 8).clone()
+    pred = target.clone()
+    pred[:16] += 1
+    pred[16:32, 4:] += 1
+    pred[32:48] = 6 - target[32:48]
+    pred[48:] = 100.0
+    return pred, target
+
+
+def test_batch_compat_is_the_leap_hri24_definition_by_hand():
+    """The LEAP-HRI'24 code's test(): per batch of 16 the MSE and the RMSE of the flattened
+    batch and each action's PCC; means over the batches (Federated Continual
+    Learning/utils.py in nchuramani/FCL-MannersDB)."""
+    pred, target = _three_batches()
+    s = regression_scores(pred, target, batch_compat=True)
+    # exact in float64, then one rounding to float32 / a Python float: 1e-6 covers it
+    assert s.mean("loss") == pytest.approx((1 + 0.5 + 4) / 3, abs=1e-6)
+    assert s.mean("rmse") == pytest.approx((1 + math.sqrt(0.5) + 2) / 3, abs=1e-6)
+    assert s.mean("pcc") == pytest.approx((1 + 1 - 1) / 3, abs=1e-6)
+    assert s["pcc"].tolist() == pytest.approx([1 / 3] * 8, abs=1e-6)
+    # per action, the RMSE of each action's column per batch: 1, 0 or 1, 2
+    assert s["rmse"].tolist() == pytest.approx([1.0] * 4 + [4 / 3] * 4, abs=1e-6)
+    figures = s.figures("test")
+    assert figures["test/rmse"] == pytest.approx((3 + math.sqrt(0.5)) / 3, abs=1e-6)
+    # the same rows over the whole set: the 2 dropped rows count, batches do not
     whole = regression_scores(pred, target)
-    compat = regression_scores(pred, target, batch_compat=True)
-    by_hand = torch.stack(
-        [regression_scores(pred[i : i + 16], target[i : i + 16])["pcc"] for i in (0, 16, 32)]
-    )
-    assert compat["pcc"].tolist() == pytest.approx(by_hand.mean(0).tolist(), abs=1e-6)
-    assert compat.mean("pcc") != pytest.approx(whole.mean("pcc"), abs=1e-4)
+    assert whole.mean("rmse") > 10 and whole.mean("pcc") != pytest.approx(1 / 3, abs=0.1)
+
+
+def test_batch_compat_matches_an_independent_loop_on_random_numbers():
+    """The definition again, written as that code's loop (numpy Pearson per column, the
+    flattened batch's MSE): random ratings, 5 batches and 7 rows dropped."""
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(87, 8, generator=g, dtype=torch.float64) * 4 + 1
+    pred = target + 0.7 * torch.randn(87, 8, generator=g, dtype=torch.float64)
+    loss, rmse, pcc = [], [], []
+    for i in range(0, 80, 16):
+        p, t = pred[i : i + 16].numpy(), target[i : i + 16].numpy()
+        mse = ((p - t) ** 2).mean()
+        loss.append(mse)
+        rmse.append(math.sqrt(mse))
+        pcc.append([np.corrcoef(t[:, a], p[:, a])[0, 1] for a in range(8)])
+    s = regression_scores(pred, target, batch_compat=True)
+    assert s.mean("loss") == pytest.approx(np.mean(loss), abs=1e-6)  # float32 per action
+    assert s.mean("rmse") == pytest.approx(np.mean(rmse), abs=1e-12)  # kept in float64
+    assert s["pcc"].tolist() == pytest.approx(np.mean(pcc, axis=0).tolist(), abs=1e-6)
+
+
+def test_batch_compat_with_fewer_rows_than_a_batch_scores_them_as_one():
+    pred, target = _three_batches()
+    whole = regression_scores(pred[:10], target[:10])
+    compat = regression_scores(pred[:10], target[:10], batch_compat=True)
+    assert compat.mean("pcc") == pytest.approx(whole.mean("pcc"), abs=1e-6)
+    assert compat.mean("rmse") == pytest.approx(1.0, abs=1e-6)  # all off by 1
+
+
+def test_compat_order_shuffles_each_task_the_same_everywhere():
+    rows = torch.arange(40)
+    first, again = compat_order(rows, 0), compat_order(rows, 0)
+    assert torch.equal(first, again) and not torch.equal(first, rows)
+    assert sorted(first.tolist()) == rows.tolist()
+    assert not torch.equal(compat_order(rows, 1), first)  # each task its own order
 
 
 def test_measure_counts_cpu_seconds_of_this_process():

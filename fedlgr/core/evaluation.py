@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -13,6 +13,7 @@ from torch import nn
 
 from fedlgr.core.data.augment import normalize
 from fedlgr.core.messages import RoundPlan
+from fedlgr.core.meters.scores import compat_order
 from fedlgr.core.schedule import ALL, schedule
 
 
@@ -86,6 +87,16 @@ class EvalSet:
     test_rows: dict[str, torch.Tensor]
     seen_rows: list[torch.Tensor]
     autocast: Callable = contextlib.nullcontext
+    # The same rows in the order the LEAP-HRI'24 code scores them (compat_order)
+    compat_rows: dict[str, torch.Tensor] = field(default_factory=dict)
+    compat_seen: list[torch.Tensor] = field(default_factory=list)
+
+    def rows(self, task: int, compat: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The rows scored after task ``task`` (every task seen so far) and each task's
+        rows; ``compat`` (``train.compat_batch_metrics``): in the LEAP-HRI'24 code's order."""
+        if compat:
+            return self.compat_seen[task], self.compat_rows
+        return self.seen_rows[task], self.test_rows
 
 
 def eval_set(
@@ -104,7 +115,15 @@ def eval_set(
         for k in range(len(tasks))
     ]
     rows = {t: torch.as_tensor(r) for t, r in where.items()}
-    return EvalSet(inputs, targets, rows, seen, autocast)
+    # each task's rows shuffled, the tasks seen so far one after another
+    compat = {t: compat_order(r, k) for k, (t, r) in enumerate(rows.items())}
+    compat_seen = [
+        torch.cat([compat[t] for t in tasks[: k + 1]])
+        if tasks != [ALL]
+        else compat_order(torch.arange(len(test)), 0)
+        for k in range(len(tasks))
+    ]
+    return EvalSet(inputs, targets, rows, seen, autocast, compat, compat_seen)
 
 
 def _serial(fn, items):

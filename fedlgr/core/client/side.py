@@ -594,12 +594,12 @@ class ClientSide:
     def scores(self, pred: torch.Tensor, task: int) -> Figures:
         """The scores of outputs ``pred``: on every task seen so far (per action too),
         then on each task's scenes (FCL)."""
-        cfg = self.config.train
-        seen = self.seen_rows[task]
-        s = regression_scores(pred[seen], self.test_targets[seen], cfg.compat_batch_metrics)
+        compat = self.config.train.compat_batch_metrics
+        seen, task_rows = self.test.rows(task, compat)
+        s = regression_scores(pred[seen], self.test_targets[seen], compat)
         out = s.figures("test", per_action=True)
-        for name, rows in self.test_rows.items():
-            t = regression_scores(pred[rows], self.test_targets[rows], cfg.compat_batch_metrics)
+        for name, rows in task_rows.items():
+            t = regression_scores(pred[rows], self.test_targets[rows], compat)
             out |= t.figures(f"task/{name}")
         return out
 

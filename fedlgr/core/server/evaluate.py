@@ -32,9 +32,9 @@ class ServerEvaluation:
         self.model.load_state_dict(weights, strict=False)
         pred = predict(self.model, test.test_inputs, cfg.eval_batch_size, test.autocast)
         compat = cfg.compat_batch_metrics
-        seen = test.seen_rows[task]
+        seen, task_rows = test.rows(task, compat)
         out = regression_scores(pred[seen], test.test_targets[seen], compat).figures("server/test")
-        for name, rows in test.test_rows.items():
+        for name, rows in task_rows.items():
             scores = regression_scores(pred[rows], test.test_targets[rows], compat)
             out |= scores.figures(f"server/task/{name}")
         return out

@@ -59,8 +59,9 @@ class TrainConfig:
     max_batches: int | None = None  # cap per epoch (fast dev runs)
     reset_optimizer: bool = False  # a fresh Adam state every round instead of the client's own
     eval_batch_size: int = 128
-    # The reference code averages per-batch RMSE/PCC over test batches of 16 (biased):
-    # offered for comparison only.
+    # The LEAP-HRI'24 benchmark's scores (Checker et al. 2024, its FCL code's test()): test
+    # batches of 16 (drop_last) in its order, the RMSE of each flattened batch and each
+    # action's PCC, averaged over batches (biased: docs/leap_hri24.md). For comparison only.
     compat_batch_metrics: bool = False
     precision: str = "32-true"
 
