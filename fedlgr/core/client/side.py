@@ -35,7 +35,7 @@ from fedlgr.core.client.pool import ClientPool, resolve
 from fedlgr.core.client.stacked import refuse_plugins, train_batched
 from fedlgr.core.client.training import Client, train_locally
 from fedlgr.core.continual import continual_plugins
-from fedlgr.core.data.augment import Augment, SceneBatches
+from fedlgr.core.data.augment import SceneBatches, augmenter
 from fedlgr.core.evaluation import eval_set, predict, predict_tops
 from fedlgr.core.faults import Faults
 from fedlgr.core.messages import (
@@ -123,7 +123,7 @@ class ClientSide:
         self.keys = shared_keys(initial, cfg.federated.scope, self.strategy)
         self._model_kinds(initial)
         self.channels_last = cfg.model.channels_last and scenes.images is not None
-        self.augment = Augment() if cfg.data.augment and scenes.images is not None else None
+        self.augment = augmenter(cfg.data, images=scenes.images is not None)
         self.copies = cfg.data.augment_copies if self.augment is not None else 1
         faults = cfg.federated.faults  # attack=labels: these clients train on poisoned labels
         self.poisoned = Faults(faults, cfg.data.clients, cfg.seed).poisoned

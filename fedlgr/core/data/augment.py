@@ -5,6 +5,10 @@ times per epoch; each appearance is flipped horizontally with p=0.5 and rotated 
 angle uniform in [-10, 10] degrees with p=0.5; images are then scaled to 0..1 and
 normalised with the ImageNet mean/std. A batch is one gather from the uint8 store, moved
 to the device as uint8 (a quarter of the bytes of float32) and augmented there.
+
+The descriptors (the features modality) are augmented as the LEAP-HRI'24 benchmark does
+it (:class:`InputNoise`): ``copies`` rows per training scene with Gaussian noise on the 27
+descriptors, drawn once for the client's scenes, so every epoch shows the same rows.
 """
 
 from __future__ import annotations
@@ -12,11 +16,17 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch.nn import functional as tnf
 from torchvision.transforms.v2 import functional as F
+
+from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS
+
+if TYPE_CHECKING:
+    from fedlgr.shell.config import DataConfig
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -90,13 +100,63 @@ class Augment:
         return F.normalize(x, IMAGENET_MEAN, IMAGENET_STD, inplace=True)
 
 
+class InputNoise:
+    """Noisy copies of each training scene's descriptors (Checker, Churamani & Gunes,
+    LEAP-HRI'24; nchuramani/FCL-MannersDB): ``copies`` rows per scene, Gaussian noise of
+    standard deviation ``std`` on its first ``columns`` inputs (the 27 descriptors; the
+    mode flags after them stay as they are), drawn once. ``original``: the first copy is
+    the scene itself (its FL notebooks: the scene and 8 noisy copies); ``cumulative``: copy
+    k carries the sum of k draws, std x sqrt(k) (its code noised each copy in place on the
+    row the previous copy had left: pandas before 3.0 hands out a row as a view;
+    docs/leap_hri24.md)."""
+
+    def __init__(
+        self,
+        std: float,
+        columns: int = len(DESCRIPTOR_COLUMNS),
+        original: bool = False,
+        cumulative: bool = False,
+    ):
+        self.std, self.columns = std, columns
+        self.original, self.cumulative = original, cumulative
+
+    def draw(self, scenes: int, copies: int, width: int, generator: torch.Generator):
+        """(copies x scenes, width) float32 noise, copy-major: row k is copy k // scenes of
+        scene k % scenes (the order of ``positions.repeat(copies)``)."""
+        noise = torch.zeros(copies, scenes, width)
+        noisy = copies - 1 if self.original else copies
+        draws = torch.randn(noisy, scenes, self.columns, generator=generator, dtype=torch.float64)
+        draws = draws * self.std
+        if self.cumulative:
+            draws = draws.cumsum(dim=0)
+        noise[copies - noisy :, :, : self.columns] = draws.float()
+        return noise.reshape(copies * scenes, width)
+
+
+def augmenter(data: DataConfig, images: bool) -> Augment | InputNoise | None:
+    """``data.augment``'s augmentation for the modality: flips and rotations of images,
+    noisy copies of the descriptors (``data.noise``); None when it is off."""
+    if not data.augment:
+        return None
+    if images:
+        return Augment()
+    n = data.noise
+    return InputNoise(n.std, len(DESCRIPTOR_COLUMNS), n.original, n.cumulative)
+
+
+def _noise_seed(seed: int) -> int:
+    """The noise's own seed: drawing it leaves the batches' generator (their order) as it is."""
+    return int(np.random.SeedSequence([seed, 0x401CE]).generate_state(1)[0])
+
+
 class SceneBatches:
     """Batches of (inputs, targets) over some scenes of the in-memory stores.
 
     Each ``iter()`` is one epoch: every position appears ``copies`` times, in an order
     drawn from the batches' own generator (so epochs differ and a seed repeats them).
     Image inputs (uint8) are normalised, and augmented if ``augment`` is given; feature
-    inputs (float) pass through.
+    inputs (float) pass through, each copy with its own noise if ``augment`` is an
+    :class:`InputNoise` (drawn here, once, from ``seed``).
     """
 
     def __init__(
@@ -108,7 +168,7 @@ class SceneBatches:
         *,
         shuffle: bool = True,
         copies: int = 1,
-        augment: Augment | None = None,
+        augment: Augment | InputNoise | None = None,
         seed: int = 0,
         drop_last: bool = False,
         device: torch.device | str = "cpu",
@@ -122,6 +182,10 @@ class SceneBatches:
         self.device = torch.device(device)
         self.generator = torch.Generator().manual_seed(seed)
         self.images = inputs.dtype == torch.uint8
+        self.noise = None  # (copies x positions, width): each copy's noise (InputNoise)
+        if isinstance(augment, InputNoise) and not self.images:
+            noise_rng = torch.Generator().manual_seed(_noise_seed(seed))
+            self.noise = augment.draw(len(self.positions), copies, inputs.shape[1], noise_rng)
 
     @property
     def samples_per_epoch(self) -> int:
@@ -132,11 +196,16 @@ class SceneBatches:
         return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
 
     def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        order = self.positions.repeat(self.copies)
+        slots = torch.arange(self.samples_per_epoch)  # copy-major: copy k // n of position k % n
         if self.shuffle:
-            order = order[torch.randperm(len(order), generator=self.generator)]
+            slots = torch.randperm(len(slots), generator=self.generator)
+        order = self.positions.repeat(self.copies)[slots]
         for k in range(len(self)):
-            yield self.gather(order[k * self.batch_size : (k + 1) * self.batch_size])
+            cut = slice(k * self.batch_size, (k + 1) * self.batch_size)
+            x, y = self.gather(order[cut])
+            if self.noise is not None:
+                x = x + self.noise[slots[cut]].to(x.device, non_blocking=True)
+            yield x, y
 
     def peek(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """The first batch in position order, drawing nothing from the batches' generator."""

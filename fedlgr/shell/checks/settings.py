@@ -26,7 +26,7 @@ from fedlgr.shell.checks.values import (
 )
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config.data import DataConfig, TaskSpec
+    from fedlgr.shell.config.data import DataConfig, NoiseConfig, TaskSpec
     from fedlgr.shell.config.settings import (
         ContinualConfig,
         DeployConfig,
@@ -327,9 +327,19 @@ def check_data(data: DataConfig) -> None:
     if data.dirichlet_alpha <= 0:
         raise ConfigError(f"data.dirichlet_alpha={data.dirichlet_alpha}: must be > 0")
     _augment_copies(data.augment_copies)
+    if data.modality == "image" and data.noise != type(data.noise)():
+        raise ConfigError(
+            "data.noise: the descriptors' noise, for data.modality=features; images are "
+            "flipped and rotated instead (data.augment, data.augment_copies)"
+        )
     _task_names([t.name for t in data.tasks])
     if data.crop is not None:
         _crop(data.crop)
+
+
+def check_noise(noise: NoiseConfig) -> None:
+    check_numbers("data.noise.", noise)
+    nonnegative("data.noise.std", noise.std)
 
 
 def _image_size(size: int) -> None:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fedlgr.core.data.columns import USING_ARROW, USING_CIRCLE
-from fedlgr.shell.checks.settings import check_data, check_task
+from fedlgr.shell.checks.settings import check_data, check_noise, check_task
 
 
 def default_cache_dir() -> Path:
@@ -41,6 +41,22 @@ DEFAULT_TASKS = (TaskSpec("circle", USING_CIRCLE, 1.0), TaskSpec("arrow", USING_
 
 
 @dataclass(frozen=True)
+class NoiseConfig:
+    """How ``data.augment`` augments the descriptors (``data.modality=features``): each
+    training scene becomes ``data.augment_copies`` rows with Gaussian noise on its 27
+    descriptors, drawn once (the LEAP-HRI'24 benchmark's augmentation, docs/leap_hri24.md)."""
+
+    std: float = 0.01  # the noise's standard deviation on each descriptor (they span 0..1)
+    original: bool = False  # the first copy is the scene itself, without noise
+    # copy k carries the sum of k draws (std x sqrt(k)), as the LEAP-HRI'24 code's noise
+    # ran; false: every copy its own draw
+    cumulative: bool = False
+
+    def __post_init__(self) -> None:
+        check_noise(self)
+
+
+@dataclass(frozen=True)
 class DataConfig:
     """Where the data is, how it is read, split over clients and into tasks.
 
@@ -63,8 +79,11 @@ class DataConfig:
     dirichlet_alpha: float = 0.5
     partition_key: str = "task"
     tasks: tuple[TaskSpec, ...] = DEFAULT_TASKS
+    # Images: each training scene shown augment_copies times an epoch, flipped and rotated;
+    # descriptors: augment_copies noisy rows per training scene (data.noise)
     augment: bool = False
     augment_copies: int = 10
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -75,6 +94,8 @@ class DataConfig:
             "tasks",
             tuple(t if isinstance(t, TaskSpec) else TaskSpec(**t) for t in self.tasks),
         )
+        if not isinstance(self.noise, NoiseConfig):
+            object.__setattr__(self, "noise", NoiseConfig(**self.noise))
         check_data(self)
         if self.crop is not None:
             object.__setattr__(self, "crop", tuple(self.crop))
