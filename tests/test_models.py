@@ -41,6 +41,46 @@ def test_mlp_root_reads_29_features():
     assert root(torch.randn(3, 29)).shape == (3, 8) and root.out_dim == 8
 
 
+def test_a_linear_mlp_root_is_one_affine_layer_over_the_descriptors_alone():
+    """The LEAP-HRI'24 FCL model's first layer: Linear(27, 16), the mode flags unread."""
+    root = MLPRoot(hidden=(16,), block="linear", columns=27).eval()
+    assert [type(m) for m in root.net] == [nn.Linear] and root.net[0].in_features == 27
+    x = torch.randn(5, 29)
+    flags_changed = x.clone()
+    flags_changed[:, 27:] += 1
+    assert torch.equal(root(x), root(flags_changed))
+    assert torch.allclose(root(2 * x) - root(x), root(x) - root(0 * x), atol=1e-6)  # affine
+    assert len(root.blocks()) == 1 and torch.equal(root.forward_to(x, 0), x[:, :27])
+    two = MLPRoot(hidden=(16, 8), block="linear")
+    assert len(two.blocks()) == 2
+    assert torch.equal(two.forward_from(two.forward_to(x, 1), 1), two(x))
+
+
+def test_top_keeps_the_linear_layer_s_own_bias_without_an_output_bias():
+    torch.manual_seed(0)
+    bias = Top(16, hidden=16, output_bias=None).net[3].bias
+    assert bias.abs().max() <= 1 / 4 and len(set(bias.tolist())) == 8  # U(-1/sqrt(16), ..)
+
+
+def test_weight_decay_is_adam_s_l2_term_and_off_by_default():
+    """train.weight_decay: torch.optim.Adam's weight_decay (added to the gradient, as the
+    LEAP-HRI'24 code's Adam(lr=0.01, weight_decay=0.01)), not AdamW's; 0 by default, which
+    is the optimiser every run had before it."""
+    for overrides, decay in (([], 0.0), (["train.weight_decay=0.01"], 0.01)):
+        config = load_config(None, ["model.width=0.1", *overrides])
+        optimizer = build_scholar(config).configure_optimizers()
+        assert type(optimizer) is torch.optim.Adam
+        for group in optimizer.param_groups:
+            assert group["weight_decay"] == decay and not group["decoupled_weight_decay"]
+    # one step by hand: Adam's first step is lr x sign(g + wd x theta), so the decay flips
+    # a parameter whose gradient is smaller than wd x theta
+    theta = nn.Parameter(torch.tensor([2.0]))
+    step = torch.optim.Adam([theta], lr=0.1, weight_decay=0.01)
+    theta.grad = torch.tensor([-0.01])  # g + wd x theta = -0.01 + 0.02 > 0
+    step.step()
+    assert theta.item() == pytest.approx(1.9, abs=1e-6)
+
+
 def test_separate_parameter_groups_and_learning_rates():
     config = load_config(None, ["train.lr_root=1e-5", "train.lr_top=2e-3", "model.width=0.1"])
     model = build_scholar(config)

@@ -2,7 +2,9 @@
 
 * ``MobileNetRoot``: MobileNetV2 ``features`` + global average pool -> 1280-d (less for a
   width multiplier < 1); ImageNet weights, random init or a local state-dict file.
-* ``MLPRoot``: the features modality - an MLP over the 27 descriptors + 2 mode flags.
+* ``MLPRoot``: the features modality - an MLP over the 27 descriptors + 2 mode flags (or
+  the descriptors alone); with ``block="linear"`` one affine layer per hidden size, the
+  LEAP-HRI'24 benchmark's model with ``Top(16, hidden=16)`` (docs/leap_hri24.md).
 * ``Top``: BatchNorm1d -> Linear(., 32) -> BatchNorm1d(32) -> Linear(32, 8), linear
   activations, one output per action.
 * ``Scholar``: root + top, with separate parameter groups (root and top learning rates);
@@ -22,7 +24,7 @@ import lightning as L
 import torch
 from torch import nn
 
-from fedlgr.core.data.columns import FEATURE_COLUMNS, LABEL_COLUMNS
+from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS, FEATURE_COLUMNS, LABEL_COLUMNS
 from fedlgr.errors import ConfigError, first_line
 
 if TYPE_CHECKING:
@@ -136,38 +138,59 @@ class MobileNetRoot(L.LightningModule):
         return torch.flatten(self.pool(self.features[block:](z)), 1)
 
 
-class MLPRoot(L.LightningModule):
-    """Linear -> BatchNorm1d -> ReLU per hidden size, over the descriptor features."""
+MLP_BLOCKS = ("linear_bn_relu", "linear")  # model.mlp_block
 
-    def __init__(self, in_dim: int = len(FEATURE_COLUMNS), hidden: tuple[int, ...] = (256, 256)):
+
+class MLPRoot(L.LightningModule):
+    """Linear -> BatchNorm1d -> ReLU per hidden size (``block="linear"``: a Linear alone, so
+    that the root is affine), over the descriptor features. ``columns``: the root reads only
+    the first ``columns`` inputs (27: the descriptors, not the mode flags that follow them;
+    None: all ``in_dim``)."""
+
+    def __init__(
+        self,
+        in_dim: int = len(FEATURE_COLUMNS),
+        hidden: tuple[int, ...] = (256, 256),
+        block: str = "linear_bn_relu",
+        columns: int | None = None,
+    ):
         super().__init__()
+        self.columns = columns
+        in_dim = in_dim if columns is None else columns
         layers: list[nn.Module] = []
         for size in hidden:
-            layers += [nn.Linear(in_dim, size), nn.BatchNorm1d(size), nn.ReLU(inplace=True)]
+            layers.append(nn.Linear(in_dim, size))
+            if block == "linear_bn_relu":
+                layers += [nn.BatchNorm1d(size), nn.ReLU(inplace=True)]
             in_dim = size
+        self.per_block = len(layers) // len(hidden)
         self.net = nn.Sequential(*layers)
         self.out_dim = in_dim
 
+    def _read(self, x: torch.Tensor) -> torch.Tensor:
+        return x if self.columns is None else x[..., : self.columns]
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x)
+        return self.net(self._read(x))
 
     def blocks(self) -> list[nn.Module]:
-        """The root's blocks, input first: one Linear -> BatchNorm1d -> ReLU per hidden size."""
-        layers = list(self.net)
-        return [nn.Sequential(*layers[i : i + 3]) for i in range(0, len(layers), 3)]
+        """The root's blocks, input first: one per hidden size (Linear -> BatchNorm1d ->
+        ReLU, or the Linear alone)."""
+        layers, k = list(self.net), self.per_block
+        return [nn.Sequential(*layers[i : i + k]) for i in range(0, len(layers), k)]
 
     def forward_to(self, x: torch.Tensor, block: int) -> torch.Tensor:
         """The activations entering block ``block`` (``forward_from`` goes on from them)."""
-        return self.net[: 3 * block](x)
+        return self.net[: self.per_block * block](self._read(x))
 
     def forward_from(self, z: torch.Tensor, block: int) -> torch.Tensor:
-        return self.net[3 * block :](z)
+        return self.net[self.per_block * block :](z)
 
 
 class Top(L.LightningModule):
     """BatchNorm1d -> Linear(in, 32) -> BatchNorm1d(32) -> Linear(32, 8); linear activations."""
 
-    def __init__(self, in_dim: int, hidden: int = 32, output_bias: float = 3.0):
+    def __init__(self, in_dim: int, hidden: int = 32, output_bias: float | None = 3.0):
         super().__init__()
         self.net = nn.Sequential(
             nn.BatchNorm1d(in_dim),
@@ -176,9 +199,11 @@ class Top(L.LightningModule):
             nn.Linear(hidden, N_ACTIONS),
         )
         # Start at the middle of the Likert scale, so early rounds do not spend their
-        # steps moving the output from 0 to the labels' range (architecture unchanged).
-        with torch.no_grad():
-            self.net[-1].bias.fill_(output_bias)
+        # steps moving the output from 0 to the labels' range (architecture unchanged);
+        # None: the Linear layer's own initialisation.
+        if output_bias is not None:
+            with torch.no_grad():
+                self.net[-1].bias.fill_(output_bias)
 
     def forward(self, r: torch.Tensor) -> torch.Tensor:
         return self.net(r)
@@ -186,7 +211,10 @@ class Top(L.LightningModule):
 
 class Scholar(L.LightningModule):
     """Root + top; Adam with one parameter group each (SPEC 3: lr_R and lr_T; the paper's
-    1e-3 and betas unless given: ``train.lr_root``, ``train.lr_top``, ``train.betas``)."""
+    1e-3 and betas unless given: ``train.lr_root``, ``train.lr_top``, ``train.betas``).
+    ``weight_decay``: Adam's L2 penalty on every parameter (``torch.optim.Adam``'s, added to
+    the gradient before the moments, as the LEAP-HRI'24 code's Adam(lr=0.01,
+    weight_decay=0.01); not AdamW's decoupled decay)."""
 
     def __init__(
         self,
@@ -195,10 +223,12 @@ class Scholar(L.LightningModule):
         lr_root: float = 1e-3,
         lr_top: float = 1e-3,
         betas: tuple[float, float] = (0.9, 0.999),
+        weight_decay: float = 0.0,
     ):
         super().__init__()
         self.root, self.top = root, top
         self.lr_root, self.lr_top, self.betas = lr_root, lr_top, tuple(betas)
+        self.weight_decay = weight_decay
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.top(self.root(x))
@@ -210,13 +240,15 @@ class Scholar(L.LightningModule):
                 {"params": self.top.parameters(), "lr": self.lr_top, "name": "top"},
             ],
             betas=self.betas,
+            weight_decay=self.weight_decay,
             fused=True,  # one kernel per step instead of a loop of foreach ops: ~4% per step on CPU
         )
 
 
 def build_root(model: ModelConfig, kind: str) -> nn.Module:
     if kind == "mlp":
-        return MLPRoot(hidden=tuple(model.mlp_hidden))
+        columns = None if model.mode_flags else len(DESCRIPTOR_COLUMNS)
+        return MLPRoot(hidden=tuple(model.mlp_hidden), block=model.mlp_block, columns=columns)
     return MobileNetRoot(model.weights, model.width)
 
 
@@ -225,7 +257,7 @@ def build_scholar(config: ExperimentConfig) -> Scholar:
     root = build_root(config.model, config.root_kind)
     top = Top(root.out_dim, config.model.top_hidden, config.model.output_bias)
     train = config.train
-    scholar = Scholar(root, top, train.lr_root, train.lr_top, train.betas)
+    scholar = Scholar(root, top, train.lr_root, train.lr_top, train.betas, train.weight_decay)
     if config.model.channels_last and config.root_kind == "mobilenet_v2":
         scholar = scholar.to(memory_format=torch.channels_last)
     return scholar

@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     )
 
 ROOTS = ("auto", "mobilenet_v2", "mlp")
+MLP_BLOCKS = ("linear_bn_relu", "linear")  # fedlgr.core.models.scholar.MLP_BLOCKS
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
 SERVER_EVAL = ("off", "on", "auto")
 CONCURRENCY = ("auto", "sequential", "threads", "batched")
@@ -93,6 +94,7 @@ def check_model(model: ModelConfig) -> None:
         )
     if not model.mlp_hidden or min(model.mlp_hidden) < 1:
         raise ConfigError(f"model.mlp_hidden={list(model.mlp_hidden)}: need >= 1 positive size")
+    choice("model.mlp_block", model.mlp_block, MLP_BLOCKS)
     positive("model.top_hidden", model.top_hidden)
 
 
@@ -103,7 +105,7 @@ def check_train(train: TrainConfig) -> None:
     positive("train.eval_batch_size", train.eval_batch_size)
     if train.max_batches is not None:
         positive("train.max_batches", train.max_batches)
-    for name in ("lr_root", "lr_top"):
+    for name in ("lr_root", "lr_top", "weight_decay"):
         nonnegative(f"train.{name}", getattr(train, name))
     betas("train.betas", train.betas)
     choice("train.precision", train.precision, PRECISIONS)

@@ -39,8 +39,13 @@ class ModelConfig:
     weights: str = "none"  # imagenet | none | path to a state dict file
     width: float = 1.0  # MobileNetV2 width multiplier (tests use a tiny one)
     mlp_hidden: tuple[int, ...] = (256, 256)
+    # each hidden size's block: linear_bn_relu, or linear (an affine root: the LEAP-HRI'24
+    # model is model.mlp_hidden=[16] model.mlp_block=linear model.top_hidden=16)
+    mlp_block: str = "linear_bn_relu"
+    mode_flags: bool = True  # the mlp root reads the 2 mode flags; false: the 27 descriptors only
     top_hidden: int = 32
-    output_bias: float = 3.0  # initial output bias: the middle of the Likert scale
+    # initial output bias: the middle of the Likert scale; null: the Linear layer's own init
+    output_bias: float | None = 3.0
     channels_last: bool = True  # faster convolutions on CPU and GPU
 
     def __post_init__(self) -> None:
@@ -63,6 +68,9 @@ class TrainConfig:
     # batches of 16 (drop_last) in its order, the RMSE of each flattened batch and each
     # action's PCC, averaged over batches (biased: docs/leap_hri24.md). For comparison only.
     compat_batch_metrics: bool = False
+    # Adam's L2 penalty (torch.optim.Adam's weight_decay, added to the gradient, not AdamW's
+    # decoupled decay), on every parameter: the LEAP-HRI'24 code's 0.01; 0: none.
+    weight_decay: float = 0.0
     precision: str = "32-true"
 
     def __post_init__(self) -> None:
