@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -21,6 +25,8 @@ from fedlgr.core.models.generator import LatentVAE
 from fedlgr.core.models.scholar import MLPRoot, Scholar, Top
 from fedlgr.shell.config import load_config
 from tests.support.lgr import context as lgr_context
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)
@@ -105,10 +111,11 @@ def test_model_fisher_uses_no_labels_and_is_non_negative():
         generator=torch.Generator().manual_seed(0),
     )
     assert torch.equal(a["weight"], b["weight"]) and (a["weight"] >= 0).all()
-    # Each scene's gradient is 2 (out - (out + n)) (x, 1) = -2 n (x, 1) for its noise n: the
-    # same draws in the same order give (2 n x)^2 averaged.
+    # Each scene's target is out + 2 n (the loss's likelihood has variance 4), its gradient
+    # 2 (out - (out + 2 n)) (x, 1) = -4 n (x, 1): the same draws in the same order give
+    # (4 n x)^2 averaged.
     noise = torch.randn((2, 1), generator=torch.Generator().manual_seed(0))
-    expected = (4 * noise**2 * X**2).mean(dim=0)
+    expected = (16 * noise**2 * X**2).mean(dim=0)
     assert a["weight"].flatten().tolist() == pytest.approx(expected.tolist(), rel=1e-5)
 
 
@@ -469,3 +476,26 @@ def test_fedlgr_joint_forward_puts_real_and_pseudo_latents_in_one_loss():
     assert nn.functional.mse_loss(outputs, union).item() == pytest.approx(
         (real * 4 + replay * 2) / 6, rel=1e-5
     )
+
+
+@pytest.mark.slow
+def test_the_ewc_benchmark_prints_its_three_tables(tmp_path):
+    """``bench/ewc.py --quick`` (~30 s): the cost of both importance forms, the batch form's
+    ratio to the per-scene one (below 1 for EWC: a batch's mean gradient squared is at most
+    the mean of its squares), and a forgetting row per run."""
+    done = subprocess.run(
+        [sys.executable, str(REPO / "bench" / "ewc.py"), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    costs = [line.split() for line in lines if line.startswith("MobileNetV2")]
+    assert len(costs) == 2 and all(float(c[-1]) > 0 for c in costs), costs
+    ewc = next(line.split() for line in lines if line.startswith("EWC Fisher "))
+    median, low, high = (float(v) for v in ewc[3:6])
+    assert 0 < low <= median <= high <= 1, ewc
+    runs = [line for line in lines if line.startswith(("FedRoot-FT ", "FedRoot-EWC "))]
+    assert len(runs) == 2 * 3, runs  # FT, EWC per scene, EWC batch; per run and their means

@@ -186,11 +186,12 @@ STRATEGIES = _register(
 
 @dataclass(frozen=True)
 class EWCSettings(Settings):
-    """EWC and EWC-Online: lambda_ * sum F (theta - theta*)^2."""
+    """EWC and EWC-Online: lambda_ / 2 * sum F (theta - theta*)^2. The default lambda is
+    sweeps/ewc.yaml's best on the synthetic descriptors (docs/fedlgr.md, "EWC's lambda")."""
 
-    lambda_: float = setting(100.0, least=0)
+    lambda_: float = setting(1000.0, least=0)
     # the Fisher, each scene's squared gradient averaged over the task's scenes: empirical
-    # (of its MSE to the labels, Kirkpatrick et al.'s) | model (to outputs + N(0, 1) noise) |
+    # (of its MSE to the labels, Kirkpatrick et al.'s) | model (to outputs + N(0, 4) noise) |
     # batch (each mini-batch's squared gradient, and no 1/2 in the penalty: fedlgr before
     # issue 48, about 1/batch-size of the others)
     fisher: str = setting("empirical", choices=("empirical", "model", "batch"))

@@ -8,8 +8,15 @@ The Fisher is the mean over the task's scenes of each scene's squared gradient
 * ``empirical`` (default): of the scene's training loss, the MSE between its outputs and
   its *labels* (the empirical Fisher, as Kirkpatrick et al. estimate it);
 * ``model``: of the MSE to targets drawn from the model's own predictive distribution,
-  outputs + N(0, 1) noise (one Monte-Carlo draw of the Fisher of a unit-variance Gaussian
-  likelihood, without using the labels);
+  outputs + N(0, 2^2) noise per action (one Monte-Carlo draw of the true Fisher, without
+  using the labels).
+
+The likelihood is the one whose negative log is the training loss: the MSE over the 8
+actions, (1/8) sum_a (f_a - y_a)^2, is a Gaussian of variance 4 per action, hence the
+noise's variance. The penalty then weighs the past task's Fisher in the units of the
+loss it is added to, as Kirkpatrick et al.'s lambda does. (A unit-variance Gaussian's
+Fisher, sum_a (f_a - y_a) grad f_a squared, is 16x this one.)
+
 * ``batch``: the form fedlgr used before issue 48, kept to reproduce its runs: the squared
   gradient of each mini-batch's mean loss, averaged over batches, and the penalty without
   the 1/2. It is about 1/batch-size of the per-scene Fisher (0.014x median at batch 8 on
@@ -34,6 +41,9 @@ from fedlgr.core.continual.penalty import (
 )
 
 KINDS = ("empirical", "model", "batch")
+# the standard deviation of the Gaussian whose negative log-likelihood is the MSE over the
+# actions, (1/8) sum (f - y)^2 = sum (f - y)^2 / (2 x 2^2)
+LIKELIHOOD_STD = 2.0
 
 
 def _scene_loss(out: torch.Tensor, y: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -61,8 +71,8 @@ def fisher(
     if kind == "empirical":
         return per_sample_importance(model, batches, _scene_loss, torch.square, max_batches)
 
-    def noise(y: torch.Tensor) -> torch.Tensor:
-        return torch.randn(y.shape, generator=generator).to(y.device)
+    def noise(y: torch.Tensor) -> torch.Tensor:  # the loss's likelihood: variance 4
+        return (LIKELIHOOD_STD * torch.randn(y.shape, generator=generator)).to(y.device)
 
     return per_sample_importance(model, batches, _sampled_loss, torch.square, max_batches, noise)
 
