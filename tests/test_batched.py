@@ -115,10 +115,10 @@ def assert_trained(before: list[Client], after: list[Client]) -> None:
         assert max((w1[k] - w0[k].to(w1[k].dtype)).abs().max() for k in w0) > 1e-4
 
 
-# 12 scenes per client. Images, 2 augmented copies: 3 batches of 8 per epoch, of which
-# max_batches=2 train; the third is drawn (and its augmentation) as train_locally does.
-# Features (never augmented, so 1 copy): batches of 8 and 4.
-@pytest.mark.parametrize(("modality", "samples"), [("image", 32), ("features", 24)])
+# 12 scenes per client, 2 augmented copies (images flipped and rotated, descriptors with
+# input noise): 3 batches of 8 per epoch, of which max_batches=2 train; the third is drawn
+# (and its augmentation) as train_locally does.
+@pytest.mark.parametrize(("modality", "samples"), [("image", 32), ("features", 32)])
 def test_batched_training_ends_where_sequential_training_ends(
     modality, samples, synth_dir, cache_dir, store, monkeypatch
 ):
