@@ -56,7 +56,9 @@ def test_a_changed_sweep_file_is_refused(synth_dir, tmp_path):
     path.write_text(source)
     storage = f"sqlite:///{tmp_path}/optuna.db"
     open_study(load_sweep(path, [f"data.path={synth_dir}"]), storage)
-    path.write_text(source.replace("[100, 1000,", "[10, 1000,"))
+    changed = source.replace("continual.ewc.lambda_: [", "continual.ewc.lambda_: [0.5, ")
+    assert changed != source  # the grid line is where the test expects it
+    path.write_text(changed)
     with pytest.raises(FedlgrError, match=r"the sweep file .*mine\.yaml changed"):
         open_study(load_sweep(path, [f"data.path={synth_dir}"]), storage)
 
