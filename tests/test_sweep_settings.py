@@ -28,12 +28,12 @@ def test_a_sweep_relaunched_with_other_overrides_is_refused(synth_dir, synth_cop
     again, _ = open_study(load_sweep("ewc", [f"data.path={synth_dir}", "train.epochs=1"]), storage)
     assert again.study_name == study.study_name  # the same settings: resumed
 
-    other = load_sweep("ewc", [f"data.path={synth_copy}", "seed=3"])
+    other = load_sweep("ewc", [f"data.path={synth_copy}", "train.lr_top=0.002"])
     with pytest.raises(FedlgrError) as refused:
         run_sweep(other, storage=storage, echo=lambda *a, **k: None)
     message = str(refused.value)
     assert f"data.path (study: {synth_dir}, now: {synth_copy})" in message
-    assert "seed (study: not set, now: 3)" in message
+    assert "train.lr_top (study: not set, now: 0.002)" in message
     assert "train.epochs (study: 1, now: not set)" in message
     assert "--study NAME" in message
 
@@ -42,7 +42,7 @@ def test_a_sweep_relaunched_with_other_overrides_is_refused(synth_dir, synth_cop
     assert open_study(threads, storage)[0].study_name == "ewc"
     # Changed on purpose (fedlgr sweep --settings-changed): goes on, the new ones recorded.
     moved, _ = open_study(other, storage, settings_changed=True)
-    assert moved.user_attrs[SETTINGS_ATTR]["overrides"][-1] == "seed=3"
+    assert moved.user_attrs[SETTINGS_ATTR]["overrides"][-1] == "train.lr_top=0.002"
     assert open_study(other, storage)[0].study_name == "ewc"
 
     # Another study name is another study: it starts.
