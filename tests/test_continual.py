@@ -117,6 +117,16 @@ def test_model_fisher_uses_no_labels_and_is_non_negative():
     noise = torch.randn((2, 1), generator=torch.Generator().manual_seed(0))
     expected = (16 * noise**2 * X**2).mean(dim=0)
     assert a["weight"].flatten().tolist() == pytest.approx(expected.tolist(), rel=1e-5)
+    # batch_model, before issue 48: N(0, 1) targets, one draw per batch (here of one scene)
+    old = fisher(
+        model,
+        context(model, X, Y).plain_batches(1),
+        "batch_model",
+        generator=torch.Generator().manual_seed(0),
+    )
+    expected = (4 * noise**2 * X**2).mean(dim=0)
+    assert old["weight"].flatten().tolist() == pytest.approx(expected.tolist(), rel=1e-5)
+    assert EWC(lam=2.0, kind="batch_model").coefficient == 2.0  # no 1/2, as then
 
 
 def test_per_scene_fisher_of_the_scholar_equals_one_backward_per_scene():
@@ -243,8 +253,9 @@ def _si_task(clamp: str) -> tuple[SI, LocalContext]:
 
 def test_si_importance_by_hand_keeps_a_negative_gain_as_published():
     """Zenke et al. 2017, eq. 5: Omega = omega / (Delta^2 + xi), no clamp."""
-    si, _ = _si_task("none")
+    si, ctx = _si_task("none")
     importance, anchor = si.terms[0]
+    assert si.task_metrics(ctx) == {"negative": 0.5}  # w's of the 2: logged as si/negative
     assert importance["weight"].item() == pytest.approx(-0.7 / 0.11, rel=1e-5)
     assert importance["bias"].item() == pytest.approx(15.0, rel=1e-5)
     assert anchor["weight"].item() == pytest.approx(1.1)

@@ -162,7 +162,7 @@ def test_fedadam_with_v0_zero_is_the_form_before_issue_48():
         {"w": torch.full((1,), 1e-3, dtype=torch.float64), "stat": torch.zeros(1)},
     )
     ratio = (small["w"] / paper["w"]).item()
-    # (sqrt(0.99e-4 + 1e-8) + 0.01) / (1e-4 + 0.01) = 0.0199999 / 0.0101 = 1.980
+    # (sqrt(0.99e-4 + 1e-8) + 0.01) / (1e-4 + 0.01) = 0.0199504 / 0.0101 = 1.9753
     assert ratio == pytest.approx((math.sqrt(0.99e-4 + 1e-8) + 0.01) / 0.0101, rel=1e-12)
 
 

@@ -193,8 +193,8 @@ class EWCSettings(Settings):
     # the Fisher, each scene's squared gradient averaged over the task's scenes: empirical
     # (of its MSE to the labels, Kirkpatrick et al.'s) | model (to outputs + N(0, 4) noise) |
     # batch (each mini-batch's squared gradient, and no 1/2 in the penalty: fedlgr before
-    # issue 48, about 1/batch-size of the others)
-    fisher: str = setting("empirical", choices=("empirical", "model", "batch"))
+    # issue 48, about 1/batch-size of the others) | batch_model (model so, before issue 48)
+    fisher: str = setting("empirical", choices=("empirical", "model", "batch", "batch_model"))
     gamma: float = setting(0.9, least=0, most=1)  # EWC-Online: decay of the running Fisher
 
 

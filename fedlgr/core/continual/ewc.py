@@ -17,10 +17,13 @@ noise's variance. The penalty then weighs the past task's Fisher in the units of
 loss it is added to, as Kirkpatrick et al.'s lambda does. (A unit-variance Gaussian's
 Fisher, sum_a (f_a - y_a) grad f_a squared, is 16x this one.)
 
-* ``batch``: the form fedlgr used before issue 48, kept to reproduce its runs: the squared
-  gradient of each mini-batch's mean loss, averaged over batches, and the penalty without
-  the 1/2. It is about 1/batch-size of the per-scene Fisher (0.014x median at batch 8 on
-  the descriptors' MLP), so its lambdas mean something else (docs/methods.md).
+* ``batch``: the form fedlgr used before issue 48, kept to reproduce its runs (with its
+  lambda then, 100): the squared gradient of each mini-batch's mean loss, averaged over
+  batches, and the penalty without the 1/2. It is about 1/batch-size of the per-scene
+  Fisher (0.146x median at batch 8 on the descriptors' MLP: bench/README.md), so its
+  lambdas mean something else;
+* ``batch_model``: ``model`` as fedlgr computed it before issue 48, the same way per
+  mini-batch, to outputs + N(0, 1) noise.
 
 EWC keeps one penalty term per past task, (lambda / 2) sum_t sum_i F_t,i (theta_i -
 theta*_t,i)^2 (Kirkpatrick et al., eq. 3). EWC-Online keeps one running Fisher,
@@ -40,7 +43,8 @@ from fedlgr.core.continual.penalty import (
     snapshot,
 )
 
-KINDS = ("empirical", "model", "batch")
+KINDS = ("empirical", "model", "batch", "batch_model")
+BATCH_KINDS = ("batch", "batch_model")  # the forms before issue 48: no 1/2 in the penalty
 # the standard deviation of the Gaussian whose negative log-likelihood is the MSE over the
 # actions, (1/8) sum (f - y)^2 = sum (f - y)^2 / (2 x 2^2)
 LIKELIHOOD_STD = 2.0
@@ -68,6 +72,13 @@ def fisher(
         return gradient_importance(
             model, batches, nn.functional.mse_loss, torch.square, max_batches
         )
+    if kind == "batch_model":
+
+        def to_a_draw(outputs: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+            noise = torch.randn(outputs.shape, generator=generator).to(outputs.device)
+            return nn.functional.mse_loss(outputs, (outputs + noise).detach())
+
+        return gradient_importance(model, batches, to_a_draw, torch.square, max_batches)
     if kind == "empirical":
         return per_sample_importance(model, batches, _scene_loss, torch.square, max_batches)
 
@@ -84,7 +95,7 @@ class EWC(QuadraticPenalty):
         self, lam: float, kind: str = "empirical", max_batches: int | None = None, seed: int = 0
     ):
         # Kirkpatrick et al.'s lambda / 2; the batch form (before issue 48) had no 1/2
-        super().__init__(lam if kind == "batch" else lam / 2)
+        super().__init__(lam if kind in BATCH_KINDS else lam / 2)
         self.kind, self.max_batches = kind, max_batches
         self.generator = torch.Generator().manual_seed(seed)
 

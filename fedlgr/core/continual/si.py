@@ -11,7 +11,9 @@ As published (and in the authors' code, ganguli-lab/pathint: ``unreg_grads``), g
 gradient of the loss *without* SI's own penalty: omega measures how much a parameter
 lowered the loss. The penalty's gradient, ``2 c sum Omega (theta - theta*)``, is known in
 closed form and taken off the step's gradient. An optimiser step that does not follow the
-gradient (Adam's) can make omega negative, and so a parameter's importance; eq. 5 keeps it.
+gradient (Adam's) can make omega negative, and so a parameter's importance; eq. 5 keeps it,
+though a negative importance rewards a weight for leaving its anchor: each task's end logs
+the share of importances below 0 (``si/negative``), and ``clamp=total`` is the safe form.
 
 The forms fedlgr used before issue 48 stay as settings, to reproduce its runs:
 ``continual.si.clamp=task`` (each task's gain clamped at 0) and
@@ -33,6 +35,7 @@ PATH_GRADIENTS = ("loss", "loss+penalty")
 
 class SI(QuadraticPenalty):
     name = "si"
+    metric_names = ("negative",)  # the share of importances below 0 after a task's end
 
     def __init__(self, c: float, xi: float, clamp: str = "none", path_gradient: str = "loss"):
         super().__init__(c)
@@ -85,6 +88,11 @@ class SI(QuadraticPenalty):
         if self.clamp == "total":
             gained = {n: torch.clamp(w, min=0.0) for n, w in gained.items()}
         self.terms = [(gained, end)]
+
+    def task_metrics(self, ctx: LocalContext) -> dict[str, float]:
+        importance = self.terms[0][0].values() if self.terms else ()
+        below = sum(int((w < 0).sum()) for w in importance)
+        return {"negative": below / max(sum(w.numel() for w in importance), 1)}
 
     def state_dict(self) -> dict:
         return {**super().state_dict(), "omega": dict(self.omega), "start": dict(self.start)}
