@@ -407,3 +407,29 @@ def test_the_result_says_what_recording_each_round_cost(synth_dir, cache_dir, st
     client, _, _ = read_run(store, result.run_id)
     logged = client.get_run(result.run_id).data.metrics
     assert not [k for k in logged if "tracking" in k or "checkpoint" in k]  # not logged
+
+
+@pytest.mark.parametrize("variant", ["adam", "yogi", "adagrad"])
+@pytest.mark.parametrize("method", ["FedOpt", "FedRootOpt"])
+def test_each_fedopt_variant_runs_in_both_scopes_on_the_shared_parameters(
+    method, variant, synth_dir, cache_dir
+):
+    """Reddi et al.'s three server optimisers (``federated.opt.variant``) under both scopes:
+    two rounds train, the moments are kept for the shared parameters only (the root's under
+    FedRoot; no BatchNorm running statistics), and the second moment starts at tau^2 and
+    stays positive (FedYogi's may shrink, never below 0 from tau^2 with its sign rule)."""
+    config = fast_config(
+        synth_dir, cache_dir, "sqlite://", f"method={method}", f"federated.opt.variant={variant}"
+    )
+    orch = orchestrator(config)
+    first = {k: v.clone() for k, v in orch.server.global_weights.items()}
+    for r in (1, 2):
+        orch.run_round(RoundPlan(r))
+    strategy = orch.server.strategy
+    assert set(strategy.v) == strategy.trainable and strategy.trainable
+    assert all(k.startswith("root.") for k in strategy.v) == (method == "FedRootOpt")
+    assert all(bool((v > 0).all()) for v in strategy.v.values())
+    moved = [
+        k for k in strategy.trainable if not torch.equal(first[k], orch.server.global_weights[k])
+    ]
+    assert moved  # the server step moved the global parameters
