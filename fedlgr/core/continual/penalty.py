@@ -9,6 +9,7 @@ loss before ``backward``. Importance and anchors are per client and never leave 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterable
 
 import torch
@@ -16,6 +17,7 @@ from torch import nn
 from torch.func import functional_call, grad, vmap
 
 from fedlgr.core.client.plugins import ClientPlugin
+from fedlgr.core.continual.batchnorm import eval_mode
 
 Tensors = dict[str, torch.Tensor]
 
@@ -80,8 +82,6 @@ def per_sample_importance(
     batch, and they are left untouched. ``extra(targets)`` draws a tensor per scene passed
     to the objective (the ``model`` Fisher's noise), in the batches' order.
     """
-    was_training = model.training
-    model.eval()
     trained = {n: p.detach() for n, p in model.named_parameters() if p.requires_grad}
     fixed = {n: p.detach() for n, p in model.named_parameters() if not p.requires_grad}
     fixed |= dict(model.named_buffers())
@@ -93,16 +93,12 @@ def per_sample_importance(
     per_scene = vmap(grad(scene), in_dims=(None, 0, 0, 0))
     total = {n: torch.zeros_like(p) for n, p in trained.items()}
     count = 0
-    try:
-        for step, (x, y) in enumerate(batches):
-            if max_batches is not None and step >= max_batches:
-                break
+    with eval_mode(model):
+        for x, y in itertools.islice(batches, max_batches):
             e = extra(y) if extra is not None else torch.zeros(len(x), device=x.device)
             for n, g in per_scene(trained, x, y, e).items():
                 total[n] += reduce(g).sum(dim=0)
             count += len(x)
-    finally:
-        model.train(was_training)
     return {n: t / max(count, 1) for n, t in total.items()}
 
 
@@ -121,22 +117,18 @@ def gradient_importance(
     scene (:func:`per_sample_importance`); this form stays for reproducing runs made with
     it (``continual.ewc.fisher=batch``, ``continual.mas.importance=batch``).
     """
-    was_training = model.training
-    model.eval()
     params = {n: p for n, p in model.named_parameters() if p.requires_grad}
     total = {n: torch.zeros_like(p) for n, p in params.items()}
     count = 0
-    try:
-        for step, (x, y) in enumerate(batches):
-            if max_batches is not None and step >= max_batches:
-                break
+    with eval_mode(model):
+        try:
+            for x, y in itertools.islice(batches, max_batches):
+                model.zero_grad(set_to_none=True)
+                objective(model(x).float(), y).backward()
+                for n, p in params.items():
+                    if p.grad is not None:
+                        total[n] += reduce(p.grad.detach())
+                count += 1
+        finally:
             model.zero_grad(set_to_none=True)
-            objective(model(x).float(), y).backward()
-            for n, p in params.items():
-                if p.grad is not None:
-                    total[n] += reduce(p.grad.detach())
-            count += 1
-    finally:
-        model.zero_grad(set_to_none=True)
-        model.train(was_training)
     return {n: t / max(count, 1) for n, t in total.items()}
