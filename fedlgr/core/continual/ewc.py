@@ -43,7 +43,6 @@ from fedlgr.core.continual.penalty import (
     snapshot,
 )
 
-KINDS = ("empirical", "model", "batch", "batch_model")
 BATCH_KINDS = ("batch", "batch_model")  # the forms before issue 48: no 1/2 in the penalty
 # the standard deviation of the Gaussian whose negative log-likelihood is the MSE over the
 # actions, (1/8) sum (f - y)^2 = sum (f - y)^2 / (2 x 2^2)

@@ -25,8 +25,6 @@ from fedlgr.core.continual.penalty import (
     snapshot,
 )
 
-KINDS = ("sample", "batch")
-
 
 def _squared_norm(out: torch.Tensor, y: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
     return out.pow(2).sum()

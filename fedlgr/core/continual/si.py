@@ -29,9 +29,6 @@ import torch
 from fedlgr.core.client.plugins import LocalContext
 from fedlgr.core.continual.penalty import QuadraticPenalty, snapshot
 
-CLAMPS = ("none", "task", "total")
-PATH_GRADIENTS = ("loss", "loss+penalty")
-
 
 class SI(QuadraticPenalty):
     name = "si"

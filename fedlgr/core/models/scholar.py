@@ -138,9 +138,6 @@ class MobileNetRoot(L.LightningModule):
         return torch.flatten(self.pool(self.features[block:](z)), 1)
 
 
-MLP_BLOCKS = ("linear_bn_relu", "linear")  # model.mlp_block
-
-
 class MLPRoot(L.LightningModule):
     """Linear -> BatchNorm1d -> ReLU per hidden size (``block="linear"``: a Linear alone, so
     that the root is affine), over the descriptor features. ``columns``: the root reads only

@@ -24,8 +24,6 @@ import torch
 
 from fedlgr.core.strategies.base import ServerOptimizer, Weights
 
-VARIANTS = ("adam", "yogi", "adagrad")
-
 
 def second_moment(variant: str, v: torch.Tensor, delta: torch.Tensor, b2: float) -> torch.Tensor:
     """The next second moment of ``variant`` (Reddi et al., Algorithm 2), in place on ``v``."""

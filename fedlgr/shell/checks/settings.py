@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     )
 
 ROOTS = ("auto", "mobilenet_v2", "mlp")
-MLP_BLOCKS = ("linear_bn_relu", "linear")  # fedlgr.core.models.scholar.MLP_BLOCKS
+MLP_BLOCKS = ("linear_bn_relu", "linear")  # model.mlp_block: MLPRoot's block
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
 SERVER_EVAL = ("off", "on", "auto")
 CONCURRENCY = ("auto", "sequential", "threads", "batched")
