@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import logging
 import os
 import shutil
 import sys
 from pathlib import Path
+
+from filelock import FileLock
 
 from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable, database_connection
@@ -115,21 +116,21 @@ class StoreError(FedlgrError):
 def store_lock(uri: str):
     """Held while a process opens a local sqlite store: the first use of a fresh store
     runs MLflow's schema migrations, which two processes must not run at once (one would
-    die on ``duplicate column name``). A PostgreSQL database (a store or a sweep's
-    storage shared by several machines) takes an advisory lock of its own
-    (:func:`database_lock`); other stores need no lock."""
+    die on ``duplicate column name``). A ``filelock.FileLock`` beside the file: ``flock``
+    underneath, so the kernel releases it when its holder dies, SIGKILL included. A
+    PostgreSQL database (a store or a sweep's storage shared by several machines) takes an
+    advisory lock of its own (:func:`database_lock`); other stores need no lock."""
     if not uri.startswith("sqlite:///"):
         with database_lock(uri):
             yield
         return
     path = Path(uri.removeprefix("sqlite:///").split("?", 1)[0]).expanduser()  # no ?mode=..
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = open_lock_file(Path(f"{path}.lock"), f"tracking store {uri}")
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+    lock = Path(f"{path}.lock")
+    # Made here, a planted link refused: filelock opens it O_NOFOLLOW but does not promise to.
+    os.close(open_lock_file(lock, f"tracking store {uri}"))
+    with FileLock(lock, fallback_to_soft=False):  # no soft marker: it would outlive a kill
         yield
-    finally:
-        os.close(fd)  # releases the lock
 
 
 def open_lock_file(path: Path, what: str) -> int:

@@ -19,7 +19,6 @@ protobuf encoding of the message content - nothing is pickled.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import signal
 import socket
@@ -28,6 +27,8 @@ import sys
 import time
 import traceback
 from pathlib import Path
+
+from filelock import FileLock
 
 from fedlgr.shell.deploy.flower.link import (
     _receive,
@@ -82,8 +83,7 @@ def _connect(path: Path, wait: float = 0.0) -> socket.socket:
 def start(folder: Path, node_config: dict) -> None:
     """Start the service for ``folder`` unless another ClientApp is starting it."""
     folder.mkdir(parents=True, exist_ok=True)
-    with (folder / "robot.lock").open("w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with FileLock(folder / "robot.lock", fallback_to_soft=False):  # released if it is killed
         with contextlib.suppress(OSError):
             _connect(socket_path(folder)).close()
             return  # started meanwhile
