@@ -93,3 +93,14 @@ class Faults:
                 noise = torch.randn(w.shape, generator=g, dtype=w.dtype)
                 weights[key] = w + self.settings.noise * noise.to(w.device)
         return dataclasses.replace(result, weights=weights)
+
+
+def fault_counts(faults: dict[int, str], settings) -> dict[str, float]:
+    """A round's ``faults/dropped`` and ``faults/late`` (of :meth:`Faults.what`'s
+    ``faults``), each where ``settings`` (``federated.faults``) simulates it."""
+    counts = {}
+    if settings.dropout:
+        counts["faults/dropped"] = float(sum(f == "dropped" for f in faults.values()))
+    if settings.straggler:
+        counts["faults/late"] = float(sum(f.endswith("late") for f in faults.values()))
+    return counts

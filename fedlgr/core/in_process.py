@@ -14,17 +14,18 @@ runtime (``fedlgr.shell.deploy.flower``) puts the same two sides on different ma
 Plain FL is a schedule of one task, "all", of ``federated.rounds`` rounds. By default all
 clients run in one process on one device. With ``runtime.devices=N`` (and
 ``runtime.num_nodes``) the clients are dealt round-robin to the processes, each process
-trains its own, every process keeps a copy of the server side, and aggregation is one
-weighted ``all_reduce``; per-client rows are reduced to rank 0, which alone logs. Seeds
-are per client, so both modes compute the same numbers.
+trains its own, every process keeps a copy of the server side, which aggregates over them
+all (:class:`FabricCollective`: one weighted ``all_reduce``); per-client rows are summed
+likewise, and rank 0 alone logs. Seeds are per client, so both modes compute the same numbers.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.distributed as dist
@@ -32,11 +33,11 @@ import torch.distributed as dist
 from fedlgr.core.client.side import ClientSide
 from fedlgr.core.evaluation import scored_clients
 from fedlgr.core.faults import Faults
-from fedlgr.core.messages import EvaluateIns, EvaluateRes, RoundPlan, TrainRes, Weights, nbytes
+from fedlgr.core.messages import EvaluateIns, EvaluateRes, RoundPlan, TrainRes, nbytes
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress
 from fedlgr.core.server.evaluate import ServerEvaluation, serve_round
-from fedlgr.core.server.side import ServerSide
+from fedlgr.core.server.side import Collective, ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
 
 if TYPE_CHECKING:
@@ -58,6 +59,7 @@ class Orchestrator:
         self.device = fabric.device
         self.rank, self.world = fabric.global_rank, fabric.world_size
         self.server = ServerSide(config).to(self.device)
+        self.collective = FabricCollective(fabric)
         mine = [s.client for s in split.clients if s.client % self.world == self.rank]
         self.indices = set(mine)
         self.client_side = ClientSide(
@@ -74,45 +76,12 @@ class Orchestrator:
         )
 
     def aggregate(self, trained: list[TrainRes], task: int = 0) -> None:
-        """Sample-weighted mean over the uploads of all processes that the server takes
-        (:meth:`ServerSide.screen`: each process checks its own clients', against the
-        scenes they hold in ``task``), their plugins' payloads summed, then the server
-        update."""
+        """:meth:`ServerSide.aggregate` over every process's uploads, held to their scenes."""
         side = self.client_side
         capacity = {
             r.client: side.n_samples(r.client, task) for r in trained if r.client in side.shards
         }
-        refused = self.server.refusals(trained, capacity)
-        norms = self.server.update_norms(trained, refused)
-        if self.world > 1:  # every process decides on the round's norms, all of them
-            parts = _all_gather(self.fabric, (refused, norms))
-            refused = {c: why for part, _ in parts for c, why in part.items()}
-            norms = {c: norm for _, part in parts for c, norm in part.items()}
-        trained = self.server.screen(trained, refused, norms)
-        senders = sum(c not in self.server.refused for c in norms)  # taken, all processes
-        if self.server.strategy.needs_uploads:  # a statistic of every upload: gather them
-            mine = [_moved(r, CPU) for r in trained]
-            everyone = [r for part in _all_gather(self.fabric, mine) for r in part]
-            here = [_moved(r, self.device) for r in sorted(everyone, key=lambda r: r.client)]
-            if here:
-                self.server.combine(here, senders)
-            return
-        sums, total, payloads = self.server.sums(trained)
-        if self.world > 1:  # one collective for everything
-            like = self.server.global_weights
-            template = self.server.sum_template()
-            flat = torch.cat(
-                [
-                    *_parts(sums, like, self.server.keys),
-                    *_parts(payloads, template, sorted(template)),
-                    torch.tensor([total], dtype=torch.float64, device=self.device),
-                ]
-            )
-            flat = self.fabric.all_reduce(flat, reduce_op="sum")
-            total = float(flat[-1])
-            offset = _unflatten(flat, sums, like, self.server.keys, 0)
-            _unflatten(flat, payloads, template, sorted(template), offset)
-        self.server.update_if_any(sums, total, payloads, senders)
+        self.server.aggregate(trained, capacity, collective=self.collective)
 
     @property
     def clients(self):
@@ -150,12 +119,8 @@ class Orchestrator:
         on_time = [t for c, t in trained.items() if not faults.get(c, "").endswith("late")]
         # The server's work - aggregation, its update, its evaluation - is its own cost,
         # never a client's.
-        server, initial = serve_round(
-            self.server,
-            self.server_eval,
-            round_,
-            task,
-            lambda: self.aggregate(on_time, task),
+        served = serve_round(
+            self.server, self.server_eval, plan, lambda: self.aggregate(on_time, task)
         )
         scored = self.scored(plan, chosen)
         ins_eval = EvaluateIns(plan, self.server.global_weights, scored)
@@ -174,18 +139,12 @@ class Orchestrator:
                 down += nbytes(ins[c].payload)
                 rows[c] = self.server.row(t, e or EvaluateRes(c), up, down)
         # Rows of other processes are zero here: the sum over processes fills them in.
-        table = torch.from_numpy(self.server.table(rows, fill=0.0))
-        if self.world > 1:
-            table = self.fabric.all_reduce(table.to(self.device), reduce_op="sum").cpu()
+        table = torch.from_numpy(self.server.table(rows, fill=0.0)).to(self.device)
+        table = self.collective.all_reduce_sum(table).cpu().numpy()
         seconds = time.perf_counter() - start
-        log = self.server.round_log(plan, table.numpy(), seconds, participants=chosen)
-        log.server, log.initial, log.faults = server | self.server.figures(), initial, faults
-        settings = self.config.federated.faults
-        if settings.dropout:
-            log.server["faults/dropped"] = float(sum(f == "dropped" for f in faults.values()))
-        if settings.straggler:
-            log.server["faults/late"] = float(sum(f.endswith("late") for f in faults.values()))
-        return log
+        return self.server.round_log(
+            plan, table, seconds, participants=chosen, served=served, faults=faults
+        )
 
     # ------------------------------------------------------------------ state
 
@@ -219,39 +178,27 @@ class Orchestrator:
 CPU = torch.device("cpu")
 
 
-def _parts(sums: Weights, like: Weights, keys: list[str]) -> list[torch.Tensor]:
-    """``sums`` flattened in ``keys`` order (zeros for a key this process has no sum of:
-    none of its clients trained)."""
-    return [
-        sums.get(k, torch.zeros_like(like[k], dtype=torch.float64)).flatten().to(torch.float64)
-        for k in keys
-    ]
+@dataclasses.dataclass
+class FabricCollective(Collective):
+    """Fabric's processes (a :class:`Collective`): objects by torch.distributed's object
+    gather, as bytes that ``torch.load`` puts on this process's device (a tensor of another
+    GPU would come back there); sums by ``all_reduce``."""
 
+    fabric: Any
 
-def _unflatten(flat: torch.Tensor, out: Weights, like: Weights, keys: list[str], at: int) -> int:
-    """Read ``keys``' sums back from ``flat`` from offset ``at`` into ``out``; the offset after."""
-    for k in keys:
-        size = like[k].numel()
-        out[k] = flat[at : at + size].view(like[k].shape)
-        at += size
-    return at
+    def all_gather(self, part: Any) -> list[Any]:
+        if self.fabric.world_size == 1:
+            return [part]
+        buffer, parts = io.BytesIO(), [None] * self.fabric.world_size
+        torch.save(part, buffer)
+        dist.all_gather_object(parts, buffer.getvalue())
+        device = self.fabric.device
+        return [torch.load(io.BytesIO(p), map_location=device, weights_only=False) for p in parts]
 
-
-def _all_gather(fabric, part):
-    """Every process's ``part`` in every process (torch.distributed's object gather, as
-    :func:`_gather`; tensors go through the CPU): the round's checks and, for a robust
-    aggregate, its uploads."""
-    if fabric.world_size == 1:
-        return [part]
-    parts: list = [None] * fabric.world_size
-    dist.all_gather_object(parts, part)
-    return parts
-
-
-def _moved(result: TrainRes, device: torch.device) -> TrainRes:
-    """``result`` with its tensors on ``device``."""
-    weights, payload = to_device(result.weights, device), to_device(result.payload, device)
-    return dataclasses.replace(result, weights=weights, payload=payload)
+    def all_reduce_sum(self, flat: torch.Tensor) -> torch.Tensor:
+        if self.fabric.world_size == 1:
+            return flat
+        return self.fabric.all_reduce(flat, reduce_op="sum")
 
 
 def _gather(fabric, part: dict) -> list[dict] | None:

@@ -44,9 +44,9 @@ def table(
     return out
 
 
-@dataclass
+@dataclass(frozen=True)
 class RoundLog:
-    """Per-client rows of one round (after the collective: all clients)."""
+    """Per-client rows of one round (after the collective: all clients); built whole."""
 
     round: int
     task: str

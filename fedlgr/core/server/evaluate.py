@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from fedlgr.core.evaluation import EvalSet, predict
-from fedlgr.core.messages import Weights
+from fedlgr.core.messages import RoundPlan, Weights
 from fedlgr.core.meters.costs import Usage, measure
 from fedlgr.core.meters.scores import regression_scores
 from fedlgr.core.scope import initial_scholar
@@ -41,22 +41,28 @@ class ServerEvaluation:
 
 
 def serve_round(
-    server, evaluation: ServerEvaluation | None, round_: int, task: int, aggregate: Callable
+    server,
+    evaluation: ServerEvaluation | None,
+    plan: RoundPlan,
+    aggregate: Callable[[], dict[str, float] | None],
 ) -> tuple[dict[str, float], dict[str, float]]:
-    """The server's part of a round: ``aggregate()`` (aggregation and the server update of
-    ``server``, a :class:`ServerSide`), then its evaluation - and, in round 1, that of
-    the initial model first. Returns the round's server figures (``cost/server_cpu_s``,
-    ``cost/server_wall_s``, ``server/...``) and the initial model's scores (or {})."""
+    """The server's part of round ``plan``: ``aggregate()`` (aggregation and the server
+    update of ``server``, a :class:`ServerSide`; it may return figures of its own,
+    SecAgg's), then its evaluation - and, in round 1, that of the initial model first.
+    Returns the round's server figures (``cost/server_cpu_s``, ``cost/server_wall_s``,
+    ``server/...``, under DP the accountant's epsilon so far and the clip norm,
+    ``privacy/*``, then aggregate's) and the initial model's scores (or {})."""
     device = next(iter(server.global_weights.values())).device
     before, initial = Usage(), {}
-    if evaluation is not None and round_ == 1:
+    if evaluation is not None and plan.round == 1:
         with measure(device) as before:
-            initial = evaluation.scores(server.global_weights, task)
+            initial = evaluation.scores(server.global_weights, plan.task)
     with measure(device) as usage:
-        aggregate()
-        scores = evaluation.scores(server.global_weights, task) if evaluation else {}
+        own = aggregate() or {}
+        scores = evaluation.scores(server.global_weights, plan.task) if evaluation else {}
     cost = {
         "cost/server_cpu_s": usage.cpu_s + before.cpu_s,
         "cost/server_wall_s": usage.wall_s + before.wall_s,
     }
-    return cost | scores, initial
+    privacy = {} if server.privacy is None else server.privacy.figures()
+    return cost | scores | privacy | own, initial

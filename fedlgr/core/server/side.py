@@ -5,9 +5,10 @@ aggregation, the strategy's server step, and the round's record.
 know the shared tensors, asks the strategy which clients train in a round and what each
 is sent (:meth:`train_ins`), aggregates what they upload (sample-weighted mean, in
 float64, then ``Strategy.server_update``; their plugins' payloads summed for
-``Strategy.take_payloads``) and turns the clients' figures into a :class:`RoundLog` row
-per client - a client that did not report (a robot that dropped out) has none and is
-named in ``RoundLog.missing``.
+``Strategy.take_payloads``) - in one process, or in each of several that hold a share of
+the uploads (a :class:`Collective`) - and turns the clients' figures into the round's
+:class:`RoundLog`, a row per client: a client that did not report (a robot that dropped
+out) has none and is named in ``RoundLog.missing``.
 """
 
 from __future__ import annotations
@@ -15,11 +16,12 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Iterable, Mapping
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
+from fedlgr.core.faults import fault_counts
 from fedlgr.core.messages import RoundPlan, TrainIns, TrainRes, Weights, nbytes
 from fedlgr.core.methods import plugin_metrics
 from fedlgr.core.metrics import Figures, combine, round_keys
@@ -35,6 +37,21 @@ from fedlgr.core.strategies import build_strategy
 if TYPE_CHECKING:
     from fedlgr.core.messages import EvaluateRes
     from fedlgr.shell.config import ExperimentConfig
+
+
+class Collective:
+    """The processes that each hold a share of a round's uploads (Fabric's), each making the
+    same calls: every process's ``part`` in rank order (tensors on this process's device),
+    the sum of each one's ``flat``. This base is one process alone: the identity."""
+
+    def all_gather(self, part: Any) -> list[Any]:
+        return [part]
+
+    def all_reduce_sum(self, flat: torch.Tensor) -> torch.Tensor:
+        return flat
+
+
+ALONE = Collective()
 
 
 class ServerSide:
@@ -150,13 +167,11 @@ class ServerSide:
         """The next global tensors from the sums of every upload of the round's
         ``senders`` clients; the strategy takes in their payloads. Under DP the sums are
         released with noise (every round, also one with no upload)."""
-        if self.privacy is not None:
+        if self.privacy is None:
+            mean = finish_mean(sums, total, like=self.global_weights)
+        else:
             payloads = {k: v.double() for k, v in self.sum_template().items()} | payloads
             mean, payloads = self.privacy.mean(sums, total, payloads, self.global_weights)
-            self.global_weights = self.strategy.server_update(self.global_weights, mean)
-            self.strategy.take_payloads(payloads, senders, self.config.data.clients)
-            return
-        mean = finish_mean(sums, total, like=self.global_weights)
         self.global_weights = self.strategy.server_update(self.global_weights, mean)
         self.strategy.take_payloads(payloads, senders, self.config.data.clients)
 
@@ -165,20 +180,48 @@ class ServerSide:
         results: Iterable[TrainRes],
         capacity: Mapping[int, int] | None = None,
         refused: Mapping[int, str] | None = None,
+        collective: Collective = ALONE,
     ) -> None:
         """The next global tensors from every upload of the round that the server takes
-        (all of them in this process); nothing changes where none is taken. ``capacity``:
-        :meth:`refusals`; ``refused``: uploads already refused (client -> why: a robot's
-        that could not be read)."""
+        (none taken: no change, but under DP the noise is released). ``results``: this
+        process's; ``collective``: the processes with the others, each calling this.
+        ``capacity``: :meth:`refusals`; ``refused``: uploads already refused (client ->
+        why: a robot's that could not be read)."""
         results = list(results)
         refused = {**(refused or {}), **self.refusals(results, capacity)}
-        results = self.screen(results, refused, self.update_norms(results, refused))
-        if not results and self.privacy is None:
+        parts = collective.all_gather((refused, self.update_norms(results, refused)))
+        refused = {c: why for part, _ in parts for c, why in part.items()}
+        norms = {c: norm for _, part in parts for c, norm in part.items()}
+        results = self.screen(results, refused, norms)  # on every process's norms
+        senders = sum(c not in self.refused for c in norms)  # taken, in every process
+        if self.strategy.needs_uploads:  # a statistic of every upload: gather them
+            taken = [r for part in collective.all_gather(results) for r in part]
+            if taken:
+                self.combine(sorted(taken, key=lambda r: r.client), senders)
             return
-        if self.strategy.needs_uploads:
-            self.combine(sorted(results, key=lambda r: r.client), len(results))
-        else:
-            self.update(*self.sums(results), len(results))
+        sums, total, payloads = self.sums(results)
+        total = self.all_reduce(sums, total, payloads, collective)
+        if total > 0 or self.privacy is not None:
+            self.update(sums, total, payloads, senders)
+
+    def all_reduce(
+        self, sums: Weights, total: float, payloads: Weights, collective: Collective
+    ) -> float:
+        """:meth:`sums`' results summed over the processes in one collective, ``sums`` and
+        ``payloads`` in place (zeros for a key a process has no sum of: none of its uploads
+        was taken); returns the summed ``total``."""
+        template = self.sum_template()
+        layout = [(sums, k, self.global_weights[k]) for k in self.keys]
+        layout += [(payloads, k, template[k]) for k in sorted(template)]
+        parts = [
+            out.get(k, torch.zeros_like(t, dtype=torch.float64)).flatten().double()
+            for out, k, t in layout
+        ]
+        flat = collective.all_reduce_sum(torch.cat([*parts, parts[0].new_tensor([total])]))
+        sizes = [t.numel() for *_, t in layout]
+        for (out, k, t), part in zip(layout, flat[:-1].split(sizes), strict=True):
+            out[k] = part.view(t.shape)
+        return float(flat[-1])
 
     def combine(self, results: list[TrainRes], senders: int) -> None:
         """The next global tensors from the strategy's statistic of the uploads
@@ -191,17 +234,7 @@ class ServerSide:
         self.global_weights = self.strategy.server_update(self.global_weights, aggregate)
         self.strategy.take_payloads(_payload_sums(results), senders, self.config.data.clients)
 
-    def update_if_any(self, sums: Weights, total: float, payloads: Weights, senders: int) -> None:
-        """:meth:`update`, where any upload was taken (``total`` > 0); under DP, always."""
-        if total > 0 or self.privacy is not None:
-            self.update(sums, total, payloads, senders)
-
     # ------------------------------------------------------------------ the record
-
-    def figures(self) -> dict[str, float]:
-        """The server's figures of the round besides its costs: under DP the accountant's
-        epsilon so far and the clip norm (``privacy/*``)."""
-        return {} if self.privacy is None else self.privacy.figures()
 
     def row(
         self, trained: TrainRes | None, evaluated: EvaluateRes, bytes_up: int, bytes_down: int
@@ -226,12 +259,23 @@ class ServerSide:
         seconds: float,
         missing: tuple[int, ...] = (),
         participants: list[int] | None = None,
+        served: tuple[dict[str, float], dict[str, float]] = ({}, {}),
+        faults: Mapping[int, str] | None = None,
+        names: Mapping[int, str] | None = None,
+        bad_scores: Mapping[int, str] | None = None,
     ) -> RoundLog:
         """The round's record; ``participants`` (the clients that trained) is kept where the
-        strategy chose fewer than all."""
+        strategy chose fewer than all. ``served``: the server's figures and the initial
+        model's scores (:func:`~fedlgr.core.server.evaluate.serve_round`), to which the
+        counts of the simulated ``faults`` (client -> what) are added; ``names``: client ->
+        its robot; ``bad_scores``: the clients whose scores were refused, client -> why."""
         clients = self.config.data.clients
         chosen = None if participants is None or len(participants) == clients else participants
         refused, self.refused = self.refused, {}
+        for client, why in (bad_scores or {}).items():  # their rows are left out
+            said = refused.get(client)
+            refused[client] = f"{said}; scores: {why}" if said else f"scores: {why}"
+        faults = dict(faults or {})
         return RoundLog(
             plan.round,
             self.tasks[plan.task],
@@ -239,8 +283,12 @@ class ServerSide:
             table_,
             seconds,
             missing,
+            served[0] | fault_counts(faults, self.config.federated.faults),
+            dict(served[1]),
             participants=None if chosen is None else tuple(chosen),
             refused=refused,
+            faults=faults,
+            names=dict(names or {}),
         )
 
     # ------------------------------------------------------------------ checkpoints

@@ -168,32 +168,30 @@ class FlowerRounds:
         # In client order, as in one process: the same sums to the last bit.
         unread = self.unread.pop(plan.round, {})
 
-        def aggregate() -> None:
-            if self.secure is not None:
-                self.secure.release(unread)
-            else:
+        def aggregate() -> dict[str, float]:
+            if self.secure is None:
                 uploads = (trained[c][1] for c in sorted(trained))
                 self.server.aggregate(uploads, self.capacity, unread)
+                return {}
+            self.secure.release(unread)
+            return self.secure.figures
 
-        server, initial = serve_round(
-            self.server, self.server_eval, plan.round, plan.task, aggregate
-        )
+        served = serve_round(self.server, self.server_eval, plan, aggregate)
         self.bad_scores = {}
         rows = self.evaluate(plan, chosen, trained, down)
         missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
         if missing:
             self.record_missing(plan.round, missing, trained)
-        table = self.server.table(rows)
-        log = self.server.round_log(
-            plan, table, time.perf_counter() - start, missing, participants=chosen
+        return self.server.round_log(
+            plan,
+            self.server.table(rows),
+            time.perf_counter() - start,
+            missing,
+            chosen,
+            served,
+            names=self.names,
+            bad_scores=self.bad_scores,  # their rows are left out
         )
-        secure = {} if self.secure is None else self.secure.figures
-        log.server, log.initial = server | self.server.figures() | secure, initial
-        log.names = dict(self.names)
-        for client, why in self.bad_scores.items():  # their rows are left out
-            said = log.refused.get(client)
-            log.refused[client] = f"{said}; scores: {why}" if said else f"scores: {why}"
-        return log
 
     def refuse(self, round_: int, node: int, client: int | None, what: str, why: str) -> None:
         """What a robot sent in round ``round_`` is not taken: its ``upload`` (kept for that
