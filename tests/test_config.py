@@ -316,41 +316,21 @@ def test_epochs_have_a_bound(override, said):
     assert load_config(None, ["method=FedLGR", "continual.lgr.root_epochs=0"])
 
 
-def test_the_old_flat_method_settings_are_read_for_one_more_release(tmp_path, capsys):
-    """``continual.lgr_hidden`` (before the settings moved into their method's section)
-    still sets ``continual.lgr.hidden``, in a file and on the command line, with one line
-    on stderr naming the old and the new name."""
+def test_the_old_flat_method_settings_are_unknown_settings(tmp_path, capsys):
+    """``continual.lgr_hidden`` (before the settings moved into their method's section) is
+    refused like any unknown setting, in a file and on the command line, with the setting
+    it is closest to: its new name."""
     old = tmp_path / "old.yaml"
-    old.write_text("federated:\n  strategy: opt\n  server_lr: 0.5\n  prox_mu: 0.25\n")
-    config = load_config(old, ["method=FedRootOpt", "continual.ewc_lambda=7"])
-    assert (config.federated.opt.lr, config.federated.prox.mu) == (0.5, 0.25)
-    assert config.continual.ewc.lambda_ == 7.0
-    err = capsys.readouterr().err.splitlines()
-    assert err == [
-        f"fedlgr: {old.resolve()}: deprecated setting names, read for one more release: "
-        "federated.server_lr is now federated.opt.lr; federated.prox_mu is now federated.prox.mu",
-        "fedlgr: command line: deprecated setting names, read for one more release: "
-        "continual.ewc_lambda is now continual.ewc.lambda_",
-    ]
-    # The new names say nothing; an unknown flat name is still an unknown setting.
-    load_config(None, ["continual.lgr.hidden=8"])
-    assert capsys.readouterr().err == ""
-    with pytest.raises(ConfigError, match=r"continual\.lgr_hiden: unknown setting"):
-        load_config(None, ["continual.lgr_hiden=8"])
-    # The old and the new name of one setting in one layer: refused, whichever comes last
-    # (the old name won silently before).
-    pair = ["continual.ewc_lambda=5", "continual.ewc.lambda_=7"]
-    for both in (pair, pair[::-1]):
-        with pytest.raises(ConfigError) as caught:
-            load_config(None, both)
-        assert str(caught.value) == (
-            "command line: continual.ewc_lambda and continual.ewc.lambda_ are one setting "
-            "(the first is its deprecated name), given twice: keep continual.ewc.lambda_"
-        )
-    old.write_text("federated:\n  prox_mu: 0.1\n  prox:\n    mu: 0.2\n")
-    with pytest.raises(ConfigError, match=f"{old.resolve()}: federated.prox_mu and federated"):
+    old.write_text("federated:\n  prox_mu: 0.25\n")
+    with pytest.raises(ConfigError) as caught:
         load_config(old)
-    # In different layers the later wins, as for any setting.
-    old.write_text("federated:\n  prox_mu: 0.1\n")
-    assert load_config(old, ["federated.prox.mu=0.3"]).federated.prox.mu == 0.3
-    assert load_config(old).federated.prox.mu == 0.1
+    assert str(caught.value) == (
+        f"{old.resolve()}: federated.prox_mu: unknown setting; did you mean federated.prox.mu?"
+    )
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, ["method=FedLGR", "continual.lgr_hidden=8"])
+    assert str(caught.value) == (
+        "command line: continual.lgr_hidden: unknown setting; did you mean continual.lgr.hidden?"
+    )
+    assert load_config(None, ["continual.lgr.hidden=8"]).continual.lgr.hidden == 8
+    assert capsys.readouterr().err == ""

@@ -4,9 +4,9 @@
   setting and its default; each checks itself on construction with the rules of
   :mod:`fedlgr.shell.checks.settings` (and :mod:`fedlgr.shell.checks.experiment`).
 - :mod:`.load`: the layers (defaults, a config file and what it ``includes``, found by
-  :mod:`.files`, the command line) merged by OmegaConf into the dataclasses, old names
-  read through :mod:`.deprecated`, ``${...}`` kept to the policy of
-  :mod:`.interpolation`, OmegaConf's errors made one line by :mod:`.messages`.
+  :mod:`.files`, the command line) merged by OmegaConf into the dataclasses, ``${...}``
+  kept to the policy of :mod:`.interpolation`, OmegaConf's errors made one line by
+  :mod:`.messages`.
 - :mod:`.export`: a config written out (YAML, flat MLflow params) and the settings' names.
 
 The names below are the package's public face: ``from fedlgr.shell.config import
@@ -32,7 +32,6 @@ from fedlgr.shell.config.data import (
     cache_dir_setting,
     default_cache_dir,
 )
-from fedlgr.shell.config.deprecated import DEPRECATED
 from fedlgr.shell.config.export import (
     flatten,
     known_settings,
@@ -59,7 +58,6 @@ from fedlgr.shell.config.settings import (
 __all__ = [
     "CONF_DIR",
     "DEFAULT_TASKS",
-    "DEPRECATED",
     "FCL_METHODS",
     "MAX_AUGMENT_COPIES",
     "MAX_EXPERIMENT_NAME",

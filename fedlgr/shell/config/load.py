@@ -14,7 +14,6 @@ from typing import Any
 
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
 from fedlgr.errors import ConfigError, first_line
-from fedlgr.shell.config.deprecated import renamed
 from fedlgr.shell.config.files import read_layers
 from fedlgr.shell.config.interpolation import check_interpolations, resolve
 from fedlgr.shell.config.messages import container_mismatch, merge_message, omegaconf_message
@@ -32,7 +31,6 @@ def load_config(
     if bad:
         raise ConfigError(f"override {bad[0]!r}: expected key=value (e.g. federated.rounds=5)")
     layers = [*layers, ("command line", _dotlist(overrides))]
-    layers = [(source, renamed(source, node)) for source, node in layers]
     interpolated: dict[str, tuple[Any, str]] = {}
     for source, node in layers:
         interpolated.update(check_interpolations(source, node))
