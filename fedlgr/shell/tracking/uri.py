@@ -83,7 +83,10 @@ def mask_password(uri: str) -> str:
     """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
     holds ``/`` or ``@``, or in a URL no parser reads), and the value of every query
     parameter named ``...password`` (libpq reads ``password`` and ``sslpassword`` there,
-    also percent-encoded, ``pass%77ord``): what fedlgr prints of a URI."""
+    also percent-encoded, ``pass%77ord``): what fedlgr prints of a URI. Not SQLAlchemy's
+    ``render_as_string(hide_password=True)``: it shows what follows a password's first
+    ``@`` as the host, masks no query parameter, sorts the query and re-encodes the path
+    (``my%20db`` as ``my db``), and fails on a URL it cannot read."""
     scheme, sep, rest = uri.partition("://")
     if not sep:
         return uri
