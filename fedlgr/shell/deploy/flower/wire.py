@@ -17,6 +17,7 @@ exchange per round instead of two.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 
@@ -89,12 +90,7 @@ def payload_bytes(content: RecordDict) -> int:
 
 
 def _plan_record(plan: RoundPlan, config_yaml: str | None = None) -> ConfigRecord:
-    record = {
-        "round": plan.round,
-        "task": plan.task,
-        "first_of_task": plan.first_of_task,
-        "last_of_task": plan.last_of_task,
-    }
+    record = dataclasses.asdict(plan)
     if config_yaml is not None:
         record["config"] = config_yaml
     return ConfigRecord(record)
