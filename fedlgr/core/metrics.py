@@ -21,27 +21,50 @@ from fedlgr.core.data.columns import LABEL_SHORT_NAMES
 Figures = dict[str, float]  # MLflow key -> value
 
 
+# The bounds of an error and of a correlation (Score.bounds).
+ERROR = (0.0, math.inf)
+CORRELATION = (-1.0, 1.0)
+
+
 @dataclass(frozen=True)
 class Score:
     """A score of a model's outputs on test scenes: computed per action over the whole test
     set (SPEC 5), reported as the mean over the 8 actions."""
 
     name: str  # test/<name>, task/<task>/<name>, server/test/<name>
-    label: str  # its heading in the console and the reports
+    label: str  # its heading in the console, the reports' tables and plots ("RMSE")
     higher_is_better: bool
     per_action: str  # its per-action figure: test/<per_action>/<action>
     about: str  # what it is, in one line
+    bounds: tuple[float, float]  # the values it can take: a robot's report outside is refused
+    headline: bool = True  # a researcher compares runs by it: runs table, curves, plots
+
+    @property
+    def arrow(self) -> str:
+        """How a heading says which way is better: ▲ higher, ▼ lower."""
+        return "▲" if self.higher_is_better else "▼"
 
 
 SCORES: tuple[Score, ...] = (
-    Score("loss", "loss", False, "mse", "mean squared error, averaged over the 8 actions"),
-    Score("rmse", "RMSE", False, "rmse", "root mean squared error per action, averaged"),
-    Score("pcc", "PCC", True, "pcc", "Pearson correlation per action (constant: 0), averaged"),
-    Score("ccc", "CCC", True, "ccc", "Lin's concordance correlation per action, averaged"),
-)
+    Score("loss", "loss", False, "mse", "mean squared error, averaged over the 8 actions",
+          ERROR, headline=False),  # the square of the RMSE: nothing more to compare runs by
+    Score("rmse", "RMSE", False, "rmse", "root mean squared error per action, averaged", ERROR),
+    Score("pcc", "PCC", True, "pcc", "Pearson correlation per action (constant: 0), averaged",
+          CORRELATION),
+    Score("ccc", "CCC", True, "ccc", "Lin's concordance correlation per action, averaged",
+          CORRELATION),
+)  # fmt: skip
 SCORE_NAMES = tuple(s.name for s in SCORES)
-# What a researcher compares runs by: every test score, the loss last.
-HEADLINE = tuple(f"test/{n}" for n in (*(n for n in SCORE_NAMES if n != "loss"), "loss"))
+
+
+def headline_scores() -> tuple[Score, ...]:
+    """The scores runs are compared by, in :data:`SCORES`' order: every writer's columns,
+    curves and plots. Read from SCORES at each call, so no writer holds a stale copy."""
+    return tuple(s for s in SCORES if s.headline)
+
+
+# The order MLflow lists a run's scores in: the headline scores, then the others.
+HEADLINE = tuple(f"test/{s.name}" for s in sorted(SCORES, key=lambda s: not s.headline))
 
 
 @dataclass(frozen=True)
