@@ -211,6 +211,9 @@ def test_a_run_with_a_poisoned_client_finishes_names_it_and_logs_the_count(
         ({"task/circle/ccc": -2.0}, "task/circle/ccc = -2 is out of [-1, 1]"),
         ({"test/rmse": -0.1}, "test/rmse = -0.1 is below 0"),
         ({"test/mse/vacuum": -1.0}, "test/mse/vacuum = -1 is below 0"),
+        ({"test/ccc/vacuum": 1.2}, "test/ccc/vacuum = 1.2 is out of [-1, 1]"),
+        ({"train/loss": -0.5}, "train/loss = -0.5 is below 0"),
+        ({"lgr/recon_mse": -0.5}, "lgr/recon_mse = -0.5 is below 0"),
         ({"cost/bytes_up": -5.0}, "cost/bytes_up = -5 is below 0"),
         ({"test/rmse": "0.9"}, "test/rmse = '0.9' is not a number"),
         ({"test/rmse": True}, "test/rmse = 'True' is not a number"),
@@ -219,5 +222,5 @@ def test_a_run_with_a_poisoned_client_finishes_names_it_and_logs_the_count(
 )
 def test_a_robots_reported_figures_are_checked_by_hand(figures, why):
     keys = {"test/rmse", "test/pcc", "test/ccc", "task/circle/ccc", "test/mse/vacuum"}
-    keys |= {"cost/cpu_s", "cost/bytes_up"}
+    keys |= {"test/ccc/vacuum", "train/loss", "lgr/recon_mse", "cost/cpu_s", "cost/bytes_up"}
     assert figures_refusal(figures, keys) == why

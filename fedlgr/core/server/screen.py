@@ -13,8 +13,9 @@ and its record names the client and why.
 
 What a client reports - its training figures with its upload, its scores - is checked
 where the client is not the server's own (a robot): each figure must have its column in
-the round's record and be a finite number, errors and costs not below 0, correlations in
-[-1, 1] (:func:`figures_refusal`).
+the round's record and be a finite number in its range - a score's bounds (errors not
+below 0, correlations in [-1, 1]; :class:`~fedlgr.core.metrics.Score`), a cost not below
+0 (:func:`figures_refusal`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from collections.abc import Collection, Mapping
 
 import torch
 
+from fedlgr.core import metrics
 from fedlgr.core.messages import TrainRes, Weights
 
 MAX_COUNT = 2**53  # a sample count above this is no float's whole number: a weight of nothing
@@ -126,14 +128,26 @@ def oversized(norms: dict[int, float], ratio: float) -> dict[int, str]:
     return out
 
 
-CORRELATIONS = frozenset({"pcc", "ccc"})  # in [-1, 1]
-NOT_NEGATIVE = frozenset({"loss", "mse", "rmse", "recon_mse"})  # errors, and every cost
-SLACK = 1e-5  # float32 sums can put a perfect correlation a hair over 1
+# Figures outside the scores (metrics.SCORES) with a range of their own, by name.
+OTHER_BOUNDS = {"recon_mse": metrics.ERROR}  # LGR's generator error
+# float32 sums can put a perfect correlation a hair over 1: a bound is widened by this
+# fraction of itself (an error, a sum of squares, never drops below 0)
+SLACK = 1e-5
+
+
+def _bounds() -> dict[str, tuple[float, float]]:
+    """The range of every bounded figure by the names its keys carry: a score's
+    (``test/pcc``, ``task/circle/pcc``) and its per-action figure's (``test/mse/vacuum``)."""
+    out = dict(OTHER_BOUNDS)
+    for score in metrics.SCORES:
+        out[score.name] = out[score.per_action] = score.bounds
+    return out
 
 
 def figures_refusal(figures: Mapping, keys: Collection[str]) -> str | None:
     """Why a client's reported ``figures`` cannot be recorded in a round whose columns are
     ``keys``, or None."""
+    bounds = _bounds()
     for key, value in figures.items():
         if key not in keys:
             return f"{str(key)[:80]!r} is not a figure of this run"
@@ -145,9 +159,11 @@ def figures_refusal(figures: Mapping, keys: Collection[str]) -> str | None:
             return f"{key} = an integer of {value.bit_length()} bits, beyond any float"
         if not math.isfinite(value):
             return f"{key} = {value} is not finite"
-        parts = set(key.split("/"))
-        if parts & CORRELATIONS and not -1 - SLACK <= value <= 1 + SLACK:
-            return f"{key} = {value:.4g} is out of [-1, 1]"
-        if (parts & NOT_NEGATIVE or key.startswith("cost/")) and value < 0:
-            return f"{key} = {value:.4g} is below 0"
+        ranges = [bounds[p] for p in key.split("/") if p in bounds]
+        if key.startswith("cost/"):
+            ranges.append(metrics.ERROR)
+        for low, high in ranges:
+            if not low - SLACK * abs(low) <= value <= high + SLACK * abs(high):
+                shown = f"below {low:g}" if high == math.inf else f"out of [{low:g}, {high:g}]"
+                return f"{key} = {value:.4g} is {shown}"
     return None
