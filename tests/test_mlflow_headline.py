@@ -79,6 +79,12 @@ def test_the_shared_view_draws_the_headline_on_fitted_axes():
     assert cards["fedlgr-rmse"]["metricKey"] == "test/rmse"
     assert cards["fedlgr-rmse"]["xAxisKey"] == "step"  # a curve over the rounds
     assert cards["fedlgr-scatter"]["xaxis"]["key"] == "test/rmse"
+    assert cards["fedlgr-scatter"]["yaxis"]["key"] == "test/pcc"
+    headline = ["test/rmse", "test/pcc", "test/ccc"]
+    assert [c["metricKey"] for c in state["compareRunCharts"][:3]] == headline
+    assert cards["fedlgr-parallel"]["selectedMetrics"] == headline
+    assert state["columnOrder"][:3] == [f"metrics.`{m}`" for m in headline]
+    assert (state["orderByKey"], state["orderByAsc"]) == ("metrics.`test/rmse`", True)
     assert state["columnWidths"]["metrics.`test/rmse`"] >= 150  # 0.8100731 uncut
 
 

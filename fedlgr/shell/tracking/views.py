@@ -6,16 +6,18 @@ sorting, charts, expanded parent runs) as the experiment tag
 ``mlflow.sharedViewState.<key>``, and ``?viewStateShareKey=<key>`` in the page's address
 loads it. fedlgr writes such a view, :data:`VIEW`, to every experiment it logs to:
 
-- the runs table shows ``test/rmse``, ``test/pcc``, ``test/ccc`` and the costs per client
-  per round (``mean/cost/cpu_s``, ``mean/cost/bytes_up``) as columns, with the method and
-  each sweep's swept settings, sorted by ``test/rmse``; a sweep's trials are shown (their
-  parent run expanded);
+- the runs table shows the headline scores (:func:`fedlgr.core.metrics.headline_scores`:
+  ``test/rmse``, ``test/pcc``, ``test/ccc``) and the costs per client per round
+  (``mean/cost/cpu_s``, ``mean/cost/bytes_up``) as columns, with the method and each
+  sweep's swept settings, sorted by the first score (``test/rmse``, best first); a sweep's
+  trials are shown (their parent run expanded);
 - the chart view opens on a "headline" section: per-round curves (line charts, step =
-  round) of ``test/rmse``, ``test/pcc`` and ``test/ccc`` for every run, a scatter of the
-  runs' final ``test/rmse`` against ``test/pcc``, and a parallel-coordinates plot of the
-  method and swept settings against both. Line and scatter charts fit their axes to the
-  values (0.810 and 0.811 are told apart); MLflow's bar charts start at 0 and have no
-  range setting (its BAR card holds a metric key only), so there are none.
+  round) of every headline score for every run, a scatter of the runs' final first error
+  against their first correlation (``test/rmse`` against ``test/pcc``), and a
+  parallel-coordinates plot of the method and swept settings against the headline scores.
+  Line and scatter charts fit their axes to the values (0.810 and 0.811 are told apart);
+  MLflow's bar charts start at 0 and have no range setting (its BAR card holds a metric
+  key only), so there are none.
 
 The state is the MLflow UI's own format (MLflow 3.17): ``selectedColumns`` as
 ``metrics.`key``` / ``params.`key```, chart cards by type, ``columnOrder`` and
@@ -32,14 +34,14 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable
 
-from fedlgr.core.metrics import HEADLINE
+from fedlgr.core.metrics import Score, headline_scores
 
 VIEW = "fedlgr"
 TAG = f"mlflow.sharedViewState.{VIEW}"
 SECTION = "fedlgr-headline"
-# the runs table's metric columns: every score but the loss (the square of the RMSE), then
-# the costs; the table sorts them by name and shows about six in a 1400-pixel window
-COLUMNS = (*(m for m in HEADLINE if m != "test/loss"), "mean/cost/cpu_s", "mean/cost/bytes_up")
+# the runs table's metric columns after the headline scores; the table sorts its columns by
+# name and shows about six in a 1400-pixel window
+COST_COLUMNS = ("mean/cost/cpu_s", "mean/cost/bytes_up")
 # The runs table's metric columns are 100 pixels wide unless a view says otherwise: 0.8100731
 # and a header such as mean/cost/bytes_up were cut ("0.81007307..."). Wide enough for 7
 # significant digits and the longest header in the table's font.
@@ -47,9 +49,6 @@ METRIC_WIDTH = 150
 MAX_PARAMS = 6  # in the parallel-coordinates plot, the runs table's columns too
 MAX_EXPANDED = 40  # the newest sweeps' parent runs (an experiment tag holds 5000 characters)
 
-
-# Per-round curves, in the chart view's first row.
-CURVES = ("test/rmse", "test/pcc", "test/ccc")
 LINE = {  # MLflow's LINE card: x the step, linear axes, no fixed range (fitted)
     "xAxisKey": "step",
     "scaleType": "linear",
@@ -61,6 +60,10 @@ LINE = {  # MLflow's LINE card: x the step, linear axes, no fixed range (fitted)
 }
 
 
+def _key(score: Score) -> str:
+    return f"test/{score.name}"
+
+
 def _card(uuid: str, kind: str, **fields) -> dict:
     base = {"uuid": uuid, "type": kind, "metricSectionId": SECTION, "runsCountToCompare": 10}
     return {**base, "deleted": False, "isGenerated": False, **fields}
@@ -70,35 +73,39 @@ def view_state(params: Iterable[str], expanded: Iterable[str]) -> dict:
     """The shared state: ``params`` as columns and plot axes, the runs ``expanded`` (sweep
     parent runs) open."""
     params = list(dict.fromkeys(params))[:MAX_PARAMS]
-    lines = [  # x: the round (step), y: fitted to the values
-        _card(f"fedlgr-{m.rsplit('/', 1)[-1]}", "LINE", metricKey=m, displayName=m, **LINE)
-        for m in CURVES
+    scores = headline_scores()
+    keys = [_key(s) for s in scores]
+    lines = [  # the chart view's first row: x the round (step), y fitted to the values
+        _card(f"fedlgr-{s.name}", "LINE", metricKey=k, displayName=k, **LINE)
+        for s, k in zip(scores, keys, strict=True)
     ]
-    scatter = _card(
+    error = next(s for s in scores if not s.higher_is_better)
+    correlation = next(s for s in scores if s.higher_is_better)
+    scatter = _card(  # an error against a correlation: how the two rankings agree
         "fedlgr-scatter",
         "SCATTER",
-        xaxis={"key": "test/rmse", "type": "METRIC"},
-        yaxis={"key": "test/pcc", "type": "METRIC"},
+        xaxis={"key": _key(error), "type": "METRIC"},
+        yaxis={"key": _key(correlation), "type": "METRIC"},
         runsCountToCompare=100,
     )
     parallel = _card(
         "fedlgr-parallel",
         "PARALLEL",
         selectedParams=params,
-        selectedMetrics=["test/rmse", "test/pcc"],
+        selectedMetrics=keys,
         showAllRuns=False,
     )
     charts = [*lines, scatter, parallel]
     section = {"uuid": SECTION, "name": "headline", "display": True, "isReordered": True}
-    metrics = [f"metrics.`{m}`" for m in COLUMNS]
+    metrics = [f"metrics.`{m}`" for m in (*keys, *COST_COLUMNS)]
     return {
         "selectedColumns": metrics + [f"params.`{p}`" for p in params],
         # ids of the columns whose width is set (MLflow applies widths in this order; a
         # column it does not list keeps MLflow's place and width)
         "columnOrder": metrics,
         "columnWidths": dict.fromkeys(metrics, METRIC_WIDTH),
-        "orderByKey": "metrics.`test/rmse`",
-        "orderByAsc": True,
+        "orderByKey": f"metrics.`{keys[0]}`",  # best first
+        "orderByAsc": not scores[0].higher_is_better,
         "runsExpanded": {run_id: True for run_id in expanded},
         "compareRunCharts": charts,
         "compareRunSections": [{**section, "deleted": False, "isGenerated": False}],
