@@ -20,6 +20,7 @@ from fedlgr.shell.report import ReportError, make_report
 from fedlgr.shell.report.tables import mark_best, mark_lower_of_pair, reduction_percent
 from fedlgr.shell.run.experiment import run_experiment
 from fedlgr.shell.tracking.context import run_params
+from tests.support.figures import drawn_figures
 from tests.support.report import markdown_blocks, parse
 from tests.support.runs import fast_config
 
@@ -578,3 +579,26 @@ def test_paper_rows_give_the_published_values_under_each_method_unmarked(store, 
     _, rows2 = markdown_blocks(tmp_path / "out" / "table2.md")["W/O augmentation"]
     after = ["0.252", "0.499", "0.599", "—", "0.465", "0.677", "0.534", "—"]  # no CCC
     assert rows2["FedLGR (paper)"][:8] == after
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def test_every_headline_score_is_drawn_where_pcc_is(store, tmp_path):
+    """test/ccc was logged but missing from the report's plots: every panel drawn for PCC
+    has its CCC twin, and every headline score has its curves and forgetting bars."""
+    client = mlflow.MlflowClient(store)
+    experiment_id = client.create_experiment("headline", artifact_location=tmp_path.as_uri())
+    for benchmark, method in (("FL", "FedAvg"), ("FCL", "FedAvg-EWC")):
+        tags = {"method": method, "benchmark": benchmark, "clients": "2", "augmentation": "false"}
+        logged = {f"test/{m}": 0.5 for m in SCORES}
+        logged |= {f"after_task1/task/circle/{m}": 0.5 for m in SCORES}
+        logged |= {f"after_task2/forgetting/circle/{m}": 0.1 for m in SCORES}
+        _finished_run(client, experiment_id, tags, logged)
+    with drawn_figures() as drawn:
+        report = make_report(store, experiment="headline", out=tmp_path / "out", log=False)
+    assert report.plots == ["fl_curves.png", "fcl_curves.png", "forgetting.png"]
+    assert drawn["FL: test scores per round"] == ["test RMSE", "test PCC", "test CCC"]
+    assert drawn["FCL: test scores per round"] == ["test RMSE", "test PCC", "test CCC"]
+    forgetting = "FCL: forgetting of Task 1 after the last task (positive = forgotten)"
+    assert drawn[forgetting] == [f"forgetting of Task 1, {m}" for m in ("RMSE", "PCC", "CCC")]

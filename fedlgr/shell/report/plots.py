@@ -1,9 +1,10 @@
 """The report's PNGs (matplotlib, Agg backend): per-round curves, forgetting and costs.
 
-* ``{fl,fcl}_curves.png``: test RMSE and PCC per round, a line per method (the mean over
-  its runs), a row of panels per setting (clients, augmentation);
+* ``{fl,fcl}_curves.png``: every headline score per round (test RMSE, PCC, CCC: a column
+  of panels each), a line per method (the mean over its runs), a row of panels per setting
+  (clients, augmentation);
 * ``forgetting.png``: Task 1's forgetting at the end (``after_task{K}/forgetting/...``,
-  positive = forgotten), RMSE and PCC, a bar per method and setting;
+  positive = forgotten) of every headline score, a bar per method and setting;
 * ``{fl,fcl}_costs.png``: CPU s and GPU % per client per round, a bar per method and
   setting.
 
@@ -16,6 +17,7 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
+from fedlgr.core.metrics import headline_scores
 from fedlgr.shell.report.runs import RunRecord
 from fedlgr.shell.report.tables import BLOCKS, method_order
 
@@ -27,6 +29,11 @@ Bars = dict[Setting, dict[str, float]]  # setting -> method -> value
 def setting_label(setting: Setting) -> str:
     clients, augmented = setting
     return f"{clients} clients, {dict(BLOCKS)[augmented]}"
+
+
+def curve_keys() -> list[str]:
+    """The metrics drawn per round, whose histories :func:`write_plots` takes."""
+    return [f"test/{s.name}" for s in headline_scores()]
 
 
 def write_plots(
@@ -42,16 +49,16 @@ def write_plots(
         order = method_order(benchmark, runs)
         prefix = benchmark.lower()
         curves = {
-            label: mean_curves(runs, histories.get(metric, {}))
-            for metric, label in (("test/rmse", "test RMSE"), ("test/pcc", "test PCC"))
+            f"test {s.label}": mean_curves(runs, histories.get(f"test/{s.name}", {}))
+            for s in headline_scores()
         }
         name = f"{prefix}_curves.png"
         if curves_plot(out / name, f"{benchmark}: test scores per round", curves, order):
             written.append(name)
         if benchmark == "FCL":
             bars = {
-                f"forgetting of Task 1, {m.upper()}": forgetting_bars(runs, m)
-                for m in ("rmse", "pcc")
+                f"forgetting of Task 1, {s.label}": forgetting_bars(runs, s.name)
+                for s in headline_scores()
             }
             title = "FCL: forgetting of Task 1 after the last task (positive = forgotten)"
             if bar_plot(out / "forgetting.png", title, bars, order):

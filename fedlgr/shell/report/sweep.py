@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from fedlgr.core.metrics import headline_scores
 from fedlgr.shell.checks.stores import check_database
 from fedlgr.shell.config import short_setting
 from fedlgr.shell.report.runs import Selection, pages
@@ -28,10 +29,14 @@ from fedlgr.shell.report.sweep_plots import write_study_plots
 from fedlgr.shell.report.tables import Table
 from fedlgr.shell.tracking.uri import mask_password, server_database, sqlite_file
 
-# The headline scores each row shows besides the objective, with their headings.
-HEADLINE = (("test/rmse", "test RMSE ▼"), ("test/pcc", "test PCC ▲"), ("test/ccc", "test CCC ▲"))
 PARENT_ATTR = "mlflow_parent_run_id"  # the study's user attribute naming its parent run
 MLFLOW_STATES = {"FINISHED": "COMPLETE", "KILLED": "PRUNED", "FAILED": "FAIL"}
+
+
+def headline() -> list[tuple[str, str]]:
+    """The scores each row shows besides the objective, with their headings: every headline
+    score (``test/rmse``, ``test RMSE ▼``)."""
+    return [(f"test/{s.name}", f"test {s.label} {s.arrow}") for s in headline_scores()]
 
 
 @dataclass
@@ -123,7 +128,7 @@ def _optuna_row(trial, runs: dict[str, Any]) -> TrialRow | None:
         return None
     run = runs.get(trial.user_attrs.get("mlflow_run_id", ""))
     metrics = run.data.metrics if run is not None else {}
-    scores = {m: metrics[m] for m, _ in HEADLINE if m in metrics}
+    scores = {m: metrics[m] for m, _ in headline() if m in metrics}
     return TrialRow(trial.number, dict(trial.params), trial.value, scores, trial.state.name)
 
 
@@ -135,7 +140,7 @@ def _mlflow_row(run, metric: str) -> TrialRow:
         params = {}
     state = MLFLOW_STATES.get(run.info.status, run.info.status)
     value = metrics.get(metric) if state == "COMPLETE" else None
-    scores = {m: metrics[m] for m, _ in HEADLINE if m in metrics}
+    scores = {m: metrics[m] for m, _ in headline() if m in metrics}
     return TrialRow(int(run.data.tags["trial"]), params, value, scores, state)
 
 
@@ -157,7 +162,7 @@ def columns(trials: Trials) -> list[tuple[str, str]]:
         ("trial", "trial"),
         *[(p, short_setting(p)) for p in trials.params],
         (f"objective: {trials.metric}", f"objective: {trials.metric} {arrow}"),
-        *HEADLINE,
+        *headline(),
         ("state", "state"),
     ]
 
@@ -169,7 +174,7 @@ def _cells(trials: Trials, row: TrialRow, shown: bool) -> list[str]:
         return f"{v:.4f}" if shown else repr(float(v))
 
     params = [str(row.params[p]) if p in row.params else "" for p in trials.params]
-    scores = [number(row.scores.get(m)) for m, _ in HEADLINE]
+    scores = [number(row.scores.get(m)) for m, _ in headline()]
     return [str(row.number), *params, number(row.value), *scores, row.state]
 
 

@@ -32,10 +32,6 @@ from fedlgr.shell.report.runs import RunRecord
 
 PAPER_CLIENTS = (2, 10)
 BLOCKS = ((False, "W/O augmentation"), (True, "W/ augmentation"))
-# Name, heading, lower is better: every score (fedlgr.core.metrics.SCORES).
-SCORES = tuple(
-    (s.name, s.label[:1].upper() + s.label[1:], not s.higher_is_better) for s in METRIC_SCORES
-)
 # The server process's CPU over clients x rounds: what the paper's Tables III/IV measured
 # (docs/methods.md, "Table III and IV: what the paper measured"); a row only where runs have it.
 PAPER_CPU = "mean/cost/paper_cpu_s"
@@ -238,7 +234,7 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
     columns, metrics = [], []
     for c in clients:
         for prefix, stage in stages:
-            for name, label, lower in SCORES:
+            for name, label, lower in score_columns():
                 metric = f"{prefix}test/{name}"
                 header = (f"{c} clients", *stage, label)
                 columns.append(Column(f"{c}c/{metric}", header, lower, " · ".join(header[:-1])))
@@ -276,6 +272,13 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
         _runs_note(runs, [c for b in blocks for _, row in b.rows for c in row], source),
     ]
     return Table(name, caption, "Method", "augmentation", columns, blocks, len(runs), notes)
+
+
+def score_columns() -> list[tuple[str, str, bool]]:
+    """Name, heading, lower is better: every score (fedlgr.core.metrics.SCORES)."""
+    return [
+        (s.name, s.label[:1].upper() + s.label[1:], not s.higher_is_better) for s in METRIC_SCORES
+    ]
 
 
 def _scores_named() -> str:
