@@ -1,5 +1,5 @@
-"""Every client evaluates its own model on the shared test set (SPEC 5); the server scores
-the global model on the same scenes (``federated.server_eval``)."""
+"""Every client evaluates its own model on the shared test set (docs/methods.md); the
+server scores the global model on the same scenes (``federated.server_eval``)."""
 
 from __future__ import annotations
 

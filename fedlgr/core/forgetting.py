@@ -1,4 +1,4 @@
-"""FCL metrics (SPEC 5): scores after each task, and the forgetting of past tasks.
+"""FCL metrics (docs/methods.md): scores after each task, and the forgetting of past tasks.
 
 "After Task k" is measured at the end of task k's last round, on the test scenes of all
 tasks seen so far (the paper: after Task 1 on circle, after Task 2 on circle + arrow), and

@@ -29,7 +29,7 @@ CORRELATION = (-1.0, 1.0)
 @dataclass(frozen=True)
 class Score:
     """A score of a model's outputs on test scenes: computed per action over the whole test
-    set (SPEC 5), reported as the mean over the 8 actions."""
+    set (not per batch), reported as the mean over the 8 actions."""
 
     name: str  # test/<name>, task/<task>/<name>, server/test/<name>
     label: str  # its heading in the console, the reports' tables and plots ("RMSE")

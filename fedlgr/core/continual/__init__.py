@@ -1,4 +1,4 @@
-"""Continual-learning methods as client plugins (SPEC 4.2), by ``continual.method``.
+"""Continual-learning methods as client plug-ins (docs/fedlgr.md), by ``continual.method``.
 
 Each method is one module here (``ewc.py``, ``si.py``, ``lgr.py`` for FedLGR's latent
 generative replay, ...), registered in :data:`fedlgr.core.methods.CONTINUAL` with its settings

@@ -1,4 +1,4 @@
-"""FedLGR's client side: latent generative replay (the paper's Algorithm 1, SPEC 4.2).
+"""FedLGR's client side: latent generative replay (the paper's Algorithm 1).
 
 FedLGR = FedRoot aggregation (scope ``root``) + this plugin on every client. In Task 1 the
 client trains as FedRoot does. At the end of every task its generator (a VAE over root

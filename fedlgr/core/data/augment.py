@@ -1,10 +1,10 @@
 """Training batches straight from the in-memory stores, with the paper's augmentation.
 
-SPEC 2.3 / the paper's "W/ augmentation": each training scene appears ``copies`` (10)
-times per epoch; each appearance is flipped horizontally with p=0.5 and rotated by an
-angle uniform in [-10, 10] degrees with p=0.5; images are then scaled to 0..1 and
-normalised with the ImageNet mean/std. A batch is one gather from the uint8 store, moved
-to the device as uint8 (a quarter of the bytes of float32) and augmented there.
+The paper's "W/ augmentation": each training scene appears ``copies`` (10) times per
+epoch; each appearance is flipped horizontally with p=0.5 and rotated by an angle uniform
+in [-10, 10] degrees with p=0.5; images are then scaled to 0..1 and normalised with the
+ImageNet mean/std. A batch is one gather from the uint8 store, moved to the device as
+uint8 (a quarter of the bytes of float32) and augmented there.
 
 The descriptors (the features modality) are augmented as the LEAP-HRI'24 benchmark does
 it (:class:`InputNoise`): ``copies`` rows per training scene with Gaussian noise on the 27
@@ -76,7 +76,7 @@ def rotate(images: torch.Tensor, degrees: torch.Tensor) -> torch.Tensor:
 
 
 class Augment:
-    """Per-image random flip and rotation (SPEC 2.3), drawn from an explicit generator."""
+    """Per-image random flip and rotation, drawn from an explicit generator."""
 
     def __init__(self, flip_p: float = 0.5, rotate_p: float = 0.5, max_degrees: float = 10.0):
         self.flip_p, self.rotate_p, self.max_degrees = flip_p, rotate_p, max_degrees

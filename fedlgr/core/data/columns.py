@@ -1,4 +1,4 @@
-"""The MANNERS-DB column layout (SPEC 2.1), written exactly as the dataset spells it.
+"""The MANNERS-DB column layout (docs/data.md), written exactly as the dataset spells it.
 
 ``all_data.csv`` has one row per *rating*: the scene id, the two mode flags, 27 scene
 descriptors normalised to 0..1 and the 8 Likert labels (1..5). The names below are the

@@ -1,4 +1,4 @@
-"""What a client's training costs (SPEC 5): CPU and wall seconds, GPU seconds, utilisation
+"""What a client's training costs: CPU and wall seconds, GPU seconds, utilisation
 and memory.
 
 CPU seconds are the process's user + system time (all its threads, plus any child

@@ -1,4 +1,4 @@
-"""Test scores (SPEC 5) with torchmetrics, over the whole test set: every score of
+"""Test scores with torchmetrics, over the whole test set: every score of
 :data:`fedlgr.core.metrics.SCORES`, per action, by its name.
 
 ``loss`` is the per-action MSE, ``rmse`` its square root, ``pcc`` the Pearson correlation,

@@ -1,4 +1,4 @@
-"""FedLGR's generator (SPEC 3): a VAE over the root's latent features.
+"""FedLGR's generator (docs/fedlgr.md): a VAE over the root's latent features.
 
 Encoder: in -> hidden -> hidden -> (mu, log-variance) of a ``latent``-d code; the decoder
 mirrors it. Loss: reconstruction (squared error summed over features) + ``beta`` x the KL

@@ -1,4 +1,4 @@
-"""The scholar model (SPEC 3, the paper's Fig. 2): a feature-extracting root and a task top.
+"""The scholar model (the paper's Fig. 2): a feature-extracting root and a task top.
 
 * ``MobileNetRoot``: MobileNetV2 ``features`` + global average pool -> 1280-d (less for a
   width multiplier < 1); ImageNet weights, random init or a local state-dict file.
@@ -207,7 +207,7 @@ class Top(L.LightningModule):
 
 
 class Scholar(L.LightningModule):
-    """Root + top; Adam with one parameter group each (SPEC 3: lr_R and lr_T; the paper's
+    """Root + top; Adam with one parameter group each (the paper's lr_R and lr_T; its
     1e-3 and betas unless given: ``train.lr_root``, ``train.lr_top``, ``train.betas``).
     ``weight_decay``: Adam's L2 penalty on every parameter (``torch.optim.Adam``'s, added to
     the gradient before the moments, as the LEAP-HRI'24 code's Adam(lr=0.01,

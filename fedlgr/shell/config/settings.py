@@ -33,7 +33,7 @@ SERVER_EVAL_ALIASES = {"true": "on", "false": "off"}
 @dataclass(frozen=True)
 class ModelConfig:
     """The scholar: a root (MobileNetV2 features + pool, or an MLP for the features
-    modality) and a top (BN -> 32 -> BN -> 8), SPEC 3."""
+    modality) and a top (BN -> 32 -> BN -> 8), the paper's Fig. 2."""
 
     root: str = "auto"  # auto: mobilenet_v2 for images, mlp for features
     weights: str = "none"  # imagenet | none | path to a state dict file
@@ -142,7 +142,7 @@ class DPConfig:
 @dataclass(frozen=True)
 class _FederatedConfig:
     """What is shared (scope), how it is aggregated (strategy, with each strategy's
-    settings under ``federated.<strategy>``: ``federated.prox.mu``), SPEC 4.1."""
+    settings under ``federated.<strategy>``: ``federated.prox.mu``; docs/methods.md)."""
 
     strategy: str = "avg"
     scope: str = "full"
@@ -294,8 +294,8 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class _ContinualConfig:
-    """Federated continual learning (SPEC 4.2): a task schedule and a CL method, with each
-    method's settings under ``continual.<method>`` (``continual.ewc.lambda_``).
+    """Federated continual learning (docs/fedlgr.md): a task schedule and a CL method, with
+    each method's settings under ``continual.<method>`` (``continual.ewc.lambda_``).
 
     ``tasks`` lists task names of ``data.tasks`` in training order; empty means plain FL
     (all training scenes at once, ``federated.rounds`` rounds). With tasks, each task is

@@ -1,4 +1,4 @@
-"""Read and validate ``all_data.csv``, and average the ratings of each scene (SPEC 2.1).
+"""Read and validate ``all_data.csv``, and average the ratings of each scene (docs/data.md).
 
 Every problem is reported with the file, the row (data rows count from 1; the header is
 line 1 of the file, so row r is line r + 1) or the stamp, and the column. All problems in

@@ -1,4 +1,4 @@
-"""Train/test split, client shards and continual-learning tasks (SPEC 2.3).
+"""Train/test split, client shards and continual-learning tasks (docs/data.md).
 
 All functions work on positions into a :class:`~fedlgr.shell.data.dataset.Scenes` and are
 deterministic for a seed. The test set is shared by every client.

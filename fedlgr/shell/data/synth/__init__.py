@@ -1,4 +1,4 @@
-"""A seeded synthetic living room written in the exact MANNERS-DB layout (SPEC 2.2).
+"""A seeded synthetic living room written in the exact MANNERS-DB layout (docs/data.md).
 
 ``fedlgr data synth --out DIR --scenes N --seed S [--size PX]`` writes ``DIR/all_data.csv``
 (one row per rating, the 38 MANNERS-DB columns in order) and ``DIR/images/<stamp>.png``, so
