@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from fedlgr.shell.data.synth import synthesize
+from fedlgr.shell.tracking.store import open_client
 from tests.support.checkout import REPO, ignored, untracked_files
 from tests.support.ports import free_port, wait_healthy
 
@@ -41,6 +42,17 @@ def checkout_unchanged(tmp_path_factory):
             f"temp folders): {'; '.join(listing[:20])}{more}",
             pytrace=False,
         )
+
+
+@pytest.fixture(scope="session", autouse=True)
+def empty_store(tmp_path_factory) -> Path:
+    """One migrated, empty MLflow store per session (each xdist worker its own), which every
+    new sqlite store a test makes - in this process or a child - starts as a copy of
+    (``$FEDLGR_EMPTY_STORE``): MLflow's migrations take seconds per store."""
+    path = tmp_path_factory.mktemp("empty-store") / "mlflow-empty.db"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("FEDLGR_EMPTY_STORE", str(path))
+        yield path
 
 
 @pytest.fixture(scope="session")
@@ -90,6 +102,7 @@ def mlflow_server(tmp_path_factory):
     """A real ``mlflow server`` on a free localhost port, shared by a test module's tests
     (it takes ~18 s to start); each test logs to its own experiment."""
     tmp_path = tmp_path_factory.mktemp("mlflow-server")
+    open_client(f"sqlite:///{tmp_path}/server.db")  # a copy of the empty store: no migrations
     port = free_port()
     process = subprocess.Popen(
         [

@@ -23,6 +23,7 @@ import errno
 import logging
 import os
 import shutil
+import sqlite3
 import sys
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from filelock import FileLock
 
 from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable, database_connection
+from fedlgr.shell.config.data import default_cache_dir
 from fedlgr.shell.tracking.uri import DATABASES, mask_password, masked_text, sqlite_file
 
 UI_PORT = 5000  # mlflow ui's default
@@ -175,11 +177,42 @@ def create_whole(uri: str) -> None:
         return
     making = path.with_name(f".{path.name}.creating")
     making.unlink(missing_ok=True)
+    empty = empty_store()
+    if empty is not None:
+        shutil.copyfile(empty, making)
     query = uri.partition("?")[2]
     mlflow.MlflowClient(f"sqlite:///{making}" + (f"?{query}" if query else "")).search_experiments(
         max_results=1
     )
     os.replace(making, path)
+
+
+def empty_store() -> Path | None:
+    """A migrated sqlite store with no experiment, made once per MLflow version and copied
+    for every new store: MLflow's migrations take seconds, a copy milliseconds. MLflow puts
+    its Default experiment's artifacts under the creating process's working folder, so the
+    template has none: opening a copy creates it where a fresh store would.
+    ``$FEDLGR_EMPTY_STORE`` names the file (default: in the cache folder); None where it
+    cannot be made there (a new store is then migrated in place)."""
+    import mlflow  # lazy: mlflow (seconds), only once a command opens its store
+
+    default = default_cache_dir() / f"mlflow-{mlflow.__version__}-empty.db"
+    path = Path(os.environ.get("FEDLGR_EMPTY_STORE", default))
+    if path.is_file() and not path.is_symlink():
+        return path
+    making = path.with_name(f".{path.name}.{os.getpid()}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        mlflow.MlflowClient(f"sqlite:///{making}").search_experiments(max_results=1)
+        with contextlib.closing(sqlite3.connect(making)) as db, db:
+            db.execute("DELETE FROM experiment_tags WHERE experiment_id = 0")
+            db.execute("DELETE FROM experiments WHERE experiment_id = 0")
+        os.replace(making, path)  # atomic: two processes making it at once both succeed
+    except (OSError, sqlite3.Error):
+        with contextlib.suppress(OSError):  # where the folder could not be made, nothing is
+            making.unlink(missing_ok=True)
+        return None
+    return path
 
 
 def _cause(err: BaseException) -> str:
