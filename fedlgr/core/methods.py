@@ -116,7 +116,7 @@ class OptSettings(Settings):
     betas: tuple[float, float] = setting((0.9, 0.99), kind="betas")
     tau: float = setting(1e-3, above=0)
     variant: str = setting("adam", choices=("adam", "yogi", "adagrad"))
-    # the second moment's start: tau2 (the paper's v_-1 = tau^2) | zero (fedlgr before issue 48)
+    # the second moment's start: tau2 (the paper's v_-1 = tau^2) | zero (fedlgr's earlier form)
     v0: str = setting("tau2", choices=("tau2", "zero"))
 
 
@@ -192,8 +192,8 @@ class EWCSettings(Settings):
     lambda_: float = setting(1000.0, least=0)
     # the Fisher, each scene's squared gradient averaged over the task's scenes: empirical
     # (of its MSE to the labels, Kirkpatrick et al.'s) | model (to outputs + N(0, 4) noise) |
-    # batch (each mini-batch's squared gradient, and no 1/2 in the penalty: fedlgr before
-    # issue 48, about 1/batch-size of the others) | batch_model (model so, before issue 48)
+    # batch (each mini-batch's squared gradient, and no 1/2 in the penalty: fedlgr's earlier
+    # form, about 1/batch-size of the others) | batch_model (model so: fedlgr's earlier form)
     fisher: str = setting("empirical", choices=("empirical", "model", "batch", "batch_model"))
     gamma: float = setting(0.9, least=0, most=1)  # EWC-Online: decay of the running Fisher
 
@@ -202,11 +202,11 @@ class EWCSettings(Settings):
 class SISettings(Settings):
     c: float = setting(1.0, least=0)  # penalty coefficient
     xi: float = setting(0.1, least=0)  # damping
-    # none (Zenke et al.'s eq. 5) | task (each task's gain clamped at 0: fedlgr before issue
-    # 48) | total (the summed importance clamped at 0: the authors' code)
+    # none (Zenke et al.'s eq. 5) | task (each task's gain clamped at 0: fedlgr's
+    # earlier form) | total (the summed importance clamped at 0: the authors' code)
     clamp: str = setting("none", choices=("none", "task", "total"))
     # the gradient in the path integral: loss (without SI's penalty, as published) |
-    # loss+penalty (fedlgr before issue 48)
+    # loss+penalty (fedlgr's earlier form)
     path_gradient: str = setting("loss", choices=("loss", "loss+penalty"))
 
 
@@ -214,7 +214,7 @@ class SISettings(Settings):
 class MASSettings(Settings):
     lambda_: float = setting(1.0, least=0)  # penalty coefficient
     # sample (|gradient of each scene's squared output norm|, averaged: Aljundi et al.'s) |
-    # batch (of each mini-batch's mean: fedlgr before issue 48)
+    # batch (of each mini-batch's mean: fedlgr's earlier form)
     importance: str = setting("sample", choices=("sample", "batch"))
 
 

@@ -1,5 +1,5 @@
 """Latent drift in FedLGR: how far the root's latents move in a later task, and a map that
-carries replayed latents along (issue 19).
+carries replayed latents along (docs/fedlgr.md).
 
 FedLGR replays latents of past tasks - the generator's, or the stored oracle's real ones -
 in the space of the root as it was when they were learnt. From the second task on the root

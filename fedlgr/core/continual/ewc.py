@@ -17,13 +17,12 @@ noise's variance. The penalty then weighs the past task's Fisher in the units of
 loss it is added to, as Kirkpatrick et al.'s lambda does. (A unit-variance Gaussian's
 Fisher, sum_a (f_a - y_a) grad f_a squared, is 16x this one.)
 
-* ``batch``: the form fedlgr used before issue 48, kept to reproduce its runs (with its
-  lambda then, 100): the squared gradient of each mini-batch's mean loss, averaged over
-  batches, and the penalty without the 1/2. It is about 1/batch-size of the per-scene
-  Fisher (0.146x median at batch 8 on the descriptors' MLP: bench/README.md), so its
-  lambdas mean something else;
-* ``batch_model``: ``model`` as fedlgr computed it before issue 48, the same way per
-  mini-batch, to outputs + N(0, 1) noise.
+* ``batch``: fedlgr's earlier form, kept to reproduce runs made with it (and its lambda,
+  100): the squared gradient of each mini-batch's mean loss, averaged over batches, and the
+  penalty without the 1/2. It is about 1/batch-size of the per-scene Fisher, so its
+  lambdas mean something else (docs/fedlgr.md, "EWC's lambda");
+* ``batch_model``: fedlgr's earlier ``model``, the same way per mini-batch, to outputs +
+  N(0, 1) noise.
 
 EWC keeps one penalty term per past task, (lambda / 2) sum_t sum_i F_t,i (theta_i -
 theta*_t,i)^2 (Kirkpatrick et al., eq. 3). EWC-Online keeps one running Fisher,
@@ -43,7 +42,7 @@ from fedlgr.core.continual.penalty import (
     snapshot,
 )
 
-BATCH_KINDS = ("batch", "batch_model")  # the forms before issue 48: no 1/2 in the penalty
+BATCH_KINDS = ("batch", "batch_model")  # fedlgr's earlier forms: no 1/2 in the penalty
 # the standard deviation of the Gaussian whose negative log-likelihood is the MSE over the
 # actions, (1/8) sum (f - y)^2 = sum (f - y)^2 / (2 x 2^2)
 LIKELIHOOD_STD = 2.0
@@ -93,7 +92,7 @@ class EWC(QuadraticPenalty):
     def __init__(
         self, lam: float, kind: str = "empirical", max_batches: int | None = None, seed: int = 0
     ):
-        # Kirkpatrick et al.'s lambda / 2; the batch form (before issue 48) had no 1/2
+        # Kirkpatrick et al.'s lambda / 2; fedlgr's earlier batch forms have no 1/2
         super().__init__(lam if kind in BATCH_KINDS else lam / 2)
         self.kind, self.max_batches = kind, max_batches
         self.generator = torch.Generator().manual_seed(seed)

@@ -1,4 +1,4 @@
-"""How faithful FedLGR's replay is: measured at every task end, per client (issue 9).
+"""How faithful FedLGR's replay is: measured at every task end, per client (docs/fedlgr.md).
 
 * ``fd_latent``: the Fréchet distance between replayed latents and the real root latents of
   the client's scenes of every task seen so far (both standardised by the real latents'

@@ -23,8 +23,8 @@ of a later task:
      ``train.epochs`` as in the authors' code; none when lr_R is 0);
    * ``joint``: one pass per batch, root and top together: top(root(x) U R').
 
-Keeping the replayed latents valid while the root learns (``fedlgr.core.continual.drift``,
-issue 19; all off is the paper's method). From the second task on:
+Keeping the replayed latents valid while the root learns (``fedlgr.core.continual.drift``;
+all off is the paper's method). From the second task on:
 
 * ``lgr_drift=compensate``: at every round start an affine map from the latents of the
   current scenes under the root as the task found it (a frozen copy, kept at the task's

@@ -4,10 +4,10 @@ Importance of each parameter (``continual.mas.importance``):
 
 * ``sample`` (default, Aljundi et al., eq. 4): the mean over the task's training scenes of
   the absolute gradient of each scene's squared L2 output norm, ||f(x_k)||^2 (no labels);
-* ``batch``: the form fedlgr used before issue 48, kept to reproduce its runs: the absolute
+* ``batch``: fedlgr's earlier form, kept to reproduce runs made with it: the absolute
   gradient of each mini-batch's mean squared norm, averaged over batches (as Avalanche's
-  plugin does; 0.82x the per-scene importance in median on the descriptors' MLP, and not a
-  constant factor a lambda could absorb).
+  plug-in does); not a constant factor of the per-scene importance, so no lambda makes the
+  two alike (docs/fedlgr.md, "EWC's lambda").
 
 Importances accumulate over tasks (summed); the penalty is lambda * sum_i Omega_i (theta_i -
 theta*_i)^2 with theta* the latest task's parameters (Aljundi et al., eq. 9).

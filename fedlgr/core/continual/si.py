@@ -15,7 +15,7 @@ gradient (Adam's) can make omega negative, and so a parameter's importance; eq. 
 though a negative importance rewards a weight for leaving its anchor: each task's end logs
 the share of importances below 0 (``si/negative``), and ``clamp=total`` is the safe form.
 
-The forms fedlgr used before issue 48 stay as settings, to reproduce its runs:
+fedlgr's earlier forms stay as settings, to reproduce runs made with them:
 ``continual.si.clamp=task`` (each task's gain clamped at 0) and
 ``continual.si.path_gradient=loss+penalty`` (g including SI's penalty). ``clamp=total``
 clamps the summed importance at 0 after each task, as the authors' code does

@@ -9,7 +9,7 @@ root's scale.
 
 ``fit`` trains until the loss on held-out latents stops improving (early stopping with a
 patience, the best weights kept): a fixed, short budget (the authors' code: 5 epochs at lr
-1e-4) leaves the generator far from the latent distribution (issue 9, measured).
+1e-4) leaves the generator far from the latent distribution (docs/fedlgr.md).
 """
 
 from __future__ import annotations

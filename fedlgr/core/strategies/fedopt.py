@@ -10,11 +10,9 @@ m <- b1 m + (1 - b1) Delta, then the second moment v by the variant:
 
 and x <- x + eta m / (sqrt(v) + tau) (no bias correction, as published). The first moment
 starts at 0 and the second at tau^2 (the paper's ``v_-1 >= tau^2``);
-``federated.opt.v0=zero`` starts it at 0, the form fedlgr used before issue 48: FedAdam's
-first server step is then ``eta (1-b1) / (sqrt(1-b2) |Delta| + tau)`` per unit of Delta
-instead of ``eta (1-b1) / (sqrt(b2 tau^2 + (1-b2) Delta^2) + tau)``, between 1.2x and 2x the
-paper's wherever |Delta| <= 10 tau at the default betas (docs/methods.md). Trainable parameters
-take the step; BatchNorm running statistics, which are not parameters, are averaged as in
+``federated.opt.v0=zero`` starts it at 0, fedlgr's earlier form, kept to reproduce runs
+made with it: its first server step is larger (docs/methods.md). Trainable parameters take
+the step; BatchNorm running statistics, which are not parameters, are averaged as in
 FedAvg. The paper's reference code never runs this server step; here it does.
 """
 
