@@ -98,6 +98,7 @@ def test_every_registered_method_loads_its_class():
 ROOT = PACKAGE.parent
 
 
+@pytest.mark.slow  # also a step of .ci/run
 def test_the_import_contracts_hold():
     """The layers of pyproject.toml's [tool.importlinter]: the shell calls the core, the
     core never imports the shell (nor MLflow, Optuna, Flower); a robot's side and the
@@ -128,6 +129,7 @@ def import_graph():
     return nx.DiGraph(edges)
 
 
+@pytest.mark.slow  # grimp reads the whole package
 def test_no_import_cycle_among_fedlgr_s_modules():
     """A cycle means a piece sits in the wrong module (or layer)."""
     import networkx as nx

@@ -34,6 +34,7 @@ def wheel(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.slow  # builds the wheel
 def test_the_wheel_ships_every_config_and_sweep(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     configs = {f"fedlgr/conf/{p.relative_to(CONF_DIR)}" for p in CONF_DIR.rglob("*.yaml")}
@@ -45,6 +46,7 @@ def test_the_wheel_ships_every_config_and_sweep(wheel):
     assert "Requires-Dist: tqdm" in zipfile.ZipFile(wheel).read(metadata).decode()
 
 
+@pytest.mark.slow
 def test_an_unpacked_wheel_runs_outside_the_checkout(wheel, tmp_path):
     """The wheel's files alone (its dependencies from this environment), from a folder
     outside the repository: demo --help, the shipped sweeps, a shipped config by name."""
