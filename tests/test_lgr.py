@@ -159,7 +159,7 @@ def test_two_phase_trains_the_top_then_the_root_alone():
     snap = Snapshot()
     client, ctx = after_task_one(lgr, snapshot=snap)
     root0, top0 = state(client.model.root), state(client.model.top)
-    assert lgr.epochs(ctx, 1) == 1  # lgr_root_epochs (default 1)
+    assert lgr.epochs(ctx, 1) == 1  # continual.lgr.root_epochs (default 1)
 
     train_locally(client, ctx, 1)
 
@@ -189,7 +189,7 @@ def test_two_phase_root_epochs_and_no_root_phase_at_lr_root_zero():
     expected = ctx.trained_loss / ctx.trained_samples
     assert stats.loss == pytest.approx(expected, rel=1e-6)
 
-    # lgr_root_epochs: the root phase's own epoch count (None: train.epochs).
+    # continual.lgr.root_epochs: the root phase's own epoch count (None: train.epochs).
     lgr2 = small_lgr(lr_root=1e-5, root_epochs=2)
     lgr2.tasks_learnt = 1
     assert lgr2.epochs(ctx, 3) == 2

@@ -3,8 +3,8 @@ carries replayed latents along (docs/fedlgr.md).
 
 FedLGR replays latents of past tasks - the generator's, or the stored oracle's real ones -
 in the space of the root as it was when they were learnt. From the second task on the root
-trains (at ``lgr_lr_root``) and FedRoot aggregation moves it again, so the latents of the
-same scene drift, and replay teaches the top a space the root has left.
+trains (at ``continual.lgr.lr_root``) and FedRoot aggregation moves it again, so the
+latents of the same scene drift, and replay teaches the top a space the root has left.
 
 * :func:`drift_distance`: the standardised Fréchet distance between the latents of the same
   scenes under two roots (``fedlgr.core.continual.fidelity``'s distance, standardised by the

@@ -1,51 +1,51 @@
 """FedLGR's client side: latent generative replay (the paper's Algorithm 1).
 
-FedLGR = FedRoot aggregation (scope ``root``) + this plugin on every client. In Task 1 the
+FedLGR = FedRoot aggregation (scope ``root``) + this plug-in on every client. In Task 1 the
 client trains as FedRoot does. At the end of every task its generator (a VAE over root
-latents, ``fedlgr.core.models.generator``) learns the latents R of the task's scenes, together
-with as many pseudo-latents R' per past task from the generator as it was. In every round
-of a later task:
+latents, ``fedlgr.core.models.generator``) learns the latents R of the task's scenes,
+together with as many pseudo-latents R' per past task from the generator as it was. In
+every round of a later task:
 
-1. the root trains at ``lgr_lr_root`` (lr_R), the top at ``train.lr_top``, and - with
-   ``lgr_freeze_root_bn`` (``fedlgr.core.continual.batchnorm``) - the root's BatchNorm
-   statistics stay as they were after Task 1, so the latent space the generator learnt
-   stays put;
-2. ``replay_ratio`` pseudo-latents R' per real sample are drawn and labelled T' = top(R')
-   by the top *as it was when the task began* (a frozen copy, eval mode);
+1. the root trains at ``continual.lgr.lr_root`` (lr_R), the top at ``train.lr_top``, and -
+   with ``continual.lgr.freeze_root_bn`` (``fedlgr.core.continual.batchnorm``) - the
+   root's BatchNorm statistics stay as they were after Task 1, so the latent space the
+   generator learnt stays put;
+2. ``continual.lgr.replay_ratio`` pseudo-latents R' per real sample are drawn and labelled
+   T' = top(R') by the top *as it was when the task began* (a frozen copy, eval mode);
 3. the top trains on <R, y> U <R', T'> **as one batch**: its BatchNorm sees the union;
-   the root learns from the current data only. ``lgr_schedule`` says how:
+   the root learns from the current data only. ``continual.lgr.schedule`` says how:
 
    * ``two_phase`` (the authors' code): first the top alone, for ``train.epochs`` epochs
      over the current scenes' latents - computed once per round, root in eval mode, one
      pass of the client's batches (augmented if augmentation is on) - each batch with its
      pseudo-samples; then the root alone, at lr_R on the current data with the top frozen
-     (eval mode, no gradients), for ``lgr_root_epochs`` epochs (default 1; ``None``:
-     ``train.epochs`` as in the authors' code; none when lr_R is 0);
+     (eval mode, no gradients), for ``continual.lgr.root_epochs`` epochs (default 1;
+     ``None``: ``train.epochs`` as in the authors' code; none when lr_R is 0);
    * ``joint``: one pass per batch, root and top together: top(root(x) U R').
 
 Keeping the replayed latents valid while the root learns (``fedlgr.core.continual.drift``;
 all off is the paper's method). From the second task on:
 
-* ``lgr_drift=compensate``: at every round start an affine map from the latents of the
-  current scenes under the root as the task found it (a frozen copy, kept at the task's
-  start) to their latents under the root now - after local training and aggregation - is
-  fitted (ridge ``lgr_compensate_ridge``, shrunk towards the identity) and applied to every
-  replayed latent before the top sees it; the labeller still labels the old latent. At a
-  task's end the stored latents (and the generator's past samples, before it is refitted)
-  are carried into the current space with it.
-* ``lgr_drift=distill``: the root's loss gets ``lgr_distill_weight`` x the mean squared
-  difference between its latents of the batch and those of the frozen task-start copy
-  (feature distillation, Liu et al. CVPRW 2020): 0 at the task's start.
+* ``continual.lgr.drift=compensate``: at every round start an affine map from the latents
+  of the current scenes under the root as the task found it (a frozen copy, kept at the
+  task's start) to their latents under the root now - after local training and
+  aggregation - is fitted (ridge ``continual.lgr.compensate_ridge``, shrunk towards the
+  identity) and applied to every replayed latent before the top sees it; the labeller
+  still labels the old latent. At a task's end the stored latents (and the generator's
+  past samples, before it is refitted) are carried into the current space with it.
+* ``continual.lgr.drift=distill``: the root's loss gets ``continual.lgr.distill_weight`` x
+  the mean squared difference between its latents of the batch and those of the frozen
+  task-start copy (feature distillation, Liu et al. CVPRW 2020): 0 at the task's start.
 * ``compensate+distill``: both.
-* ``lgr_train_blocks=k``: only the root's last k blocks train (``Root.blocks()``); the
-  others keep their weights and their BatchNorm statistics (eval mode). FedRoot still
-  averages the whole root (the frozen blocks, equal on every client, average to
-  themselves).
+* ``continual.lgr.train_blocks=k``: only the root's last k blocks train
+  (``Root.blocks()``); the others keep their weights and their BatchNorm statistics (eval
+  mode). FedRoot still averages the whole root (the frozen blocks, equal on every client,
+  average to themselves).
 
-``lgr_replay=stored`` replays the client's real latents of past tasks (kept at each task
-end) instead of the generator's samples: an oracle that bounds what any generator can
-reach. It stores data-derived features on the client and is not private in the paper's
-sense; it never leaves the client either.
+``continual.lgr.replay=stored`` replays the client's real latents of past tasks (kept at
+each task end) instead of the generator's samples: an oracle that bounds what any
+generator can reach. It stores data-derived features on the client and is not private in
+the paper's sense; it never leaves the client either.
 
 The generator, the labeller, the stored latents and the top never leave the client: with
 scope ``root`` the upload is the root alone. Deviations from Algorithm 1 and from the

@@ -1,9 +1,10 @@
 """NR, naive rehearsal (Hsu et al. 2018): a bounded per-client memory of past-task scenes.
 
 At the end of each task the client's memory is re-balanced: every task seen so far keeps an
-equal share of ``nr_memory`` scenes (a random subset of that task's training scenes on
-this client). During later tasks every batch gets ``nr_replay_ratio`` memory scenes per
-current scene mixed in, prepared exactly like the current ones (augmentation included).
+equal share of ``continual.nr.memory`` scenes (a random subset of that task's training
+scenes on this client). During later tasks every batch gets ``continual.nr.replay_ratio``
+memory scenes per current scene mixed in, prepared exactly like the current ones
+(augmentation included).
 The memory holds positions into the client's own data; it never leaves the client.
 """
 

@@ -137,7 +137,7 @@ class SweepSpec:
 
 
 def _as_override(value: Any) -> str:
-    if value is None:  # a grid's null (YAML): the setting's "unset", e.g. lgr_train_blocks
+    if value is None:  # a grid's null (YAML): "unset", e.g. continual.lgr.train_blocks
         return "null"
     if isinstance(value, bool):
         return str(value).lower()
