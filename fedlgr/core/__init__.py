@@ -5,8 +5,9 @@ and trusts the config it is given: the shell checks it first.
 
 Where code runs:
 
-- ``client/``: what runs on a robot - local training, the plug-in hooks, the side that
-  answers the server's messages, clients side by side (threads) or stacked.
+- ``client/``: what runs where the clients are (each on its own machine in the Flower
+  runtime) - local training, the plug-in hooks, the side that answers the server's
+  messages, clients side by side (threads) or stacked.
 - ``server/``: what runs on the aggregating machine - the global tensors, aggregation,
   the choice of each round's clients, the server's evaluation.
 - ``strategies/``: the aggregation strategies (FedAvg, FedBN, FedProx, SCAFFOLD, ...), one
@@ -23,7 +24,7 @@ model on the test scenes), ``meters`` (how scores and costs are measured), ``mod
 what is forgotten of them), ``state`` (what is kept between rounds; the generators).
 
 Running rounds: ``rounds`` is what any runtime supplies to a run (its rounds and their
-state); ``in_process`` is the runtime for clients in this process or in Fabric's
-processes. The Flower runtime, and the run around any runtime (tracking, checkpoints,
-resume), are the shell's.
+state); ``in_process`` is the in-process runtime (``Orchestrator``: clients in this
+process or in Fabric's processes). The Flower runtime, and the run around any runtime
+(tracking, checkpoints, resume), are the shell's.
 """

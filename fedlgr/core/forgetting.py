@@ -28,7 +28,7 @@ class ForgettingTracker:
     def __init__(self, tasks: list[str]):
         self.tasks = tasks
         self.learnt: dict[str, dict[str, np.ndarray]] = {}  # task -> metric -> per client
-        self.after: list[dict[str, float]] = []  # per finished task: its summary metrics
+        self.after: list[dict[str, float]] = []  # per finished task: its summary figures
 
     def forgetting(self, log: RoundLog) -> dict[str, float]:
         """Forgetting of every task learnt before the one being trained."""
@@ -42,7 +42,7 @@ class ForgettingTracker:
         return out
 
     def end_of_task(self, log: RoundLog, k: int) -> dict[str, float]:
-        """Record task k as learnt; the "after task k+1" summary metrics."""
+        """Record task k as learnt; the "after task k+1" summary figures."""
         self.learnt[log.task] = {m: log.column(f"task/{log.task}/{m}").copy() for m in METRICS}
         prefix = f"after_task{k + 1}"
         out = {f"{prefix}/test/{m}": log.mean(f"test/{m}") for m in METRICS}

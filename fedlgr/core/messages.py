@@ -9,9 +9,9 @@ figures (training loss, costs) by name. **Evaluate**: the server sends the new g
 tensors; every client - chosen or not - takes them, ends the task at a task's last round
 (importance, memories, generators) and reports its scores on its test scenes by name.
 
-In one process (``fedlgr.core.in_process``) these objects are passed by
-reference; in Fabric's multi-process mode the same objects are built in every process
-and the server's sums travel as one ``all_reduce``; on Flower
+In the in-process runtime (``fedlgr.core.in_process``) these objects are passed by
+reference in one process; across Fabric's processes the same objects are built in every
+process and the server side's sums travel as one ``all_reduce``; in the Flower runtime
 (``fedlgr.shell.deploy.flower``) they are encoded into Flower messages.
 """
 

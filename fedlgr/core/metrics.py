@@ -36,7 +36,7 @@ class Score:
     higher_is_better: bool
     per_action: str  # its per-action figure: test/<per_action>/<action>
     about: str  # what it is, in one line
-    bounds: tuple[float, float]  # the values it can take: a robot's report outside is refused
+    bounds: tuple[float, float]  # the values it can take: a client's report outside is refused
     headline: bool = True  # a researcher compares runs by it: runs table, curves, plots
 
     @property

@@ -31,10 +31,10 @@ epsilon after ``T`` noisy releases of a Poisson-sampled Gaussian of rate ``q`` a
 multiplier ``z`` at ``delta``.
 
 The noise is drawn from a generator seeded by the run's seed and the release's number in
-simulation (every runtime and every process draws the same, and a resumed run the same
-again); where the server runs for real (Flower) it is seeded from the operating system's
-random source (``os.urandom``) every release. Neither is a cryptographically secure
-sampler of the Gaussian (floating-point noise: Mironov, CCS 2012).
+the in-process runtime (every process draws the same, and a resumed run the same again);
+in the Flower runtime, where the server runs for real, it is seeded from the operating
+system's random source (``os.urandom``) every release. Neither is a cryptographically
+secure sampler of the Gaussian (floating-point noise: Mironov, CCS 2012).
 """
 
 from __future__ import annotations

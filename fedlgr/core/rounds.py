@@ -1,7 +1,8 @@
 """What a runtime supplies to a run: its rounds.
 
 A runtime - the in-process one (:class:`fedlgr.core.in_process.Orchestrator`: clients in
-this process or in Fabric's processes) or the Flower server's (robots) - runs each round
+this process or in Fabric's processes) or the Flower runtime (``FlowerRounds`` in
+``fedlgr.shell.deploy.flower``: each client on its own machine) - runs each round
 of the schedule and holds the state the next round depends on; the run around it
 (tracking, checkpoints, resume, the failure record: :mod:`fedlgr.shell.run`) asks for
 nothing more.
@@ -23,8 +24,8 @@ class Rounds(Protocol):
 
     @property
     def local_clients(self) -> int:
-        """How many clients train in this process (0: none do, they are robots); the
-        round's progress bar counts their local epochs."""
+        """How many clients train in this process (0: none do: the Flower runtime's train on
+        their own machines); the round's progress bar counts their local epochs."""
         ...
 
     def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:

@@ -53,7 +53,7 @@ def parameter_keys(model: nn.Module) -> set[str]:
 
 
 def initial_scholar(config) -> nn.Module:
-    """The run's initial model: the same in every process, on every robot and on the
-    server (seeded by ``config.seed``; the global RNG is left as it was)."""
+    """The run's initial model: the same in every process, on every client's machine and on
+    the server (seeded by ``config.seed``; the global RNG is left as it was)."""
     with seeded_global_rng(config.seed):
         return build_scholar(config)

@@ -1,4 +1,5 @@
-"""The client side: what runs on a robot (or for a process's share of the clients).
+"""The client side: what runs where the clients are (a client's own machine, or a
+process's share of the clients in the in-process runtime).
 
 ``training`` (one client's model, optimiser, data and local training loop), ``plugins``
 (the hooks strategies and continual-learning methods add to that loop), ``side``

@@ -1,13 +1,13 @@
-"""The client side of a federation: everything that runs on a robot.
+"""The client side of a federation: everything that runs where the clients are.
 
 :class:`ClientSide` holds some clients - all of them in one process, a process's share
-under Fabric, one robot's on Flower - each with its data shard, model, optimiser and
+under Fabric, one in the Flower runtime - each with its data shard, model, optimiser and
 plugins (the strategy's client part, the CL method: importance, memories, FedLGR's
 generator and labeller). It answers the server's :mod:`messages`: ``train`` (take the
 global tensors if sent, train locally, upload the shared tensors; only the clients the
 strategy chose) and ``evaluate`` (every client: take the new global tensors, end the task
-at its last round, score on the test scenes). The
-top and every plugin's state stay here; what leaves is checked against the shared keys.
+at its last round, score on the test scenes). The top and every plugin's state stay here;
+what leaves is checked against the shared keys.
 """
 
 from __future__ import annotations

@@ -86,13 +86,13 @@ def train_batched(
                 epoch_batches, active, stacks, max_batches, channels_last
             )
             for key, group in groups.items():
-                members = [stacks[k] for k, _, _ in group]
+                grouped = [stacks[k] for k, _, _ in group]
                 xs = [x for _, x, _ in group]
                 ys = [y for _, _, y in group]
                 if len(group) == 1:
-                    losses = [_plain_step(members[0].client, xs[0], ys[0], autocast)]
+                    losses = [_plain_step(grouped[0].client, xs[0], ys[0], autocast)]
                 else:
-                    losses = _batched_step(templates[key[0]], members, xs, ys, autocast)
+                    losses = _batched_step(templates[key[0]], grouped, xs, ys, autocast)
                 for (k, x, _), loss in zip(group, losses, strict=True):
                     totals[k] += loss * len(x)
                     seen[k] += len(x)
@@ -172,16 +172,16 @@ def _plain_step(client: Client, x: torch.Tensor, y: torch.Tensor, autocast) -> t
 
 def _batched_step(
     template: nn.Module,
-    members: list[_Stackable],
+    stacks: list[_Stackable],
     xs: list[torch.Tensor],
     ys: list[torch.Tensor],
     autocast,
 ) -> torch.Tensor:
-    """One step of every member on its own batch, as one vmapped forward and one backward;
-    returns the members' task losses (detached)."""
-    first = members[0]
-    params = {n: torch.stack([m.params[n] for m in members]) for n in first.params}
-    buffers = {n: torch.stack([m.buffers[n] for m in members]) for n in first.buffers}
+    """One step of every client of ``stacks`` on its own batch, as one vmapped forward and
+    one backward; returns the clients' task losses (detached)."""
+    first = stacks[0]
+    params = {n: torch.stack([m.params[n] for m in stacks]) for n in first.params}
+    buffers = {n: torch.stack([m.buffers[n] for m in stacks]) for n in first.buffers}
     y = torch.stack(ys)
 
     def forward(p: dict, b: dict, x: torch.Tensor) -> torch.Tensor:
@@ -190,15 +190,15 @@ def _batched_step(
     with autocast():
         outputs = vmap(forward)(params, buffers, torch.stack(xs))
         losses = torch.stack(
-            [nn.functional.mse_loss(outputs[k].float(), y[k]) for k in range(len(members))]
+            [nn.functional.mse_loss(outputs[k].float(), y[k]) for k in range(len(stacks))]
         )
-    for m in members:
+    for m in stacks:
         m.client.optimizer.zero_grad(set_to_none=True)
     losses.sum().backward()  # d(sum)/d(client k's parameters) = d(loss k)/d(them)
-    for m in members:
+    for m in stacks:
         m.client.optimizer.step()
     with torch.no_grad():  # the running statistics the forward pass updated in the stack
         for n, stacked in buffers.items():
-            for k, m in enumerate(members):
+            for k, m in enumerate(stacks):
                 m.buffers[n].copy_(stacked[k])
     return losses.detach()

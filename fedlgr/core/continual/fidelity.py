@@ -11,9 +11,9 @@
   on the real ones, the top as the task left it (the next task's labeller) - what replay
   would teach, seen from the top.
 
-The real latents of past tasks are read here for the measurement only: on a robot the
-client would no longer hold them. torchmetrics' FID needs Inception features of images, so
-the distance is computed here (float64, via symmetric eigen-decompositions).
+The real latents of past tasks are read here for the measurement only: a client on a real
+deployment would no longer hold them. torchmetrics' FID needs Inception features of
+images, so the distance is computed here (float64, via symmetric eigen-decompositions).
 """
 
 from __future__ import annotations

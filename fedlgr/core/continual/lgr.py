@@ -442,10 +442,11 @@ class LatentReplay(ClientPlugin):
     def round_metrics(self, ctx: LocalContext) -> dict[str, float]:
         """The latent drift after a round of a later task (aggregation included), before
         any task end: ``drift``, the distance between the current root's latents of the
-        current scenes and their latents at the task's start (what a robot can compute);
+        current scenes and their latents at the task's start (what a client can compute);
         ``drift_residual``, the same after the compensation map fitted now (compensate
         only); ``drift_past`` / ``drift_past_residual``: the same on the past tasks' scenes
-        (the true drift; a simulation reads them for the measurement only)."""
+        (the true drift, from scenes a client on a real deployment would no longer hold:
+        read for the measurement only)."""
         if not self.replaying:
             return {}
         self._restore(ctx)

@@ -1,8 +1,8 @@
 """The server's arithmetic: sample-weighted sums and means of client tensors.
 
 Sums are taken in float64 so that the order in which clients (or processes) contribute
-changes nothing visible; the multi-process orchestrator adds the per-process sums with one
-``all_reduce`` before dividing.
+changes nothing visible; the in-process runtime across Fabric's processes adds the
+per-process sums with one ``all_reduce`` before dividing.
 """
 
 from __future__ import annotations

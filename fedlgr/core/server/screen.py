@@ -3,19 +3,19 @@
 A client's upload must hold exactly the tensors the server shares with it, each of the
 global tensor's shape and dtype and every value finite, and a sample count that is a
 positive whole number no larger than the client's training scenes of the task where the
-server knows them (in simulation it holds the split; on robots, the roster's ``scenes``);
-what its strategy's plugins send beside them (SCAFFOLD's control-variate change) is held to
-the same checks, and no BatchNorm variance may be below 0. An upload whose update - its
-tensors minus the global ones, and its plugins' change - is over ``federated.norm_ratio``
-times the median of the round's other updates is refused too (any update at all, where the
-others did not move). A refused upload reaches nothing: the round aggregates the others,
-and its record names the client and why.
+server knows them (the in-process runtime holds the split; the Flower runtime, the
+roster's ``scenes``); what its strategy's plugins send beside them (SCAFFOLD's
+control-variate change) is held to the same checks, and no BatchNorm variance may be below
+0. An upload whose update - its tensors minus the global ones, and its plugins' change - is
+over ``federated.norm_ratio`` times the median of the round's other updates is refused too
+(any update at all, where the others did not move). A refused upload reaches nothing: the
+round aggregates the others, and its record names the client and why.
 
 What a client reports - its training figures with its upload, its scores - is checked
-where the client is not the server's own (a robot): each figure must have its column in
-the round's record and be a finite number in its range - a score's bounds (errors not
-below 0, correlations in [-1, 1]; :class:`~fedlgr.core.metrics.Score`), a cost not below
-0 (:func:`figures_refusal`).
+where the client is not in the server's process (the Flower runtime): each figure must
+have its column in the round's record and be a finite number in its range - a score's
+bounds (errors not below 0, correlations in [-1, 1]; :class:`~fedlgr.core.metrics.Score`),
+a cost not below 0 (:func:`figures_refusal`).
 """
 
 from __future__ import annotations
