@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fedlgr.core.metrics import COST_KEYS, COSTS, SCORES
+from fedlgr.core.metrics import COST_KEYS, COSTS, SCORES, headline_scores
 from fedlgr.core.records import RoundLog
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import table
@@ -118,7 +118,8 @@ class ExperimentResult:
         """What the summary's rows stand for where they are not every client's scores."""
         last, evaluate = self.final, self.config.federated.evaluate
         clients = len(last.table)
-        scored = int((~np.isnan(last.column("test/rmse"))).sum())
+        first = f"test/{headline_scores()[0].name}"  # NaN for a client not scored
+        scored = int((~np.isnan(last.column(first))).sum())
         notes = []
         if clients > SHOWN_CLIENTS:
             notes.append(f"{clients} clients: each one's row is in results.csv")
@@ -204,8 +205,7 @@ class ExperimentResult:
                 f"{t}: "
                 + " ".join(
                     f"{s.label} {after[f'after_task{k + 1}/forgetting/{t}/{s.name}']:+.3f}"
-                    for s in SCORES
-                    if s.name != "loss"
+                    for s in headline_scores()
                 )
                 for t in tasks[:k]
             ]

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.core.methods import plugin_metrics
-from fedlgr.core.metrics import COST_KEYS, SCORE_NAMES, client_key, round_keys
+from fedlgr.core.metrics import COST_KEYS, SCORE_NAMES, client_key, headline_scores, round_keys
 from fedlgr.errors import ConfigError
 from fedlgr.shell import config as configs
 from fedlgr.shell.config import ExperimentConfig
@@ -104,7 +104,8 @@ def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) ->
         shown = sorted(m for m in logged if "/client" not in m)
         close = difflib.get_close_matches(spec.metric, shown, n=1)
         hint = f" - did you mean {close[0]}?" if close else ""
-        examples = [m for m in shown if m.endswith(("test/rmse", "test/pcc"))][:4]
+        scores = tuple(f"test/{s.name}" for s in headline_scores())
+        examples = [m for m in shown if m.endswith(scores)][:4]
         raise ConfigError(
             f"{spec.path}: objective.metric: {spec.metric} is not a metric these runs log"
             f"{hint} (they log e.g. {', '.join(examples)}, mean/cost/cpu_s)"

@@ -5,12 +5,12 @@ artifacts under ``mlruns/`` (the plain file store is refused by MLflow 3);
 ``$MLFLOW_TRACKING_URI`` or ``tracking.uri`` (``--tracking-uri``) point elsewhere, e.g. at
 an ``mlflow server``. Params are the flattened resolved config; metrics are logged per
 round with ``step=round``; artifacts are the resolved config, the per-round/per-client
-results CSV and a PNG of RMSE/PCC per round; at the end ``mean/cost/*`` (at the step of
-the last round) hold the costs per client per round averaged over clients and rounds
-(what Tables III/IV report). A run that fails is ended FAILED (KILLED on Ctrl-C or when a
-sweep prunes it) after saving what it had, its summary so far in its description only: it
-may be resumed, and the resumed run's ``mean/*`` are then the only ones. What else a run
-records so that runs can be told apart - its name, MLflow's context tags (source, user,
+results CSV and a PNG of the headline scores per round; at the end ``mean/cost/*`` (at the
+step of the last round) hold the costs per client per round averaged over clients and
+rounds (what Tables III/IV report). A run that fails is ended FAILED (KILLED on Ctrl-C or
+when a sweep prunes it) after saving what it had, its summary so far in its description
+only: it may be resumed, and the resumed run's ``mean/*`` are then the only ones. What else
+a run records so that runs can be told apart - its name, MLflow's context tags (source, user,
 git commit), params without machine-local paths, the dataset input, system metrics - is in
 :mod:`fedlgr.shell.tracking.context`; an unreachable server is refused within seconds
 (:func:`fedlgr.shell.checks.stores.check_reachable`).
@@ -45,7 +45,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES
-from fedlgr.core.metrics import HEADLINE
+from fedlgr.core.metrics import HEADLINE, headline_scores
 from fedlgr.errors import interrupt_in
 from fedlgr.shell.config import ExperimentConfig, to_yaml
 from fedlgr.shell.config.export import config_hash
@@ -60,6 +60,7 @@ from fedlgr.shell.tracking.liveness import (
 )
 from fedlgr.shell.tracking.store import open_client, store_errors, store_lock
 from fedlgr.shell.tracking.uri import resolve_uri
+from fedlgr.shell.tracking.views import COST_COLUMNS
 
 __all__ = [
     "SENTINEL",
@@ -108,12 +109,14 @@ SENTINEL = "round/seconds"  # logged last in each round: the round is wholly log
 # charts by name in sections by prefix, and draws a line chart for a metric whose latest
 # step is 1 or more (a bar otherwise): every score is logged at step = round.
 HEADLINE_COSTS = ("cost/cpu_s", "cost/gpu_util", "cost/bytes_up")
-# The figures a run's description opens with (those of the runs table's shared view).
-HEADLINE_NOTE = (
-    *(m for m in HEADLINE if m != "test/loss"),
-    "mean/cost/cpu_s",
-    "mean/cost/bytes_up",
-)
+
+
+def note_keys() -> list[str]:
+    """The figures a run's description opens with, those of the runs table's shared view:
+    the headline scores, then the costs per client per round."""
+    return [*(f"test/{s.name}" for s in headline_scores()), *COST_COLUMNS]
+
+
 _CLIENT = re.compile(r"(^|/)client\d+(/|$)")
 
 
@@ -333,7 +336,7 @@ class Tracker:
         ``metrics`` by their MLflow keys, then the summary table the console printed."""
         from mlflow.utils.mlflow_tags import MLFLOW_RUN_NOTE  # lazy: mlflow (seconds)
 
-        shown = [k for k in HEADLINE_NOTE if k in (metrics or {})]
+        shown = [k for k in note_keys() if k in (metrics or {})]
         table = ""
         if shown:
             values = [f"{metrics[k]:.4g}" for k in shown]
