@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fedlgr.core.metrics import SCORES
+from fedlgr.core.metrics import SCORES, headline_scores
 from fedlgr.shell.checks.stores import check_tracking
 from fedlgr.shell.cli.parser import Verbs
 from fedlgr.shell.config import CONF_DIR, load_config
@@ -33,6 +33,13 @@ FCL_CONFIG = CONF_DIR / "experiment" / "demo_fcl.yaml"
 METHODS = ("FedAvg", "FedRootAvg")
 FCL_METHODS = ("FedRoot-FT", "FedLGR")
 FEATURES_FCL = ["data.modality=features", "model.root=mlp", "continual.rounds_per_task=8"]
+# The forgetting table's column groups: (heading, key prefix, when), a column per headline score.
+FORGETTING_GROUPS = (
+    ("circle", "after_task1/task/circle", "T1"),
+    ("circle", "after_task2/task/circle", "T2"),
+    ("forgot", "after_task2/forgetting/circle", ""),
+    ("arrow", "after_task2/task/arrow", "T2"),
+)
 
 
 def add_parser(verbs: Verbs) -> None:
@@ -164,34 +171,21 @@ def print_runs_hint(results) -> None:
 
 
 def forgetting_table(results, label=lambda r: r.config.method_name) -> str:
-    """Per run: circle after Task 1 and after Task 2, its forgetting, arrow after Task 2."""
+    """Per run and headline score: circle after Task 1 and after Task 2, its forgetting,
+    arrow after Task 2."""
+    scores = headline_scores()
+    headers = ["method"]
+    for name, _, when in FORGETTING_GROUPS:
+        for i, s in enumerate(scores):
+            # the group's name on its first column ("circle RMSE T1", "PCC T1"), or on
+            # each where no task follows ("forgot RMSE", "forgot PCC")
+            heading = f"{name} {s.label}" if i == 0 or not when else s.label
+            headers.append(f"{heading} {when}".rstrip())
     rows = []
     for r in results:
-        t1, t2 = r.after_tasks[0], r.after_tasks[1]
+        after = r.after_tasks[0] | r.after_tasks[1]  # after_task1/..., after_task2/...
         rows.append(
-            [
-                label(r),
-                t1["after_task1/task/circle/rmse"],
-                t1["after_task1/task/circle/pcc"],
-                t2["after_task2/task/circle/rmse"],
-                t2["after_task2/task/circle/pcc"],
-                t2["after_task2/forgetting/circle/rmse"],
-                t2["after_task2/forgetting/circle/pcc"],
-                t2["after_task2/task/arrow/rmse"],
-                t2["after_task2/task/arrow/pcc"],
-            ]
+            [label(r)]
+            + [after[f"{prefix}/{s.name}"] for _, prefix, _ in FORGETTING_GROUPS for s in scores]
         )
-    return table(
-        [
-            "method",
-            "circle RMSE T1",
-            "PCC T1",
-            "circle RMSE T2",
-            "PCC T2",
-            "forgot RMSE",
-            "forgot PCC",
-            "arrow RMSE T2",
-            "PCC T2",
-        ],
-        rows,
-    )
+    return table(headers, rows)
