@@ -1,6 +1,7 @@
 """A score is declared once (fedlgr.core.metrics.SCORES, its per-action function in
 fedlgr.core.meters.scores.PER_ACTION) and reaches every writer: the meter, results.csv's
-columns, the server's screen of a robot's report, the MLflow view, the report's tables,
+columns, the server's screen of a robot's report, the MLflow view, each run's curves.png
+and summary, the forgetting demo's table, a sweep's objective check, the report's tables,
 plots and a sweep's trials. A made-up score, the hit rate, is added as a researcher would
 add one, and each writer is asked for it by name."""
 
@@ -8,20 +9,31 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import sys
 
 import mlflow
+import numpy as np
 import pytest
 import torch
 from mlflow.entities import Metric
 
 from fedlgr.core import metrics
 from fedlgr.core.meters.scores import PER_ACTION, regression_scores
-from fedlgr.core.metrics import Score, round_keys
+from fedlgr.core.metrics import Score, column, round_keys
+from fedlgr.core.records import RoundLog
 from fedlgr.core.server.screen import figures_refusal
+from fedlgr.errors import ConfigError
+from fedlgr.shell.cli.demo import forgetting_table
+from fedlgr.shell.config import load_config
 from fedlgr.shell.report import make_report
+from fedlgr.shell.run.result import ExperimentResult
+from fedlgr.shell.sweep import load_sweep
+from fedlgr.shell.tracking.mlflow_run import note_keys
+from fedlgr.shell.tracking.plots import curves_png
 from fedlgr.shell.tracking.views import view_state
 from tests.support.figures import drawn_figures
+from tests.support.runs import FAST
 
 HIT = Score("hit", "Hit", True, "hit", "share of outputs within 0.5 of the rating", (0.0, 1.0))
 
@@ -75,6 +87,89 @@ def test_the_mlflow_view_shows_a_new_headline_score(hit):
     # the scatter stays the first error against the first correlation
     assert cards["fedlgr-scatter"]["xaxis"]["key"] == "test/rmse"
     assert cards["fedlgr-scatter"]["yaxis"]["key"] == "test/pcc"
+
+
+def _curves_panels(title: str) -> list[str]:
+    """The y labels of a 2-round, 2-client run's curves.png, in panel order."""
+    scores = [column(f"test/{s.name}") for s in metrics.SCORES]
+    rows = [{"round": k, "client": c, **dict.fromkeys(scores, 0.5)} for k in (1, 2) for c in (0, 1)]
+    with drawn_figures() as drawn:
+        assert curves_png(rows, title)[:4] == b"\x89PNG"
+    return drawn[title]
+
+
+def test_a_runs_curves_draw_every_headline_score():
+    assert _curves_panels("FedAvg-2c") == ["test RMSE", "test PCC", "test CCC"]
+
+
+def test_a_runs_curves_draw_a_new_score(hit):
+    assert _curves_panels("FedAvg-2c") == ["test RMSE", "test PCC", "test CCC", "test Hit"]
+
+
+def _fcl_result() -> ExperimentResult:
+    """An FCL run of 2 clients, circle then arrow, one round each: every figure 0.5, after
+    each task every score 0.5, circle's forgetting after arrow 0.1."""
+    config = load_config(FAST, ["method=FedAvg-EWC", "data.path=/x", "tracking.enabled=false"])
+    tasks = list(config.continual.tasks)
+    keys = round_keys(tasks)
+    result = ExperimentResult(config)
+    for k, task in enumerate(tasks, start=1):
+        result.rounds.append(RoundLog(k, task, keys, np.full((2, len(keys)), 0.5), 1.0))
+    names = [s.name for s in metrics.SCORES]
+    for k in (1, 2):
+        after = {f"after_task{k}/test/{n}": 0.5 for n in names}
+        after |= {f"after_task{k}/task/{t}/{n}": 0.5 for t in tasks[:k] for n in names}
+        result.after_tasks.append(after)
+    result.after_tasks[1] |= {f"after_task2/forgetting/circle/{n}": 0.1 for n in names}
+    return result
+
+
+def _headers(text: str) -> list[str]:
+    """A console table's headings (cells are 2 spaces apart; a heading holds single ones)."""
+    return re.split(r"  +", text.splitlines()[0].strip())
+
+
+def test_the_run_summary_shows_a_new_score_and_its_forgetting(hit):
+    summary = _fcl_result().summary()
+    assert _headers(summary)[:6] == ["client", "loss", "RMSE", "PCC", "CCC", "Hit"]
+    tasks = summary[summary.index("task  ") :]
+    assert _headers(tasks) == [
+        "task",
+        "tested on",
+        "loss",
+        "RMSE",
+        "PCC",
+        "CCC",
+        "Hit",
+        "forgetting",
+    ]
+    assert "circle: RMSE +0.100 PCC +0.100 CCC +0.100 Hit +0.100" in tasks
+
+
+def test_the_forgetting_demo_has_a_column_per_headline_score(hit):
+    text = forgetting_table([_fcl_result()])
+    assert _headers(text) == [
+        "method",
+        *("circle RMSE T1", "PCC T1", "CCC T1", "Hit T1"),
+        *("circle RMSE T2", "PCC T2", "CCC T2", "Hit T2"),
+        *("forgot RMSE", "forgot PCC", "forgot CCC", "forgot Hit"),
+        *("arrow RMSE T2", "PCC T2", "CCC T2", "Hit T2"),
+    ]
+    assert text.splitlines()[2].split()[1:] == ["0.500"] * 8 + ["0.100"] * 4 + ["0.500"] * 4
+
+
+def test_a_sweeps_objective_check_names_a_new_score(hit, tmp_path):
+    path = tmp_path / "hits.yaml"
+    path.write_text(f"base: {FAST}\nobjective: {{metric: test/hti}}\nspace:\n  seed: [0]\n")
+    with pytest.raises(ConfigError) as refused:
+        load_sweep(path)
+    assert "they log e.g. test/ccc, test/hit, test/pcc, test/rmse, mean/cost/cpu_s" in str(
+        refused.value
+    )
+
+
+def test_a_runs_description_opens_with_a_new_headline_score(hit):
+    assert note_keys()[:4] == ["test/rmse", "test/pcc", "test/ccc", "test/hit"]
 
 
 def _finished_run(client, experiment_id: str, tags: dict, figures: dict) -> str:

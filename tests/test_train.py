@@ -83,6 +83,8 @@ def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, st
     assert heading in out
     note = tags["mlflow.note.content"]
     assert note.startswith(f"**{heading}") and result.summary() in note
+    # ... under a table of the headline scores and costs, every headline score's column
+    assert "| test/rmse | test/pcc | test/ccc | mean/cost/cpu_s | mean/cost/bytes_up |" in note
     assert "tracking.run_name" not in params
 
 
