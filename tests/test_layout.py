@@ -274,8 +274,6 @@ def test_the_campaign_patterns_find_what_they_must():
 # #183405") is a citation a reader can follow.
 SPEC = re.compile(r"\bSPEC\b")
 ISSUE = re.compile(r"\bissues?\s*#?\d+|(?<!PR )(?<![\w/&])#\d+\b", re.I)
-# Modules being edited elsewhere that still cite one; each leaves this set once it is fixed.
-CITING_FOR_NOW = {"fedlgr/core/in_process.py"}
 
 
 def citations(path: Path) -> list[str]:
@@ -289,15 +287,8 @@ def citations(path: Path) -> list[str]:
 
 
 def test_no_comment_cites_the_spec_or_an_issue_number():
-    cited = [
-        hit
-        for path in sorted(PACKAGE.rglob("*.py"))
-        if path.relative_to(ROOT).as_posix() not in CITING_FOR_NOW
-        for hit in citations(path)
-    ]
+    cited = [hit for path in sorted(PACKAGE.rglob("*.py")) for hit in citations(path)]
     assert cited == []
-    fixed = sorted(f for f in CITING_FOR_NOW if not citations(ROOT / f))
-    assert fixed == [], f"no longer cites: remove it from CITING_FOR_NOW: {fixed}"
 
 
 def test_the_citation_patterns_find_what_they_must():

@@ -1,4 +1,4 @@
-"""The Fabric-based federated round orchestrator (SPEC 4.3): both sides in our processes.
+"""The in-process runtime, on Lightning Fabric: both sides of a round in our processes.
 
 :class:`Orchestrator` is a runtime's rounds (:class:`fedlgr.core.rounds.Rounds`; Fabric's
 set-up and launch: :mod:`fedlgr.shell.run.experiment`). In each round every client the
