@@ -243,6 +243,7 @@ def test_an_image_store_larger_than_the_memory_is_refused_before_decoding(tmp_pa
     )
 
 
+@pytest.mark.slow
 def test_a_schedule_some_client_cannot_train_is_refused_before_any_image_is_decoded(
     tmp_path, synth_dir, cache_dir, capsys, monkeypatch
 ):
@@ -328,6 +329,7 @@ def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsy
         assert len(err.splitlines()) == 1 and said in err, (argv, err)
 
 
+@pytest.mark.slow
 def test_found_by_the_third_sweep_are_one_line_before_any_work(
     tmp_path, synth_dir, cache_dir, capsys, monkeypatch
 ):

@@ -118,6 +118,7 @@ def assert_trained(before: list[Client], after: list[Client]) -> None:
 # 12 scenes per client, 2 augmented copies (images flipped and rotated, descriptors with
 # input noise): 3 batches of 8 per epoch, of which max_batches=2 train; the third is drawn
 # (and its augmentation) as train_locally does.
+@pytest.mark.slow
 @pytest.mark.parametrize(("modality", "samples"), [("image", 32), ("features", 32)])
 def test_batched_training_ends_where_sequential_training_ends(
     modality, samples, synth_dir, cache_dir, store, monkeypatch
@@ -141,6 +142,7 @@ def test_batched_training_ends_where_sequential_training_ends(
         assert b.loss == pytest.approx(s.loss, rel=1e-6)  # per-step losses are float32
 
 
+@pytest.mark.slow
 def test_ragged_clients_stack_where_their_batches_match(synth_dir, cache_dir, store, monkeypatch):
     side = client_side(synth_dir, cache_dir, store)
     clients = in_float64(side.clients)

@@ -9,12 +9,14 @@ import subprocess
 from pathlib import Path
 
 import mlflow
+import pytest
 
 from fedlgr.shell.tracking.mlflow_run import Tracker
 from tests.support.checkout import ignored, untracked_files
 from tests.support.runs import fast_config
 
 
+@pytest.mark.slow
 def test_a_sqlite_store_keeps_its_artifacts_next_to_its_database(
     synth_dir, cache_dir, tmp_path, monkeypatch
 ):

@@ -30,9 +30,8 @@ METHODS = {
 
 
 # FedRootAvg in the fast tier; the other methods (seconds each) in the full suite.
-@pytest.mark.parametrize(
-    "method", [m if m == "FedRootAvg" else pytest.param(m, marks=pytest.mark.slow) for m in METHODS]
-)
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS)
 def test_threads_give_the_results_of_sequential_training(method, synth_dir, cache_dir, store):
     """Sequential with one thread vs 2 threads split over 2 clients (one each): the same
     per-client thread count, so results.csv is identical apart from measured costs."""

@@ -25,6 +25,7 @@ from fedlgr.shell.config import (
 CONFIGS = sorted(CONF_DIR.rglob("*.yaml"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", CONFIGS, ids=[str(p.relative_to(CONF_DIR)) for p in CONFIGS])
 def test_every_config_loads_and_builds(path, synth_dir):
     overrides = [f"data.path={synth_dir}"]

@@ -219,6 +219,7 @@ def test_compensation_maps_the_replayed_latents_but_labels_the_old_ones():
 # --------------------------------------------------------------------------- partial freezing
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("modality", "overrides", "frozen", "trained"),
     [

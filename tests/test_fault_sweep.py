@@ -598,6 +598,7 @@ def test_a_setting_given_twice_a_report_into_a_device_and_a_shared_store_are_ref
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fifo", "fifo_base.yaml", "grid.yaml"]
 
 
+@pytest.mark.slow
 def test_a_checkpoint_folder_the_user_made_is_kept_when_a_run_finishes(
     tmp_path, synth_dir, cache_dir
 ):
@@ -639,6 +640,7 @@ def test_an_interrupt_while_a_run_is_being_started_ends_it_killed(tmp_path, synt
     assert run.info.status == "KILLED"
 
 
+@pytest.mark.slow
 def test_one_value_spelled_twice_passes_and_what_a_sweep_would_drop_is_refused(
     tmp_path, synth_dir, cache_dir, capsys, monkeypatch
 ):

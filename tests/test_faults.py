@@ -153,6 +153,7 @@ def test_stragglers_are_drawn_from_the_seed_apart_from_drop_outs():
     assert Faults(FaultsConfig(), 10, 0).late(1, clients) == []
 
 
+@pytest.mark.slow
 def test_a_straggler_trains_but_its_late_upload_is_dropped(synth_dir, cache_dir, store):
     """straggler=0.4 over 5 clients and 3 rounds (seed 0): the late clients are counted
     each round, trained (their training figures and upload bytes are in results.csv) and

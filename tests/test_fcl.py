@@ -22,8 +22,12 @@ def test_table2_has_thirteen_methods():
 
 
 # FedLGR's run (seconds) is in the full suite; test_lgr.py runs it in the fast tier.
+# Two methods after every edit (a penalty and a memory, one per scope); all 13 in the slow tier.
+FAST_FCL = ("FedAvg-EWC", "FedRoot-NR")
+
+
 @pytest.mark.parametrize(
-    "method", [pytest.param(m, marks=pytest.mark.slow) if m == "FedLGR" else m for m in TABLE2]
+    "method", [m if m in FAST_FCL else pytest.param(m, marks=pytest.mark.slow) for m in TABLE2]
 )
 def test_fcl_fast_dev_run_logs_tasks_and_forgetting(method, synth_dir, cache_dir, store):
     config = fast_config(
@@ -164,6 +168,7 @@ def test_schedule_steps_mark_task_boundaries():
     ]
 
 
+@pytest.mark.slow
 def test_three_tasks_forget_the_two_before(tmp_path, cache_dir, store):
     """Tasks are data: three tasks by number of animals (0, 1, 2), in that order."""
     from fedlgr.shell.data.synth import synthesize
@@ -195,6 +200,7 @@ def test_three_tasks_forget_the_two_before(tmp_path, cache_dir, store):
     assert "after_task3/forgetting/two/rmse" not in after3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["FedRoot-SI", "FedAvg-NR", "FedLGR"])
 def test_a_client_the_strategy_never_chose_in_a_task_still_starts_and_ends_it(
     method, synth_dir, cache_dir, store

@@ -53,6 +53,7 @@ def _untimed(result) -> np.ndarray:
     return np.stack([r.table[:, keep] for r in result.rounds])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "extra",
     [
@@ -161,6 +162,7 @@ def test_chosen_clients_score_alone_and_the_mean_and_summary_say_so(synth_dir, c
     assert "federated.evaluate=chosen" in summary
 
 
+@pytest.mark.slow
 def test_a_sample_of_clients_scores_every_round_the_same_one(synth_dir, cache_dir, tmp_path):
     result = _run(
         synth_dir,
@@ -220,6 +222,7 @@ def _scored_rounds(result) -> list[int]:
     return [r.round for r in result.rounds if r.mean("test/rmse") is not None]
 
 
+@pytest.mark.slow
 def test_clients_score_every_kth_round_and_the_last_with_the_same_numbers(
     synth_dir, cache_dir, tmp_path, capsys
 ):
@@ -248,6 +251,7 @@ def test_clients_score_every_kth_round_and_the_last_with_the_same_numbers(
     assert "round 3/5: not scored" in out and "round 4/5: loss " in out
 
 
+@pytest.mark.slow
 def test_each_tasks_last_round_is_scored_whatever_eval_every_says(synth_dir, cache_dir, tmp_path):
     result = _run(
         synth_dir,

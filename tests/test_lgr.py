@@ -526,6 +526,7 @@ def generator_run(synth96, tmp_path_factory, store):
     return config, result
 
 
+@pytest.mark.slow
 def test_stored_replay_uploads_the_root_only_and_keeps_past_latents(
     generator_run, synth96, cache_dir, store, monkeypatch
 ):

@@ -57,6 +57,7 @@ def test_a_report_averages_seeds_logged_either_way_and_refuses_other_used_settin
             check_cells(mixed, "experiment `x`")
 
 
+@pytest.mark.slow
 def test_system_samples_wait_for_the_first_scores(synth_dir, cache_dir, store):
     """MLflow lists a run's metrics in the order their keys were first written: a sample
     taken before round 1 ends is written after its scores."""

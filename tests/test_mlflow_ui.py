@@ -243,6 +243,7 @@ def test_a_local_store_hint_gives_the_ui_command_and_the_runs_link(tmp_path, mon
     assert "***" in runs_hint("postgresql://me:secret@db/mlflow", "1")
 
 
+@pytest.mark.slow
 def test_the_shared_view_gathers_every_sweeps_settings_and_trials(tmp_path):
     import mlflow
 

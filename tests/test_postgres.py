@@ -135,6 +135,7 @@ def _grid(folder: Path, name: str, rounds: int = 2) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_wrong_password_a_stopped_server_and_bad_uris_are_one_line_each(
     postgres, stopped, tmp_path, synth_dir, capsys, monkeypatch
 ):
@@ -231,6 +232,7 @@ def test_a_database_server_that_stops_mid_sweep_is_one_line(tmp_path, synth_dir)
     assert server.password not in out
 
 
+@pytest.mark.slow
 def test_a_missing_driver_is_one_line_naming_the_extra(postgres, tmp_path):
     """Without psycopg (here: its import blocked, as in an environment synced without the
     ``postgres`` extra) the storage and the tracking URI each say how to install it."""

@@ -220,6 +220,7 @@ def test_adaptive_clippings_epsilon_is_the_mechanisms_on_issue_48s_table(
     assert abs(before - old) <= 0.005 and before > server.epsilon
 
 
+@pytest.mark.slow
 def test_an_adaptive_runs_target_epsilon_stops_where_the_accountant_puts_the_mechanism(
     synth_dir, cache_dir
 ):
@@ -337,6 +338,7 @@ def test_settings_dp_cannot_keep_are_refused_in_one_line(overrides, message):
         dp_config("federated.dp.clip=1", *overrides)
 
 
+@pytest.mark.slow
 def test_a_run_logs_the_accountants_epsilon_every_round_and_stops_at_its_target(
     synth_dir, cache_dir, tmp_path, capsys
 ):
@@ -401,6 +403,7 @@ def test_a_dp_run_draws_the_same_noise_again_for_its_seed(synth_dir, cache_dir):
     assert run(1) != first
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "method", ["FedRoot-EWC", "FedLGR", "SCAFFOLD", "FedRootOpt", "FedAvg-NR", "FedRootBN"]
 )

@@ -123,6 +123,7 @@ def metrics_of(store, run_ids: list[str]) -> dict[str, float]:
     return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0] if all(k in r for r in runs)}
 
 
+@pytest.mark.slow
 def test_table1_rows_columns_values_and_bold_best(report, runs, store):
     blocks = markdown_blocks(report.out / "table1.md")
     assert list(blocks) == ["W/O augmentation", "W/ augmentation"]
@@ -176,6 +177,7 @@ def latex_rows(path) -> dict[tuple[str, str], list[str]]:
     return rows
 
 
+@pytest.mark.slow
 def test_csv_and_latex_hold_the_same_numbers_as_the_markdown(report):
     for name in ("table1", "table2", "table3", "table4"):
         blocks = markdown_blocks(report.out / f"{name}.md")
@@ -207,6 +209,7 @@ def test_csv_and_latex_hold_the_same_numbers_as_the_markdown(report):
             assert [c.split(" (")[0] for c in tex[title, label]] == tex_cells, (name, label)
 
 
+@pytest.mark.slow
 def test_table2_and_the_cost_tables(report, runs, store):
     blocks = markdown_blocks(report.out / "table2.md")
     header, rows = blocks["W/O augmentation"]
@@ -250,6 +253,7 @@ def test_table2_and_the_cost_tables(report, runs, store):
     assert rows["CPU usage (s) ▼"][-1] == f"{lgr['mean/cost/cpu_s']:.2f}"  # no pair, no mark
 
 
+@pytest.mark.slow
 def test_report_is_logged_back_to_mlflow(report, store):
     client = mlflow.MlflowClient(store)
     run = client.get_run(report.logged_to)
@@ -264,6 +268,7 @@ def test_report_is_logged_back_to_mlflow(report, store):
     assert (report.out / "fl_curves.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow
 def test_cli_reports_again_without_counting_report_runs(report, store, tmp_path, capsys):
     out = tmp_path / "again"
     args = ["report", "--tracking-uri", store, "--experiment", EXPERIMENT, "--out", str(out)]
@@ -474,6 +479,7 @@ def test_an_empty_block_is_left_out(store, tmp_path):
         assert {r["augmentation"] for r in csv.DictReader(f)} == {"W/O augmentation"}
 
 
+@pytest.mark.slow
 def test_two_studies_of_one_sweep_are_reported_apart(store, tmp_path, monkeypatch, capsys):
     """The same sweep launched twice on fresh Optuna storages: two studies of one name,
     each with its parent run, in one MLflow store."""
@@ -530,6 +536,7 @@ def test_two_studies_of_one_sweep_are_reported_apart(store, tmp_path, monkeypatc
         make_report(store, sweep="twice", study="nope", out=tmp_path / "none")
 
 
+@pytest.mark.slow
 def test_runs_under_dp_are_rows_of_their_own_naming_epsilon_noise_and_clip(store, tmp_path):
     """FedAvg plain and under two noise multipliers: three rows, the DP ones named by the
     epsilon they spent; two seeds of one DP setting are averaged in one row."""

@@ -351,6 +351,7 @@ def test_a_write_cut_short_leaves_the_previous_checkpoint(interrupted):
         run_experiment(config, resume=True)
 
 
+@pytest.mark.slow
 def test_a_resume_with_other_settings_is_refused_by_name(interrupted, synth_dir, cache_dir):
     config, run_id, _folder = interrupted
     store = config.tracking.uri
@@ -376,6 +377,7 @@ def test_a_resume_with_other_settings_is_refused_by_name(interrupted, synth_dir,
         run_experiment(config, resume=run_id)
 
 
+@pytest.mark.slow
 def test_a_live_run_is_not_resumed_and_an_unknown_one_is_named(interrupted):
     config, run_id, _folder = interrupted
     client = mlflow.MlflowClient(config.tracking.uri)
@@ -407,6 +409,7 @@ def test_checkpoint_files_hold_only_tensors_and_plain_values(interrupted):
     assert set(state["clients"][0]) >= {"model", "optimizer", "plugins", "batches_rng"}
 
 
+@pytest.mark.slow
 def test_a_report_marks_a_dead_run_killed(tmp_path):
     from fedlgr.shell.report.runs import ReportError, select_runs
 
@@ -475,6 +478,7 @@ def test_a_kill_during_a_write_leaves_whole_checkpoints_only(tmp_path):
     assert rounds == sorted(rounds) and found[-1].name == f"round-{rounds[-1]:04d}.ckpt"
 
 
+@pytest.mark.slow
 def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
     synth_dir, cache_dir, tmp_path
 ):
@@ -511,6 +515,7 @@ def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
     assert adopt_settings(now, state["config"], frozenset()).runtime == now.runtime
 
 
+@pytest.mark.slow
 def test_a_run_resumed_without_checkpoints_removes_its_old_folder_when_it_finishes(interrupted):
     """Found by the re-test of the third sweep: `--resume tracking.checkpoint=0` finished
     the run and left its old checkpoints and lock behind."""

@@ -359,6 +359,7 @@ def _gone_pid() -> int:
     return process.pid
 
 
+@pytest.mark.slow
 def test_dead_running_runs_are_named_and_marked_killed_and_live_ones_left(tmp_path):
     store = f"sqlite:///{tmp_path}/mlflow.db"
     client = mlflow.MlflowClient(store)

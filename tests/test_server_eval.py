@@ -112,6 +112,7 @@ def test_fedroot_with_server_eval_is_refused_naming_the_setting(synth_dir):
     assert not load_config(FAST, []).federated.server_evaluates  # off by default
 
 
+@pytest.mark.slow
 def test_the_servers_work_is_billed_to_the_server_not_to_the_clients(
     synth_dir, cache_dir, store, monkeypatch
 ):
@@ -142,6 +143,7 @@ def test_the_servers_work_is_billed_to_the_server_not_to_the_clients(
     assert run.data.metrics["cost/cpu_s"] < 0.9
 
 
+@pytest.mark.slow
 def test_the_report_shows_the_papers_cpu_figure_beside_each_clients_own(
     synth_dir, cache_dir, store, tmp_path
 ):

@@ -31,6 +31,7 @@ SWEEPS = sorted(SWEEPS_DIR.glob("*.yaml"))
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", SWEEPS, ids=[p.stem for p in SWEEPS])
 def test_every_shipped_sweep_loads_and_builds_its_search_space(path):
     spec = load_sweep(path)  # also builds the config of every grid point
@@ -52,6 +53,7 @@ def test_a_grid_null_reaches_the_trial_as_an_unset_setting():
     assert overrides[-1] == "continual.lgr.train_blocks=null"  # not the string "None"
 
 
+@pytest.mark.slow
 def test_the_paper_grids_cover_every_method_and_setting():
     from fedlgr.core.methods import in_paper
     from fedlgr.shell.config import FCL_METHODS, METHODS
@@ -96,6 +98,7 @@ def test_bad_sweep_files_name_the_file_and_key(tmp_path, body, message):
 # --------------------------------------------------------------------------- real studies
 
 
+@pytest.mark.slow
 def test_a_grid_sweep_runs_every_point_once_under_one_parent_run(
     tmp_path, synth_dir, cache_dir, capsys
 ):
@@ -141,6 +144,7 @@ def test_a_grid_sweep_runs_every_point_once_under_one_parent_run(
     assert len(child_runs(store, "sweep-grid4")[2]) == 4
 
 
+@pytest.mark.slow
 def test_a_sigterm_while_optuna_records_a_trial_stops_the_sweep_as_an_interrupt(
     tmp_path, synth_dir, cache_dir, monkeypatch
 ):
@@ -203,6 +207,7 @@ def test_a_sighup_just_as_a_trial_begins_queues_that_trial_again(
     assert parent.info.status == "KILLED"
 
 
+@pytest.mark.slow
 def test_a_failing_trial_is_recorded_failed_and_the_sweep_goes_on(tmp_path, synth_dir, cache_dir):
     path = tmp_path / "fails.yaml"
     path.write_text(

@@ -119,6 +119,7 @@ def test_an_objective_no_run_logs_is_refused_before_training(tmp_path, objective
     assert {"server/test/rmse", "cost/server_cpu_s"} <= run_metrics(served)
 
 
+@pytest.mark.slow
 def test_a_large_grid_is_checked_one_value_at_a_time(tmp_path, monkeypatch, capsys):
     """10,000 points: every value of each parameter is loaded once (37 configs), not every
     point (10,000 loads of ~25 ms); a bad value in the middle of a list is still found."""

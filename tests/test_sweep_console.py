@@ -114,6 +114,7 @@ def test_interrupted_trials_show_as_interrupted_with_their_reason(tmp_path, synt
     assert by_trial[copies[died.number]].split()[1] == "WAITING"  # the point's next try
 
 
+@pytest.mark.slow
 def test_tracking_experiment_chooses_the_experiment_and_is_not_compared_on_relaunch(
     tmp_path, synth_dir, cache_dir
 ):

@@ -53,6 +53,7 @@ def read_csv(path):
         return list(csv.reader(f))
 
 
+@pytest.mark.slow
 def test_the_trials_table_is_the_studys_trials_best_first_with_their_scores(swept):
     _, report, storage, store = swept
     study = optuna.load_study(study_name="lr", storage=storage)
@@ -83,6 +84,7 @@ def test_the_trials_table_is_the_studys_trials_best_first_with_their_scores(swep
     assert report.sweep.trials == 3 and report.sweep.source == f"Optuna storage {storage}"
 
 
+@pytest.mark.slow
 def test_optunas_plots_are_pngs_logged_to_the_parent_run_and_the_rest_said_why_not(swept):
     result, report, _, store = swept
     assert report.logged_to == result.parent_run_id
@@ -104,6 +106,7 @@ def test_optunas_plots_are_pngs_logged_to_the_parent_run_and_the_rest_said_why_n
     assert "Contour plot: not drawn" in said and said.splitlines()[0] in report.summary()
 
 
+@pytest.mark.slow
 def test_a_one_coefficient_sweeps_paper_tables_have_no_empty_rows_or_columns(swept):
     _, report, _, _ = swept
     assert [name for name, _ in report.tables] == ["table1", "table3"]
@@ -118,6 +121,7 @@ def test_a_one_coefficient_sweeps_paper_tables_have_no_empty_rows_or_columns(swe
         assert [r["method"] for r in csv.DictReader(f)] == ["FedAvg"]
 
 
+@pytest.mark.slow
 def test_an_experiment_report_keeps_the_papers_empty_rows(store, tmp_path):
     client = mlflow.MlflowClient(store)
     experiment_id = client.create_experiment("one-method", artifact_location=tmp_path.as_uri())
@@ -189,6 +193,7 @@ def two_settings(tmp_path):
     return store, storage, parent
 
 
+@pytest.mark.slow
 def test_two_settings_get_importances_and_a_contour(two_settings, tmp_path):
     store, _, parent = two_settings
     report = make_report(store, sweep="two", out=tmp_path / "report")
@@ -208,6 +213,7 @@ def test_two_settings_get_importances_and_a_contour(two_settings, tmp_path):
     assert values == sorted(values) and values[0] == pytest.approx(1 / 3 + 0.01, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_without_the_storage_the_trials_come_from_mlflow_in_one_line(
     two_settings, tmp_path, capsys
 ):

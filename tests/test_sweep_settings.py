@@ -50,6 +50,7 @@ def test_a_sweep_relaunched_with_other_overrides_is_refused(synth_dir, synth_cop
     assert study2.user_attrs[SETTINGS_ATTR]["overrides"][-1] == f"data.path={synth_dir}"
 
 
+@pytest.mark.slow
 def test_a_changed_sweep_file_is_refused(synth_dir, tmp_path):
     source = load_sweep("ewc").path.read_text()
     path = tmp_path / "mine.yaml"

@@ -175,6 +175,7 @@ def _scores(w, x, y):
     return pcc, rmse
 
 
+@pytest.mark.slow
 def test_labels_are_learnable_and_the_modes_obey_different_rules(tmp_path):
     # Through the written CSV and the reader: the path real data takes.
     synthesize(tmp_path / "d", scenes=1600, seed=11, size=16)
