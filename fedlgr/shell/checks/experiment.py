@@ -170,7 +170,7 @@ def _secure_aggregation_fits(config: ExperimentConfig) -> None:
         raise ConfigError(
             f"deploy.secagg.enabled with federated.strategy={federated.strategy}: a "
             f"{federated.strategy} aggregate needs every robot's upload, and SecAgg+ gives "
-            f"the server their sum only; {MEAN_BASED}"
+            f"the server their sum only; {mean_based()}"
         )
     clients, fraction = config.data.clients, federated.fraction
     if federated.dp.enabled and fraction < 1:
@@ -225,7 +225,7 @@ def _privacy_fits(config: ExperimentConfig) -> None:
             f"federated.dp.clip={dp.clip:g} with federated.strategy={federated.strategy}: "
             "DP-FedAvg bounds one client's effect on the mean of clipped updates, and a "
             f"{federated.strategy} aggregate of the uploads has no such bound (one client "
-            f"can move it arbitrarily far in L2); {MEAN_BASED}"
+            f"can move it arbitrarily far in L2); {mean_based()}"
         )
     clients = config.data.clients
     if dp.delta >= 1 / clients:
@@ -246,7 +246,11 @@ def _privacy_fits(config: ExperimentConfig) -> None:
             )
 
 
-MEAN_BASED = "use a mean-based strategy (avg, bn, prox, opt, avgm, scaffold, distill)"
+def mean_based() -> str:
+    """The way out of a refusal that needs a mean: the registered strategies that aggregate
+    one (imports them all: only an error message asks)."""
+    names = [name for name, method in STRATEGIES.items() if not method.load().needs_uploads]
+    return f"use a mean-based strategy ({', '.join(names)})"
 
 
 def _aggregates_a_statistic(federated) -> bool:
