@@ -80,8 +80,10 @@ def main() -> int:
     script = Path(sys.executable).with_name("fedlgr")  # the console script uv installed
     command = [str(script)] if script.exists() else [sys.executable, "-m", "fedlgr"]
     start = time.perf_counter()
-    subprocess.run([*command, "--help"], check=True, capture_output=True)
+    done = subprocess.run([*command, "--help"], capture_output=True, text=True)
     figures["help_s"] = time.perf_counter() - start
+    if done.returncode != 0:  # say why rather than a bare CalledProcessError
+        sys.exit(f"bench: fedlgr --help failed (exit {done.returncode}):\n{done.stderr[-2000:]}")
 
     print(
         f"fedlgr data benchmark - {date.today()} - {platform.machine()}, {os.cpu_count()} cores, "
