@@ -10,9 +10,11 @@ one Flower ``Array`` per tensor, no gateway), from a git worktree put first on
 services warm (a 1-round run first), alternating, ``--repeats`` times. Each run's output
 is read line by line and stamped: the table shows the time to the ServerApp's first line,
 the exchanges and what follows the last one. Last, the time ``fedlgr deploy run`` takes to
-report a config typo.
+report a config typo. ``--quick``: a smoke run of this checkout alone (no ``--before``, no
+``--cold-apps``, no warm-up run), one round, once; the ratio to the commit before is not
+measured then.
 
-    uv run python bench/flower.py [--repeats 2] [--rounds 3] [--before fa15ccd]
+    uv run python bench/flower.py [--repeats 2] [--rounds 3] [--before fa15ccd] [--quick]
 
 Run it on a quiet machine: the exchanges wait on processes that Flower starts, and any
 other work on the cores stretches them.
@@ -93,16 +95,27 @@ def main() -> int:
         help="also run this checkout with --cold-apps (Flower's own SuperExec: a process per "
         "ClientApp message and per ServerApp run), to show what the warm executor saves",
     )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run: this checkout only (no --before, no --cold-apps, no warm-up run), "
+        "1 round, 1 repeat; the ratio to --before is not measured",
+    )
     args = parser.parse_args()
+    if args.quick:
+        args.rounds, args.repeats, args.cold = 1, 1, False
     folder = Path(tempfile.mkdtemp(prefix="fedlgr-bench-flower-"))
     data = folder / "data"
     synthesize(data, scenes=48, seed=7, size=32)
     store = f"sqlite:///{folder}/mlflow.db"
     now = Federation(folder / "federation")
-    before, tree = old_federation(folder, args.before)
-    feds = {f"before ({args.before})": before, "now": now}
+    feds, tree = {"now": now}, None
+    extra = {"now": [f"deploy.roster={now.roster}"]}
+    if not args.quick:
+        before, tree = old_federation(folder, args.before)
+        feds = {f"before ({args.before})": before, **feds}
+        extra[f"before ({args.before})"] = []
     base = [f"data.path={data}", f"tracking.uri={store}", "method=FedRootAvg"]
-    extra = {"now": [f"deploy.roster={now.roster}"], f"before ({args.before})": []}
     flags = {name: [] for name in feds}  # of fedlgr deploy superlink / supernode
     if args.cold:
         cold = Federation(folder / "federation-cold")
@@ -118,6 +131,8 @@ def main() -> int:
                 fed.start_supernode(
                     robot, fed.node_key(robot), client, data, *([cold] if cold else [])
                 )
+            if args.quick:
+                continue
             print(f"{name}: warming the robot services (a 1-round run) ...", flush=True)
             warm = [*base, *extra[name], "federated.rounds=1", f"tracking.run_name=warm-{name}"]
             print(f"  {timed_run(fed, warm)['wall']:.1f} s", flush=True)
@@ -138,9 +153,11 @@ def main() -> int:
     finally:
         for fed in feds.values():
             fed.stop()
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)])
+        if tree is not None:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)])
     print()
-    print(f"FedRootAvg, {args.rounds} rounds, 2 robots on localhost, services warm")
+    warmth = "services cold (--quick)" if args.quick else "services warm"
+    print(f"FedRootAvg, {args.rounds} rounds, 2 robots on localhost, {warmth}")
     print(f"medians of {args.repeats} runs each, seconds")
     print("| code | wall | to ServerApp's first line | exchanges (each) | after the last |")
     print("|---|---|---|---|---|")
@@ -152,10 +169,14 @@ def main() -> int:
             f"| {len(runs[0]['exchanges'])} x {statistics.median(each):.1f} "
             f"| {statistics.median(r['after'] for r in runs):.1f} |"
         )
-    old = statistics.median(r["wall"] for r in results[f"before ({args.before})"])
     new = statistics.median(r["wall"] for r in results["now"])
-    ok_wall = new <= old / 3
-    print(f"\nnow / before: {new / old:.2f} (target <= 0.33: {'met' if ok_wall else 'MISSED'})")
+    if args.quick:
+        ok_wall = True
+        print("\nnow / before: not measured (--quick)")
+    else:
+        old = statistics.median(r["wall"] for r in results[f"before ({args.before})"])
+        ok_wall = new <= old / 3
+        print(f"\nnow / before: {new / old:.2f} (target <= 0.33: {'met' if ok_wall else 'MISSED'})")
     last = out.strip().splitlines()[-1] if out.strip() else ""
     print(f"config typo reported in {typo_s:.1f} s (exit {typo.returncode}): {last}")
     ok = typo.returncode == 1 and "roundz" in last and typo_s < 5

@@ -11,7 +11,10 @@ and SecAgg+. Read back from MLflow: seconds per round (``round/seconds``), bytes
 robot and round (``cost/bytes_up`` - for SecAgg+ the masked vector -, ``cost/bytes_down``)
 and SecAgg+'s key stages (``secagg/*_bytes_*``: whole messages, protobuf-encoded).
 
-    uv run python bench/secagg.py [--robots 3] [--rounds 2] [--repeats 1]
+``--quick``: a smoke run, SecAgg+ alone (bench/flower.py's smoke run covers plain runs): 2
+robots, one round, no warm-up run.
+
+    uv run python bench/secagg.py [--robots 3] [--rounds 2] [--repeats 1] [--quick]
 """
 
 from __future__ import annotations
@@ -74,7 +77,16 @@ def main() -> int:
     parser.add_argument("--robots", type=int, default=3)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run: SecAgg+ alone, 2 robots, 1 round, 1 repeat, no warm-up run",
+    )
     args = parser.parse_args()
+    settings = SETTINGS
+    if args.quick:
+        args.robots, args.rounds, args.repeats = 2, 1, 1
+        settings = {"SecAgg+": SETTINGS["SecAgg+"]}
     folder = Path(tempfile.mkdtemp(prefix="fedlgr-bench-secagg-"))
     data = folder / "data"
     synthesize(data, scenes=16 * args.robots, seed=7, size=32)
@@ -82,26 +94,28 @@ def main() -> int:
     fed = Federation(folder / "federation")
     base = [f"data.path={data}", f"tracking.uri={store}", "method=FedAvg"]
     base += [f"data.clients={args.robots}", "tracking.detail_metrics=true"]
-    results: dict[str, list[dict]] = {name: [] for name in SETTINGS}
+    results: dict[str, list[dict]] = {name: [] for name in settings}
     try:
         fed.start_superlink()
         base.append(f"deploy.roster={fed.roster}")
         for client in range(args.robots):
             name = f"robot{client}"
             fed.start_supernode(name, fed.node_key(name), client, data)
-        print("warming the robot services (a 1-round run) ...", flush=True)
-        run(fed, [*base, "federated.rounds=1"], "warm", store)
+        if not args.quick:
+            print("warming the robot services (a 1-round run) ...", flush=True)
+            run(fed, [*base, "federated.rounds=1"], "warm", store)
         for repeat in range(args.repeats):
-            order = list(SETTINGS) if repeat % 2 == 0 else list(reversed(SETTINGS))
+            order = list(settings) if repeat % 2 == 0 else list(reversed(settings))
             for name in order:
-                overrides = [*base, *SETTINGS[name], f"federated.rounds={args.rounds}"]
+                overrides = [*base, *settings[name], f"federated.rounds={args.rounds}"]
                 run_id = run(fed, overrides, f"{name}-{repeat}", store)
                 results[name].append(figures(store, run_id, args.robots))
                 print(f"  {name} #{repeat}: {results[name][-1]}", flush=True)
     finally:
         fed.stop()
     print(f"\nFedAvg, tiny config, {args.robots} robots on localhost, {args.rounds} rounds,")
-    print(f"services warm; medians of {args.repeats} run(s); per round, bytes per robot")
+    warmth = "services cold (--quick)" if args.quick else "services warm"
+    print(f"{warmth}; medians of {args.repeats} run(s); per round, bytes per robot")
     keys = list(next(iter(results.values()))[0])
     print("| setting | " + " | ".join(keys) + " |")
     print("|---|" + "---|" * len(keys))
