@@ -96,8 +96,7 @@ class Faults:
 
 
 def fault_counts(faults: dict[int, str], settings) -> dict[str, float]:
-    """A round's ``faults/dropped`` and ``faults/late`` (of :meth:`Faults.what`'s
-    ``faults``), each where ``settings`` (``federated.faults``) simulates it."""
+    """A round's ``faults/dropped`` and ``faults/late``, each where ``settings`` simulates it."""
     counts = {}
     if settings.dropout:
         counts["faults/dropped"] = float(sum(f == "dropped" for f in faults.values()))

@@ -49,9 +49,8 @@ def serve_round(
     """The server's part of round ``plan``: ``aggregate()`` (aggregation and the server
     update of ``server``, a :class:`ServerSide`; it may return figures of its own,
     SecAgg's), then its evaluation - and, in round 1, that of the initial model first.
-    Returns the round's server figures (``cost/server_cpu_s``, ``cost/server_wall_s``,
-    ``server/...``, under DP the accountant's epsilon so far and the clip norm,
-    ``privacy/*``, then aggregate's) and the initial model's scores (or {})."""
+    Returns the round's server figures (``cost/server_*``, ``server/...``, ``privacy/*``
+    under DP, then aggregate's) and the initial model's scores (or {})."""
     device = next(iter(server.global_weights.values())).device
     before, initial = Usage(), {}
     if evaluation is not None and plan.round == 1:
