@@ -3,6 +3,7 @@ servers) and nothing else: what the tests share besides fixtures is in tests/sup
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -15,6 +16,7 @@ from fedlgr.shell.data.synth import synthesize
 from fedlgr.shell.tracking.store import open_client
 from tests.support.checkout import REPO, ignored, untracked_files
 from tests.support.ports import free_port, wait_healthy
+from tests.support.processes import TELEMETRY
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -84,6 +86,17 @@ def cache_dir(tmp_path, monkeypatch) -> Path:
     path = tmp_path / "cache"
     monkeypatch.setenv("FEDLGR_CACHE_DIR", str(path))
     return path
+
+
+@pytest.fixture
+def telemetry_setting_restored():
+    """``fedlgr.shell.cli.main`` sets MLFLOW_DISABLE_TELEMETRY in this process: undo it."""
+    before = os.environ.get(TELEMETRY)
+    yield
+    if before is None:
+        os.environ.pop(TELEMETRY, None)
+    else:
+        os.environ[TELEMETRY] = before
 
 
 # --------------------------------------------------------------------------- training runs

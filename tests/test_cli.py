@@ -1,4 +1,5 @@
-"""The command line: quick help, the data verbs and the interim demo."""
+"""The command line: quick help, the data verbs and the interim demo; overrides after options,
+MLflow telemetry off unless the user chose, and one error line for a bad argument."""
 
 from __future__ import annotations
 
@@ -8,18 +9,21 @@ import re
 import subprocess
 import sys
 import types
+from pathlib import Path
 
+import mlflow
 import numpy as np
 import pytest
 import yaml
 from PIL import Image
 
-from fedlgr.shell.cli import build_parser, main
+from fedlgr.shell.cli import build_parser, main, parse
 from fedlgr.shell.cli.sweep import shipped_sweeps
 from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, DataConfig, load_config, to_plain
 from fedlgr.shell.console import Progress, duration
 from fedlgr.shell.data.ratings import read_ratings
 from fedlgr.shell.data.splits import make_split
+from tests.support.processes import TELEMETRY, child_env, experiment_runs, metric_steps, only_run
 from tests.support.runs import FAST
 
 
@@ -378,3 +382,276 @@ def test_run_help_names_every_setting_group_and_the_page_that_documents_it(capsy
     assert "  federated.dp.*" in listed
     pages = set(re.findall(r"docs/\w+\.md", listed))
     assert pages and all((Path(__file__).parents[1] / p).is_file() for p in pages), pages
+
+
+@pytest.mark.slow
+def test_found_by_the_third_sweep_are_one_line_before_any_work(
+    tmp_path, synth_dir, cache_dir, capsys, monkeypatch
+):
+    """A checkpoint folder that is a file, or lies under one (a read-only mount took the
+    same path: a traceback from the owner's lock and a FAILED run), is refused before the
+    MLflow run exists; `fedlgr data synth --size 100000` drew for minutes and ignored
+    SIGTERM; `fedlgr report --out ''` filled the current folder with the report.
+    A bad input of issue 20 (points 8 and 9)."""
+    store = tmp_path / "mlflow.db"
+    afile = tmp_path / "ckfile"
+    afile.write_text("x")
+    base = ["run", str(FAST), f"data.path={synth_dir}", "--tracking-uri", f"sqlite:///{store}"]
+    assert main([*base, f"tracking.checkpoint_dir={afile}"]) == 1
+    said = f"fedlgr: error: tracking.checkpoint_dir={afile}: a file, not a folder"
+    assert capsys.readouterr().err.strip() == said
+    assert main([*base, f"tracking.checkpoint_dir={afile / 'sub'}"]) == 1
+    said = (
+        f"fedlgr: error: tracking.checkpoint_dir={afile / 'sub'}: under {afile}, a file, "
+        "not a folder"
+    )
+    assert capsys.readouterr().err.strip() == said
+    client = mlflow.MlflowClient(f"sqlite:///{store}")
+    assert not client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+    assert main(["data", "synth", "--out", str(tmp_path / "s"), "--size", "100000"]) == 1
+    assert "size=100000: images are 16 to 4096 pixels wide" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+    monkeypatch.chdir(tmp_path)
+    before = sorted(tmp_path.iterdir())
+    for out in ("", "."):
+        assert main(["report", "--out", out, "--tracking-uri", f"sqlite:///{store}"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err == (
+            "fedlgr: error: --out names the current folder ('' or .): name a folder of its "
+            "own for the report's tables and plots (default: reports/NAME)"
+        )
+    assert sorted(tmp_path.iterdir()) == before
+
+
+def test_data_show_refuses_its_bad_arguments_in_one_line(tmp_path, synth_dir, capsys):
+    """Found by issue 20's fourth fault sweep."""
+    cases = {
+        "--scenes 0": (["--scenes", "0", "--out", str(tmp_path / "s.png")], "--scenes 0"),
+        "--seed -1": (["--seed", "-1", "--out", str(tmp_path / "s.png")], "--seed -1"),
+        "a folder": (["--out", str(tmp_path)], "name the picture file"),
+        "a .txt": (["--out", str(tmp_path / "s.txt")], "ending in .png or .jpg or .jpeg"),
+    }
+    for case, (args, said) in cases.items():
+        assert main(["data", "show", str(synth_dir), *args]) == 1, case
+        [line] = capsys.readouterr().err.strip().splitlines()
+        assert line.startswith("fedlgr: error: --") and said in line, case
+
+
+def test_a_setting_given_twice_a_report_into_a_device_and_a_shared_store_are_refused(
+    tmp_path, synth_dir, capsys
+):
+    """The tenth fault sweep: a setting given twice with two values kept the last and
+    dropped the first without a word (d101, d145, d146), as did --tracking-uri with another
+    tracking.uri= (d163); report --out /dev/null or a FIFO was "is a file" (d36, d37); a
+    sweep whose base: is a FIFO "no such file" (d88); one sqlite file as --storage and
+    tracking store failed after 11 s with Alembic's "No such revision" (d167)."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    run = ["run", "debug/tiny", f"data.path={synth_dir}"]
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    (tmp_path / "fifo_base.yaml").write_text(f"base: {fifo}\nspace:\n  seed: [1, 2]\n")
+    (tmp_path / "grid.yaml").write_text("base: debug/tiny.yaml\nspace:\n  seed: [1, 2]\n")
+    cases = {
+        (*run, "seed=1", "seed=2", "--print-config"): (
+            "command line: 'seed=1' and 'seed=2' both set seed; give one of them"
+        ),
+        (*run, f"data.path={tmp_path}", "--print-config"): (
+            f"command line: 'data.path={synth_dir}' and 'data.path={tmp_path}' both set "
+            "data.path; give one of them"
+        ),
+        (*run, "--tracking-uri", store, f"tracking.uri=sqlite:///{tmp_path / 'b.db'}"): (
+            f"command line: --tracking-uri {store} and 'tracking.uri=sqlite:///"
+            f"{tmp_path / 'b.db'}' name two tracking stores; give one of them"
+        ),
+        ("report", "--tracking-uri", store, "--out", "/dev/null"): (
+            "/dev/null: is a device, pipe or socket; the report (--out) is a folder of tables "
+            "and plots: name a new or existing folder"
+        ),
+        ("sweep", str(tmp_path / "fifo_base.yaml"), "--tracking-uri", store): (
+            f"config {fifo}: {fifo} is not a regular file (a device, pipe or socket)"
+        ),
+        (
+            *("sweep", str(tmp_path / "grid.yaml"), f"data.path={synth_dir}"),
+            *("--tracking-uri", store, "--storage", store),
+        ): (
+            f"--storage {store}: the tracking store's file too; Optuna's study and MLflow's "
+            f"runs each need a database of their own (e.g. --storage sqlite:///"
+            f"{tmp_path / 'optuna.db'})"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    assert main([*run, f"data.path={synth_dir}", "--print-config"]) == 0  # the same twice
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fifo", "fifo_base.yaml", "grid.yaml"]
+
+
+@pytest.mark.slow
+def test_one_value_spelled_twice_passes_and_what_a_sweep_would_drop_is_refused(
+    tmp_path, synth_dir, cache_dir, capsys, monkeypatch
+):
+    """The eleventh fault sweep: one value spelled two ways (``seed=1 seed=01``, one sqlite
+    file by two paths, ``tracking.uri=null``) was refused as two (e64, e73, d178); one
+    sqlite file as --storage and store by a link or ``..`` was not caught (e81, e84); a
+    sweep file's overrides: setting a key twice, or an override of a setting the space
+    varies, were dropped without a word (e162, e163, e168); a config or sweep under a FIFO
+    or a file was "not found" (e50, e147, e148); a tracking.checkpoint_dir of the user's
+    named checkpoints was removed after the run (e92)."""
+    monkeypatch.chdir(tmp_path)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    run = ["run", "debug/tiny", f"data.path={synth_dir}"]
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    for same in (
+        ["seed=1", "seed=01"],
+        ["tracking.uri=null", "--tracking-uri", store],
+        ["tracking.uri=sqlite:///mlflow.db", "--tracking-uri", store],
+    ):
+        assert main([*run, *same, "--print-config"]) == 0, same
+    capsys.readouterr()
+    (tmp_path / "mlflow.db").touch()
+    (tmp_path / "link.db").symlink_to(tmp_path / "mlflow.db")
+    space = "space:\n  seed: [1, 2]\n"
+    (tmp_path / "grid.yaml").write_text(f"base: debug/tiny.yaml\n{space}")
+    (tmp_path / "twice.yaml").write_text(
+        f"base: debug/tiny.yaml\noverrides: [seed=1, seed=2]\n{space}"
+    )
+    (tmp_path / "rounds.yaml").write_text(
+        "base: debug/tiny.yaml\noverrides: [federated.rounds=1, federated.rounds=2]\n"
+        "space:\n  train.lr_top: [0.1, 0.2]\n"
+    )
+
+    def sweep(name: str, *more: str) -> tuple[str, ...]:
+        return ("sweep", name, f"data.path={synth_dir}", "--tracking-uri", store, *more)
+
+    cases = {
+        sweep("grid.yaml", "--storage", f"sqlite:///{tmp_path / 'link.db'}"): (
+            f"--storage sqlite:///{tmp_path / 'link.db'}: the tracking store's file too; "
+            "Optuna's study and MLflow's runs each need a database of their own (e.g. "
+            f"--storage sqlite:///{tmp_path / 'optuna.db'})"
+        ),
+        sweep("grid.yaml", "seed=3"): (
+            "sweep grid: 'seed=3' (the command line) sets seed, which its space: varies, "
+            "each trial its own value; drop it, or take seed out of space:"
+        ),
+        sweep("rounds.yaml"): (
+            "sweep rounds: its overrides: set federated.rounds twice ('federated.rounds=1', "
+            "'federated.rounds=2'); keep one"
+        ),
+        sweep("twice.yaml"): (
+            "sweep twice: 'seed=1' (its overrides:) sets seed, which its space: varies, each "
+            "trial its own value; drop it, or take seed out of space:"
+        ),
+        ("run", f"{fifo}/x.yaml", "--print-config"): (
+            f"{fifo}/x.yaml: under {fifo}, a device, pipe or socket, not a folder"
+        ),
+        ("sweep", f"{fifo}/s.yaml"): (
+            f"sweep {fifo}/s.yaml: under {fifo}, a device, pipe or socket, not a folder"
+        ),
+    }
+    for argv, said in cases.items():
+        assert main(list(argv)) == 1, argv
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"fedlgr: error: {said}", argv
+    mine = tmp_path / "mine" / "checkpoints"
+    mine.mkdir(parents=True)
+    base = [*run, f"data.cache_dir={cache_dir}", f"tracking.checkpoint_dir={mine}"]
+    assert main([*base, "--tracking-uri", store]) == 0
+    assert mine.is_dir() and not any(mine.iterdir())
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_overrides_may_follow_options_and_stray_arguments_are_refused(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = [
+        "run",
+        str(FAST),
+        f"data.cache_dir={cache_dir}",
+        "--tracking-uri",
+        store,
+        "federated.rounds=2",
+        f"data.path={synth_dir}",
+        "runtime.threads=1",
+    ]
+    assert main(args) == 0, capsys.readouterr().err
+    client, run = only_run(store)
+    params = run.data.params
+    assert params["federated.rounds"] == "2" and params["runtime.threads"] == "1"
+    # Machine-local paths are not params (issue 13): the config artifact keeps them.
+    assert "data.path" not in params and "tracking.uri" not in params
+    config = client.download_artifacts(run.info.run_id, "config.yaml")
+    assert f"path: {synth_dir}" in Path(config).read_text()
+    assert metric_steps(client, run.info.run_id) == [1, 2]
+    capsys.readouterr()
+
+    for stray in ("--bogus", "stray"):
+        with pytest.raises(SystemExit) as exit_:
+            main([*args, stray])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert re.search(rf"^fedlgr: error: unrecognized arguments: .*{stray}$", err, re.M), err
+    assert len(experiment_runs(store)[1]) == 1  # nothing ran
+
+
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_an_override_after_a_bare_resume_is_an_override():
+    args = parse(["run", str(FAST), "--resume", "federated.rounds=2"])
+    assert args.resume is True
+    assert args.items == [str(FAST), "federated.rounds=2"]
+
+
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_the_cli_turns_mlflow_telemetry_off_unless_the_user_chose(tmp_path, monkeypatch, capsys):
+    missing = str(tmp_path / "missing.yaml")  # a verb that ends at once, with an error
+    monkeypatch.delenv(TELEMETRY, raising=False)
+    assert main(["run", missing]) == 1
+    assert os.environ[TELEMETRY] == "true"
+    monkeypatch.setenv(TELEMETRY, "false")
+    assert main(["run", missing]) == 1
+    assert os.environ[TELEMETRY] == "false"  # the user's explicit choice is kept
+    assert capsys.readouterr().err.count("config file not found") == 2
+
+
+SHOW_TELEMETRY = """
+import atexit, os, runpy, sys
+
+def show():
+    client = sys.modules["mlflow.telemetry.client"].get_telemetry_client()
+    print("TELEMETRY", os.environ.get("MLFLOW_DISABLE_TELEMETRY", "<unset>"), client)
+
+atexit.register(show)
+sys.argv = ["fedlgr", *sys.argv[1:]]
+runpy.run_module("fedlgr", run_name="__main__", alter_sys=True)
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("given", "seen"), [(None, "true"), ("false", "false")])
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_a_fedlgr_process_runs_mlflow_without_telemetry_by_default(tmp_path, given, seen):
+    """``python -m fedlgr report`` (it opens the store, then stops: no experiment) with
+    the environment variable unset, and with a user's explicit ``false``."""
+    env = child_env(**({TELEMETRY: given} if given else {}))
+    store = f"sqlite:///{tmp_path}/empty.db"
+    mlflow.MlflowClient(store).search_experiments()  # a store without fedlgr's experiment
+    command = ["report", "--tracking-uri", store, "--no-log", "--out", str(tmp_path / "out")]
+    done = subprocess.run(
+        [sys.executable, "-c", SHOW_TELEMETRY, *command],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 1 and "fedlgr: error: no MLflow experiment" in done.stderr, (
+        done.stderr
+    )
+    shown = [line for line in done.stdout.splitlines() if line.startswith("TELEMETRY ")]
+    assert shown and shown[-1].split()[1] == seen, done.stdout
+    if given is None:
+        assert shown[-1] == "TELEMETRY true None"  # MLflow started no telemetry client

@@ -4,23 +4,32 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 from pathlib import Path
 
+import mlflow.utils.validation
 import pytest
 
+import fedlgr.shell.checks.experiment as experiment_checks
+import fedlgr.shell.config as config_module
 from fedlgr.core.models.scholar import build_scholar
 from fedlgr.core.scope import shared_keys
 from fedlgr.core.strategies import build_strategy
 from fedlgr.errors import ConfigError
+from fedlgr.shell.cli import main
 from fedlgr.shell.config import (
     CONF_DIR,
     FCL_METHODS,
     METHODS,
+    DataConfig,
     ExperimentConfig,
+    FederatedConfig,
+    ModelConfig,
     flatten,
     load_config,
     to_yaml,
 )
+from tests.support.runs import FAST
 
 CONFIGS = sorted(CONF_DIR.rglob("*.yaml"))
 
@@ -335,3 +344,288 @@ def test_the_old_flat_method_settings_are_unknown_settings(tmp_path, capsys):
     )
     assert load_config(None, ["continual.lgr.hidden=8"]).continual.lgr.hidden == 8
     assert capsys.readouterr().err == ""
+
+
+def refused(overrides: list[str], error=ConfigError) -> str:
+    """The one-line message with which ``load_config`` refuses ``overrides``."""
+    with pytest.raises(error) as caught:
+        load_config(None, overrides)
+    message = str(caught.value)
+    assert "\n" not in message
+    return message
+
+
+@pytest.mark.parametrize("override", ["seed=-1", "seed=4294967296", "data.seed=-1"])
+def test_seeds_outside_32_bits_are_refused(override):
+    """A bad input of issue 20 (points 8 and 9)."""
+    message = refused([override])
+    assert message.startswith(override + ":")
+    assert "0..4294967295" in message and "32-bit" in message
+
+
+def test_the_largest_32_bit_seed_is_accepted():
+    """A bad input of issue 20 (points 8 and 9)."""
+    assert load_config(None, ["seed=4294967295", "data.seed=4294967295"]).seed == 2**32 - 1
+
+
+@pytest.mark.parametrize(
+    ("override", "shown"),
+    [
+        ("federated.opt.lr=inf", "federated.opt.lr=inf"),
+        ("federated.opt.tau=nan", "federated.opt.tau=nan"),
+        ("train.lr_root=-inf", "train.lr_root=-inf"),
+        ("train.betas=[0.9,.nan]", "train.betas=[0.9, nan]"),
+        ("model.width=nan", "model.width=nan"),
+        ("continual.ewc.lambda_=.inf", "continual.ewc.lambda_=inf"),
+        ("deploy.join_timeout_s=.inf", "deploy.join_timeout_s=inf"),
+        ("data.dirichlet_alpha=inf", "data.dirichlet_alpha=inf"),
+    ],
+)
+def test_nan_and_infinite_floats_are_refused_in_every_section(override, shown):
+    """A bad input of issue 20 (points 8 and 9)."""
+    assert refused([override]) == f"{shown}: must be a finite number"
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: ModelConfig(mlp_hidden=(1e9,)), "model.mlp_hidden=[1000000000.0]"),
+        (lambda: DataConfig(augment_copies=1e9), "data.augment_copies=1000000000.0"),
+        (lambda: FederatedConfig(rounds=10.0), "federated.rounds=10.0"),
+    ],
+)
+def test_floats_where_integers_are_expected_are_refused(build, message):
+    """A bad input of issue 20 (points 8 and 9)."""
+    # load_config refuses them through OmegaConf's types; code building the dataclasses
+    # directly gets the same check
+    with pytest.raises(
+        ConfigError, match=rf"^{re.escape(message)}: must be an integer, not a float$"
+    ):
+        build()
+
+
+def test_a_model_too_large_for_the_memory_is_refused_with_the_estimate(monkeypatch):
+    """A bad input of issue 20 (points 8 and 9)."""
+    monkeypatch.setattr(experiment_checks, "machine_memory", lambda: 64 * 10**9, raising=False)
+    message = refused(["data.modality=features", "model.mlp_hidden=[1000000000]"])
+    # Linear(29, 1e9) + BatchNorm(1e9) + the top's BatchNorm(1e9) and Linear(1e9, 32):
+    # ~7e10 numbers x 16 bytes
+    assert message.startswith("model.mlp_hidden=[1000000000] with model.top_hidden=32:")
+    assert "~7e+10 parameters" in message and "1.1 TB to train" in message
+    assert "64.0 GB of memory (psutil.virtual_memory().total)" in message
+    assert "model.top_hidden=1000000000" in refused(["model.top_hidden=1000000000"])
+    load_config(None, ["data.modality=features"])  # the default MLP fits
+
+
+def test_image_size_and_augment_copies_are_bounded_with_the_estimate():
+    """A bad input of issue 20 (points 8 and 9)."""
+    message = refused(["data.image_size=100000"])
+    assert message.startswith("data.image_size=100000: at most 4096 (a fixed bound")
+    assert "30.0 GB and 120.0 GB here" in message  # 3 and 12 bytes x 100000^2
+    message = refused(["data.augment_copies=1000000000"])
+    assert message.startswith("data.augment_copies=1000000000: at most 1000 (a fixed bound")
+    assert "24.0 GB per scene" in message
+    load_config(None, ["data.image_size=4096", "data.augment_copies=1000"])
+
+
+def test_rounds_are_bounded():
+    """A bad input of issue 20 (points 8 and 9)."""
+    message = refused(["federated.rounds=1000000000"])
+    assert message.startswith("federated.rounds=1000000000: at most 1000000 rounds")
+    message = refused(["continual.tasks=[circle,arrow]", "continual.rounds_per_task=600000"])
+    assert message.startswith("continual.rounds_per_task=600000 x 2 tasks = 1200000 rounds:")
+    assert refused(["continual.rounds_per_task=1000001"]).startswith(
+        "continual.rounds_per_task=1000001: at most 1000000 rounds"
+    )
+
+
+def test_an_experiment_name_over_mlflows_limit_is_refused():
+    """A bad input of issue 20 (points 8 and 9)."""
+    assert config_module.MAX_EXPERIMENT_NAME == mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH
+    message = refused(["tracking.experiment=" + "x" * 501])
+    assert message == (
+        "tracking.experiment: 501 characters, MLflow allows at most 500 "
+        "(mlflow.utils.validation.MAX_EXPERIMENT_NAME_LENGTH)"
+    )
+    load_config(None, ["tracking.experiment=" + "x" * 500])
+
+
+@pytest.mark.parametrize("name", ["heartbeat_s", "system_metrics_s"])
+@pytest.mark.parametrize("value", ["1e300", "86401", "0", "0.0001"])
+def test_thread_intervals_must_be_a_second_to_a_day(name, value):
+    """A bad input of issue 20 (points 8 and 9)."""
+    # threading.Event.wait raises OverflowError above TIMEOUT_MAX, killing the thread;
+    # 0.0001 s was taken (the seventh fault sweep, z10/z13)
+    assert config_module.MAX_INTERVAL_S <= threading.TIMEOUT_MAX
+    message = refused([f"tracking.{name}={value}"])
+    assert message.startswith(f"tracking.{name}=")
+    assert "from 1 to 86400 seconds" in message
+    load_config(None, [f"tracking.{name}=1"])
+
+
+@pytest.mark.parametrize("value", ["0.001", "0", "604801"])
+def test_the_multi_process_timeout_is_a_second_to_a_week(value):
+    """A bad input of issue 20 (points 8 and 9)."""
+    assert refused([f"runtime.timeout_s={value}"]) == (
+        f"runtime.timeout_s={float(value)}: from 1 second to a week (604800)"
+    )
+
+
+def test_an_empty_config_file_is_refused(tmp_path):
+    """A bad input of issue 20 (points 8 and 9)."""
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    with pytest.raises(ConfigError, match=r"empty.yaml: holds no settings \(an empty file\)"):
+        load_config(empty)
+
+
+def test_machine_settings_no_machine_has_are_refused_in_one_line(tmp_path, capsys):
+    """Found by the fault sweep: tracebacks at runtime.threads=1000000 (1004 MemoryErrors)
+    and runtime.accelerator=gpu on a machine without one; a sweep's --workers 100000 started
+    processes until SIGTERM, --workers 0 ran one; a folder given as the config, and an
+    empty --tracking-uri (it fell back to the default store).
+    A bad input of issue 20 (points 8 and 9)."""
+    import torch
+
+    from fedlgr.shell.config import SWEEPS_DIR
+
+    fast, sweep = str(FAST), str(SWEEPS_DIR / "fedlgr.yaml")
+    assert "runtime.threads=1000000: at most 1024" in refused(["runtime.threads=1000000"])
+    assert "runtime.devices=5000: at most 1024" in refused(["runtime.devices=5000"])
+    cases = [
+        (["run", str(tmp_path)], f"{tmp_path}: a folder, not a config file"),
+        (["run", fast, "--tracking-uri", ""], "--tracking-uri '': empty"),
+        (["sweep", sweep, "--workers", "0"], "--workers 0: from 1 to"),
+        (["sweep", sweep, "--workers", "100000"], "--workers 100000: from 1 to"),
+        (["sweep", sweep, "--heartbeat", str(10**12)], f"--heartbeat {10**12}: from 1 to 86400"),
+    ]
+    if not torch.cuda.is_available():
+        cases.append(
+            (
+                # a data.path that exists: a missing one is refused first, before torch loads
+                ["run", fast, f"data.path={tmp_path}", "runtime.accelerator=gpu"],
+                "runtime.accelerator=gpu: no CUDA GPU on this machine",
+            )
+        )
+    for argv, said in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and said in err, (argv, err)
+
+
+def test_a_text_file_named_as_a_config_is_refused_without_its_text(tmp_path):
+    """Found by issue 20's fourth fault sweep."""
+    secret = tmp_path / "notes.yaml"
+    secret.write_text("root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1:the secret line\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(secret, [])
+    assert str(err.value) == (
+        f"{secret}: not a config file: its top level is not `setting: value` lines "
+        "(a setting name is letters, digits, _ and .)"
+    )
+
+
+@pytest.mark.parametrize("setting", ["train.betas=[1.5,0.9]", "federated.opt.betas=[0.9,1.0]"])
+def test_adams_decay_rates_are_checked_with_the_config(setting):
+    """The fifth sweep: train.betas=[1.5,0.9] failed inside torch's Adam after 13 s."""
+    with pytest.raises(ConfigError, match=r"betas=\[.*\]: two decay rates, each in \[0, 1\)"):
+        load_config(None, [setting])
+
+
+@pytest.mark.parametrize(
+    ("overrides", "said"),
+    [
+        (
+            ["data.path=d48", "data=[1,2]"],
+            "command line: 'data.path=d48' and 'data=[1,2]' set data both whole and by its "
+            "parts; give one of them",
+        ),
+        (
+            ["data=[1,2]", "data.path=d48"],
+            "command line: 'data=[1,2]' and 'data.path=d48' set data both whole and by its "
+            "parts; give one of them",
+        ),
+        (
+            [f"model.mlp_hidden={'[' * 45}16{']' * 45}"],
+            f"model.mlp_hidden=[{'[' * 44}16{']' * 44}]: a list or mapping where a number goes",
+        ),
+        (
+            ["train.betas=[[0.9],0.99]"],
+            "train.betas=[[0.9], 0.99]: a list or mapping where a number goes",
+        ),
+        (
+            ["model.mlp_hidden=[{a: 1}]"],
+            "model.mlp_hidden=[{'a': 1}]: a list or mapping where a number goes",
+        ),
+        (  # the ninth sweep, c50: read, the 5 dropped, nothing said
+            ["train=5", "train.lr_root=0.1"],
+            "command line: 'train=5' and 'train.lr_root=0.1' set train both whole and by its "
+            "parts; give one of them",
+        ),
+        (  # c52
+            ["data=null", "data.path=d48"],
+            "command line: 'data=null' and 'data.path=d48' set data both whole and by its "
+            "parts; give one of them",
+        ),
+        (  # c100: "Merge error: int is not a subclass of TrainConfig. value: 5"
+            ["train=5"],
+            "command line: train=5: a section of settings, not one value; set its parts "
+            "(e.g. train.epochs=...)",
+        ),
+        (  # c128: "TupleConfig length 1 does not match type hint length 2"
+            ["train.betas=[0.9]"],
+            "command line: train.betas=[0.9]: a list of 2 values expected, 1 given",
+        ),
+    ],
+)
+def test_a_setting_given_whole_and_by_parts_or_nested_where_numbers_go_is_named(overrides, said):
+    """The eighth fault sweep: ``data.path=D 'data=[1,2]'`` was OmegaConf's bare "Cannot
+    merge incompatible container types" (a12); lists nested where a size goes were
+    "'<' not supported between instances of 'list' and 'int'" (a24, a29, a75)."""
+    with pytest.raises(ConfigError) as err:
+        load_config(Path(__file__).parents[1] / "conf/debug/fast.yaml", overrides)
+    assert str(err.value) == said
+
+
+def test_a_config_from_a_pipe_an_include_with_a_suffix_and_loops_are_named(tmp_path, capsys):
+    """The eighth fault sweep: ``/dev/stdin`` as a config was "/proc/PID/fd/pipe:[N]:
+    config file not found" (u37); ``includes: [cfg.fifo]`` and ``[/dev/zero]`` named
+    cfg.yaml and /dev/zero.yaml, files never given (u38, u39); a looping data.path was
+    "no such folder" (u48), a looping sweep file "no such file" (u53)."""
+    from fedlgr.errors import DataError
+    from fedlgr.shell.checks.paths import check_data_path
+    from fedlgr.shell.sweep.spec import find_sweep
+
+    if not Path("/proc/self/fd").is_dir():
+        pytest.skip("needs Linux's /proc")
+    fifo = tmp_path / "cfg.fifo"
+    os.mkfifo(fifo)
+    (tmp_path / "inc_fifo.yaml").write_text("includes: [cfg.fifo]\nseed: 1\n")
+    (tmp_path / "inc_zero.yaml").write_text("includes: [/dev/zero]\nseed: 1\n")
+    (tmp_path / "base.yml").write_text("seed: 7\n")
+    (tmp_path / "inc_yml.yaml").write_text("includes: [base.yml]\n")
+    loop = tmp_path / "l1"
+    loop.symlink_to(tmp_path / "l2")
+    (tmp_path / "l2").symlink_to(loop)
+    special = "not a regular file (a device, pipe or socket)"
+    read, write = os.pipe()  # /dev/stdin of `echo seed: 3 | fedlgr run /dev/stdin`
+    pipe = f"/proc/self/fd/{read}"  # resolves to /proc/PID/fd/pipe:[N], which is no file
+    cases = {
+        pipe: f"{pipe}: {special}",
+        tmp_path / "inc_fifo.yaml": f"{fifo}: {special}",
+        tmp_path / "inc_zero.yaml": f"/dev/zero: {special}",
+        loop: f"{loop}: a symbolic link that loops",
+    }
+    for path, said in cases.items():
+        with pytest.raises(ConfigError) as err:
+            load_config(path)
+        assert str(err.value) == said
+    os.close(read)
+    os.close(write)
+    assert load_config(tmp_path / "inc_yml.yaml").seed == 7  # was read as base.yaml
+    with pytest.raises(DataError) as err:
+        check_data_path(loop)
+    assert str(err.value) == f"data.path={loop}: a symbolic link that loops"
+    with pytest.raises(ConfigError) as err:
+        find_sweep(loop)
+    assert str(err.value) == f"sweep {loop}: a symbolic link that loops"

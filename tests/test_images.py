@@ -17,6 +17,7 @@ from fedlgr.shell.cli import main
 from fedlgr.shell.config import DataConfig
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.images import decode, load_image_store, match_images
+from tests.support.data import rating_row, write_dataset
 
 
 def _png(path, colour=(200, 10, 10), size=(40, 30)):
@@ -328,3 +329,41 @@ def test_oversized_image_is_refused_where_warnings_are_errors(synth_copy, monkey
         warnings.simplefilter("error", Image.DecompressionBombWarning)
         with pytest.raises(DataError, match=r"255.png: image too large to decode safely \(4096 "):
             decode(bad, 16, None)
+
+
+def test_a_degenerate_image_is_refused_and_can_be_skipped(tmp_path, cache_dir):
+    """A bad input of issue 20 (points 8 and 9)."""
+    rows = [rating_row(s, True, [3] * 8) for s in (250, 251, 252)]
+    folder = write_dataset(tmp_path / "data", rows, {250: (32, 32), 251: (1, 1), 252: (32, 7)})
+    with pytest.raises(DataError) as caught:
+        load_scenes(DataConfig(path=folder, image_size=16, cache=False))
+    message = str(caught.value)
+    assert "\n" not in message
+    assert message.startswith(f"{folder / 'images' / '251.png'}: 1x1 pixels, under the 8 px")
+    assert "resized to data.image_size=16" in message
+    config = DataConfig(path=folder, image_size=16, cache=False, on_bad_image="skip")
+    with pytest.warns(UserWarning) as warned:
+        scenes = load_scenes(config)
+    assert scenes.stamps.tolist() == [250]
+    skipped = sorted(str(w.message).split(": ", 1)[0] for w in warned)
+    assert skipped == ["skipping stamp 251", "skipping stamp 252"]
+    assert "252.png: 32x7 pixels" in str(warned[-1].message) + str(warned[0].message)
+
+
+def test_an_image_store_larger_than_the_memory_is_refused_before_decoding(tmp_path, monkeypatch):
+    """A bad input of issue 20 (points 8 and 9)."""
+    rows = [rating_row(s, True, [3] * 8) for s in (250, 251)]
+    folder = write_dataset(tmp_path / "data", rows, {250: (32, 32), 251: (32, 32)})
+    monkeypatch.setattr(images_module, "machine_memory", lambda: 700_000, raising=False)
+
+    def never(*args):
+        raise AssertionError("decoded although the store cannot fit")
+
+    monkeypatch.setattr(images_module, "decode", never)
+    with pytest.raises(ConfigError) as caught:
+        load_scenes(DataConfig(path=folder, image_size=256, cache=False))
+    assert str(caught.value) == (
+        "data.image_size=256: the decoded images of 2 scenes take 393.2 kB (2 x 3 x 256^2 "
+        "bytes) and twice that while they are stacked, more than this machine's 700.0 kB of "
+        "memory (psutil.virtual_memory().total)"
+    )

@@ -1,6 +1,7 @@
 """One owner per run, resume only on the run's own data, checkpoints that leave nothing
 behind, a rendezvous that ends, and stores that fail in one line (issue 20, points 1, 4,
-5, 7 and the store cases of 8): real processes, real signals, real sqlite stores."""
+5, 7 and the store cases of 8): real processes, real signals, real sqlite stores. A run
+left RUNNING by a dead process is found by its tags and marked KILLED."""
 
 from __future__ import annotations
 
@@ -23,11 +24,12 @@ import pytest
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.stores import TrackingUnreachable, check_sqlite_usable
 from fedlgr.shell.cli import main
+from fedlgr.shell.config import load_config
 from fedlgr.shell.data.synth import synthesize
 from fedlgr.shell.report.runs import select_runs
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.resume import find_checkpoint
-from fedlgr.shell.tracking.mlflow_run import SENTINEL, dead_reason
+from fedlgr.shell.tracking.mlflow_run import SENTINEL, dead_reason, end_dead_runs
 from fedlgr.shell.tracking.store import StoreError
 from tests.support.ports import free_port
 from tests.support.processes import Child, child_env, metric_steps, only_run, run_args
@@ -364,3 +366,113 @@ def test_a_sigterm_that_lands_in_a_finaliser_is_not_lost():
         while time.monotonic() < deadline:
             time.sleep(0.01)
         pytest.fail("SIGTERM was lost")
+
+
+def test_an_interrupt_while_a_run_is_being_started_ends_it_killed(tmp_path, synth_dir, monkeypatch):
+    """The tenth fault sweep (d07, d155): Ctrl-C or SIGHUP 0.1 s into a sweep's trial, while
+    its MLflow run was being set up, ended the run FAILED, as an error would; an interrupt
+    later in the run ends it KILLED."""
+    import mlflow
+
+    from fedlgr.shell.tracking import mlflow_run
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mlflow_run.context, "log_dataset", interrupted)
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    config = load_config(None, [f"data.path={synth_dir}", f"tracking.uri={store}"])
+    with pytest.raises(KeyboardInterrupt):
+        mlflow_run.Tracker(config)
+    client = mlflow.MlflowClient(store)
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    (run,) = client.search_runs(experiments)
+    assert run.info.status == "KILLED"
+
+
+def _gone_pid() -> int:
+    """The pid of a process that has ended and been reaped."""
+    process = subprocess.Popen(["true"])
+    process.wait()
+    return process.pid
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_dead_running_runs_are_named_and_marked_killed_and_live_ones_left(tmp_path):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    client = mlflow.MlflowClient(store)
+    experiment = client.create_experiment("dead-runs")
+    here, now = socket.gethostname(), time.time()
+
+    def running(name: str, host: str, pid: int, beat: float | None):
+        tags = {"fedlgr.host": host, "fedlgr.pid": str(pid), "fedlgr.heartbeat_s": "30.0"}
+        if beat is not None:
+            tags["fedlgr.heartbeat"] = f"{beat:.0f}"
+        return client.create_run(experiment, run_name=name, tags=tags).info.run_id
+
+    gone = _gone_pid()
+    ids = {
+        "gone": running("gone", here, gone, now),  # fresh heartbeat, but no process
+        "live": running("live", here, os.getpid(), now),
+        "stale-remote": running("stale-remote", "elsewhere.invalid", 1, now - 1000),
+        "fresh-remote": running("fresh-remote", "elsewhere.invalid", 1, now),
+        "no-heartbeat": running("no-heartbeat", here, gone, None),  # sweep parent, old fedlgr
+        "finished": running("finished", here, gone, now - 1000),
+    }
+    client.set_terminated(ids["finished"], "FINISHED")
+
+    reasons = {name: dead_reason(client.get_run(i)) for name, i in ids.items()}
+    assert reasons["gone"] is not None
+    assert str(gone) in reasons["gone"] and "gone" in reasons["gone"]
+    assert reasons["stale-remote"] is not None and "heartbeat" in reasons["stale-remote"]
+    for name in ("live", "fresh-remote", "no-heartbeat", "finished"):
+        assert reasons[name] is None, (name, reasons[name])
+
+    ended = end_dead_runs(client, [experiment])
+    assert sorted(ended) == sorted([ids["gone"], ids["stale-remote"]])
+    for name, run_id in ids.items():
+        run = client.get_run(run_id)
+        if name in ("gone", "stale-remote"):
+            assert run.info.status == "KILLED"
+            # the reason as dead_reason gives it (a heartbeat's age may have grown by a second)
+            reason = re.sub(r"\d+ s \(", "N s (", reasons[name])
+            assert re.sub(r"\d+ s \(", "N s (", run.data.tags["fedlgr.ended"]) == (
+                f"marked KILLED: {reason}"
+            )
+        else:
+            assert run.info.status == ("FINISHED" if name == "finished" else "RUNNING"), name
+            assert "fedlgr.ended" not in run.data.tags, name
+    assert end_dead_runs(client, [experiment]) == []  # nothing left to mark
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_a_sigkilled_run_stays_running_until_it_is_found_dead(synth_dir, cache_dir, tmp_path):
+    """SIGKILL runs no clean-up: the run stays RUNNING. Its tags name the process, so
+    ``dead_reason`` sees it gone (already while it is an unreaped zombie) and
+    ``end_dead_runs`` marks it KILLED."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=500")  # killed long before
+    with Child(args, tmp_path, "sigkilled") as child:
+        child.wait_for(r"round 1/500:")
+        client, run = only_run(store)
+        tags = run.data.tags
+        assert tags["fedlgr.pid"] == str(child.pid)
+        assert tags["fedlgr.host"] == socket.gethostname()
+        assert abs(time.time() - float(tags["fedlgr.heartbeat"])) < 120
+        assert run.info.status == "RUNNING" and dead_reason(run) is None  # alive
+        os.kill(child.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while (reason := dead_reason(client.get_run(run.info.run_id))) is None:
+            assert time.monotonic() < deadline, "the killed process still looks alive"
+            time.sleep(0.05)
+        assert child.process.wait(timeout=30) == -signal.SIGKILL
+    assert f"process {child.pid} " in reason
+    run = client.get_run(run.info.run_id)
+    assert run.info.status == "RUNNING"  # nothing of the run's own cleaned up
+    assert end_dead_runs(client, [run.info.experiment_id]) == [run.info.run_id]
+    run = client.get_run(run.info.run_id)
+    assert run.info.status == "KILLED"
+    assert run.data.tags["fedlgr.ended"].startswith("marked KILLED: ")
+    assert str(child.pid) in run.data.tags["fedlgr.ended"]

@@ -12,7 +12,7 @@ from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS, FEATURE_COLUMNS, LABEL_
 from fedlgr.errors import DataError
 from fedlgr.shell.cli import main
 from fedlgr.shell.data.ratings import read_ratings
-from tests.support.data import HEADER, rating_row, write_rows
+from tests.support.data import HEADER, rating_row, write_dataset, write_rows
 
 L1 = [1, 2, 3, 4, 5, 1, 2, 3]
 
@@ -208,3 +208,25 @@ def test_command_line_error_is_one_line_without_traceback(tmp_path):
         f"fedlgr: error: {tmp_path / 'all_data.csv'}: row 2 (line 3), column 'Vacuum cleaning': "
         "Likert value 6 outside 1..5"
     ]
+
+
+def test_two_scenes_under_one_stamp_are_refused(tmp_path):
+    """A bad input of issue 20 (points 8 and 9)."""
+    labels = [3, 3, 3, 3, 3, 3, 3, 3]
+    folder = write_dataset(
+        tmp_path,
+        [
+            rating_row(250, True, labels, descriptor=0.5),
+            rating_row(251, True, labels, descriptor=0.5),
+            rating_row(250, True, [4] * 8, descriptor=0.7),  # another scene's descriptors
+            rating_row(251, True, [4] * 8, descriptor=0.5),  # another rater: averaged
+        ],
+    )
+    with pytest.raises(DataError) as caught:
+        read_ratings(folder)
+    message = str(caught.value)
+    assert "\n" not in message
+    assert message.startswith(f"{folder / 'all_data.csv'}: stamp 250, columns 'Number of people'")
+    assert "and 26 more: its rows [1, 3] disagree" in message
+    assert "descriptors must be the same in all its rows" in message
+    assert "251" not in message.split("(")[0]

@@ -12,6 +12,7 @@ from pathlib import Path
 import mlflow
 import pytest
 
+import fedlgr.shell.report.runs as report_runs
 from fedlgr.core.methods import in_paper
 from fedlgr.shell.cli import main
 from fedlgr.shell.config import FCL_METHODS, METHODS, load_config
@@ -609,3 +610,33 @@ def test_every_headline_score_is_drawn_where_pcc_is(store, tmp_path):
     assert drawn["FCL: test scores per round"] == ["test RMSE", "test PCC", "test CCC"]
     forgetting = "FCL: forgetting of Task 1 after the last task (positive = forgotten)"
     assert drawn[forgetting] == [f"forgetting of Task 1, {m}" for m in ("RMSE", "PCC", "CCC")]
+
+
+def test_a_report_folder_that_is_a_file_is_one_line(tmp_path, monkeypatch, capsys):
+    """A bad input of issue 20 (points 8 and 9)."""
+    # no store is needed to reach the folder: the runs are stood in for
+    selection = report_runs.Selection(
+        client=None,
+        uri="sqlite:///x",
+        name="exp",
+        source="experiment `exp`",
+        experiment_ids=[],
+        sweep=None,
+        records=[],
+    )
+    monkeypatch.setattr(report_runs, "open_store", lambda uri: None)
+    monkeypatch.setattr(report_runs, "select_runs", lambda *a, **k: selection)
+    file = tmp_path / "report.md"
+    file.write_text("not a folder")
+    uri = ["--tracking-uri", "sqlite:///x", "--no-log"]
+    for out, why in ((file, "is a file"), (file / "sub", f"lies under {file}, a file")):
+        assert main(["report", "--out", str(out), *uri]) == 1
+        err = capsys.readouterr().err
+        assert err == f"fedlgr: error: {out}: {why}; the report (--out) is a folder of " + (
+            "tables and plots: name a new or existing folder\n"
+        )
+    monkeypatch.chdir(tmp_path)  # the default folder, reports/exp, is a file too
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "exp").write_text("")
+    assert main(["report", *uri]) == 1
+    assert "reports/exp: is a file" in capsys.readouterr().err

@@ -4,6 +4,7 @@ MLflow run; checkpoints are whole or absent; a resume is refused when it cannot 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -16,11 +17,20 @@ import pytest
 import torch
 
 from fedlgr.errors import FedlgrError
+from fedlgr.shell.cli import main
 from fedlgr.shell.data.synth import synthesize
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import run_experiment
-from tests.support.processes import DETAIL, run_args
-from tests.support.runs import Interrupt, results_csv
+from tests.support.processes import (
+    BIG_CHECKPOINT,
+    DETAIL,
+    Child,
+    metric_steps,
+    only_run,
+    partial_checkpoint,
+    run_args,
+)
+from tests.support.runs import Interrupt, csv_rounds, results_csv
 from tests.support.runs import fast_config as _fast_config
 
 
@@ -528,3 +538,141 @@ def test_a_run_resumed_without_checkpoints_removes_its_old_folder_when_it_finish
     result = run_experiment(config, resume=run_id)
     assert [r.round for r in result.rounds] == [1, 2, 3, 4]
     assert not folder.exists()
+
+
+@pytest.mark.slow
+def test_a_checkpoint_folder_the_user_made_is_kept_when_a_run_finishes(
+    tmp_path, synth_dir, cache_dir
+):
+    """The tenth fault sweep: a finished run removed an empty tracking.checkpoint_dir the
+    user had made (d196), and the folder a link there led to, leaving the link leading
+    nowhere (d190). fedlgr's own checkpoints/ beside the store still goes."""
+    mine, real = tmp_path / "mine", tmp_path / "real"
+    mine.mkdir()
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    base = ["run", "debug/tiny", f"data.path={synth_dir}", f"data.cache_dir={cache_dir}"]
+    for folder in (mine, tmp_path / "link"):
+        store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+        assert main([*base, f"tracking.checkpoint_dir={folder}", "--tracking-uri", store]) == 0
+        assert folder.is_dir() and not any(folder.iterdir())
+    assert main([*base, "--tracking-uri", f"sqlite:///{tmp_path / 'own' / 'mlflow.db'}"]) == 0
+    assert "checkpoints" not in {p.name for p in (tmp_path / "own").iterdir()}
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_sigterm_ends_the_run_killed_with_its_rounds_and_resume_finishes_it(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    """SIGTERM (timeout, Slurm, docker stop) is handled like Ctrl-C: exit 143 (128 + 15)
+    at once, the MLflow run KILLED (not left RUNNING) with results.csv of the rounds done;
+    ``fedlgr run --resume`` then finishes that same run, every round logged once."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    rounds = 12
+    args = run_args(synth_dir, cache_dir, store, f"federated.rounds={rounds}")
+    with Child(args, tmp_path, "terminated") as child:
+        # Printed once round 1 is logged (step 1 of round/seconds) and checkpointed; the
+        # signal goes at once, as later rounds take a fraction of a second each.
+        child.wait_for(rf"round 1/{rounds}:")
+        code, took = child.signal_and_wait(signal.SIGTERM)
+        stderr = child.stderr()
+    assert code == 128 + signal.SIGTERM, stderr[-3000:]
+    assert took < 10, f"{took:.1f} s from SIGTERM to exit"
+    assert "fedlgr: terminated (SIGTERM)" in stderr, stderr[-3000:]
+    assert "Traceback" not in stderr, stderr[-3000:]
+
+    client, run = only_run(store)
+    run_id = run.info.run_id
+    assert run.data.tags["fedlgr.pid"] == str(child.pid)
+    assert run.info.status == "KILLED"
+    logged = metric_steps(client, run_id)
+    assert logged == list(range(1, len(logged) + 1)) and 1 <= len(logged) < rounds
+    kept = csv_rounds(results_csv(client, run_id))
+    assert sorted(kept) == list(range(1, len(kept) + 1))
+    assert len(kept) in (len(logged), len(logged) + 1)  # the signal may fall between the two
+    assert all(clients == ["0", "1"] for clients in kept.values())
+    # Its summary so far is its description, not mean/* metrics a resume cannot take back.
+    assert not [key for key in run.data.metrics if key.startswith("mean/")]
+    note = run.data.tags["mlflow.note.content"]
+    assert note.startswith(f"**{run.info.run_name}: KILLED after {len(kept)} of {rounds} rounds")
+    assert "CPU s/round" in note
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", *args, "--resume"]) == 0
+    said = capsys.readouterr().out
+    assert re.search(rf"resuming run {run_id} after round \d+ of {rounds}", said), said
+    client, run = only_run(store)
+    assert run.info.run_id == run_id and run.info.status == "FINISHED"
+    assert metric_steps(client, run_id) == list(range(1, rounds + 1))  # each round once
+    done = csv_rounds(results_csv(client, run_id))
+    assert sorted(done) == list(range(1, rounds + 1))
+    assert all(clients == ["0", "1"] for clients in done.values())
+    assert not Path(run.data.tags["fedlgr.checkpoints"]).exists()  # a finished run has none
+    _one_summary_of_the_whole_run(client, run, rounds)
+
+
+def _one_summary_of_the_whole_run(client, run, rounds: int) -> None:
+    """Issue 37's tester (Deliver 7): after SIGTERM and --resume the killed attempt's
+    ``mean/*`` points stayed beside the final ones (two points in ``mean/cost/cpu_s``'s
+    history). Each ``mean/*`` has one point, at the last round, the mean over every
+    round's clients (results.csv) or every round (the server's figures)."""
+    run_id = run.info.run_id
+    rows = results_csv(client, run_id)
+    means = {k: v for k, v in run.data.metrics.items() if k.startswith("mean/")}
+    assert {"mean/cost/cpu_s", "mean/cost/bytes_up"} <= set(means), sorted(means)
+    for key, value in means.items():
+        history = [(m.step, m.value) for m in client.get_metric_history(run_id, key)]
+        assert history == [(rounds, value)], key
+        figure = key.removeprefix("mean/")
+        name = figure.replace("/", "_")  # its results.csv column
+        if figure == "cost/paper_cpu_s":  # the server's CPU over clients x rounds
+            per_round = [m.value for m in client.get_metric_history(run_id, "cost/server_cpu_s")]
+            expected = sum(per_round) / (2 * rounds)
+        elif name in rows[0]:
+            column = [float(r[name]) for r in rows if r[name]]
+            assert len(column) == 2 * rounds, key
+            expected = sum(column) / len(column)
+        else:
+            per_round = [m.value for m in client.get_metric_history(run_id, figure)]
+            assert len(per_round) == rounds, key
+            expected = sum(per_round) / rounds
+        # numpy's pairwise sum and Python's running sum of at most 24 doubles of one sign
+        # differ by a few dozen ulp of the total at most: well inside 1e-13
+        assert value == pytest.approx(expected, rel=1e-13, abs=0), key
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_ctrl_c_while_a_checkpoint_is_written_is_an_interrupt_not_a_full_disk(
+    synth_dir, cache_dir, tmp_path, monkeypatch, capsys
+):
+    """Issue 37, Deliver 7: Ctrl-C while round 2's checkpoint was written was reported as
+    "cannot write checkpoint ... free space" and ended the run FAILED - torch.save wraps
+    the KeyboardInterrupt raised in one of its writes in a RuntimeError. It is an
+    interrupt: exit 130, the run KILLED, the partial file gone, round 1's checkpoint
+    intact, and --resume finishes the run."""
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    args = run_args(synth_dir, cache_dir, store, "federated.rounds=3", *BIG_CHECKPOINT)
+    with Child(args, tmp_path, "checkpoint") as child:
+        writing = ".round-0002.ckpt.tmp"  # round 1's checkpoint is on disk
+        partial = partial_checkpoint(tmp_path / "checkpoints", child.process, writing)
+        code, _ = child.signal_and_wait(signal.SIGINT)
+        stderr = child.stderr()
+    client, run = only_run(store)
+    run_id = run.info.run_id
+    assert code == 130, stderr[-3000:]
+    assert "free space" not in stderr and "Traceback" not in stderr, stderr[-3000:]
+    assert stderr.strip().splitlines()[-1] == (
+        f"fedlgr: interrupted; MLflow run {run_id} ended KILLED; "
+        f"the same command with --resume {run_id} continues it"
+    )
+    assert run.info.status == "KILLED"
+    assert sorted(p.name for p in partial.parent.glob("*.ckpt*")) == ["round-0001.ckpt"]
+    assert not partial.exists()
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", *args, "--resume"]) == 0
+    assert f"resuming run {run_id} after round 1 of 3" in capsys.readouterr().out
+    client, run = only_run(store)
+    assert run.info.status == "FINISHED" and metric_steps(client, run_id) == [1, 2, 3]

@@ -1,6 +1,8 @@
 """A robot between Flower messages: the robot service (``fedlgr.shell.deploy.flower.service``)
 as a real process - a start-up probe is not logged as a failure, SIGTERM leaves no stale
-pid file or socket - and the robot's data, its own or its slot's shard."""
+pid file or socket - and the robot's data, its own or its slot's shard. A server's message a
+robot cannot trust (a run key that is a path, a malformed plan) is refused in one line,
+and nothing is written outside its state folder or through a link."""
 
 from __future__ import annotations
 
@@ -12,9 +14,11 @@ import time
 
 import numpy as np
 import pytest
+from flwr.app import ConfigRecord, RecordDict
 
+from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import load_config
-from fedlgr.shell.deploy.flower import service
+from fedlgr.shell.deploy.flower import robot, service, wire
 
 
 @pytest.mark.slow
@@ -98,3 +102,67 @@ def test_a_robot_restarted_on_other_data_says_so_before_it_answers(synth_dir, tm
     assert "client-1.ckpt was trained on (dataset digest " in message
     table.write_text(original)
     assert Robot(config, 1, tmp_path / "state").client.index == 1
+
+
+def plan(run_key: str) -> RecordDict:
+    return RecordDict({"plan": ConfigRecord({"round": 1, "run": run_key})})
+
+
+@pytest.mark.parametrize("key", ["../../../escape", "/tmp/abs", "a/b", "..", "x" * 65, "r un"])
+def test_a_robot_refuses_a_run_key_that_is_not_a_run_id_and_writes_nothing(tmp_path, key):
+    """Found by issue 20's fourth fault sweep."""
+    state = tmp_path / "robot" / "state"
+    node = {"data-path": str(tmp_path), "state-dir": str(state), "client": 0}
+    with pytest.raises(FedlgrError, match=r"is not a run id .* refused, nothing written"):
+        robot.handle("train", 7, node, plan(key))
+    assert not (tmp_path / "robot").exists() and not (tmp_path / "escape").exists()
+    for good in ("4c1d3ad0f4be4dbe8c5e0a19b8c2f0d1", "18446744073709551615", "run_1-b"):
+        assert wire.run_key(plan(good)) == good
+
+
+def test_robot_refuses_a_path_as_a_run_id_however_it_is_reached(tmp_path):
+    """The re-test reached robot.robot with a Flower run id that was a path (a string: a
+    Flower run id is an integer, but nothing here may rely on it).
+    Found by issue 20's fourth fault sweep."""
+    state = tmp_path / "a" / "state"
+    node = {"data-path": str(tmp_path), "state-dir": str(state), "client": 0}
+    for run in ("../../../escape", "/tmp/abs"):
+        with pytest.raises(FedlgrError, match="not a run id; refused, nothing written"):
+            robot.robot(run, node, "{}", 0)
+        with pytest.raises(FedlgrError, match="not a run id; refused, nothing written"):
+            robot.handle("train", run, node, plan(""))
+    assert not (tmp_path / "a").exists() and not (tmp_path / "escape").exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "missing"),
+    [
+        (RecordDict({}), "KeyError: 'plan'"),
+        (RecordDict({"plan": ConfigRecord({"round": 1, "client": "abc"})}), "ValueError"),
+        (plan("r1"), "KeyError"),  # no config, no tensors
+    ],
+)
+def test_a_malformed_message_is_one_line_to_the_server(tmp_path, content, missing):
+    """Found by issue 20's fourth fault sweep."""
+    node = {"data-path": str(tmp_path), "state-dir": str(tmp_path / "state"), "client": 0}
+    with pytest.raises(FedlgrError, match="the server's train message is malformed") as err:
+        robot.handle("train", 7, node, content)
+    assert missing in str(err.value) and len(str(err.value).splitlines()) == 1
+
+
+def test_the_robots_config_is_never_written_through_a_link(tmp_path, synth_dir):
+    """A link planted at <state>/run-<id>/config.yaml is replaced, its target untouched.
+    Found by issue 20's fourth fault sweep."""
+    from fedlgr.shell.config import load_config, to_yaml
+
+    state = tmp_path / "state"
+    (state / "run-r1").mkdir(parents=True)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (state / "run-r1" / "config.yaml").symlink_to(victim)
+    node = {"data-path": str(synth_dir), "state-dir": str(state), "client": 0}
+    config = to_yaml(load_config(None, [f"data.path={synth_dir}"]))
+    robot.robot("r1", node, config, 0)
+    assert victim.read_text() == "precious"
+    written = state / "run-r1" / "config.yaml"
+    assert not written.is_symlink() and "method:" in written.read_text()

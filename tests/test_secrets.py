@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import subprocess
 import sys
 import textwrap
@@ -16,6 +17,7 @@ import yaml
 from fedlgr.errors import ConfigError, FedlgrError
 from fedlgr.shell.cli import main
 from fedlgr.shell.config import load_config, to_plain, to_yaml
+from fedlgr.shell.deploy.credentials import make_node_key
 from fedlgr.shell.deploy.flower import robot as robot_module
 from fedlgr.shell.deploy.flower.service import reply_error
 from tests.support.runs import FAST
@@ -328,3 +330,13 @@ def test_certificates_no_robot_could_use_are_refused_before_anything_is_written(
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and said in err, err
     assert not folder.exists()
+
+
+def test_the_credentials_folder_is_private_under_any_umask(tmp_path):
+    """Found by issue 20's fourth fault sweep."""
+    old = os.umask(0)
+    try:
+        make_node_key(tmp_path / "creds", "robot0")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "creds").stat().st_mode) == 0o700

@@ -7,9 +7,12 @@ import re
 import time
 from pathlib import Path
 
+import mlflow
 import numpy as np
 import pytest
 
+import fedlgr.shell.data.dataset as dataset_module
+import fedlgr.shell.data.images as images_module
 from fedlgr.core.data.columns import (
     DESCRIPTOR_COLUMNS,
     LABEL_COLUMNS,
@@ -18,6 +21,7 @@ from fedlgr.core.data.columns import (
     USING_CIRCLE,
 )
 from fedlgr.errors import ConfigError, DataError
+from fedlgr.shell.cli import main
 from fedlgr.shell.config import DEFAULT_TASKS, DataConfig, TaskSpec
 from fedlgr.shell.data import splits
 from fedlgr.shell.data.ratings import SceneTable, read_ratings
@@ -30,6 +34,7 @@ from fedlgr.shell.data.splits import (
     train_test_split,
 )
 from tests.support.data import HEADER, rating_row, write_rows
+from tests.support.runs import FAST
 
 MUSIC = "Music playing?"
 
@@ -489,3 +494,50 @@ def test_task_on_a_non_binary_descriptor_value(tmp_path):
         TaskSpec("sparse", "Number of people", 0.2),
     )
     assert np.array_equal(task_members(table, tasks), [0, 0, 0, 0, 1, 1, 1, 1])
+
+
+@pytest.mark.slow
+def test_a_schedule_some_client_cannot_train_is_refused_before_any_image_is_decoded(
+    tmp_path, synth_dir, cache_dir, capsys, monkeypatch
+):
+    """FCL trains every client on each scheduled task in turn: 20 clients on the 36
+    training scenes leave some without one. The split is refused in one line from
+    all_data.csv - no image decoded, no MLflow run - with how many clients lack each task
+    and the most clients that give every client both (they do; one more does not).
+    A bad input of issue 40."""
+
+    def never(*args, **kwargs):
+        raise AssertionError("images decoded before the split was checked")
+
+    monkeypatch.setattr(dataset_module, "load_image_store", never)
+    monkeypatch.setattr(images_module, "decode", never)
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    argv = ["run", str(FAST), f"data.path={synth_dir}", f"data.cache_dir={cache_dir}"]
+    assert main([*argv, "--tracking-uri", store, "method=FedAvg-EWC", "data.clients=20"]) == 1
+    err = capsys.readouterr().err.strip()
+
+    # What it must say, from plain splits (which allow a client without a task).
+    table = read_ratings(synth_dir)
+    both = ("circle", "arrow")
+
+    def held(clients: int) -> dict[str, int]:
+        return task_clients(make_split(table, DataConfig(clients=clients)))
+
+    lacking = sorted(((20 - k, t) for t, k in held(20).items()), key=lambda kt: -kt[0])
+    assert all(k > 0 for k, _ in lacking)
+    most = max(k for k in range(1, 20) if held(k) == {"circle": k, "arrow": k})
+    assert 1 < most < 19
+    assert err == (
+        f"fedlgr: error: data.clients=20: {lacking[0][0]} clients hold no training scenes of "
+        f"task {lacking[0][1]!r} and {lacking[1][0]} none of {lacking[1][1]!r} (continual.tasks "
+        "needs every client to hold each task it trains); "
+        f"data.clients={most} is the most that give every client scenes of every task with "
+        "data.seed=0, or use fewer continual.tasks / plain FL"
+    )
+    split = make_split(table, DataConfig(clients=most), both)
+    assert all(len(c.tasks[t]) for c in split.clients for t in both)
+    with pytest.raises(ConfigError, match=f"^data.clients={most + 1}: "):
+        make_split(table, DataConfig(clients=most + 1), both)
+    assert not cache_dir.exists()
+    client = mlflow.MlflowClient(store)
+    assert not client.search_runs([e.experiment_id for e in client.search_experiments()])

@@ -2,11 +2,13 @@
 definitions and objectives refused before trial 1, large grids checked without building
 every point, a space with no new point ends the sweep, every trial's error shown and an
 all-failed sweep exits 1, bad ``--storage`` paths are one line, and the parent run's best
-figure is logged once however many workers finish."""
+figure is logged once however many workers finish. A bad sweep file, study name or data
+folder is one error line naming it."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sqlite3
 import subprocess
@@ -28,7 +30,9 @@ from fedlgr.shell.sweep import load_sweep, run_sweep
 from fedlgr.shell.sweep.checks import run_metrics
 from fedlgr.shell.sweep.space import Param
 from fedlgr.shell.sweep.trials import DUPLICATES_IN_A_ROW, counts, no_new_point
+from tests.support.checkout import REPO
 from tests.support.runs import FAST
+from tests.support.sweeps import write_sweep
 
 BASE = f"base: {FAST}\n"
 
@@ -433,3 +437,101 @@ def test_a_sweep_file_resolves_no_environment_variable(tmp_path, monkeypatch):
         load_sweep(path)
     assert "s3cr3t-value" not in str(refused.value)
     assert str(path) in str(refused.value) and "oc.env" in str(refused.value)
+
+
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def _fedlgr(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "fedlgr", *args]
+    return subprocess.run(command, cwd=cwd, env=ENV, capture_output=True, text=True)
+
+
+def _one_error_line(done: subprocess.CompletedProcess) -> str:
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    (line,) = done.stderr.strip().splitlines()
+    assert line.startswith("fedlgr: error: ")
+    return line
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (BASE + "space: {train.lr_top: [0.1, 1]\n", "line 3, column 1: not valid YAML: expected"),
+        (BASE + "space:\n  train.lr_top: [0.1]\n\tseed: 1\n", "line 4, column 1: not valid YAML"),
+        (BASE + "space: {seed: [1]}\nspace: {seed: [2]}\n", "line 3, column 1: not valid YAML"),
+        ("- train.lr_top\n- seed\n", "a sweep file is a mapping of settings"),
+        ("just words\n", "a sweep file is a mapping of settings"),
+        (BASE + "space: {seed: [1]}\nworkers: 2\n", "workers: unknown setting"),
+        (BASE + "space: {seed: [1]}\nobjective: {metrc: x}\n", "objective.metrc: unknown"),
+        (BASE + "space: {seed: [1]}\nheartbeat_s: often\n", "heartbeat_s: expected a whole"),
+        (
+            BASE + f"space: {{seed: {list(range(12_000))}}}\n",
+            ": too large: over 10,000 YAML nodes (keys, values and list items), more than "
+            "OmegaConf reads from one file (a config holds a few hundred); give a long list "
+            "as low/high/step",
+        ),
+        (
+            BASE + "space: {tracking.uri: [sqlite:///evil.db]}\n",
+            "space.tracking.uri: set by the sweep for every trial (--tracking-uri), not swept",
+        ),
+    ],
+    ids=[
+        "yaml",
+        "tab",
+        "twice",
+        "list",
+        "scalar",
+        "key",
+        "objective-key",
+        "integer",
+        "nodes",
+        "set",
+    ],
+)
+def test_a_bad_sweep_file_is_one_error_line_naming_the_file(tmp_path, body, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(body)
+    line = _one_error_line(_fedlgr("sweep", str(path), cwd=tmp_path))
+    assert line.startswith(f"fedlgr: error: {path}") and message in line
+    assert not (tmp_path / "optuna.db").exists()  # refused before opening any study
+
+
+@pytest.mark.parametrize("study", ["", " ", "x" * 513, "a\nb"])
+def test_an_empty_or_overlong_study_name_is_refused(tmp_path, study):
+    """The seventh fault sweep (w19): ``--study ''`` quietly became the sweep's name."""
+    path = tmp_path / "ok.yaml"
+    path.write_text(BASE + "space: {seed: [1]}\n")
+    line = _one_error_line(_fedlgr("sweep", str(path), "--study", study, cwd=tmp_path))
+    said = "513 characters, at most 512" if study.strip() else f"{study!r}: empty"
+    said = f"{study!r}: holds a control character" if "\n" in study else said
+    assert line.startswith("fedlgr: error: --study") and said in line
+    assert not (tmp_path / "optuna.db").exists()
+
+
+@pytest.mark.parametrize("missing", ["folder", "file"])
+@pytest.mark.slow
+def test_a_sweep_whose_data_path_is_not_a_folder_refuses_to_start(
+    tmp_path, synth_dir, cache_dir, missing
+):
+    path = write_sweep(tmp_path, synth_dir, cache_dir, name="nodata")
+    data = tmp_path / "no-such-data"
+    if missing == "file":
+        data = synth_dir / "synth.json"
+    storage, store = f"sqlite:///{tmp_path}/optuna.db", f"sqlite:///{tmp_path}/mlflow.db"
+    command = ["sweep", str(path), f"data.path={data}", "--storage", storage, "--tracking-uri"]
+    line = _one_error_line(_fedlgr(*command, store, cwd=tmp_path))
+    assert f"data.path={data}: " in line and str(path) in line
+    assert ("no such folder" if missing == "folder" else "not the dataset folder") in line
+    assert not (tmp_path / "optuna.db").exists() and not (tmp_path / "mlflow.db").exists()
+
+
+def test_a_text_file_named_as_a_sweep_is_refused_without_its_text(tmp_path, capsys):
+    """Found by issue 20's fourth fault sweep."""
+    for text in ("API_KEY=sk-live-SECRET123\nDB_PASSWORD=hunter2\n", "_apt:*:20228:0:99999:7:::\n"):
+        sweep = tmp_path / "sweep.yaml"
+        sweep.write_text(text)
+        assert main(["sweep", str(sweep), "--storage", f"sqlite:///{tmp_path}/o.db"]) == 1
+        err = capsys.readouterr().err
+        assert "SECRET" not in err and "hunter2" not in err and "20228" not in err
+        assert f"fedlgr: error: {sweep}: " in err

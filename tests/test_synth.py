@@ -9,10 +9,10 @@ import pytest
 from PIL import Image
 
 from fedlgr.core.data.columns import ALL_COLUMNS, DESCRIPTOR_COLUMNS
-from fedlgr.errors import DataError
+from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.cli import main
 from fedlgr.shell.data.ratings import read_ratings
-from fedlgr.shell.data.synth import generate_scenes, synthesize
+from fedlgr.shell.data.synth import MAX_SCENES, generate_scenes, synthesize
 from fedlgr.shell.data.synth.appropriateness import true_appropriateness
 from fedlgr.shell.data.synth.layout import Layout, Person, descriptors
 from tests.support.data import read_rows
@@ -194,3 +194,50 @@ def test_labels_are_learnable_and_the_modes_obey_different_rules(tmp_path):
     assert pcc_cc >= 0.5 and pcc_aa >= 0.5  # learnable within a mode
     assert rmse_ca >= 1.5 * rmse_cc  # the circle rule does markedly worse on arrow scenes
     assert pcc_ca <= pcc_cc - 0.1
+
+
+def test_synthetic_data_goes_to_a_folder_of_its_own_that_can_be_written(
+    tmp_path, capsys, monkeypatch
+):
+    """Found by the re-test: `data synth` to a read-only place was a traceback, and
+    `--out ''` wrote the dataset into the current folder.
+    A bad input of issue 20 (points 8 and 9)."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["data", "synth", "--out", str(afile / "s"), "--scenes", "1", "--size", "16"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"fedlgr: error: {afile / 's'}: under {afile}, a file, not a folder"
+    monkeypatch.chdir(tmp_path)
+    for out in ("", "."):
+        assert main(["data", "synth", "--out", out, "--scenes", "1", "--size", "16"]) == 1
+        assert "--out names the current folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_synth_refuses_a_seed_and_a_count_out_of_range_before_writing(tmp_path):
+    """Found by issue 20's fourth fault sweep."""
+    for seed in (-1, 2**32):
+        with pytest.raises(ConfigError, match=f"seed={seed}: seeds are 0 to 2\\*\\*32 - 1"):
+            synthesize(tmp_path / "out", scenes=4, seed=seed, size=32)
+    with pytest.raises(ConfigError, match="scenes=1000001: 1 to 1,000,000 scenes"):
+        synthesize(tmp_path / "out", scenes=MAX_SCENES + 1, size=32)
+    assert not (tmp_path / "out").exists()
+    assert main(["data", "synth", "--out", str(tmp_path / "cli"), "--seed", "-1"]) == 1
+    assert not (tmp_path / "cli").exists()
+
+
+def test_an_interrupted_synth_leaves_no_half_dataset(tmp_path):
+    """Found by issue 20's fourth fault sweep."""
+
+    def interrupt(done, total):
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        synthesize(tmp_path / "new", scenes=8, size=32, progress=interrupt)
+    assert not (tmp_path / "new").exists()  # made by this call: removed
+    kept = tmp_path / "kept"
+    synthesize(kept, scenes=4, size=32)
+    with pytest.raises(KeyboardInterrupt):
+        synthesize(kept, scenes=8, size=32, force=True, progress=interrupt)
+    assert not any(kept.iterdir())  # the old dataset went with --force; nothing half-made

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -14,10 +15,12 @@ import torch
 from fedlgr.core.client.side import ClientSide
 from fedlgr.core.messages import EvaluateIns, RoundPlan, TrainIns, nbytes
 from fedlgr.core.methods import STRATEGIES
+from fedlgr.shell.cli import main
 from fedlgr.shell.config import METHODS, load_config
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.run.experiment import run_experiment
+from tests.support.processes import only_run, run_args
 from tests.support.runs import FAST, fast_config, orchestrator, read_run, results_csv
 
 ACTIONS = ("vacuum", "conversation")
@@ -435,3 +438,35 @@ def test_each_fedopt_variant_runs_in_both_scopes_on_the_shared_parameters(
         k for k in strategy.trainable if not torch.equal(first[k], orch.server.global_weights[k])
     ]
     assert moved  # the server step moved the global parameters
+
+
+# (A NaN learning rate is refused with the config now: tests/test_config.py.)
+@pytest.mark.parametrize(
+    "rates",
+    [
+        ["train.lr_root=1e30", "train.lr_top=1e30"],
+        # the server's step: finite in round 1, then every client's loss in round 2
+        ["method=FedAvgM", "federated.avgm.lr=1e30"],
+    ],
+    ids=["huge", "huge-server-lr"],
+)
+@pytest.mark.usefixtures("telemetry_setting_restored")
+def test_a_non_finite_training_loss_is_one_error_line_and_a_failed_run(
+    rates, synth_dir, cache_dir, tmp_path, monkeypatch, capfd
+):
+    store = f"sqlite:///{tmp_path}/mlflow.db"
+    monkeypatch.chdir(tmp_path)
+    code = main(["run", *run_args(synth_dir, cache_dir, store, "federated.rounds=2", *rates)])
+    err = capfd.readouterr().err
+    assert code == 1, err
+    assert "Traceback" not in err
+    errors = [line for line in err.splitlines() if line.startswith("fedlgr: error:")]
+    assert len(errors) == 1, err
+    assert re.fullmatch(
+        r"fedlgr: error: round [12], client \d+: the training loss is (nan|inf|-inf) "
+        r"\(not a finite number\); lower the learning rates .*",
+        errors[0],
+    ), errors[0]
+    assert "federated.avgm.lr" in errors[0]  # the server's, where one steps
+    _, run = only_run(store)
+    assert run.info.status == "FAILED"

@@ -47,5 +47,13 @@ def results_csv(client, run_id) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def csv_rounds(rows: list[dict[str, str]]) -> dict[int, list[str]]:
+    """The clients of each round in results.csv's rows, by round."""
+    out: dict[int, list[str]] = {}
+    for row in rows:
+        out.setdefault(int(row["round"]), []).append(row["client"])
+    return out
+
+
 class Interrupt(KeyboardInterrupt):
     """Ctrl-C after a given round (the run ends KILLED, its checkpoints stay)."""
