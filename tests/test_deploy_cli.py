@@ -455,7 +455,7 @@ def fake_flwr(tmp_path, monkeypatch):
 def test_run_without_a_connection_is_refused_before_flower_starts_one_of_its_own(
     tmp_path, fake_flwr, monkeypatch, capsys
 ):
-    """With no SuperLink connection flwr 1.41 writes its own config, whose default starts
+    """With no SuperLink connection flwr 1.42 writes its own config, whose default starts
     a local simulation SuperLink and SuperExec, left running when the run fails."""
     config = tmp_path / "conf.yaml"
     config.write_text("seed: 3\ndeploy:\n  roster: none\n")
@@ -569,7 +569,7 @@ def test_run_without_a_roster_is_refused_before_anything_is_submitted(tmp_path, 
 
 
 def test_the_supernode_launcher_shortens_only_flowers_idle_poll_and_reply_wait(monkeypatch):
-    """flwr 1.41's SuperNode sleeps 3 s when the SuperLink has no message and 0.5 s between
+    """flwr 1.42's SuperNode sleeps 3 s when the SuperLink has no message and 0.5 s between
     looks for the ClientApp's reply, with no setting for either; the launcher shortens those
     two. If a flwr upgrade changes the loop, this fails: look again at supernode.py."""
     import inspect
@@ -611,7 +611,7 @@ def test_supernode_refuses_a_heartbeat_outside_flowers_range(tmp_path, synth_dir
 
 
 def test_the_supernode_launcher_sets_the_heartbeat_flower_declares_and_beats_at(monkeypatch):
-    """flwr 1.41's SuperNode declares HEARTBEAT_DEFAULT_INTERVAL when it activates and with
+    """flwr 1.42's SuperNode declares HEARTBEAT_DEFAULT_INTERVAL when it activates and with
     every beat (its REST connection), and its sender waits by it; --heartbeat-s sets that
     name in both modules. If a flwr upgrade stops reading it there, this fails."""
     import inspect

@@ -5,8 +5,10 @@ executor builds. The real Flower runs (tests/test_flower.py) go through it end t
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -65,7 +67,7 @@ def test_a_task_runs_in_a_fork_named_as_flowers_process_and_is_reaped(tmp_path, 
         out.write_text(json.dumps(record))
         raise SystemExit(3)
 
-    monkeypatch.setattr(executor, "_entry", lambda task_type: entry)
+    monkeypatch.setattr(executor, "entry", lambda command: entry)
     exit_handler.add_exit_handler(lambda: None)  # the parent's: not run in the task
     try:
         fork = executor.ForkExecutor()
@@ -82,6 +84,18 @@ def test_a_task_runs_in_a_fork_named_as_flowers_process_and_is_reaped(tmp_path, 
     assert record["pid"] == pid != os.getpid()
     assert record["argv"] == executor.task_argv(spec())
     assert record["comm"] == "flwr-clientapp" and record["handlers"] == 0
+
+
+@pytest.mark.slow  # imports Flower's SuperNode and SuperLink commands: seconds
+@pytest.mark.parametrize("kind", sorted(executor.PRELOAD))
+def test_a_task_runs_what_flowers_console_script_of_that_name_runs(kind):
+    """The function is found by the command Flower's own executor starts, as the script
+    ``flwr-clientapp`` / ``flwr-serverapp`` beside this interpreter finds it."""
+    command = f"flwr-{kind}"
+    script = Path(sys.executable).with_name(command).read_text()
+    [line] = [line for line in script.splitlines() if line.startswith("from ")]
+    _, module, _, name = line.split()
+    assert executor.entry(command) is getattr(importlib.import_module(module), name)
 
 
 def test_only_client_and_server_apps_are_run():

@@ -1,7 +1,7 @@
 """The robots' port of ``fedlgr deploy superlink``: a gateway that serves Flower's Fleet API
 (what SuperNodes call) and nothing else, in front of a SuperLink bound to 127.0.0.1.
 
-Flower 1.41's SuperLink serves all its HTTP APIs on one ``--host``/``--port`` - the Fleet
+Flower 1.42's SuperLink serves all its HTTP APIs on one ``--host``/``--port`` - the Fleet
 API (``/v1/fleet/...``: register, activate, heartbeats, pull and push of messages and
 objects), the Control API (``/v1/control/...``: ``flwr supernode register`` of any key,
 ``flwr run``, which runs code on the server) and the Runtime API of its own processes - and

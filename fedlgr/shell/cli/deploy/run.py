@@ -99,7 +99,7 @@ def _refuse_passwords(overrides: list[str]) -> None:
 
 def _check_connection(name: str | None) -> None:
     """The SuperLink ``flwr run`` will submit to must be one ``fedlgr deploy connect``
-    named: with none, flwr 1.41 writes its own config, whose default ``local`` starts a
+    named: with none, flwr 1.42 writes its own config, whose default ``local`` starts a
     simulation SuperLink and SuperExec of its own in the background - left running after
     the run fails, with the app installed under ``~/.flwr``."""
     path, config = launch.flower_config()

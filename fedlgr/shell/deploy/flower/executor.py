@@ -8,16 +8,17 @@ task, and each new Python process spends seconds importing before it does anythi
 for a ClientApp that then answers in 0.2 s, ~10 s for the ServerApp (torch, torchvision,
 MLflow). bench/README.md "Flower rounds" has the figures.
 
-Flower's ``process`` isolation leaves the SuperExec to the operator, and flwr 1.41's
-SuperExec takes an executor (``flwr.supercore.superexec.executor.Executor``: the thing
-that starts a task's process). Flower ships two, ``subprocess`` and ``kubernetes``, and
-its factory has no way to name another, so this module runs Flower's own
-``run_superexec`` loop with its factory answering :class:`ForkExecutor`: a task's process
-is ``os.fork()`` of this one, which then runs the very entry point Flower would have
-started (``flwr-clientapp`` / ``flwr-serverapp`` with the same arguments). What a task
-does - the Runtime API, its token, heartbeats, the app - is Flower's code unchanged; only
-the imports are done once. ``fedlgr deploy supernode`` and ``fedlgr deploy superlink``
-start it (``--cold-apps`` goes back to Flower's SuperExec).
+Flower's ``process`` isolation leaves the SuperExec to the operator, and Flower's SuperExec
+takes an executor (``flwr.supercore.superexec.executor.Executor``: the thing that starts a
+task's process). Flower 1.42 ships two, ``subprocess`` and ``kubernetes``; its factory has
+no way to name another and ``run_superexec`` takes none (docs/deployment.md, "Rounds that
+cost seconds"), so this module runs Flower's own ``run_superexec`` loop with its factory
+answering :class:`ForkExecutor`: a task's process is ``os.fork()`` of this one, which then
+runs the function behind the console script Flower would have started (``flwr-clientapp``
+/ ``flwr-serverapp``, found by that name, with the same arguments). What a task does - the
+Runtime API, its token, heartbeats, the app - is Flower's code unchanged; only the imports
+are done once. ``fedlgr deploy supernode`` and ``fedlgr deploy superlink`` start it
+(``--cold-apps`` goes back to Flower's SuperExec).
 
 Forking is safe here because this process only imports: it runs no torch operation (no
 thread pool exists yet) and touches no GPU before a fork, and its other threads (Flower's
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import functools
 import importlib
 import os
 import signal
@@ -40,34 +42,29 @@ import threading
 import time
 import traceback
 import warnings
+from collections.abc import Callable
+from importlib.metadata import entry_points
 
 from fedlgr.shell.tracking.liveness import process_alive
 
-# What each kind of task imports before its first fork (the app modules pull in the rest).
+# The tasks this executor runs, and the module each imports before its first fork besides
+# Flower's entry point (the app pulls in torch and the rest).
 PRELOAD = {
-    "clientapp": ["fedlgr.shell.deploy.flower.client_app", "flwr.supernode.runtime.run_clientapp"],
-    "serverapp": ["fedlgr.shell.deploy.flower.server_app", "flwr.superlink.cli.flwr_serverapp"],
+    "clientapp": "fedlgr.shell.deploy.flower.client_app",
+    "serverapp": "fedlgr.shell.deploy.flower.server_app",
 }
 
 
-def _entry(task_type):
-    """The console entry point Flower's SubprocessExecutor would start for ``task_type``."""
-    # lazy: flwr (seconds): the executor watches its parent before any slow import
-    from flwr.supercore.constant import TaskType
-
-    if task_type == TaskType.CLIENT_APP:
-        from flwr.supernode.cli.flwr_clientapp import flwr_clientapp  # lazy: flwr, as above
-
-        return flwr_clientapp
-    if task_type == TaskType.SERVER_APP:
-        from flwr.superlink.cli.flwr_serverapp import flwr_serverapp  # lazy: flwr, as above
-
-        return flwr_serverapp
-    return None
+@functools.cache
+def entry(command: str) -> Callable[[], object]:
+    """The function behind Flower's console script ``command`` (``flwr-clientapp``): what
+    the process Flower's SubprocessExecutor starts would run."""
+    [script] = entry_points(group="console_scripts", name=command)
+    return script.load()
 
 
 def task_argv(spec) -> list[str]:
-    """The command line flwr 1.41's ``SubprocessExecutor.launch`` builds for ``spec``."""
+    """The command line Flower's ``SubprocessExecutor.launch`` builds for ``spec``."""
     # lazy: flwr (seconds): the executor watches its parent before any slow import
     from flwr.supercore.constant import TASK_TYPE_TO_APPIO_API_ADDRESS_ARG, TASK_TYPE_TO_COMMAND
 
@@ -102,17 +99,17 @@ class ForkExecutor:
         # lazy: flwr (seconds): the executor watches its parent before any slow import
         from flwr.supercore.superexec.executor import LaunchResult
 
-        entry = _entry(spec.task_type)
-        if entry is None:
+        argv = task_argv(spec)
+        if argv[0].removeprefix("flwr-") not in PRELOAD:
             return LaunchResult.failed(
                 f"fedlgr's executor runs ClientApps and ServerApps, not {spec.task_type}"
             )
-        argv = task_argv(spec)
+        app = entry(argv[0])
         sys.stdout.flush()
         sys.stderr.flush()
         pid = os.fork()
         if pid == 0:
-            _run_child(entry, argv, spec.suppress_output, self.owner)  # never returns
+            _run_child(app, argv, spec.suppress_output, self.owner)  # never returns
         self.children.add(pid)
         return LaunchResult.accepted()
 
@@ -131,7 +128,7 @@ class ForkExecutor:
         leaves them (each watches this process and leaves when it is gone)."""
 
 
-def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
+def _run_child(app, argv: list[str], quiet: bool, owner: int) -> None:
     """In the forked task process: Flower's entry point as a fresh process would run it,
     leaving when the executor ``owner`` has gone (Flower's monitor in the task, watching
     the same pid, counts an unreaped one as alive)."""
@@ -153,7 +150,7 @@ def _run_child(entry, argv: list[str], quiet: bool, owner: int) -> None:
             os.close(devnull)
         _name(argv[0])
         sys.argv = argv
-        entry()
+        app()
         code = 0
     except SystemExit as stop:
         code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
@@ -209,8 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     # (Flower's parent-process monitor, leave_with's) hold no lock a task needs.
     warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
     for kind in args.preload:
-        for module in PRELOAD[kind]:
-            importlib.import_module(module)
+        importlib.import_module(PRELOAD[kind])
+        entry(f"flwr-{kind}")
     # lazy: flwr (seconds): the executor watches its parent before any slow import
     from flwr.supercore.superexec import run_superexec as loop
 

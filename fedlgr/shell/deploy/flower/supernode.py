@@ -1,20 +1,20 @@
 """``flower-supernode`` with a poll interval a robot chooses (``fedlgr deploy supernode``
 execs ``python -m fedlgr.shell.deploy.flower.supernode --poll-s S FLOWER_ARGS``).
 
-flwr 1.41's SuperNode asks the SuperLink for a message, and when none waits it sleeps a
+flwr 1.42's SuperNode asks the SuperLink for a message, and when none waits it sleeps a
 fixed 3 s (``time.sleep(3)`` in ``flwr.supernode.start_client_internal``; no option or
 environment variable sets it). A robot that has just answered is in that sleep when the
 server sends the next round, so every exchange waited ~2.5 s for nothing (bench/README.md
 "Flower rounds": 4 of a 3-round run's 6.4 s exchanges). Having answered, it then waits
 for the ClientApp's reply by polling its own state every 0.5 s.
 
-Flower offers no setting for either, so this is the one place fedlgr reaches into Flower:
+Flower offers no setting for either, so fedlgr reaches into Flower here:
 the module's ``time`` is replaced by :class:`_Clock`, whose ``sleep`` shortens those two
 waits - the idle poll to ``--poll-s`` seconds (each poll is one small
 authenticated request to the SuperLink), the reply wait (a look at the SuperNode's own
 memory) to 0.1 s - and passes every other use of ``time`` through.
 
-The same goes for the node's heartbeat: flwr 1.41's SuperNode tells the SuperLink it beats
+The same goes for the node's heartbeat: flwr 1.42's SuperNode tells the SuperLink it beats
 every 30 s (``HEARTBEAT_DEFAULT_INTERVAL``, read by its REST connection and its heartbeat
 sender; no option), and the SuperLink declares a node lost - and refuses its key to a
 restarted SuperNode - after two missed intervals, about a minute. ``--heartbeat-s S``
