@@ -21,6 +21,7 @@ from fedlgr.shell.report import ReportError, make_report
 from fedlgr.shell.report.tables import mark_best, mark_lower_of_pair, reduction_percent
 from fedlgr.shell.run.experiment import run_experiment
 from fedlgr.shell.tracking.context import run_params
+from fedlgr.shell.tracking.store import open_client
 from tests.support.figures import drawn_figures
 from tests.support.report import markdown_blocks, parse
 from tests.support.runs import fast_config
@@ -283,6 +284,7 @@ def test_cli_reports_again_without_counting_report_runs(report, store, tmp_path,
 
 
 def test_cli_names_an_unknown_experiment_in_one_line(store, capsys):
+    open_client(store)  # a store that exists, whichever of this module's tests ran before
     assert main(["report", "--tracking-uri", store, "--experiment", "nope"]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
