@@ -26,7 +26,14 @@ from tests.support.runs import FAST, fast_config, orchestrator, read_run, result
 ACTIONS = ("vacuum", "conversation")
 
 
-@pytest.mark.parametrize("method", list(METHODS))
+# After every edit: each scope, a control variate and a statistic of the uploads; every
+# method in the slow tier.
+FAST_FL = ("FedAvg", "FedRootAvg", "FedRootSCAFFOLD", "FedMedian")
+
+
+@pytest.mark.parametrize(
+    "method", [m if m in FAST_FL else pytest.param(m, marks=pytest.mark.slow) for m in METHODS]
+)
 def test_fast_dev_run_trains_evaluates_and_logs(method, synth_dir, cache_dir, store, capsys):
     result = run_experiment(fast_config(synth_dir, cache_dir, store, f"method={method}"))
     client, run, artifacts = read_run(store, result.run_id)
