@@ -10,13 +10,12 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 
-from fedlgr.shell.data.synth import synthesize
-from fedlgr.shell.tracking.store import open_client
 from tests.support.checkout import REPO, ignored, untracked_files
 from tests.support.ports import free_port, wait_healthy
-from tests.support.processes import TELEMETRY
+
+# torch, MLflow and fedlgr are imported by the fixtures that use them: pytest-xdist's
+# controller process loads this file too, and runs no test (~16 s of imports saved).
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -61,6 +60,8 @@ def empty_store(tmp_path_factory) -> Path:
 def synth_dir(tmp_path_factory) -> Path:
     """48 synthetic scenes at 32 px (read-only: copy it before changing anything)."""
     out = tmp_path_factory.mktemp("synth") / "manners-synth"
+    from fedlgr.shell.data.synth import synthesize
+
     synthesize(out, scenes=48, seed=7, size=32)
     return out
 
@@ -68,6 +69,8 @@ def synth_dir(tmp_path_factory) -> Path:
 @pytest.fixture
 def one_thread():
     """Tiny tensors: one thread is fastest and immune to other processes on the machine."""
+    import torch
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -91,6 +94,8 @@ def cache_dir(tmp_path, monkeypatch) -> Path:
 @pytest.fixture
 def telemetry_setting_restored():
     """``fedlgr.shell.cli.main`` sets MLFLOW_DISABLE_TELEMETRY in this process: undo it."""
+    from tests.support.processes import TELEMETRY
+
     before = os.environ.get(TELEMETRY)
     yield
     if before is None:
@@ -115,6 +120,8 @@ def mlflow_server(tmp_path_factory):
     """A real ``mlflow server`` on a free localhost port, shared by a test module's tests
     (it takes ~18 s to start); each test logs to its own experiment."""
     tmp_path = tmp_path_factory.mktemp("mlflow-server")
+    from fedlgr.shell.tracking.store import open_client
+
     open_client(f"sqlite:///{tmp_path}/server.db")  # a copy of the empty store: no migrations
     port = free_port()
     process = subprocess.Popen(
