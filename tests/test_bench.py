@@ -38,6 +38,7 @@ from pathlib import Path
 import pytest
 
 from tests.support.checkout import REPO
+from tests.support.report import printed_rows
 
 BENCH = REPO / "bench"
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -75,18 +76,6 @@ def figures(stdout: str) -> dict[str, float]:
         if match:
             found[match.group(1)] = float(match.group(2))
     return found
-
-
-def rows(stdout: str, head: str) -> list[list[str]]:
-    """The cells of the markdown table whose header line starts with ``head``."""
-    lines = stdout.splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith(head))
-    out = []
-    for line in lines[start + 2 :]:
-        if not line.startswith("|"):
-            break
-        out.append([cell.strip() for cell in line.strip("|").split("|")])
-    return out
 
 
 @pytest.mark.slow
@@ -220,7 +209,7 @@ def test_scale(tmp_path):
         *("--quick", "--cases", "avg-4", "--threads", "1"),
         *("--work", str(work), "--out", str(out_dir)),
     )
-    [row] = rows(out, "| case | method |")
+    [row] = printed_rows(out, "| case | method |")
     assert row[:6] == ["avg-4", "FedAvg", "image", "4", "1", "issue 40"]
     assert all(float(cell) > 0 for cell in row[6:-1]), row  # every figure, no note
     [case] = json.loads((work / "results.json").read_text())
@@ -233,7 +222,7 @@ def test_flower(tmp_path):
     """``--quick``: a real federation of this checkout on localhost, one round, then a typo
     reported in one line (~1.5 min)."""
     out = run("flower.py", tmp_path, "--quick", timeout=600)
-    [row] = rows(out, "| code | wall |")
+    [row] = printed_rows(out, "| code | wall |")
     assert row[0] == "now" and float(row[1]) > 0, row
     assert re.fullmatch(r"\d+ x [\d.]+", row[3]), row  # the exchanges
     typo = next(line for line in out.splitlines() if line.startswith("config typo reported"))
@@ -245,7 +234,7 @@ def test_secagg(tmp_path):
     """``--quick``: SecAgg+ on two robots of a real federation, one round (~1.5 min): the
     key stages' bytes and the masked vector's are there."""
     out = run("secagg.py", tmp_path, "--quick", timeout=600)
-    [row] = rows(out, "| setting |")
+    [row] = printed_rows(out, "| setting |")
     assert row[0] == "SecAgg+", row
     head = ["round s", "bytes up", "key stages up", "bytes down", "key stages down"]
     for name, cell in zip(head, row[1:6], strict=True):

@@ -10,6 +10,7 @@ import pytest
 
 from fedlgr.core.privacy import epsilon
 from tests.support.checkout import REPO
+from tests.support.report import printed_rows
 
 ATTACK_HEAD = "| shared | the server sees | epsilon (one round) | loss_diff AUC | grad_cos AUC |"
 UTILITY_HEAD = "| method | noise multiplier | clip | epsilon (all rounds) | RMSE | PCC | CCC |"
@@ -33,16 +34,9 @@ def quick(tmp_path_factory):
 
 
 def table(stdout: str, head: str) -> list[list[str]]:
-    """The rows (cells) of the markdown table that starts with ``head``."""
-    lines = stdout.splitlines()
-    start = lines.index(head)
-    assert set(lines[start + 1].replace("|", "")) == {"-"}
-    rows = []
-    for line in lines[start + 2 :]:
-        if not line.startswith("|"):
-            break
-        rows.append([cell.strip() for cell in line.strip("|").split("|")])
-    return rows
+    """The rows (cells) of the table whose whole header line is ``head``."""
+    assert head in stdout.splitlines()
+    return printed_rows(stdout, head)
 
 
 def mean(cell: str) -> float:

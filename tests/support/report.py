@@ -1,4 +1,4 @@
-"""A report's Markdown tables read back."""
+"""A report's Markdown tables, and those a script prints, read back."""
 
 from __future__ import annotations
 
@@ -28,3 +28,17 @@ def parse(cell: str) -> tuple[str | None, str]:
     if number.startswith("["):
         return number.strip("[]"), "second"
     return number, ""
+
+
+def printed_rows(stdout: str, head: str) -> list[list[str]]:
+    """The rows (cells) of the Markdown table a script printed whose header line starts
+    with ``head``."""
+    lines = stdout.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(head))
+    assert set(lines[start + 1].replace("|", "")) == {"-"}, lines[start + 1]
+    rows = []
+    for line in lines[start + 2 :]:
+        if not line.startswith("|"):
+            break
+        rows.append([cell.strip() for cell in line.strip("|").split("|")])
+    return rows
