@@ -186,6 +186,10 @@ class FabricCollective(Collective):
 
     fabric: Any
 
+    @property
+    def processes(self) -> int:
+        return self.fabric.world_size
+
     def all_gather(self, part: Any) -> list[Any]:
         if self.fabric.world_size == 1:
             return [part]

@@ -44,6 +44,8 @@ class Collective:
     same calls: every process's ``part`` in rank order (tensors on this process's device),
     the sum of each one's ``flat``. This base is one process alone: the identity."""
 
+    processes = 1
+
     def all_gather(self, part: Any) -> list[Any]:
         return [part]
 
@@ -200,7 +202,8 @@ class ServerSide:
                 self.combine(sorted(taken, key=lambda r: r.client), senders)
             return
         sums, total, payloads = self.sums(results)
-        total = self.all_reduce(sums, total, payloads, collective)
+        if collective.processes > 1:
+            total = self.all_reduce(sums, total, payloads, collective)
         if total > 0 or self.privacy is not None:
             self.update(sums, total, payloads, senders)
 
