@@ -46,7 +46,7 @@ def checkout_unchanged(tmp_path_factory):
 
 
 @pytest.fixture(scope="session", autouse=True)
-def empty_store(tmp_path_factory) -> Path:
+def session_empty_store(tmp_path_factory) -> Path:
     """One migrated, empty MLflow store per session (each xdist worker its own), which every
     new sqlite store a test makes - in this process or a child - starts as a copy of
     (``$FEDLGR_EMPTY_STORE``): MLflow's migrations take seconds per store."""

@@ -28,15 +28,16 @@ def _experiments(path) -> list[tuple]:
 
 
 def test_a_new_store_is_a_copy_of_the_empty_store_with_its_default_experiment_here(
-    tmp_path, monkeypatch, empty_store
+    tmp_path, monkeypatch, session_empty_store
 ):
     monkeypatch.chdir(tmp_path)
     client = open_client(f"sqlite:///{tmp_path}/a.db")
-    assert empty_store.is_file() and _experiments(empty_store) == []  # no cwd baked in
+    # the template has no experiment: no creating process's folder baked in
+    assert session_empty_store.is_file() and _experiments(session_empty_store) == []
     # Default's artifacts under the creating process's folder, as a fresh MLflow store's
     assert _experiments(tmp_path / "a.db") == [(0, "Default", str(tmp_path / "mlruns" / "0"))]
     client.create_experiment("mine")
-    with sqlite3.connect(empty_store) as db, sqlite3.connect(tmp_path / "a.db") as made:
+    with sqlite3.connect(session_empty_store) as db, sqlite3.connect(tmp_path / "a.db") as made:
         version = "SELECT version_num FROM alembic_version"
         assert made.execute(version).fetchall() == db.execute(version).fetchall()
     # the copy is MLflow's own schema: MLflow opens it and sees both experiments
