@@ -38,6 +38,7 @@ import torch
 from torch import nn
 
 from fedlgr.core.client.side import ClientSide
+from fedlgr.core.data.scenes import FederatedSplit, Scenes
 from fedlgr.core.messages import RoundPlan, TrainRes, Weights
 from fedlgr.core.privacy import epsilon
 from fedlgr.core.scope import initial_scholar, shared_keys
@@ -45,8 +46,8 @@ from fedlgr.core.server.screen import update_norm
 from fedlgr.core.server.side import ServerSide
 from fedlgr.core.strategies import build_strategy
 from fedlgr.shell.config import ExperimentConfig, load_config
-from fedlgr.shell.data.dataset import Scenes, load_scenes
-from fedlgr.shell.data.splits import FederatedSplit, make_split
+from fedlgr.shell.data.dataset import load_scenes
+from fedlgr.shell.data.splits import make_split
 
 TARGET = 0  # the robot whose membership is attacked
 ATTACKS = ("loss_diff", "grad_cos")

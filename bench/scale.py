@@ -52,7 +52,7 @@ import psutil
 from figures import report  # bench/figures.py, beside this script
 from scale_case import PREFIX
 
-from fedlgr.shell.config.data import default_cache_dir
+from fedlgr.core.settings import default_cache_dir
 from fedlgr.shell.data.synth import synthesize
 
 matplotlib.use("Agg")

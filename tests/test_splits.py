@@ -20,11 +20,12 @@ from fedlgr.core.data.columns import (
     USING_ARROW,
     USING_CIRCLE,
 )
+from fedlgr.core.data.scenes import SceneTable
 from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.cli import main
 from fedlgr.shell.config import DEFAULT_TASKS, DataConfig, TaskSpec
 from fedlgr.shell.data import splits
-from fedlgr.shell.data.ratings import SceneTable, read_ratings
+from fedlgr.shell.data.ratings import read_ratings
 from fedlgr.shell.data.splits import (
     make_split,
     shard_clients,

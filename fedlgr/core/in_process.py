@@ -41,9 +41,8 @@ from fedlgr.core.server.side import Collective, ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ExperimentConfig
-    from fedlgr.shell.data.dataset import Scenes
-    from fedlgr.shell.data.splits import FederatedSplit
+    from fedlgr.core.data.scenes import FederatedSplit, Scenes
+    from fedlgr.core.settings import ExperimentConfig
 
 
 class Orchestrator:

@@ -13,51 +13,12 @@ and a conf yaml (docs/development.md, "Adding a method").
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
+from fedlgr.core.declare import EPOCHS_BOUND, MAX_EPOCHS, Int, renamed, section, setting
 from fedlgr.errors import ConfigError
-
-
-class Settings:
-    """Base of a method's settings (a frozen dataclass). Each field declares the values it
-    takes (:func:`setting`); the config checks them where it is loaded, naming each by its
-    full setting (``continual.lgr.hidden``)."""
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """The values a method's setting takes: ``least <= value <= most``, ``above < value <
-    below`` (each bound optional), one of ``choices``, or a ``kind`` with its own rule
-    (``epochs``: a count of epochs; ``betas``: Adam's two decay rates)."""
-
-    least: float | None = None
-    most: float | None = None
-    above: float | None = None
-    below: float | None = None
-    choices: tuple[str, ...] = ()
-    kind: str = ""
-    reason: str = ""  # said after the bound when a value breaks it
-
-
-def setting(default: Any, **bounds: Any) -> Any:
-    """A settings field with its default and its :class:`Bounds`."""
-    return field(default=default, metadata={"bounds": Bounds(**bounds)})
-
-
-def declared(**fields: Any) -> type[Settings]:
-    """A method's settings declared in its registry entry: a frozen dataclass of
-    ``fields``, each made with :func:`setting` (``declared(lr=setting(1.0, above=0))``),
-    named after the method when it is registered."""
-    spec = [(name, type(f.default), f) for name, f in fields.items()]
-    return dataclasses.make_dataclass("Settings", spec, bases=(Settings,), frozen=True)
-
-
-def bounds(field_: Any) -> Bounds:
-    """The bounds a settings field declares (none: any value of its type)."""
-    return field_.metadata.get("bounds", Bounds())
 
 
 @dataclass(frozen=True)
@@ -68,7 +29,7 @@ class Method:
     suffix: str  # its part of the paper's name: Prox, EWC
     target: str | None  # "module:Class", imported by load(); None: no class (continual none)
     paper: str = ""  # the publication it follows
-    settings: type[Settings] | None = None  # under federated.<key> / continual.<key>
+    settings: type | None = None  # under federated.<key> / continual.<key>
     uses: str | None = None  # another method's settings section (EWC-Online uses ewc's)
     scopes: tuple[str, ...] = ("full", "root")  # the aggregation scopes it works with
     # (strategy, scope) -> its name where it is not the scope's prefix + suffix (FedLGR)
@@ -93,8 +54,8 @@ def _register(family: str, *methods: Method) -> dict[str, Method]:
     for m in methods:
         if m.key in table:
             raise ValueError(f"{family}.{m.key} registered twice")
-        if m.settings is not None and m.settings.__name__ == "Settings":  # declared()
-            m.settings.__name__ = m.settings.__qualname__ = f"{m.suffix}Settings"
+        if m.settings is not None:
+            renamed(m.settings, f"{family}.{m.key}.")
         table[m.key] = m
     return table
 
@@ -102,37 +63,60 @@ def _register(family: str, *methods: Method) -> dict[str, Method]:
 # --------------------------------------------------------------------------- strategies
 
 
-@dataclass(frozen=True)
-class ProxSettings(Settings):
-    mu: float = setting(0.01, least=0)  # client loss + mu/2 ||w - w_global||^2
+@section("")
+class ProxSettings:
+    mu: float = setting(0.01, "client loss + mu/2 ||w - w_global||^2", ge=0)
 
 
-@dataclass(frozen=True)
-class OptSettings(Settings):
+@section("")
+class OptSettings:
     """FedOpt's server optimiser (Reddi et al. 2021, Algorithm 2): x <- x + lr m / (sqrt(v)
     + tau), v by the variant (FedAdam, FedYogi, FedAdagrad; adagrad reads betas[0] only)."""
 
-    lr: float = setting(0.01, above=0)
-    betas: tuple[float, float] = setting((0.9, 0.99), kind="betas")
-    tau: float = setting(1e-3, above=0)
-    variant: str = setting("adam", choices=("adam", "yogi", "adagrad"))
-    # the second moment's start: tau2 (the paper's v_-1 = tau^2) | zero (fedlgr's earlier form)
-    v0: str = setting("tau2", choices=("tau2", "zero"))
+    lr: float = setting(0.01, "the server's learning rate", gt=0)
+    betas: tuple[float, float] = setting((0.9, 0.99), "the moments' decay rates, each in [0, 1)")
+    tau: float = setting(1e-3, "the adaptivity", gt=0)
+    variant: Literal["adam", "yogi", "adagrad"] = setting("adam", "FedAdam, FedYogi, FedAdagrad")
+    v0: Literal["tau2", "zero"] = setting(
+        "tau2", "the second moment's start: the paper's tau^2, or zero (fedlgr's earlier form)"
+    )
+
+    def __post_init__(self) -> None:
+        if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
+            raise ConfigError(
+                f"federated.opt.betas={list(self.betas)}: two decay rates, each in [0, 1)"
+            )
 
 
-@dataclass(frozen=True)
-class DistillSettings(Settings):
-    weight: float = setting(0.5, least=0, most=1)  # weight of the teacher term in the student loss
+@section("")
+class DistillSettings:
+    weight: float = setting(0.5, "the teacher term's weight in the student loss", ge=0, le=1)
 
 
-@dataclass(frozen=True)
-class AvgMSettings(Settings):
+@section("")
+class AvgMSettings:
     """Server momentum on the mean update: v <- momentum v + Delta; x <- x + lr v. The
     default keeps Hsu et al.'s effective learning rate lr / (1 - momentum) at 1: lr 1 with
     momentum 0.9 diverged on the demo (docs/methods.md)."""
 
-    momentum: float = setting(0.9, least=0, below=1)
-    lr: float = setting(0.1, above=0)
+    momentum: float = setting(0.9, "the server's momentum", ge=0, lt=1)
+    lr: float = setting(0.1, "the server's learning rate", gt=0)
+
+
+@section("")
+class ScaffoldSettings:
+    lr: float = setting(1.0, "the global learning rate", gt=0)
+
+
+@section("")
+class TrimmedSettings:
+    beta: float = setting(0.2, "the fraction cut at either end", ge=0, lt=0.5)
+
+
+@section("")
+class KrumSettings:
+    f: Int = setting(1, "Byzantine clients Krum tolerates", ge=0)
+    m: Int = setting(1, "uploads kept and averaged (Multi-Krum; 1: Krum)", ge=1)
 
 
 STRATEGY = "fedlgr.core.strategies"
@@ -156,7 +140,7 @@ STRATEGIES = _register(
         "SCAFFOLD",
         f"{STRATEGY}.scaffold:Scaffold",
         "Karimireddy et al. 2020",
-        declared(lr=setting(1.0, above=0)),  # the global learning rate
+        ScaffoldSettings,
         names={("scaffold", "full"): "SCAFFOLD"},
         in_paper=False,
     ),
@@ -166,7 +150,7 @@ STRATEGIES = _register(
         "TrimmedAvg",
         f"{STRATEGY}.trimmed:FedTrimmedAvg",
         "Yin et al. 2018",
-        declared(beta=setting(0.2, least=0, below=0.5)),  # the fraction cut at either end
+        TrimmedSettings,
         in_paper=False,
     ),
     Method(
@@ -174,7 +158,7 @@ STRATEGIES = _register(
         "Krum",
         f"{STRATEGY}.krum:Krum",
         "Blanchard et al. 2017",
-        declared(f=setting(1, least=0), m=setting(1, least=1)),  # Byzantine clients; kept
+        KrumSettings,
         names={("krum", "full"): "Krum"},
         in_paper=False,
     ),
@@ -184,96 +168,121 @@ STRATEGIES = _register(
 # --------------------------------------------------------------------------- continual
 
 
-@dataclass(frozen=True)
-class EWCSettings(Settings):
+@section("")
+class EWCSettings:
     """EWC and EWC-Online: lambda_ / 2 * sum F (theta - theta*)^2. The default lambda is
     sweeps/ewc.yaml's best on the synthetic descriptors (docs/fedlgr.md, "EWC's lambda")."""
 
-    lambda_: float = setting(1000.0, least=0)
-    # the Fisher, each scene's squared gradient averaged over the task's scenes: empirical
-    # (of its MSE to the labels, Kirkpatrick et al.'s) | model (to outputs + N(0, 4) noise) |
-    # batch (each mini-batch's squared gradient, and no 1/2 in the penalty: fedlgr's earlier
-    # form, about 1/batch-size of the others) | batch_model (model so: fedlgr's earlier form)
-    fisher: str = setting("empirical", choices=("empirical", "model", "batch", "batch_model"))
-    gamma: float = setting(0.9, least=0, most=1)  # EWC-Online: decay of the running Fisher
+    lambda_: float = setting(1000.0, "the penalty's coefficient", ge=0)
+    fisher: Literal["empirical", "model", "batch", "batch_model"] = setting(
+        "empirical",
+        "each scene's squared gradient averaged over the task's scenes, of its MSE to the "
+        "labels (empirical, Kirkpatrick et al.'s) or to outputs + N(0, 4) noise (model); "
+        "batch, batch_model: each mini-batch's, no 1/2 in the penalty (fedlgr's earlier form)",
+    )
+    gamma: float = setting(0.9, "EWC-Online: the running Fisher's decay", ge=0, le=1)
 
 
-@dataclass(frozen=True)
-class SISettings(Settings):
-    c: float = setting(1.0, least=0)  # penalty coefficient
-    xi: float = setting(0.1, least=0)  # damping
-    # none (Zenke et al.'s eq. 5) | task (each task's gain clamped at 0: fedlgr's
-    # earlier form) | total (the summed importance clamped at 0: the authors' code)
-    clamp: str = setting("none", choices=("none", "task", "total"))
-    # the gradient in the path integral: loss (without SI's penalty, as published) |
-    # loss+penalty (fedlgr's earlier form)
-    path_gradient: str = setting("loss", choices=("loss", "loss+penalty"))
+@section("")
+class SISettings:
+    c: float = setting(1.0, "the penalty's coefficient", ge=0)
+    xi: float = setting(0.1, "the damping", ge=0)
+    clamp: Literal["none", "task", "total"] = setting(
+        "none",
+        "none (Zenke et al.'s eq. 5) | task (each task's gain clamped at 0: fedlgr's earlier "
+        "form) | total (the summed importance clamped at 0: the authors' code)",
+    )
+    path_gradient: Literal["loss", "loss+penalty"] = setting(
+        "loss",
+        "the gradient in the path integral: without SI's penalty (as published) or with it "
+        "(fedlgr's earlier form)",
+    )
 
 
-@dataclass(frozen=True)
-class MASSettings(Settings):
-    lambda_: float = setting(1.0, least=0)  # penalty coefficient
-    # sample (|gradient of each scene's squared output norm|, averaged: Aljundi et al.'s) |
-    # batch (of each mini-batch's mean: fedlgr's earlier form)
-    importance: str = setting("sample", choices=("sample", "batch"))
+@section("")
+class MASSettings:
+    lambda_: float = setting(1.0, "the penalty's coefficient", ge=0)
+    importance: Literal["sample", "batch"] = setting(
+        "sample",
+        "|gradient of each scene's squared output norm|, averaged (Aljundi et al.'s), or of "
+        "each mini-batch's mean (fedlgr's earlier form)",
+    )
 
 
-@dataclass(frozen=True)
-class NRSettings(Settings):
-    memory: int = setting(100, least=0)  # scenes kept per client (all past tasks together)
-    replay_ratio: float = setting(0.5, least=0)  # memory samples per current sample in a batch
+@section("")
+class NRSettings:
+    memory: Int = setting(100, "scenes kept per client (all past tasks together)", ge=0)
+    replay_ratio: float = setting(0.5, "memory samples per current sample in a batch", ge=0)
 
 
-@dataclass(frozen=True)
-class LwFSettings(Settings):
+@section("")
+class LwFSettings:
     """LwF for regression: loss + alpha * mean (f(x) - f_start(x))^2 from the second task."""
 
-    alpha: float = setting(1.0, least=0)
+    alpha: float = setting(1.0, "the distillation term's weight", ge=0)
 
 
-@dataclass(frozen=True)
-class LGRSettings(Settings):
+@section("")
+class LGRSettings:
     """FedLGR's latent generative replay (docs/fedlgr.md). ``replay_layer=freeze`` has a
     rule across settings, checked with the config: it needs ``train_blocks`` >= 1,
-    ``schedule=joint`` and no compensation."""
+    ``schedule=joint`` and no compensation. The drift defaults (distill at weight 10, the
+    last root block trained) are sweeps/fedlgr_drift_image.yaml's and
+    sweeps/fedlgr_distill_image.yaml's best point; none + train_blocks null is the paper's."""
 
-    # two_phase (top, then root) | joint (one pass)
-    schedule: str = setting("two_phase", choices=("two_phase", "joint"))
-    # generator | stored (the oracle: real past latents kept)
-    replay: str = setting("generator", choices=("generator", "stored"))
-    freeze_root_bn: bool = True  # root BatchNorm statistics frozen from task 2
-    hidden: int = setting(512, least=1)  # the VAE's hidden width
-    latent: int = setting(16, least=1)  # the VAE's latent size
-    epochs: int = setting(300, kind="epochs")  # the VAE's most epochs at the end of each task
-    # ... stop after this many epochs without held-out gain (0: never)
-    patience: int = setting(20, least=0)
-    # ... share of a task's latents held out (none under 10 latents)
-    holdout: float = setting(0.2, least=0, below=1)
-    batch_size: int = setting(32, least=1)
-    lr: float = setting(1e-3, least=0)  # the generator's learning rate
-    beta: float = setting(4.0, least=0)  # weight of the VAE's KL term
-    # VAE codes from a Gaussian fitted to the training codes | prior
-    sampler: str = setting("posterior", choices=("posterior", "prior"))
-    lr_root: float = setting(1e-5, least=0)  # the root's learning rate from task 2 on (lr_R)
-    # two_phase: root epochs per round (None: train.epochs)
-    root_epochs: int | None = setting(1, least=0, kind="epochs")
-    replay_ratio: float = setting(4.0, least=0)  # pseudo-samples per real sample for the top
-    # Keeping replayed latents valid while the root learns (docs/fedlgr.md): none |
-    # compensate | distill | compensate+distill. The defaults (distill at weight 10, the
-    # last root block trained) are sweeps/fedlgr_drift_image.yaml's and
-    # sweeps/fedlgr_distill_image.yaml's best point; none + train_blocks null is the paper's.
-    drift: str = setting("distill", choices=("none", "compensate", "distill", "compensate+distill"))
-    # compensate: ridge of the drift map (x mean eigenvalue)
+    schedule: Literal["two_phase", "joint"] = setting(
+        "two_phase", "two_phase (the top, then the root) | joint (one pass)"
+    )
+    replay: Literal["generator", "stored"] = setting(
+        "generator", "generator | stored (the oracle: real past latents kept)"
+    )
+    freeze_root_bn: bool = setting(True, "root BatchNorm statistics frozen from task 2")
+    hidden: Int = setting(512, "the VAE's hidden width", ge=1)
+    latent: Int = setting(16, "the VAE's latent size", ge=1)
+    epochs: Int = setting(
+        300,
+        "the VAE's most epochs at the end of each task",
+        ge=1,
+        le=MAX_EPOCHS,
+        over=EPOCHS_BOUND,
+    )
+    patience: Int = setting(
+        20, "... stop after this many epochs without held-out gain (0: never)", ge=0
+    )
+    holdout: float = setting(
+        0.2, "... the share of a task's latents held out (none under 10 latents)", ge=0, lt=1
+    )
+    batch_size: Int = setting(32, "the VAE's batch size", ge=1)
+    lr: float = setting(1e-3, "the generator's learning rate", ge=0)
+    beta: float = setting(4.0, "the VAE's KL term's weight", ge=0)
+    sampler: Literal["posterior", "prior"] = setting(
+        "posterior", "VAE codes from a Gaussian fitted to the training codes, or the prior"
+    )
+    lr_root: float = setting(1e-5, "the root's learning rate from task 2 on (lr_R)", ge=0)
+    root_epochs: Int | None = setting(
+        1,
+        "two_phase: root epochs per round (null: train.epochs)",
+        ge=0,
+        le=MAX_EPOCHS,
+        over=EPOCHS_BOUND,
+    )
+    replay_ratio: float = setting(4.0, "pseudo-samples per real sample for the top", ge=0)
+    drift: Literal["none", "compensate", "distill", "compensate+distill"] = setting(
+        "distill", "keeping replayed latents valid while the root learns (docs/fedlgr.md)"
+    )
     compensate_ridge: float = setting(
         1.0,
-        above=0,
-        reason="the drift map is fitted on a client's scenes, fewer than the root's features",
+        "compensate: the drift map's ridge (x mean eigenvalue)",
+        gt=0,
+        why="the drift map is fitted on a client's scenes, fewer than the root's features",
     )
-    distill_weight: float = setting(10.0, least=0)  # distill: weight of the latent distillation
-    # from task 2 only the root's last k blocks train (null: all)
-    train_blocks: int | None = setting(1, least=0)
-    # latent (the root's output) | freeze (the k blocks' input)
-    replay_layer: str = setting("latent", choices=("latent", "freeze"))
+    distill_weight: float = setting(10.0, "distill: the latent distillation's weight", ge=0)
+    train_blocks: Int | None = setting(
+        1, "from task 2 only the root's last k blocks train (null: all)", ge=0
+    )
+    replay_layer: Literal["latent", "freeze"] = setting(
+        "latent", "latent (the root's output) | freeze (the k blocks' input)"
+    )
 
 
 CL = "fedlgr.core.continual"

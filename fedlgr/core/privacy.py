@@ -53,7 +53,7 @@ from fedlgr.core.messages import TrainRes, Weights
 from fedlgr.errors import FedlgrError
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ExperimentConfig
+    from fedlgr.core.settings import ExperimentConfig
 
 # a client's centred "within the clip norm" bit, b - 1/2 (adaptive clipping), summed with the
 # payloads: the sum over clients is the count of updates within the clip norm minus half of them

@@ -16,7 +16,7 @@ from fedlgr.core.messages import RoundPlan
 from fedlgr.core.privacy import releases_within
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ExperimentConfig
+    from fedlgr.core.settings import ExperimentConfig
 
 
 ALL = "all"  # the single task of plain FL

@@ -22,9 +22,10 @@ import torch
 from torch import nn
 
 from fedlgr.core.data.augment import Augment, SceneBatches
+from fedlgr.core.data.scenes import Scenes
 from fedlgr.core.models.scholar import MobileNetRoot
 from fedlgr.shell.config import DataConfig
-from fedlgr.shell.data.dataset import Scenes, load_scenes
+from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.synth import synthesize
 
 

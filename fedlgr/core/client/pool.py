@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, TypeVar
 import torch
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ExperimentConfig
+    from fedlgr.core.settings import ExperimentConfig
 
 
 T = TypeVar("T")

@@ -56,9 +56,8 @@ from fedlgr.core.strategies import build_strategy
 from fedlgr.errors import FedlgrError
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ExperimentConfig
-    from fedlgr.shell.data.dataset import Scenes
-    from fedlgr.shell.data.splits import FederatedSplit
+    from fedlgr.core.data.scenes import FederatedSplit, Scenes
+    from fedlgr.core.settings import ExperimentConfig
 
 
 CPU = torch.device("cpu")

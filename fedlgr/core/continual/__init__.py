@@ -17,7 +17,7 @@ from fedlgr.core.continual.batchnorm import FrozenRootStatistics
 from fedlgr.core.methods import CONTINUAL
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ContinualConfig
+    from fedlgr.core.settings import ContinualConfig
 
 
 def _seed(seed: int, client: int) -> int:

@@ -26,7 +26,7 @@ from torchvision.transforms.v2 import functional as F
 from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import DataConfig
+    from fedlgr.core.settings import DataConfig
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)

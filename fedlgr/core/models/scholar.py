@@ -28,7 +28,7 @@ from fedlgr.core.data.columns import DESCRIPTOR_COLUMNS, FEATURE_COLUMNS, LABEL_
 from fedlgr.errors import ConfigError, first_line
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import ExperimentConfig, ModelConfig
+    from fedlgr.core.settings import ExperimentConfig, ModelConfig
 
 
 N_ACTIONS = len(LABEL_COLUMNS)

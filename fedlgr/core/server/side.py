@@ -36,7 +36,7 @@ from fedlgr.core.strategies import build_strategy
 
 if TYPE_CHECKING:
     from fedlgr.core.messages import EvaluateRes
-    from fedlgr.shell.config import ExperimentConfig
+    from fedlgr.core.settings import ExperimentConfig
 
 
 class Collective:

@@ -11,7 +11,7 @@ from fedlgr.core.methods import STRATEGIES
 from fedlgr.core.strategies.base import FedAvg, Strategy
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import FederatedConfig
+    from fedlgr.core.settings import FederatedConfig
 
 
 def build_strategy(config: FederatedConfig) -> Strategy:

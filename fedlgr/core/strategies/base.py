@@ -26,7 +26,7 @@ from fedlgr.core.client.plugins import ClientPlugin
 from fedlgr.core.messages import Weights
 
 if TYPE_CHECKING:
-    from fedlgr.shell.config import FederatedConfig
+    from fedlgr.core.settings import FederatedConfig
 
 
 def participants(

@@ -1,8 +1,7 @@
-"""Experiment settings: typed, checked dataclasses filled from YAML and ``key=value``.
+"""Experiment settings filled from YAML and ``key=value``. The settings themselves (type,
+default, bounds, doc) are declared once in :mod:`fedlgr.core.settings`, the core's input
+type; this package loads them:
 
-- :mod:`.settings` and :mod:`.data`: the dataclasses, the single source of truth for every
-  setting and its default; each checks itself on construction with the rules of
-  :mod:`fedlgr.shell.checks.settings` (and :mod:`fedlgr.shell.checks.experiment`).
 - :mod:`.load`: the layers (defaults, a config file and what it ``includes``, found by
   :mod:`.files`, the command line) merged by OmegaConf into the dataclasses, ``${...}``
   kept to the policy of :mod:`.interpolation`, OmegaConf's errors made one line by
@@ -14,9 +13,22 @@ load_config, ExperimentConfig``.
 """
 
 from fedlgr.core.methods import FCL_METHODS, METHODS, method_name
-from fedlgr.errors import ConfigError
-from fedlgr.shell.checks.experiment import MOBILENET_V2_BLOCKS
-from fedlgr.shell.checks.settings import (
+from fedlgr.core.settings import (
+    DEFAULT_TASKS,
+    ContinualConfig,
+    DataConfig,
+    DeployConfig,
+    ExperimentConfig,
+    FaultsConfig,
+    FederatedConfig,
+    ModelConfig,
+    RuntimeConfig,
+    TaskSpec,
+    TrackingConfig,
+    TrainConfig,
+    default_cache_dir,
+)
+from fedlgr.core.settings.rules import (
     MAX_AUGMENT_COPIES,
     MAX_EXPERIMENT_NAME,
     MAX_IMAGE_SIZE,
@@ -24,14 +36,9 @@ from fedlgr.shell.checks.settings import (
     MAX_PER_MACHINE,
     MAX_ROUNDS,
     MIN_IMAGE_SIZE,
+    MOBILENET_V2_BLOCKS,
 )
-from fedlgr.shell.config.data import (
-    DEFAULT_TASKS,
-    DataConfig,
-    TaskSpec,
-    cache_dir_setting,
-    default_cache_dir,
-)
+from fedlgr.errors import ConfigError
 from fedlgr.shell.config.export import (
     flatten,
     known_settings,
@@ -43,17 +50,6 @@ from fedlgr.shell.config.export import (
 from fedlgr.shell.config.files import CONF_DIR, SETTING_NAME, SWEEPS_DIR, find_config, yaml_reason
 from fedlgr.shell.config.interpolation import check_interpolations
 from fedlgr.shell.config.load import check_sent_settings, config_from_data, load_config
-from fedlgr.shell.config.settings import (
-    ContinualConfig,
-    DeployConfig,
-    ExperimentConfig,
-    FaultsConfig,
-    FederatedConfig,
-    ModelConfig,
-    RuntimeConfig,
-    TrackingConfig,
-    TrainConfig,
-)
 
 __all__ = [
     "CONF_DIR",
@@ -82,7 +78,6 @@ __all__ = [
     "TaskSpec",
     "TrackingConfig",
     "TrainConfig",
-    "cache_dir_setting",
     "check_interpolations",
     "check_sent_settings",
     "config_from_data",

@@ -11,7 +11,8 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
-from fedlgr.shell.config.settings import ExperimentConfig
+from fedlgr.core.declare import settings_of
+from fedlgr.core.settings import ExperimentConfig
 from fedlgr.shell.tracking.uri import mask_password
 
 
@@ -81,12 +82,7 @@ def short_setting(name: str) -> str:
 
 def known_settings() -> list[str]:
     """Every setting's dotted name (``train.lr_top``, ...)."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
-
-    defaults = OmegaConf.structured(ExperimentConfig)
-    plain = OmegaConf.to_container(defaults, resolve=False, throw_on_missing=False)
-    return [name for name, _ in _leaves(plain)]
+    return [name for name, _, _ in settings_of(ExperimentConfig)]
 
 
 # --------------------------------------------------------------------------- what changes a run

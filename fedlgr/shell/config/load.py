@@ -13,11 +13,13 @@ from pathlib import Path
 from typing import Any
 
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
+from fedlgr.core.settings import ExperimentConfig
 from fedlgr.errors import ConfigError, first_line
+from fedlgr.shell.checks.experiment import check_machine
+from fedlgr.shell.config.export import to_plain
 from fedlgr.shell.config.files import read_layers
 from fedlgr.shell.config.interpolation import check_interpolations, resolve
-from fedlgr.shell.config.messages import container_mismatch, merge_message, omegaconf_message
-from fedlgr.shell.config.settings import ExperimentConfig
+from fedlgr.shell.config.messages import container_mismatch, omegaconf_message, unknown_setting
 from fedlgr.shell.config.written import lookup, plain, strings
 
 
@@ -117,7 +119,9 @@ def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> Experiment
     _require_mandatory(layers)
     merged = _merge(layers)
     resolve(merged, interpolated)
-    return _to_object(_named(merged))
+    config = _to_object(_named(merged), layers, interpolated)
+    check_machine(config)
+    return config
 
 
 def _merge(layers: list) -> Any:
@@ -127,14 +131,14 @@ def _merge(layers: list) -> Any:
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    merged = OmegaConf.structured(ExperimentConfig)
+    merged = OmegaConf.create(to_plain(ExperimentConfig()))
     for source, node in layers:
         try:
             if "method" in node and node["method"] is not None:
                 node = _expand_method(node, merged)
             merged = OmegaConf.merge(merged, node)
         except OmegaConfBaseException as err:
-            raise ConfigError(f"{source}: {merge_message(err, merged, node)}") from err
+            raise ConfigError(f"{source}: {omegaconf_message(err)}") from err
         except ConfigError as err:
             raise ConfigError(f"{source}: {err}") from err
         except TypeError as err:  # "Cannot merge incompatible container types" (a traceback)
@@ -146,28 +150,74 @@ def _merge(layers: list) -> Any:
 def _named(merged: Any) -> Any:
     """``method`` is input shorthand: afterwards it names what the settings say."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
+    from omegaconf import DictConfig, OmegaConf
 
-    fed, cont = merged.federated, merged.continual
-    if fed.strategy in STRATEGIES and fed.scope in SCOPES and cont.method in CONTINUAL:
+    fed, cont = merged.get("federated"), merged.get("continual")
+    if not (isinstance(fed, DictConfig) and isinstance(cont, DictConfig)):
+        return merged  # a section given one value: refused as the settings are built
+    known = (str(fed.get("strategy")), str(fed.get("scope")), str(cont.get("method")))
+    if known[0] in STRATEGIES and known[1] in SCOPES and known[2] in CONTINUAL:
         name = method_name(fed.strategy, fed.scope, cont.method if cont.tasks else None)
         merged = OmegaConf.merge(merged, {"method": name})
     return merged
 
 
-def _to_object(merged: Any) -> ExperimentConfig:
-    """The dataclasses, each checking its settings as it is built."""
+def _to_object(merged: Any, layers: list, interpolated: dict) -> ExperimentConfig:
+    """The settings, validated as they are built. A value of the wrong shape (an unknown
+    name, a section given one value, a word where a number goes) is said with the layer
+    that wrote it, the earliest written first; one that came from ``${...}`` with what
+    was written."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
     from omegaconf import OmegaConf
-    from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
+    values = OmegaConf.to_container(merged, resolve=True)
     try:
-        return OmegaConf.to_object(merged)
-    except MissingMandatoryValue as err:
-        key = getattr(err, "full_key", "?")
-        raise ConfigError(f"{key}: no value; set it, e.g. {key}=/path/to/manners-db") from err
-    except OmegaConfBaseException as err:
-        raise ConfigError(omegaconf_message(err)) from err
+        return ExperimentConfig(**values)
+    except ConfigError as err:
+        shapes = [r for r in getattr(err, "refusals", ()) if r.shape]
+        if not shapes:
+            raise
+        raise ConfigError(_said_with_layer(shapes, layers, interpolated)) from None
+
+
+def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
+    written = [(source, plain(node)) for source, node in layers]
+    found = []
+    for refused in shapes:
+        key = refused.setting
+        if key in interpolated:
+            source, value = interpolated[key]
+            reason = refused.problem.split(": ", 1)[-1]
+            found.append((-1, 0, f"{source}: {key}={value!r}: {reason}"))
+            continue
+        writers = [
+            (i, _names(values).index(name), source, values)
+            for i, (source, values) in enumerate(written)
+            for name in _names(values)
+            if _names_it(name, key)
+        ]
+        if not writers:
+            found.append((len(written), 0, refused.problem))
+            continue
+        last = max(w[0] for w in writers)
+        i, at, source, values = min(w for w in writers if w[0] == last)
+        problem = refused.problem
+        if problem.endswith(": unknown setting"):
+            problem = unknown_setting(key, values)
+        found.append((i, at, f"{source}: {problem}"))
+    return min(found, key=lambda f: (f[0], f[1]))[2]
+
+
+def _names_it(name: str, key: str) -> bool:
+    """Does the written setting ``name`` set dotted ``key``, a setting under it or the
+    section holding it?"""
+    return name == key or name.startswith(f"{key}.") or key.startswith(f"{name}.")
+
+
+def _names(values: Any, prefix: str = "") -> list[str]:
+    if not isinstance(values, dict) or not values:
+        return [prefix[:-1]] if prefix else []
+    return [n for k, v in values.items() for n in _names(v, f"{prefix}{k}.")]
 
 
 def _require_mandatory(layers: list) -> None:

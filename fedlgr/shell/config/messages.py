@@ -5,8 +5,6 @@ is not a subclass of TrainConfig", ``$VALUE``, a bare ``TypeError``) or a traceb
 from __future__ import annotations
 
 import difflib
-import re
-from collections.abc import Iterator
 from typing import Any
 
 from fedlgr.errors import first_line
@@ -18,64 +16,6 @@ def omegaconf_message(err: Exception) -> str:
     key = getattr(err, "full_key", None)
     first = first_line(err)
     return f"{key}: {first}" if key else first
-
-
-def merge_message(err: Exception, merged: Any, node: Any) -> str:
-    """:func:`omegaconf_message`, naming the setting and value at fault where OmegaConf's
-    message does not (a list item of the wrong type: "Value '$VALUE' of type ..."): each
-    setting of ``node`` is merged alone until one fails."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
-    from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
-
-    if isinstance(err, ConfigKeyError) and getattr(err, "full_key", None):
-        return unknown_setting(err.full_key, OmegaConf.to_container(node, resolve=False))
-    if getattr(err, "full_key", None):
-        return omegaconf_message(err)
-    for key, value in _leaves(OmegaConf.to_container(node, resolve=False)):
-        try:
-            OmegaConf.merge(merged, _alone(key, value))
-        except OmegaConfBaseException as one:
-            return f"{key}={value!r}: {_plain_reason(one, key, merged)}"
-    return omegaconf_message(err)
-
-
-def _leaves(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
-    """``(dotted key, value)`` for every setting (not section) of plain ``value``."""
-    if isinstance(value, dict):
-        for key, inner in value.items():
-            yield from _leaves(inner, f"{prefix}{key}.")
-    else:
-        yield prefix[:-1], value
-
-
-def _alone(key: str, value: Any) -> dict:
-    """The one setting ``key=value`` as nested mappings."""
-    single: dict = {}
-    *parents, last = key.split(".")
-    here = single
-    for part in parents:
-        here = here.setdefault(part, {})
-    here[last] = value
-    return single
-
-
-def _plain_reason(err: Exception, key: str, merged: Any) -> str:
-    """OmegaConf's reason a value cannot go at ``key``, in the config's words where its own
-    names its internals ("Merge error: int is not a subclass of TrainConfig", "TupleConfig
-    length 1 does not match type hint length 2")."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import DictConfig, OmegaConf
-
-    text = first_line(err).replace("Value '$VALUE' of type '$VALUE_TYPE'", "a value")
-    here = OmegaConf.select(merged, key, throw_on_missing=False)
-    if isinstance(here, DictConfig) and text.startswith("Merge error:"):
-        first = next(iter(here), "...")
-        return f"a section of settings, not one value; set its parts (e.g. {key}.{first}=...)"
-    if found := re.match(r"TupleConfig length (\d+) does not match type hint length (\d+)", text):
-        given, wanted = found.groups()
-        return f"a list of {wanted} values expected, {given} given"
-    return text
 
 
 def container_mismatch(merged: Any, written: dict, prefix: str = "") -> str | None:

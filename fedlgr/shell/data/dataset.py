@@ -11,52 +11,17 @@ refused in a moment.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from fedlgr.core.data.scenes import Scenes, SceneTable
 from fedlgr.shell.checks.paths import check_data_path
 from fedlgr.shell.config import DataConfig
 from fedlgr.shell.data.images import load_image_store
-from fedlgr.shell.data.ratings import SceneTable, read_ratings
+from fedlgr.shell.data.ratings import read_ratings
 from fedlgr.shell.data.splits import FederatedSplit, make_split
-
-
-@dataclass(frozen=True)
-class Scenes:
-    """Scenes of one dataset folder, in stamp order."""
-
-    table: SceneTable
-    targets: torch.Tensor  # (N, 8) float32, mean Likert rating per action
-    features: torch.Tensor  # (N, 29) float32, descriptors + mode flags
-    images: torch.Tensor | None  # (N, 3, S, S) uint8, or None for the features modality
-
-    def __len__(self) -> int:
-        return len(self.table)
-
-    @property
-    def stamps(self) -> np.ndarray:
-        return self.table.stamps
-
-    @property
-    def inputs(self) -> torch.Tensor:
-        """What the root reads: the images if loaded, else the features."""
-        return self.images if self.images is not None else self.features
-
-    def subset(self, index: np.ndarray) -> Scenes:
-        """The scenes at positions ``index`` (or where a boolean mask is true)."""
-        index = np.asarray(index)
-        if index.dtype == bool:
-            index = np.flatnonzero(index)
-        t = torch.as_tensor(index, dtype=torch.long)
-        return Scenes(
-            self.table.subset(index),
-            self.targets[t],
-            self.features[t],
-            None if self.images is None else self.images[t],
-        )
 
 
 def read_table(config: DataConfig) -> SceneTable:

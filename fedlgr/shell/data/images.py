@@ -23,10 +23,10 @@ import torch
 from PIL import Image, UnidentifiedImageError
 from torchvision.transforms.v2 import functional as F
 
+from fedlgr.core.settings.rules import format_bytes
 from fedlgr.errors import ConfigError, DataError, first_line, join_problems
+from fedlgr.shell.checks.experiment import machine_memory
 from fedlgr.shell.checks.paths import broken_link
-from fedlgr.shell.checks.values import format_bytes, machine_memory
-from fedlgr.shell.config import cache_dir_setting
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _STAMP_PREFIX = re.compile(r"^(\d+)(?!\d)")
@@ -343,3 +343,9 @@ def _save_atomically(store: ImageStore, cache_file: Path) -> None:
         tmp.unlink(missing_ok=True)
         reason = first_line(err, 200)
         warnings.warn(f"{cache_file}: could not write the image cache ({reason})", stacklevel=3)
+
+
+def cache_dir_setting(cache_dir: Path) -> str:
+    """The name of the setting that chose ``cache_dir``, for error messages."""
+    from_env = os.environ.get("FEDLGR_CACHE_DIR")
+    return "FEDLGR_CACHE_DIR" if from_env and Path(from_env) == cache_dir else "data.cache_dir"

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -19,13 +18,13 @@ from fedlgr.core.data.columns import (
     ALL_COLUMNS,
     CSV_NAME,
     DESCRIPTOR_COLUMNS,
-    FEATURE_COLUMNS,
     LABEL_COLUMNS,
     LIKERT_MAX,
     LIKERT_MIN,
     MODE_COLUMNS,
     STAMP,
 )
+from fedlgr.core.data.scenes import SceneTable
 from fedlgr.errors import DataError, join_problems
 
 _VALUE_COLUMNS = (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS, *LABEL_COLUMNS)
@@ -36,46 +35,6 @@ _VALUE_COLUMNS = (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS, *LABEL_COLUMNS)
 # float32 (max 3.4e38) once squared in a variance or a loss.
 DESCRIPTOR_LIMIT = 1e6
 _INT64 = np.iinfo(np.int64)
-
-
-@dataclass(frozen=True)
-class SceneTable:
-    """One row per scene (stamp), ratings averaged over the scene's raters."""
-
-    source: Path
-    stamps: np.ndarray  # (N,) int64, ascending
-    values: dict[str, np.ndarray]  # column name -> (N,) float64 per-scene mean
-    n_ratings: np.ndarray  # (N,) int64 raters per scene
-
-    def __len__(self) -> int:
-        return len(self.stamps)
-
-    def column(self, name: str) -> np.ndarray:
-        if name not in self.values:
-            raise DataError(f"{self.source}: no column {name!r} (known: {', '.join(self.values)})")
-        return self.values[name]
-
-    @property
-    def targets(self) -> np.ndarray:
-        """(N, 8) mean Likert rating per action."""
-        return np.stack([self.values[c] for c in LABEL_COLUMNS], axis=1)
-
-    @property
-    def features(self) -> np.ndarray:
-        """(N, 29): the 27 descriptors then the 2 mode flags."""
-        return np.stack([self.values[c] for c in FEATURE_COLUMNS], axis=1)
-
-    @property
-    def circle(self) -> np.ndarray:
-        return self.values[MODE_COLUMNS[0]] == 1.0
-
-    def subset(self, keep: np.ndarray) -> SceneTable:
-        return SceneTable(
-            self.source,
-            self.stamps[keep],
-            {k: v[keep] for k, v in self.values.items()},
-            self.n_ratings[keep],
-        )
 
 
 def _check_header(path: Path, header: list[str]) -> dict[str, int]:

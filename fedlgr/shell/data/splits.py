@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
+from fedlgr.core.data.scenes import ClientShard, FederatedSplit, SceneTable
 from fedlgr.errors import ConfigError, DataError
 from fedlgr.shell.config import DataConfig, TaskSpec
-from fedlgr.shell.data.ratings import SceneTable
 
 _DIRICHLET_TRIES = 100
 # How long make_split looks for a client count that gives every client every scheduled
@@ -130,22 +129,6 @@ def split_tasks(
             "(see data.tasks, data.clients and data.partition)"
         )
     return out
-
-
-@dataclass(frozen=True)
-class ClientShard:
-    client: int
-    train: np.ndarray  # positions into the Scenes
-    # task name -> positions, a partition of train's task scenes (some may be empty)
-    tasks: dict[str, np.ndarray]
-
-
-@dataclass(frozen=True)
-class FederatedSplit:
-    train: np.ndarray
-    test: np.ndarray
-    test_tasks: dict[str, np.ndarray]
-    clients: list[ClientShard]
 
 
 def _label_quartile(table: SceneTable) -> np.ndarray:

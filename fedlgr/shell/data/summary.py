@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES
+from fedlgr.core.data.scenes import FederatedSplit, Scenes
 from fedlgr.shell.console import table
-from fedlgr.shell.data.dataset import Scenes
-from fedlgr.shell.data.splits import FederatedSplit
 
 
 def describe_scenes(scenes: Scenes) -> str:

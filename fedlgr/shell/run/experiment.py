@@ -26,13 +26,14 @@ from lightning.fabric.connector import _is_using_cli
 from lightning.fabric.strategies import DDPStrategy
 from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
 
+from fedlgr.core.data.scenes import FederatedSplit
 from fedlgr.core.in_process import Orchestrator
 from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import Progress
 from fedlgr.shell.data.dataset import load_split
-from fedlgr.shell.data.splits import FederatedSplit, task_clients
+from fedlgr.shell.data.splits import task_clients
 from fedlgr.shell.machine import available_cores, torch_threads
 from fedlgr.shell.run.checkpoint import checkpoint_root
 from fedlgr.shell.run.life import Hooks, RunLife

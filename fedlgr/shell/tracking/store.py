@@ -29,9 +29,9 @@ from pathlib import Path
 
 from filelock import FileLock
 
+from fedlgr.core.settings import default_cache_dir
 from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.stores import check_reachable, check_sqlite_usable, database_connection
-from fedlgr.shell.config.data import default_cache_dir
 from fedlgr.shell.tracking.uri import DATABASES, mask_password, masked_text, sqlite_file
 
 UI_PORT = 5000  # mlflow ui's default

@@ -34,11 +34,12 @@ import yaml
 from lightning.fabric import seed_everything
 
 from fedlgr.core.client.side import ClientSide
+from fedlgr.core.data.scenes import FederatedSplit
 from fedlgr.core.state import to_device
 from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.config import ExperimentConfig, check_sent_settings, config_from_data, to_yaml
 from fedlgr.shell.data.dataset import load_scenes
-from fedlgr.shell.data.splits import FederatedSplit, make_split
+from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.deploy.flower import masked, wire
 from fedlgr.shell.deploy.flower.link import encode, state_dir
 from fedlgr.shell.machine import torch_threads
