@@ -629,3 +629,17 @@ def test_a_config_from_a_pipe_an_include_with_a_suffix_and_loops_are_named(tmp_p
     with pytest.raises(ConfigError) as err:
         find_sweep(loop)
     assert str(err.value) == f"sweep {loop}: a symbolic link that loops"
+
+
+def test_the_settings_reference_is_generated_from_the_declarations():
+    """docs/settings.md is what the declarations say (regenerate it with the command it
+    names), and it holds every setting with its bounds: a new setting's doc cannot lag."""
+    from fedlgr.shell.config.reference import reference
+
+    written = (CONF_DIR.parent / "docs" / "settings.md").read_text()
+    assert written == reference(), "run: uv run python -m fedlgr.shell.config.reference"
+    for name in config_module.known_settings():
+        assert f"| `{name}` |" in written
+    assert "| `train.epochs` | int, in 1..100000 | `10` | local epochs per round |" in written
+    assert "| `federated.prox.mu` | float, >= 0 | `0.01` |" in written
+    assert "| `train.precision` | one of 32-true, bf16-mixed, 16-mixed |" in written

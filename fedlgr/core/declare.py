@@ -255,8 +255,38 @@ def settings_of(cls: type, prefix: str = "") -> typing.Iterator[tuple[str, Any, 
     """``(dotted name, type, pydantic field)`` for every setting under ``cls``, sections
     walked into: what the settings reference and the sweep file's checks read."""
     for name, field in cls.__pydantic_fields__.items():
+        listed = typing.get_origin(field.annotation) is tuple  # data.tasks: a list of them
         inner = [a for a in _options(field.annotation) if dataclasses.is_dataclass(a)]
+        inner = [] if listed else inner
         if inner:
             yield from settings_of(inner[0], f"{prefix}{name}.")
         else:
             yield f"{prefix}{name}", field.annotation, field
+
+
+def type_name(hint: Any) -> str:
+    """A setting's type as a user writes it: ``int``, ``one of a, b``, ``[float, float]``,
+    ``[int, ...]``, ``... or null``."""
+    options = _options(hint)
+    if len(options) < len(typing.get_args(hint)):  # X | None
+        return " or ".join([*(type_name(o) for o in options), "null"])
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Annotated:
+        return type_name(args[0])
+    if origin is typing.Literal:
+        return "one of " + ", ".join(str(a) for a in args)
+    if origin is tuple:
+        if args[1:] == (Ellipsis,):
+            return f"[{type_name(args[0])}, ...]"
+        return "[" + ", ".join(type_name(a) for a in args) + "]"
+    if dataclasses.is_dataclass(hint):
+        return "{" + ", ".join(f.name for f in dataclasses.fields(hint)) + "}"
+    return {"Path": "path", "PosixPath": "path"}.get(getattr(hint, "__name__", "")) or str(
+        getattr(hint, "__name__", hint)
+    )
+
+
+def bounds_of(field: Any) -> str:
+    """A setting's bounds as its refusal says them (``>= 1``, ``in [0, 1)``), or ''."""
+    limits = _limits(field)
+    return _range(limits) if limits else ""
