@@ -64,9 +64,11 @@ def test_threads_give_the_results_of_sequential_training(method, synth_dir, cach
 
 def test_auto_picks_threads_on_cpu_with_several_clients_and_threads(synth_dir, cache_dir):
     def resolved(*overrides, clients=2, device="cpu"):
-        config = fast_config(synth_dir, cache_dir, "sqlite://", *overrides)
-        rt = concurrency.resolve(config, torch.device(device), clients).runtime
-        return rt.concurrency, rt.workers
+        rt = fast_config(synth_dir, cache_dir, "sqlite://", *overrides).runtime
+        chosen = concurrency.Resolved.decide(
+            rt.concurrency, rt.workers, rt.threads, torch.device(device), clients
+        )
+        return chosen.concurrency, chosen.workers
 
     assert resolved("runtime.threads=2") == ("threads", 2)
     assert resolved("runtime.threads=16", clients=10) == ("threads", 10)

@@ -494,7 +494,7 @@ def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
 ):
     """The default thread count follows the machine's load (and concurrency follows it): a
     resume that leaves them unset takes the checkpoint's, one that sets others is refused."""
-    from fedlgr.shell.run.resume import MACHINE_CHOSEN, adopt_settings, load_checkpoint
+    from fedlgr.shell.run.resume import MACHINE_CHOSEN, Resumed, adopted, load_checkpoint
 
     store = f"sqlite:///{tmp_path}/mlflow.db"
     chosen = ["federated.rounds=3", "runtime.threads=2", "runtime.concurrency=threads"]
@@ -520,9 +520,10 @@ def test_a_resume_takes_the_run_s_own_thread_settings_where_left_to_the_machine(
     with pytest.raises(FedlgrError, match=r"runtime\.threads \(checkpoint 2, now 1\)"):
         load_checkpoint(now, run_id, path)
     state = load_checkpoint(now, run_id, path, frozenset(MACHINE_CHOSEN))
-    adopted = adopt_settings(now, state["config"], frozenset(MACHINE_CHOSEN)).runtime
-    assert (adopted.threads, adopted.concurrency, adopted.workers) == (2, "threads", 2)
-    assert adopt_settings(now, state["config"], frozenset()).runtime == now.runtime
+    resumed = Resumed(run_id, state, path.parent)
+    own = adopted(resumed, frozenset(MACHINE_CHOSEN))
+    assert own == {"threads": 2, "concurrency": "threads", "workers": 2}
+    assert adopted(resumed, frozenset()) == {}
 
 
 @pytest.mark.slow

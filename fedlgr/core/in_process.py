@@ -41,6 +41,7 @@ from fedlgr.core.server.side import Collective, ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
 
 if TYPE_CHECKING:
+    from fedlgr.core.client.pool import Resolved
     from fedlgr.core.data.scenes import FederatedSplit, Scenes
     from fedlgr.core.settings import ExperimentConfig
 
@@ -53,6 +54,7 @@ class Orchestrator:
         scenes: Scenes,
         split: FederatedSplit,
         spill: Path | None = None,
+        resolved: Resolved | None = None,
     ):
         self.fabric, self.config = fabric, config
         self.device = fabric.device
@@ -62,9 +64,8 @@ class Orchestrator:
         mine = [s.client for s in split.clients if s.client % self.world == self.rank]
         self.indices = set(mine)
         self.client_side = ClientSide(
-            config, scenes, split, mine, self.device, fabric.autocast, spill=spill
+            config, scenes, split, mine, self.device, fabric.autocast, spill, resolved
         )
-        self.config = self.client_side.config  # its runtime settings resolved
         self.scored = scored_clients(config)  # federated.evaluate, eval_every
         self.faults = Faults(config.federated.faults, config.data.clients, config.seed)
         # federated.server_eval: rank 0, which logs, scores the global model.

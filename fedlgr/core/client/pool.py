@@ -26,6 +26,7 @@ import dataclasses
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypeVar
 
 import torch
@@ -38,24 +39,50 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def resolve(config: ExperimentConfig, device: torch.device, clients: int) -> ExperimentConfig:
-    """``config`` with ``runtime.concurrency`` and ``runtime.workers`` made explicit for a
-    process that holds ``clients`` clients on ``device`` and ``runtime.threads`` threads
-    (resolved before this)."""
-    rt = config.runtime
-    threads = rt.threads or torch.get_num_threads()
-    mode = rt.concurrency
-    if mode == "auto":
-        several = clients > 1 and (device.type != "cpu" or threads > 1)
-        mode = "threads" if several and device.type == "cpu" else "sequential"
-    if mode == "threads":
-        default = threads if device.type == "cpu" else clients
-        workers = max(1, min(rt.workers or default, clients))
-    else:
-        workers = 1
-    return dataclasses.replace(
-        config, runtime=dataclasses.replace(rt, concurrency=mode, workers=workers)
-    )
+@dataclass(frozen=True)
+class Resolved:
+    """What a process decides at run time about how its clients train, once: its torch
+    threads, its clients' concurrency and how many train at once. The results depend on
+    them (the order of floating-point sums), so the run records them as its
+    ``runtime.*`` settings (:meth:`recorded`) and a resumed run adopts them."""
+
+    threads: int | None  # None: torch's own (a GPU process whose threads were not set)
+    concurrency: str  # sequential | threads | batched
+    workers: int
+
+    @classmethod
+    def decide(
+        cls,
+        concurrency: str,
+        workers: int | None,
+        threads: int | None,
+        device: torch.device,
+        clients: int,
+    ) -> Resolved:
+        """For a process with ``threads`` torch threads holding ``clients`` clients on
+        ``device``: ``concurrency=auto`` is threads on CPU where a process has several
+        clients and threads, else sequential; threads train ``workers`` clients at once
+        (default: one per thread, at most one per client)."""
+        count = threads or torch.get_num_threads()
+        mode = concurrency
+        if mode == "auto":
+            several = clients > 1 and (device.type != "cpu" or count > 1)
+            mode = "threads" if several and device.type == "cpu" else "sequential"
+        at_once = 1
+        if mode == "threads":
+            default = count if device.type == "cpu" else clients
+            at_once = max(1, min(workers or default, clients))
+        return cls(threads, mode, at_once)
+
+    def recorded(self, config: ExperimentConfig) -> ExperimentConfig:
+        """``config`` as the run records it (params, checkpoints): with these choices."""
+        runtime = dataclasses.replace(
+            config.runtime,
+            threads=self.threads,
+            concurrency=self.concurrency,
+            workers=self.workers,
+        )
+        return dataclasses.replace(config, runtime=runtime)
 
 
 def _start_worker(threads: int, local: threading.local, device: torch.device) -> None:

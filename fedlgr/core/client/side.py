@@ -31,7 +31,7 @@ from fedlgr.core.client.idle import (
     spill_prefix,
 )
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
-from fedlgr.core.client.pool import ClientPool, resolve
+from fedlgr.core.client.pool import ClientPool, Resolved
 from fedlgr.core.client.stacked import refuse_plugins, train_batched
 from fedlgr.core.client.training import Client, train_locally
 from fedlgr.core.continual import continual_plugins
@@ -99,7 +99,8 @@ def client_seed(seed: int, client: int) -> int:
 class ClientSide:
     """``spill``: where the folder of idle clients' states is made, for those beyond
     ``runtime.idle_memory_mb`` (:mod:`fedlgr.core.client.idle`; None: the system's
-    temporary folder)."""
+    temporary folder). ``resolved``: how the clients train, as the launch decided it
+    (None: decided here, for this process's torch threads)."""
 
     def __init__(
         self,
@@ -110,11 +111,16 @@ class ClientSide:
         device: torch.device,
         autocast=contextlib.nullcontext,
         spill: Path | None = None,
+        resolved: Resolved | None = None,
     ):
-        # How this process's clients train, made explicit (runtime.concurrency, workers)
-        cfg = config = resolve(config, device, len(indices))
+        # How this process's clients train: decided by the launch, else here
+        rt, threads = config.runtime, torch.get_num_threads()
+        self.resolved = resolved or Resolved.decide(
+            rt.concurrency, rt.workers, rt.threads, device, len(indices)
+        )
+        cfg = config
         self.config, self.scenes, self.split = config, scenes, split
-        self.pool = ClientPool(cfg.runtime.workers, torch.get_num_threads(), device)
+        self.pool = ClientPool(self.resolved.workers, threads, device)
         self.device, self.autocast = device, autocast
         self.tasks = list(cfg.continual.tasks) or [ALL]
         self.strategy = build_strategy(cfg.federated)  # its client part
@@ -161,7 +167,7 @@ class ClientSide:
     def _check_batched(self) -> None:
         """``runtime.concurrency=batched``: refused before any run is started (not at round
         1) where a client has plugins or scales its losses."""
-        if self.config.runtime.concurrency != "batched" or not self.shards:
+        if self.resolved.concurrency != "batched" or not self.shards:
             return
         refuse_plugins([self.build(next(iter(self.shards)))])
         if self._scaler() is not None:
@@ -354,7 +360,7 @@ class ClientSide:
             client.task = self.tasks[message.plan.task]
             if cfg.train.reset_optimizer:
                 client.optimizer = client.model.configure_optimizers()
-        if cfg.runtime.concurrency == "batched":
+        if self.resolved.concurrency == "batched":
             return self._train_batched(chosen, ins, progress)
         trained = self._side_by_side(lambda c: self._train_one(c, ins[c.index], progress), chosen)
         for usage, res in trained:

@@ -105,7 +105,7 @@ SAFE_KEYS = frozenset(
 )
 
 # Settings a launch may leave to the machine (its cores, its load): a resumed run takes
-# its checkpoint's values for them (``resume.adopt_settings``), so that it computes the
+# its checkpoint's values for them (``resume.adopted``), so that it computes the
 # same numbers; they are not part of the hash a run is found by.
 MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
 

@@ -13,7 +13,6 @@ spawns them from Python.
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import functools
 import os
@@ -26,6 +25,7 @@ from lightning.fabric.connector import _is_using_cli
 from lightning.fabric.strategies import DDPStrategy
 from torch.distributed import DistBackendError, DistNetworkError, DistStoreError
 
+from fedlgr.core.client.pool import Resolved
 from fedlgr.core.data.scenes import FederatedSplit
 from fedlgr.core.in_process import Orchestrator
 from fedlgr.errors import FedlgrError, first_line
@@ -38,7 +38,7 @@ from fedlgr.shell.machine import available_cores, torch_threads
 from fedlgr.shell.run.checkpoint import checkpoint_root
 from fedlgr.shell.run.life import Hooks, RunLife
 from fedlgr.shell.run.result import ExperimentResult
-from fedlgr.shell.run.resume import adopt_settings, left_to_machine, resume_point
+from fedlgr.shell.run.resume import adopted, left_to_machine, resume_point
 from fedlgr.shell.tracking.mlflow_run import tracking_uri
 
 
@@ -154,9 +154,8 @@ def _main(
     start = time.perf_counter()
     left = left_to_machine(config)
     resumed = resume_point(fabric, config, resume, left)
-    if resumed is not None and left:
-        config = adopt_settings(config, resumed.state["config"], left)
-    config, share = _threads(fabric, config)
+    resolved, share = _resolve(fabric, config, adopted(resumed, left))
+    config = resolved.recorded(config)  # as its params and checkpoints keep it
     seed_everything(config.seed, verbose=False)
     show = fabric.global_rank == 0 and config.runtime.progress
     with Progress("decoding images", "img", show) as bar:  # only when not cached yet
@@ -165,8 +164,7 @@ def _main(
     spill = None  # idle clients' states beyond runtime.idle_memory_mb: by the checkpoints
     if config.tracking.enabled:
         spill = checkpoint_root(config, tracking_uri(config))
-    orchestrator = Orchestrator(fabric, config, scenes, split, spill=spill)
-    config = orchestrator.config  # with how its clients train made explicit
+    orchestrator = Orchestrator(fabric, config, scenes, split, spill, resolved)
     processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
     held = _task_clients(split)
     if held is not None:
@@ -203,23 +201,24 @@ def _task_clients(split: FederatedSplit) -> tuple[str, str] | None:
     )
 
 
-def _threads(fabric, config: ExperimentConfig) -> tuple[ExperimentConfig, int | None]:
-    """``config`` with this process's torch threads made explicit on CPU (results depend
-    on the thread count - the order of floating-point sums - so the effective count goes
-    into the config, its params and its checkpoints; how its clients train is made
-    explicit where they are placed, :class:`~fedlgr.core.client.side.ClientSide`). Also the
-    process's share of the cores where the default chose the threads (None where set)."""
-    share = None
+def _resolve(fabric, config: ExperimentConfig, adopted: dict) -> tuple[Resolved, int | None]:
+    """How this process's clients train, decided once: the settings given, else a resumed
+    run's own (``adopted``), else the machine's - its torch threads on CPU (set here: the
+    results depend on the count, the order of floating-point sums) and, for the clients it
+    holds, their concurrency. Also the process's share of the cores where the default
+    chose the threads (None where set)."""
+    rt = config.runtime
+    threads, share = adopted.get("threads", rt.threads), None
     if fabric.device.type == "cpu":
-        local_world = fabric.world_size // config.runtime.num_nodes
-        threads = torch_threads(config, local_world)
-        if config.runtime.threads is None:
+        local_world = fabric.world_size // rt.num_nodes
+        if threads is None:
+            threads = torch_threads(config, local_world)
             share = max(1, available_cores() // local_world)
         torch.set_num_threads(threads)
-        config = dataclasses.replace(
-            config, runtime=dataclasses.replace(config.runtime, threads=threads)
-        )
-    return config, share
+    mine = len(range(fabric.global_rank, config.data.clients, fabric.world_size))
+    concurrency = adopted.get("concurrency", rt.concurrency)
+    workers = adopted.get("workers", rt.workers)
+    return Resolved.decide(concurrency, workers, threads, fabric.device, mine), share
 
 
 def _threads_text(config: ExperimentConfig, share: int | None) -> str:

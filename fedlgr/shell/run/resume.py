@@ -14,7 +14,6 @@ atomic writing: :mod:`fedlgr.shell.run.checkpoint`.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -201,7 +200,7 @@ def load_checkpoint(
 ) -> dict[str, Any]:
     """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``; settings
     in ``adopt`` (this launch left them to the machine) are not compared: the run's own
-    values are taken (:func:`adopt_settings`)."""
+    values are taken (:func:`adopted`)."""
     state = ckpt.load(path, ckpt.RUN_KEYS)
     if state["run_id"] != run_id:
         raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")
@@ -224,16 +223,15 @@ def load_checkpoint(
     return {**state, "path": str(path)}
 
 
-def adopt_settings(
-    config: ExperimentConfig, saved: dict[str, str], keys: frozenset[str]
-) -> ExperimentConfig:
-    """``config`` with the checkpoint's values (``saved``: its flattened config) of the
-    machine-chosen settings ``keys``."""
-    changes: dict[str, Any] = {}
+def adopted(resumed: Resumed | None, keys: frozenset[str]) -> dict[str, Any]:
+    """A resumed run's own values of the machine-chosen settings ``keys`` (its
+    checkpoint's flattened config), by name: ``{"threads": 2, "concurrency": ...}``."""
+    saved = resumed.state["config"] if resumed is not None else {}
+    found: dict[str, Any] = {}
     for key in keys:
         value = saved.get(key)
         if value is None or value == "None":
             continue
         name = key.removeprefix("runtime.")
-        changes[name] = int(value) if name in ("threads", "workers") else value
-    return dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **changes))
+        found[name] = int(value) if name in ("threads", "workers") else value
+    return found
