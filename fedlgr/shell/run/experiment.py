@@ -29,7 +29,6 @@ from fedlgr.core.client.pool import Resolved
 from fedlgr.core.data.scenes import FederatedSplit
 from fedlgr.core.in_process import Orchestrator
 from fedlgr.errors import FedlgrError, first_line
-from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.config import ExperimentConfig
 from fedlgr.shell.console import Progress
 from fedlgr.shell.data.dataset import load_split
@@ -89,9 +88,8 @@ def run_experiment(
     the rounds it restored) may raise to stop the run, e.g. a sweep's
     pruner: the run is then ended KILLED if the exception has ``mlflow_status =
     "KILLED"``, FAILED otherwise, keeping what was logged. ``show_runs``: print at the
-    end where to see the run in MLflow's UI."""
-    if config.tracking.enabled:  # before any work: an unreachable server fails at once
-        check_reachable(tracking_uri(config))
+    end where to see the run in MLflow's UI. The caller has checked that the tracking store
+    is reachable (before torch loads: ``fedlgr run``, ``demo``, a sweep's parent run)."""
     echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
     fabric = make_fabric(config)
     hooks = Hooks(echo, on_round, on_start, show_runs)

@@ -7,7 +7,6 @@ import json
 from typing import Any
 
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.config import load_config
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.trials import all_failed, describe_param, one_line, trial_table
@@ -78,7 +77,6 @@ class ParentRun:
         # lazy: mlflow (~5 s), not needed to check a sweep file
         from mlflow.exceptions import MlflowException
 
-        check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
         try:
             return client.get_run(run_id)
         except MlflowException as err:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.tracking.views import TAG, share_view
 
 # MLflow 3's UI shows an experiment of this kind on its runs table ("Model training"),
@@ -17,7 +16,6 @@ KIND = {"mlflow.experimentKind": "custom_model_development"}
 def experiment_id(client, name: str) -> str:
     """The id of MLflow experiment ``name``, created if it does not exist yet (by this
     process or, at the same moment, by another one)."""
-    check_reachable(client.tracking_uri)  # one line within seconds, not minutes of retries
     experiment = client.get_experiment_by_name(name)
     if experiment is None:
         try:
