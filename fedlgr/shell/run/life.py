@@ -18,6 +18,7 @@ the console what the run does, and tells the caller's :class:`Hooks`.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -80,23 +81,7 @@ class Resumed:
 
     def rounds(self) -> list[RoundLog]:
         """The checkpoint's rounds (``missing``: robots that dropped out)."""
-        return [
-            RoundLog(
-                r["round"],
-                r["task"],
-                list(r["keys"]),
-                np.asarray(r["table"]),
-                r["seconds"],
-                tuple(r["missing"]),
-                dict(r["server"]),
-                dict(r["initial"]),
-                None if r["participants"] is None else tuple(r["participants"]),
-                {int(c): why for c, why in r.get("refused", {}).items()},
-                {int(c): what for c, what in r.get("faults", {}).items()},
-                {int(c): name for c, name in r.get("names", {}).items()},
-            )
-            for r in self.state["rows"]
-        ]
+        return [round_log(r) for r in self.state["rows"]]
 
 
 class RunLife:
@@ -423,26 +408,37 @@ def checkpoint_state(
         "round": result.rounds[-1].round,
         "config": flatten(config),
         **state,
-        "rows": [
-            {
-                "round": r.round,
-                "task": r.task,
-                "keys": list(r.keys),
-                "table": r.table,
-                "seconds": r.seconds,
-                "missing": list(r.missing),
-                "server": r.server,
-                "initial": r.initial,
-                "participants": None if r.participants is None else list(r.participants),
-                "refused": {str(c): why for c, why in r.refused.items()},
-                "faults": {str(c): what for c, what in r.faults.items()},
-                "names": {str(c): name for c, name in r.names.items()},
-            }
-            for r in result.rounds
-        ],
+        "rows": [round_state(r) for r in result.rounds],
         "elapsed": elapsed,
         "data_digest": result.data_digest,
     }
+
+
+# A RoundLog in a checkpoint: its fields by name, lists for tuples and string keys for
+# the per-client maps (as checkpoints have always held them); older checkpoints lack the
+# newer fields, which take their defaults.
+_BY_CLIENT = ("refused", "faults", "names")
+
+
+def round_state(log: RoundLog) -> dict[str, Any]:
+    state = {f.name: getattr(log, f.name) for f in dataclasses.fields(log)}
+    for name in _BY_CLIENT:
+        state[name] = {str(c): v for c, v in state[name].items()}
+    for name in ("keys", "missing", "participants"):
+        state[name] = None if state[name] is None else list(state[name])
+    return state
+
+
+def round_log(state: dict[str, Any]) -> RoundLog:
+    known = {f.name for f in dataclasses.fields(RoundLog)}
+    values = {k: v for k, v in state.items() if k in known}
+    values["table"] = np.asarray(values["table"])
+    values["missing"] = tuple(values["missing"])
+    if values.get("participants") is not None:
+        values["participants"] = tuple(values["participants"])
+    for name in _BY_CLIENT:
+        values[name] = {int(c): v for c, v in values.get(name, {}).items()}
+    return RoundLog(**values)
 
 
 @contextlib.contextmanager

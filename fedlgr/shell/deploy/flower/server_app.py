@@ -41,6 +41,7 @@ it answered) sends the same reply again.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import shlex
 import time
@@ -405,19 +406,12 @@ class FlowerRounds:
 
 
 def _upload_state(res: TrainRes) -> dict:
-    return {
-        "client": res.client,
-        "weights": res.weights,
-        "n_samples": res.n_samples,
-        "figures": dict(res.figures),
-        "payload": res.payload,
-    }
+    """An upload in a checkpoint: its fields by name (shallow: the tensors as they are)."""
+    return {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
 
 
 def _upload(state: dict) -> TrainRes:
-    return TrainRes(
-        state["client"], state["weights"], state["n_samples"], state["figures"], state["payload"]
-    )
+    return TrainRes(**state)
 
 
 def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
