@@ -3,7 +3,6 @@ MLflow telemetry off unless the user chose, and one error line for a bad argumen
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import subprocess
@@ -11,13 +10,14 @@ import sys
 import types
 from pathlib import Path
 
+import click
 import mlflow
 import numpy as np
 import pytest
 import yaml
 from PIL import Image
 
-from fedlgr.shell.cli import build_parser, main, parse
+from fedlgr.shell.cli import command, main, parse
 from fedlgr.shell.cli.sweep import shipped_sweeps
 from fedlgr.shell.config import CONF_DIR, SWEEPS_DIR, DataConfig, load_config, to_plain
 from fedlgr.shell.console import Progress, duration
@@ -30,11 +30,13 @@ from tests.support.runs import FAST
 def test_help_does_not_import_heavy_modules():
     """``fedlgr --help`` stays fast because torch & co. load only inside the verbs."""
     code = (
-        "import sys\n"
-        "from fedlgr.shell.cli import build_parser\n"
-        "build_parser().format_help()\n"
-        "heavy = [m for m in ('torch', 'torchvision', 'lightning', 'mlflow', 'optuna', 'numpy')"
-        " if m in sys.modules]\n"
+        "import contextlib, io, sys\n"
+        "from fedlgr.shell.cli import main\n"
+        "for verb in ([], ['run'], ['sweep'], ['deploy', 'supernode']):\n"
+        "    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(io.StringIO()):\n"
+        "        main([*verb, '--help'])\n"
+        "heavy = [m for m in ('torch', 'torchvision', 'lightning', 'mlflow', 'optuna', 'numpy',"
+        " 'flwr') if m in sys.modules]\n"
         "print(heavy)\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -181,33 +183,43 @@ def _help(capsys, *argv: str) -> str:
     return capsys.readouterr().out
 
 
-def _verbs(parser) -> dict[str, argparse.ArgumentParser]:
-    """Every verb's parser (``data synth`` ...), walked from the top."""
+def _verbs(group: click.Group, prefix: str = "") -> dict[str, click.Command]:
+    """Every verb's command (``data synth`` ...), walked from the top."""
     found = {}
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for name, sub in action.choices.items():
-                found[name] = sub
-                found.update({f"{name} {k}": v for k, v in _verbs(sub).items()})
+    for name, sub in group.commands.items():
+        found[prefix + name] = sub
+        if isinstance(sub, click.Group):
+            found.update(_verbs(sub, f"{prefix}{name} "))
     return found
 
 
 def test_every_option_has_help_and_shows_its_default(capsys):
-    ours = _verbs(build_parser())
+    """Each option has its help, each argument is named in its verb's help, and a default
+    is shown where there is one (not None or False)."""
+    ours = _verbs(command())
     assert {"run", "demo", "sweep", "report", "pretrain", "data synth", "data check"} <= set(ours)
     assert {"deploy certs", "deploy supernode", "deploy run"} <= set(ours)
     silent = [
-        f"{name} {a.dest}"
-        for name, p in ours.items()
-        for a in p._actions
-        if not a.help and not isinstance(a, argparse._SubParsersAction)
+        f"{name} {p.name}"
+        for name, verb in ours.items()
+        for p in verb.params
+        if isinstance(p, click.Option) and not p.hidden and not p.help
     ]
     assert silent == []
+    unnamed = [
+        f"{name} {word}"
+        for name, verb in ours.items()
+        for p in verb.params
+        if isinstance(p, click.Argument)
+        for word in p.metavar.strip("[].").split("|")
+        if word not in verb.help
+    ]
+    assert unnamed == []
     out = _help(capsys, "demo")
-    assert "--scenes SCENES       scenes to synthesise if absent (default: 1000)" in out
-    assert "(default: 0)" in out  # --seed: a default of 0 is shown too
-    assert "(default: None)" not in out and "(default: False)" not in out
-    assert "(default: 128)" in _help(capsys, "data", "check")
+    assert re.search(r"--scenes INTEGER +scenes to synthesise if absent +\[default: 1000\]", out)
+    assert "[default: 0]" in out  # --seed: a default of 0 is shown too
+    assert "[default: None]" not in out and "[default: False]" not in out
+    assert "[default: 128]" in _help(capsys, "data", "check")
 
 
 def test_run_print_config_resolves_like_a_run_and_runs_nothing(tmp_path, monkeypatch, capsys):

@@ -69,9 +69,9 @@ def test_an_unpacked_wheel_runs_outside_the_checkout(wheel, tmp_path):
         return done.stdout
 
     demo = fedlgr("demo", "--help")
-    assert "--scenes SCENES" in demo and "(default: 1000)" in demo
+    assert "--scenes INTEGER" in demo and "[default: 1000]" in demo
     sweeps = fedlgr("sweep", "--help")
-    assert f"\nshipped sweeps (in {site / 'fedlgr' / 'sweeps'}):\n" in sweeps
+    assert f"\n  shipped sweeps (in {site / 'fedlgr' / 'sweeps'}):\n" in sweeps
     assert "  ewc " in sweeps and "  paper_fl " in sweeps
     printed = fedlgr("run", "conf/debug/fast.yaml", "data.path=/data/x", "--print-config")
     config = yaml.safe_load(printed)

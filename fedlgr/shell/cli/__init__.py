@@ -1,16 +1,17 @@
 """The ``fedlgr`` command: one console script with verbs.
 
-Each verb is a module of this package that declares its options (``add_parser``) next to
-the thin function that runs it, and imports what is heavy (torch, MLflow, Optuna, Flower)
-only when it runs, so ``fedlgr --help`` answers without loading torch. This module
-assembles the verbs and dispatches to them. Errors the user can fix
-(:class:`fedlgr.errors.FedlgrError`) are printed as one line and exit with status 1.
+Each verb is a typed function in a module of this package, its options declared in its
+signature (typer), which imports what is heavy (torch, MLflow, Optuna, Flower) only when
+it runs, so ``fedlgr --help`` answers without loading torch. This module gathers the
+verbs, parses a command line with click, and runs the verb. Errors the user can fix
+(:class:`fedlgr.errors.FedlgrError`) are printed as one line and exit with status 1; a
+command line that does not parse, with status 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
+import functools
 import gc
 import logging
 import os
@@ -18,48 +19,87 @@ import re
 import signal
 import sys
 import warnings
+from types import SimpleNamespace
+from typing import Annotated, NoReturn
+
+import click
+import typer
 
 from fedlgr import __version__
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.address_space import out_of_address_space, torch_guarded
 from fedlgr.shell.cli import data, demo, deploy, pretrain, report, run, sweep
 from fedlgr.shell.cli.overrides import check_repeats
-from fedlgr.shell.cli.parser import Parser
 from fedlgr.shell.machine import tune_allocator
 from fedlgr.shell.signals import Terminated, quiet_exit
 
 VERBS = (demo, run, report, sweep, pretrain, data, deploy)  # in the order --help lists them
 
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(
-        prog="fedlgr",
-        description="Federated (continual) learning of socially appropriate robot behaviours: "
-        "FedRoot, FedLGR and baselines on MANNERS-DB or a synthetic living room.",
-    )
-    parser.add_argument("--version", action="version", version=f"fedlgr {__version__}")
-    verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
-    for verb in VERBS:
-        verb.add_parser(verbs)
-    return parser
+app = typer.Typer(
+    help="Federated (continual) learning of socially appropriate robot behaviours: FedRoot, "
+    "FedLGR and baselines on MANNERS-DB or a synthetic living room.",
+    context_settings={"help_option_names": ["-h", "--help"]},
+    add_completion=False,
+)
+for module in VERBS:
+    app.add_typer(module.app)  # nameless: its commands join fedlgr's
 
 
-def parse(argv: list[str] | None = None) -> argparse.Namespace:
-    """Options may come between and after overrides (``run CONFIG --tracking-uri U a=1``):
-    argparse stops collecting a verb's ``key=value`` list at the first option, so the rest
-    are taken back here (its intermixed parsing does not support sub-commands)."""
-    parser = build_parser()
-    args, extra = parser.parse_known_args(argv)
-    listed = next((name for name in ("items", "overrides") if hasattr(args, name)), None)
-    stray = [e for e in extra if listed is None or "=" not in e or e.startswith("-")]
-    if stray:
-        parser.error(f"unrecognized arguments: {' '.join(stray)}")
-    if extra:
-        getattr(args, listed).extend(extra)
-    if isinstance(getattr(args, "resume", None), str) and "=" in args.resume:
-        args.items.append(args.resume)  # `--resume key=value`: a bare --resume, then an override
-        args.resume = True
-    return args
+def _version(asked: bool) -> None:
+    if asked:
+        print(f"fedlgr {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def fedlgr(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_version, is_eager=True, help="print the version"),
+    ] = False,
+) -> None:
+    """The verbs' group: its one option, ``--version``, answers before any verb."""
+
+
+@functools.cache
+def command() -> click.Group:
+    return typer.main.get_command(app)
+
+
+def parse(argv: list[str] | None = None) -> SimpleNamespace:
+    """The verb of ``argv`` (``verb``: its name, ``run``: its function, given its
+    arguments) and its arguments by name. ``--help`` and ``--version`` exit with status 0,
+    a usage error with 2 and a line on stderr, as argparse did. Overrides (``key=value``)
+    may come before, between and after options; ``--resume key=value`` is a bare
+    ``--resume``, then an override."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        ctx = command().invoke(command().make_context("fedlgr", argv))
+        params, listed = dict(ctx.params), []
+        for name in {"items", "overrides"} & set(params):
+            listed = params[name] = list(params[name])
+        if isinstance(params.get("resume"), str) and "=" in params["resume"]:
+            listed.append(params["resume"])
+            params["resume"] = True
+        stray = [i for i in listed if "=" not in i][int(ctx.command_path == "fedlgr run") :]
+        if stray:  # an override is key=value; fedlgr run's first other item is its config
+            raise click.UsageError(f"unrecognized arguments: {' '.join(stray)}", ctx)
+    except click.exceptions.Exit as done:
+        raise SystemExit(done.exit_code) from None
+    except click.UsageError as err:
+        _usage_error(err)
+    call = functools.partial(ctx.invoke, ctx.command.callback, **params)
+    return SimpleNamespace(verb=ctx.command_path.split()[1], run=call, **params)
+
+
+def _usage_error(err: click.UsageError) -> NoReturn:
+    if err.ctx is not None:
+        print(err.ctx.get_usage(), file=sys.stderr)
+    message = err.format_message()
+    if isinstance(err, click.NoSuchOption):  # argparse's words, as before
+        message = f"unrecognized arguments: {err.option_name}"
+    print(f"fedlgr: error: {message}", file=sys.stderr)
+    raise SystemExit(err.exit_code)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         # MLflow announces its sqlite schema set-up at INFO on every new store: not news.
         logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
         with torch_guarded(args.verb):  # under `ulimit -v`: room for torch, or one line
-            return args.run(args) or 0
+            return args.run() or 0
     except FedlgrError as err:
         print(f"fedlgr: error: {out_of_address_space(err, args.verb) or err}", file=sys.stderr)
         return 1

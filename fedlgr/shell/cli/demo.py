@@ -16,16 +16,16 @@ latents drift in Task 2 and replay protects circle only in part (bench/README.md
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
+from typing import Annotated, Literal
+
+import typer
 
 from fedlgr.core.metrics import SCORES, headline_scores
 from fedlgr.shell.checks.stores import check_tracking
-from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verb
 from fedlgr.shell.config import CONF_DIR, load_config
 from fedlgr.shell.console import Progress, table
-from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
-from fedlgr.shell.tracking.store import runs_hint
 
 DEFAULT_DATA = Path("data/manners-synth")
 DEMO_CONFIG = CONF_DIR / "experiment" / "demo.yaml"
@@ -41,65 +41,59 @@ FORGETTING_GROUPS = (
     ("arrow", "after_task2/task/arrow", "T2"),
 )
 
-
-def add_parser(verbs: Verbs) -> None:
-    parser = verbs.add_parser(
-        "demo",
-        help="the main job: FedAvg vs FedRootAvg on the embedded synthetic data",
-        description="Synthesise the living room if absent, then train FedAvg and FedRootAvg on "
-        "it (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.",
-    )
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder")
-    parser.add_argument("--scenes", type=int, default=1000, help="scenes to synthesise if absent")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the data and the runs")
-    parser.add_argument(
-        "--tracking-uri",
-        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db)",
-    )
-    parser.add_argument(
-        "--fcl",
-        action="store_true",
-        help="show forgetting instead: FedRoot "
-        "without a CL method vs FedLGR, circle then arrow (see --modality)",
-    )
-    parser.add_argument(
-        "--modality",
-        choices=["features", "image"],
-        default="features",
-        help="--fcl: the descriptors (MLP root, about 40 s) or the images "
-        "(a root pretrained once, about 4 minutes)",
-    )
-    parser.add_argument(
-        "--pretrain-scenes",
-        type=int,
-        default=2000,
-        help="--fcl: scenes (of another seed) the root is pretrained on",
-    )
-    parser.add_argument(
-        "--pretrain-images",
-        type=int,
-        default=16000,
-        help="--fcl: augmented images the root is pretrained on",
-    )
-    parser.set_defaults(run=demo)
+app = typer.Typer()
 
 
-def demo(args: argparse.Namespace) -> int:
-    check_tracking(args.tracking_uri, args.overrides)  # before loading torch
+@app.command(
+    "demo",
+    cls=Verb,
+    short_help="the main job: FedAvg vs FedRootAvg on the embedded synthetic data",
+)
+def demo(
+    overrides: Overrides = (),
+    data: Annotated[Path, typer.Option(help="dataset folder")] = DEFAULT_DATA,
+    scenes: Annotated[int, typer.Option(help="scenes to synthesise if absent")] = 1000,
+    seed: Annotated[int, typer.Option(help="seed of the data and the runs")] = 0,
+    tracking_uri: TrackingUri = None,
+    fcl: Annotated[
+        bool,
+        typer.Option(
+            "--fcl",
+            help="show forgetting instead: FedRoot without a CL method vs FedLGR, circle then "
+            "arrow (see --modality)",
+        ),
+    ] = False,
+    modality: Annotated[
+        Literal["features", "image"],
+        typer.Option(
+            help="--fcl: the descriptors (MLP root, about 40 s) or the images (a root "
+            "pretrained once, about 4 minutes)"
+        ),
+    ] = "features",
+    pretrain_scenes: Annotated[
+        int, typer.Option(help="--fcl: scenes (of another seed) the root is pretrained on")
+    ] = 2000,
+    pretrain_images: Annotated[
+        int, typer.Option(help="--fcl: augmented images the root is pretrained on")
+    ] = 16000,
+) -> int:
+    """Synthesise the living room if absent, then train FedAvg and FedRootAvg on it
+    (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.
+    Overrides (key=value) apply to both runs."""
+    check_tracking(tracking_uri, overrides)  # before loading torch
     # lazy: PIL and numpy, torch and Fabric (after the tracking check, which takes a second)
     from fedlgr.shell.data.synth import synthesize
     from fedlgr.shell.run.experiment import run_experiment
 
-    if not (args.data / "all_data.csv").is_file():
-        print(f"no dataset in {args.data}: synthesising {args.scenes} scenes (seed {args.seed})")
+    if not (data / "all_data.csv").is_file():
+        print(f"no dataset in {data}: synthesising {scenes} scenes (seed {seed})")
         with Progress("synthesising", unit="scene") as bar:
-            synthesize(args.data, args.scenes, args.seed, force=True, progress=bar)
-    overrides = [f"data.path={args.data}", f"seed={args.seed}", *args.overrides]
-    if args.tracking_uri:
-        overrides.append(f"tracking.uri={args.tracking_uri}")
-    if args.fcl:
-        return _fcl_demo(args, overrides)
+            synthesize(data, scenes, seed, force=True, progress=bar)
+    overrides = [f"data.path={data}", f"seed={seed}", *overrides]
+    if tracking_uri:
+        overrides.append(f"tracking.uri={tracking_uri}")
+    if fcl:
+        return _fcl_demo(overrides, data, seed, modality, pretrain_scenes, pretrain_images)
     results = []
     for method in METHODS:
         config = load_config(DEMO_CONFIG, [*overrides, f"method={method}"])
@@ -118,7 +112,7 @@ def demo(args: argparse.Namespace) -> int:
             ]
         )
     print(
-        f"\nFedAvg vs FedRootAvg on {args.data} after {results[0].config.federated.rounds} rounds "
+        f"\nFedAvg vs FedRootAvg on {data} after {results[0].config.federated.rounds} rounds "
         "(test scores: mean over clients; costs: per client per round, mean over the rounds)"
     )
     headers = ["method", *(s.label for s in SCORES), "CPU s", "upload", "run s"]
@@ -127,21 +121,25 @@ def demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
+def _fcl_demo(
+    overrides: list[str], data: Path, seed: int, modality: str, scenes: int, images: int
+) -> int:
+    """``--fcl``: forgetting, on the descriptors or on the images, from a root pretrained
+    on ``images`` augmented images of ``scenes`` other scenes."""
     # lazy: torch and Fabric
     from fedlgr.shell.pretrain import synthetic_root
     from fedlgr.shell.run.experiment import run_experiment
 
-    if args.modality == "features":
+    if modality == "features":
         base = FEATURES_FCL
     else:
         probe = load_config(FCL_CONFIG, overrides)
         root = synthetic_root(
-            args.data.parent / "pretrain",
-            seed=args.seed,
-            scenes=args.pretrain_scenes,
+            data.parent / "pretrain",
+            seed=seed,
+            scenes=scenes,
             width=probe.model.width,
-            images=args.pretrain_images,
+            images=images,
             size=probe.data.image_size,
             cache_dir=probe.data.cache_dir,
             progress=Progress,  # a bar (or log lines) for each stage
@@ -153,7 +151,7 @@ def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
         print()
         results.append(run_experiment(config, show_runs=False))
     print(
-        f"\nForgetting on {args.data} ({args.modality}): Task 1 = circle, then Task 2 = arrow "
+        f"\nForgetting on {data} ({modality}): Task 1 = circle, then Task 2 = arrow "
         "(mean over clients; forgetting > 0: circle got worse)"
     )
     print(forgetting_table(results))
@@ -163,6 +161,10 @@ def _fcl_demo(args: argparse.Namespace, overrides: list[str]) -> int:
 
 def print_runs_hint(results) -> None:
     """Where to compare the runs in MLflow's UI (link, and how to start it)."""
+    # lazy: filelock, which fedlgr --help does without
+    from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
+    from fedlgr.shell.tracking.store import runs_hint
+
     tracked = [r for r in results if r.run_id]
     if tracked:
         uri = tracking_uri(tracked[0].config)

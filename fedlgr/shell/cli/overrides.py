@@ -4,14 +4,14 @@ since only the last would count and the other would be dropped without a word.""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
+from types import SimpleNamespace
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.tracking.uri import mask_password
 
 
-def check_repeats(args: argparse.Namespace) -> None:
+def check_repeats(args: SimpleNamespace) -> None:
     """Refuse a setting given twice with two values, or ``--tracking-uri`` with another
     ``tracking.uri=``. One value spelled twice (``seed=1 'seed =01'``, one sqlite file by
     two paths) and ``tracking.uri=null`` pass. A sweep's worker processes are given both by

@@ -3,74 +3,40 @@ MLflow (or its resolved config, printed)."""
 
 from __future__ import annotations
 
-import argparse
+from typing import Annotated
+
+import typer
 
 from fedlgr.shell.checks.paths import check_data_path
 from fedlgr.shell.checks.stores import check_reachable
-from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.cli.verb import TrackingUri, Verb
 from fedlgr.shell.config import find_config, load_config, to_yaml
 from fedlgr.shell.signals import terminate_as_interrupt
-from fedlgr.shell.tracking.mlflow_run import tracking_uri
+
+app = typer.Typer()
 
 # The setting groups and where each is documented (every setting with its default:
-# --print-config). Plain text: the help loads no config code.
+# --print-config). Plain text: the help loads no config code. \b keeps click from
+# re-wrapping the listing.
 SETTINGS_EPILOG = """settings, as key=value (each one's default: fedlgr run --print-config):
 
-  method, seed         the paper's method name (FedRootAvg, FedLGR, ...); the seed
-                       docs/methods.md
-  data.*               the scenes (MANNERS-DB or synthetic), clients, split, tasks
-                       docs/data.md
-  model.*              the scholar: root, width, weights          docs/methods.md
-  train.*              local epochs, batches, learning rates      docs/methods.md
-  federated.*          strategy (+ federated.<strategy>.*), scope, rounds, fraction,
-                       server evaluation, norm checks, simulated faults
-                       docs/methods.md
-  federated.dp.*       client-level differential privacy          docs/privacy.md
-  continual.*          the task schedule, the CL method (+ continual.<method>.*)
-                       docs/fedlgr.md
-  runtime.*            processes, threads, devices, precision     docs/runtimes.md
-  tracking.*           the MLflow store, checkpoints, system metrics
-                       docs/tracking.md, docs/resume.md
-  deploy.*             robots behind Flower                       docs/deployment.md"""
-
-
-def add_parser(verbs: Verbs) -> None:
-    parser = verbs.add_parser(
-        "run",
-        help="run one experiment from a config and key=value overrides",
-        description="Run one federated experiment, tracked in MLflow. CONFIG is a YAML file "
-        "(e.g. conf/experiment/table1/clients2_noaug.yaml); overrides are key=value, e.g. "
-        "method=FedRootAvg data.path=/path/to/manners-db federated.rounds=5.",
-        epilog=SETTINGS_EPILOG,
-    )
-    parser.add_argument(
-        "items",
-        nargs="*",
-        metavar="CONFIG|key=value",
-        help="a config file (a path, or a name in conf/ such as debug/fast.yaml), then "
-        "overrides such as federated.rounds=5 (without a config: the defaults)",
-    )
-    parser.add_argument(
-        "--print-config",
-        action="store_true",
-        help="print the resolved config (file, includes and overrides) as YAML and exit "
-        "without running; settings resolved at start (runtime.threads, runtime.concurrency, "
-        "...) show as given",
-    )
-    parser.add_argument(
-        "--tracking-uri",
-        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI "
-        "or sqlite:///mlflow.db with artifacts in mlruns/)",
-    )
-    parser.add_argument(
-        "--resume",
-        nargs="?",
-        const=True,
-        metavar="RUN_ID",
-        help="continue an interrupted run from its last checkpoint, in the same MLflow run: "
-        "RUN_ID, or (without one) the latest unfinished run of the same config",
-    )
-    parser.set_defaults(run=run)
+\b
+method, seed         the paper's method name (FedRootAvg, FedLGR, ...); the seed
+                     docs/methods.md
+data.*               the scenes (MANNERS-DB or synthetic), clients, split, tasks
+                     docs/data.md
+model.*              the scholar: root, width, weights          docs/methods.md
+train.*              local epochs, batches, learning rates      docs/methods.md
+federated.*          strategy (+ federated.<strategy>.*), scope, rounds, fraction,
+                     server evaluation, norm checks, simulated faults
+                     docs/methods.md
+federated.dp.*       client-level differential privacy          docs/privacy.md
+continual.*          the task schedule, the CL method (+ continual.<method>.*)
+                     docs/fedlgr.md
+runtime.*            processes, threads, devices, precision     docs/runtimes.md
+tracking.*           the MLflow store, checkpoints, system metrics
+                     docs/tracking.md, docs/resume.md
+deploy.*             robots behind Flower                       docs/deployment.md"""
 
 
 def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]:
@@ -82,8 +48,9 @@ def split_config_and_overrides(items: list[str]) -> tuple[str | None, list[str]]
 def resume_hint(config, run_id: str) -> str:
     """How to go on with interrupted run ``run_id``: ``--resume`` if it left a checkpoint."""
     from fedlgr.shell.run.checkpoint import checkpoint_root, checkpoints  # lazy: torch
+    from fedlgr.shell.tracking.mlflow_run import tracking_uri as uri  # lazy: filelock
 
-    if checkpoints(checkpoint_root(config, tracking_uri(config)) / run_id):
+    if checkpoints(checkpoint_root(config, uri(config)) / run_id):
         return (
             f"MLflow run {run_id} ended KILLED; "
             f"the same command with --resume {run_id} continues it"
@@ -94,24 +61,56 @@ def resume_hint(config, run_id: str) -> str:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    path, overrides = split_config_and_overrides(args.items)
-    if args.tracking_uri:
-        overrides.append(f"tracking.uri={args.tracking_uri}")
+@app.command(
+    "run",
+    cls=Verb,
+    short_help="run one experiment from a config and key=value overrides",
+    epilog=SETTINGS_EPILOG,
+)
+def run(
+    items: Annotated[list[str], typer.Argument(metavar="[CONFIG|key=value]...")] = (),
+    print_config: Annotated[
+        bool,
+        typer.Option(
+            "--print-config",
+            help="print the resolved config (file, includes and overrides) as YAML and exit "
+            "without running; settings resolved at start (runtime.threads, "
+            "runtime.concurrency, ...) show as given",
+        ),
+    ] = False,
+    tracking_uri: TrackingUri = None,
+    resume: Annotated[
+        str | None,
+        typer.Option(
+            metavar="[RUN_ID]",
+            help="continue an interrupted run from its last checkpoint, in the same MLflow "
+            "run: RUN_ID, or (without one) the latest unfinished run of the same config",
+        ),
+    ] = None,
+) -> int:
+    """Run one federated experiment, tracked in MLflow. CONFIG is a YAML file, a path or a
+    name in conf/ (e.g. conf/experiment/table1/clients2_noaug.yaml, debug/fast.yaml;
+    without one: the defaults); overrides are key=value, e.g. method=FedRootAvg
+    data.path=/path/to/manners-db federated.rounds=5."""
+    from fedlgr.shell.tracking.mlflow_run import tracking_uri as uri  # lazy: filelock
+
+    path, overrides = split_config_and_overrides(items)
+    if tracking_uri:
+        overrides.append(f"tracking.uri={tracking_uri}")
     config = load_config(None if path is None else find_config(path), overrides)
-    if args.print_config:
+    if print_config:
         print(to_yaml(config), end="")
         return 0
     check_data_path(config.data.path)  # before torch's import (~12 s), as is the next check
     if config.tracking.enabled:  # before torch's import (~12 s): an unreachable URI fails now
-        check_reachable(tracking_uri(config))
+        check_reachable(uri(config))
 
     from fedlgr.shell.run.experiment import run_experiment  # lazy: torch and Fabric
 
     started: list[str] = []  # the MLflow run's id, once it exists
     with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C
         try:
-            result = run_experiment(config, resume=args.resume, on_start=started.append)
+            result = run_experiment(config, resume=resume, on_start=started.append)
         except KeyboardInterrupt as err:
             if started:
                 err.add_note(resume_hint(config, started[-1]))  # printed by fedlgr.shell.cli.main

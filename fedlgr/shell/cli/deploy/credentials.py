@@ -3,15 +3,15 @@ and the SuperLink's TLS certificate; a robot's SuperNode key pair, put on the ro
 
 from __future__ import annotations
 
-import argparse
 import re
 import shlex
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated
+
+import typer
 
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.cli.deploy.options import add_sub_verb
-from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.cli.verb import Verb
 
 if TYPE_CHECKING:
     from fedlgr.shell.deploy.roster import Roster
@@ -22,95 +22,93 @@ if TYPE_CHECKING:
 TAKEN_NAMES = {"roster.yaml", "ca.pem", "ca.key", "server.pem", "server.key"}
 
 
-def add_parser(subs: Verbs) -> None:
-    _add_certs(subs)
-    _add_node_key(subs)
+app = typer.Typer()
 
 
-def _add_certs(subs: Verbs) -> None:
-    parser = add_sub_verb(
-        subs,
-        "certs",
-        "write a CA and the SuperLink's TLS certificate",
-        certs,
-        "Write ca.pem, ca.key, server.pem and server.key to DIR. ca.pem goes to every robot "
-        "and to whoever runs flwr; server.pem and server.key stay on the SuperLink's machine; "
-        "keep ca.key offline.",
-    )
-    parser.add_argument("dir", type=Path, metavar="DIR", help="folder to write the four files to")
-    parser.add_argument(
-        "--host",
-        action="append",
-        metavar="NAME_OR_IP",
-        help="a DNS name or address robots use to reach the SuperLink (repeat for several; "
-        "default: localhost, 127.0.0.1, ::1)",
-    )
-    parser.add_argument("--days", type=int, default=365, help="validity (default %(default)s)")
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace the four files in DIR (a symbolic link there is refused all the same)",
-    )
-
-
-def _add_node_key(subs: Verbs) -> None:
-    parser = add_sub_verb(
-        subs,
-        "node-key",
-        "write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)",
-        node_key,
-        "Write DIR/NAME (private: to that robot only) and DIR/NAME.pub (registered with "
-        "flwr supernode register), and add the robot with its client slot and public key to "
-        "the roster DIR/roster.yaml (a Flower run's deploy.roster).",
-    )
-    parser.add_argument("dir", type=Path, metavar="DIR", help="folder to write the key pair to")
-    parser.add_argument("name", metavar="NAME", help="the robot's name, e.g. robot0")
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace an existing key pair (a symbolic link there is refused all the same)",
-    )
-    parser.add_argument(
-        "--client",
-        type=int,
-        metavar="K",
-        help="the robot's client slot on the roster DIR/roster.yaml (default: its slot if "
-        "NAME is there, else the lowest free one)",
-    )
-    parser.add_argument(
-        "--no-roster",
-        action="store_true",
-        help="do not add the robot to DIR/roster.yaml (its SuperNode then takes part in no run)",
-    )
-
-
-def certs(args: argparse.Namespace) -> int:
+@app.command("certs", cls=Verb, short_help="write a CA and the SuperLink's TLS certificate")
+def certs(
+    folder: Annotated[Path, typer.Argument(metavar="DIR")],
+    host: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="NAME_OR_IP",
+            help="a DNS name or address robots use to reach the SuperLink (repeat for "
+            "several; default: localhost, 127.0.0.1, ::1)",
+        ),
+    ] = None,
+    days: Annotated[int, typer.Option(help="validity, in days")] = 365,
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force",
+            help="replace the four files in DIR (a symbolic link there is refused all the same)",
+        ),
+    ] = False,
+) -> int:
+    """Write ca.pem, ca.key, server.pem and server.key to DIR. ca.pem goes to every robot
+    and to whoever runs flwr; server.pem and server.key stay on the SuperLink's machine;
+    keep ca.key offline."""
     # lazy: cryptography
     from fedlgr.shell.deploy.credentials import DEFAULT_HOSTS, make_certificates
 
     # 127.0.0.1 always: Flower's own processes (SuperExec, the ServerApp) and flwr on the
     # SuperLink's machine reach it there, behind fedlgr's gateway (superlink's --internal-port).
-    hosts = tuple(dict.fromkeys([*(args.host or DEFAULT_HOSTS), "127.0.0.1"]))
-    paths = make_certificates(args.dir, hosts, days=args.days, force=args.force)
+    hosts = tuple(dict.fromkeys([*(host or DEFAULT_HOSTS), "127.0.0.1"]))
+    paths = make_certificates(folder, hosts, days=days, force=force)
     print(f"wrote {', '.join(map(str, paths.values()))}")
-    print(f"server certificate for {', '.join(hosts)}, valid {args.days} days")
+    print(f"server certificate for {', '.join(hosts)}, valid {days} days")
     print(f"  {paths['ca.pem']}: to every robot and to whoever runs flwr (--ca)")
     print(f"  {paths['server.pem']}, {paths['server.key']}: stay on the SuperLink's machine")
     print(f"  {paths['ca.key']}: keep offline (it signs certificates)")
     return 0
 
 
-def node_key(args: argparse.Namespace) -> int:
+@app.command(
+    "node-key",
+    cls=Verb,
+    short_help="write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)",
+)
+def node_key(
+    folder: Annotated[Path, typer.Argument(metavar="DIR")],
+    name: Annotated[str, typer.Argument(metavar="NAME")],
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force",
+            help="replace an existing key pair (a symbolic link there is refused all the same)",
+        ),
+    ] = False,
+    client: Annotated[
+        int | None,
+        typer.Option(
+            metavar="K",
+            help="the robot's client slot on the roster DIR/roster.yaml (default: its slot if "
+            "NAME is there, else the lowest free one)",
+        ),
+    ] = None,
+    no_roster: Annotated[
+        bool,
+        typer.Option(
+            "--no-roster",
+            help="do not add the robot to DIR/roster.yaml (its SuperNode then takes part in "
+            "no run)",
+        ),
+    ] = False,
+) -> int:
+    """Write DIR/NAME (the private key of robot NAME, e.g. robot0: to that robot only) and
+    DIR/NAME.pub (registered with flwr supernode register), and add the robot with its
+    client slot and public key to the roster DIR/roster.yaml (a Flower run's
+    deploy.roster)."""
     from fedlgr.shell.deploy.credentials import make_node_key  # lazy: cryptography
 
-    _check_name(args.name)
-    roster = None if args.no_roster else _roster(args)
-    if args.no_roster and args.client is not None:
+    _check_name(name)
+    roster = None if no_roster else _roster(folder, name, client)
+    if no_roster and client is not None:
         raise FedlgrError("--client K is the robot's slot on the roster: drop --no-roster")
-    private, public = make_node_key(args.dir, args.name, force=args.force)
+    private, public = make_node_key(folder, name, force=force)
     print(f"wrote {private} (private: to that robot only) and {public}")
     if roster is not None:
-        member = roster.add(args.name, public.read_text(), args.client)
+        member = roster.add(name, public.read_text(), client)
         print(f"added {member} to {roster.write()}")
     print(f"register it with the SuperLink: flwr supernode register {shlex.quote(str(public))}")
     return 0
@@ -130,14 +128,14 @@ def _check_name(name: str) -> None:
         )
 
 
-def _roster(args: argparse.Namespace) -> Roster:
+def _roster(folder: Path, name: str, client: int | None) -> Roster:
     """The roster in DIR (empty if there is none yet), once ``--client`` is known free."""
     from fedlgr.shell.deploy.roster import ROSTER_NAME, Roster  # lazy: cryptography and yaml
 
-    roster = Roster.read_or_empty(args.dir / ROSTER_NAME)
-    if args.client is not None and args.client < 0:
-        raise FedlgrError(f"--client {args.client}: a client slot is 0 or more")
-    holders = [m for m in roster.members if m.client == args.client and m.name != args.name]
-    if args.client is not None and holders:
-        raise FedlgrError(f"--client {args.client}: {holders[0]} holds that slot in {roster.path}")
+    roster = Roster.read_or_empty(folder / ROSTER_NAME)
+    if client is not None and client < 0:
+        raise FedlgrError(f"--client {client}: a client slot is 0 or more")
+    holders = [m for m in roster.members if m.client == client and m.name != name]
+    if client is not None and holders:
+        raise FedlgrError(f"--client {client}: {holders[0]} holds that slot in {roster.path}")
     return roster

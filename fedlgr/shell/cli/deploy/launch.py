@@ -4,7 +4,6 @@ command's own configuration, and the TOML strings of Flower's ``key=value`` sett
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import shutil
@@ -49,12 +48,12 @@ def flower_env(exe: Path) -> dict[str, str]:
     return env
 
 
-def exec_flower(cmd: list[str], args: argparse.Namespace) -> int:
+def exec_flower(cmd: list[str], print_command: bool, insecure: bool = False) -> int:
     """Print ``cmd``, then (unless ``--print-command``) replace this process with it."""
-    if getattr(args, "insecure", False):
+    if insecure:
         warn_insecure()
     print(shlex.join(cmd), flush=True)
-    if args.print_command:
+    if print_command:
         return 0
     sys.stderr.flush()
     os.execve(cmd[0], cmd, flower_env(Path(cmd[0])))

@@ -1,43 +1,26 @@
-"""What the ``fedlgr deploy`` sub-verbs share on their command line: how a sub-verb is
-declared, the ``--insecure`` and ``--print-command`` options, and the checks of the paths
-and addresses they are given, made before Flower starts (Flower would fail later, or in a
-traceback)."""
+"""What the ``fedlgr deploy`` sub-verbs share on their command line: the ``--insecure``,
+``--print-command`` and ``--ca`` options, and the checks of the paths and addresses they
+are given, made before Flower starts (Flower would fail later, or in a traceback)."""
 
 from __future__ import annotations
 
-import argparse
 import os
-from collections.abc import Callable
 from pathlib import Path
+from typing import Annotated
+
+import typer
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
-from fedlgr.shell.cli.parser import Verbs
 
-
-def add_sub_verb(
-    subs: Verbs,
-    name: str,
-    summary: str,
-    func: Callable[[argparse.Namespace], int],
-    description: str | None = None,
-) -> argparse.ArgumentParser:
-    """The parser of ``fedlgr deploy NAME``, which runs ``func``."""
-    parser = subs.add_parser(name, help=summary, description=description or summary)
-    parser.set_defaults(run=func)
-    return parser
-
-
-def add_insecure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--insecure", action="store_true", help="no TLS, no authentication: test machines only"
-    )
-
-
-def add_print_command(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--print-command", action="store_true", help="print Flower's command line and stop"
-    )
+Insecure = Annotated[
+    bool,
+    typer.Option("--insecure", help="no TLS, no authentication: test machines only"),
+]
+PrintCommand = Annotated[
+    bool, typer.Option("--print-command", help="print Flower's command line and stop")
+]
+Ca = Annotated[Path | None, typer.Option(metavar="CA.pem", help="the deployment's ca.pem")]
 
 
 def absolute(path: Path | str) -> Path:
@@ -65,8 +48,8 @@ def certificates(path: Path | None) -> Path:
     return path
 
 
-def no_ca(args: argparse.Namespace) -> None:
-    if args.ca is not None:
+def no_ca(ca: Path | None) -> None:
+    if ca is not None:
         raise FedlgrError("--insecure turns TLS off: drop --ca (or drop --insecure)")
 
 

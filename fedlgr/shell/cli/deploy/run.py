@@ -3,19 +3,21 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import shlex
 import subprocess
 import time
 from pathlib import Path
+from typing import Annotated
+
+import typer
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.experiment import check_robots_are_real
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.deploy.options import absolute, add_print_command, add_sub_verb
-from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.cli.deploy.options import PrintCommand, absolute
+from fedlgr.shell.cli.verb import Overrides, Verb
 from fedlgr.shell.config import load_config
 from fedlgr.shell.deploy.flower import APP_DIR
 from fedlgr.shell.tracking.uri import masked_uris
@@ -23,50 +25,53 @@ from fedlgr.shell.tracking.uri import masked_uris
 STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
 
 
-def add_parser(subs: Verbs) -> None:
-    parser = add_sub_verb(
-        subs,
-        "run",
-        "submit a run with flwr run, stream its log and exit 0 only if it completed",
-        run,
-        "Run fedlgr's app on the SuperLink: CONFIG (made absolute) must exist at that path on "
-        "the SuperLink's machine; key=value overrides as in fedlgr run.",
-    )
-    parser.add_argument("config", metavar="CONFIG", help="the config file (as in fedlgr run)")
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
-    parser.add_argument(
-        "--federation",
-        metavar="NAME",
-        help="the SuperLink connection (fedlgr deploy connect NAME; default: flwr's default)",
-    )
-    parser.add_argument(
-        "--resume",
-        nargs="?",
-        const="latest",
-        metavar="RUN_ID",
-        help="continue an interrupted Flower run (its MLflow id; default: the latest "
-        "unfinished run of this config) from its newest checkpoint, in the same MLflow run",
-    )
-    add_print_command(parser)
+app = typer.Typer()
 
 
-def run(args: argparse.Namespace) -> int:
-    _refuse_passwords(args.overrides)  # before anything is printed or submitted
+@app.command(
+    "run",
+    cls=Verb,
+    short_help="submit a run with flwr run, stream its log and exit 0 only if it completed",
+)
+def run(
+    config: Annotated[str, typer.Argument(metavar="CONFIG")],
+    overrides: Overrides = (),
+    federation: Annotated[
+        str | None,
+        typer.Option(
+            metavar="NAME",
+            help="the SuperLink connection (fedlgr deploy connect NAME; default: flwr's default)",
+        ),
+    ] = None,
+    resume: Annotated[
+        str | None,
+        typer.Option(
+            metavar="[RUN_ID]",
+            help="continue an interrupted Flower run (its MLflow id; default: the latest "
+            "unfinished run of this config) from its newest checkpoint, in the same MLflow run",
+        ),
+    ] = None,
+    print_command: PrintCommand = False,
+) -> int:
+    """Run fedlgr's app on the SuperLink: CONFIG (the config file, as in fedlgr run; made
+    absolute) must exist at that path on the SuperLink's machine; key=value overrides as
+    in fedlgr run."""
+    _refuse_passwords(overrides)  # before anything is printed or submitted
     flwr = launch.flower_command("flwr")
-    config = absolute(args.config)
+    path = absolute(config)
     run_config = (
-        f"config={launch.toml_string(str(config))} "
-        f"overrides={launch.toml_string(shlex.join(args.overrides))}"
+        f"config={launch.toml_string(str(path))} "
+        f"overrides={launch.toml_string(shlex.join(overrides))}"
     )
-    if args.resume:
-        run_config += f" resume={launch.toml_string(args.resume)}"
-    link = [args.federation] if args.federation else []
+    if resume:  # bare: True, the latest unfinished run
+        run_config += f" resume={launch.toml_string('latest' if resume is True else resume)}"
+    link = [federation] if federation else []
     cmd = [str(flwr), "run", str(APP_DIR), *link, "--stream", "--run-config", run_config]
-    _check_connection(args.federation)  # with --print-command too: the command must work
+    _check_connection(federation)  # with --print-command too: the command must work
     print(shlex.join(cmd), flush=True)
-    if args.print_command:
+    if print_command:
         return 0
-    _check_config(config, args.overrides)
+    _check_config(path, overrides)
     env = {**launch.flower_env(flwr), "PYTHONUNBUFFERED": "1"}
     run_id = _stream(cmd, env, link)
     row = _final_status(flwr, link, run_id, env)

@@ -3,23 +3,19 @@ fedlgr's Fleet-only gateway, or alone with all its APIs (``--expose-control-api`
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import sys
 from pathlib import Path
+from typing import Annotated
+
+import typer
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.deploy.options import (
-    absolute,
-    add_insecure,
-    add_print_command,
-    add_sub_verb,
-    existing,
-)
-from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.cli.deploy.options import Insecure, PrintCommand, absolute, existing
+from fedlgr.shell.cli.verb import Verb
 from fedlgr.shell.signals import terminate_as_interrupt
 
 SUPERLINK_PORT = 9092  # ours, for the Fleet, Control and ServerAppIo APIs (Flower's: 8000)
@@ -34,96 +30,100 @@ fedlgr: option (the default: the Fleet API alone there, the Control API on 127.0
 fedlgr: ############################################################################"""
 
 
-def add_parser(subs: Verbs) -> None:
-    parser = add_sub_verb(
-        subs,
-        "superlink",
-        "start the SuperLink (the server; runs the ServerApp)",
-        superlink,
-        "Start flower-superlink on 127.0.0.1:--internal-port (TLS from --certs, SuperNode "
-        "authentication, no installation of dependencies at run time) and serve the robots' "
-        "--host/--port with fedlgr's gateway, which passes on Flower's Fleet API only: flwr "
-        "run and flwr supernode register work from this machine only.",
-    )
-    parser.add_argument("--certs", type=Path, metavar="DIR", help="from fedlgr deploy certs")
-    parser.add_argument(
-        "--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)"
-    )
-    parser.add_argument(
-        "--port", type=int, default=SUPERLINK_PORT, help="the robots' port (default %(default)s)"
-    )
-    parser.add_argument(
-        "--internal-port",
-        type=int,
-        metavar="PORT",
-        help="Flower's own port on 127.0.0.1, for flwr on this machine (default: --port + 1)",
-    )
-    parser.add_argument(
-        "--expose-control-api",
-        action="store_true",
-        help="no gateway: Flower itself on --host/--port with ALL its APIs, so anyone who "
-        "reaches the port can register keys and submit runs (firewalled networks only)",
-    )
-    parser.add_argument(
-        "--cold-apps",
-        action="store_true",
-        help="start each ServerApp as Flower does, a new process per run (~10 s of imports "
-        "before round 1); by default they are forked from a process that has imported them",
-    )
-    parser.add_argument(
-        "--database",
-        type=Path,
-        metavar="FILE",
-        help="keep registered keys and runs in this SQLite file (default: in memory)",
-    )
-    add_insecure(parser)
-    add_print_command(parser)
+app = typer.Typer()
 
 
-def superlink(args: argparse.Namespace) -> int:
-    """Flower's SuperLink behind fedlgr's Fleet-only gateway (:mod:`fedlgr.shell.deploy.gateway`)
-    on ``--host``/``--port``, bound to 127.0.0.1:``--internal-port`` itself; or, with
-    ``--expose-control-api``, Flower alone on ``--host``/``--port`` with all its APIs."""
+@app.command(
+    "superlink", cls=Verb, short_help="start the SuperLink (the server; runs the ServerApp)"
+)
+def superlink(
+    certs: Annotated[
+        Path | None, typer.Option(metavar="DIR", help="from fedlgr deploy certs")
+    ] = None,
+    host: Annotated[
+        str, typer.Option(help="address to listen on (0.0.0.0: every interface)")
+    ] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="the robots' port")] = SUPERLINK_PORT,
+    internal_port: Annotated[
+        int | None,
+        typer.Option(
+            metavar="PORT",
+            help="Flower's own port on 127.0.0.1, for flwr on this machine (default: --port + 1)",
+        ),
+    ] = None,
+    expose_control_api: Annotated[
+        bool,
+        typer.Option(
+            "--expose-control-api",
+            help="no gateway: Flower itself on --host/--port with ALL its APIs, so anyone who "
+            "reaches the port can register keys and submit runs (firewalled networks only)",
+        ),
+    ] = False,
+    cold_apps: Annotated[
+        bool,
+        typer.Option(
+            "--cold-apps",
+            help="start each ServerApp as Flower does, a new process per run (~10 s of "
+            "imports before round 1); by default they are forked from a process that has "
+            "imported them",
+        ),
+    ] = False,
+    database: Annotated[
+        Path | None,
+        typer.Option(
+            metavar="FILE",
+            help="keep registered keys and runs in this SQLite file (default: in memory)",
+        ),
+    ] = None,
+    insecure: Insecure = False,
+    print_command: PrintCommand = False,
+) -> int:
+    """Start flower-superlink on 127.0.0.1:--internal-port (TLS from --certs, SuperNode
+    authentication, no installation of dependencies at run time) and serve the robots'
+    --host/--port with fedlgr's gateway (fedlgr.shell.deploy.gateway), which passes on
+    Flower's Fleet API only: flwr run and flwr supernode register work from this machine
+    only. With --expose-control-api, Flower alone on --host/--port with all its APIs."""
     from fedlgr.shell.deploy.credentials import is_host  # lazy: cryptography
 
     exe = launch.flower_command("flower-superlink")
-    if not is_host(args.host):  # checked here, or Flower would print a bad host as a URL
+    if not is_host(host):  # checked here, or Flower would print a bad host as a URL
         raise FedlgrError(
-            f"--host {args.host!r}: not an address to listen on (an IP address such as "
+            f"--host {host!r}: not an address to listen on (an IP address such as "
             "0.0.0.0 or 127.0.0.1, or this machine's host name)"
         )
-    tls = None if args.insecure else _tls_files(args)
+    tls = None if insecure else _tls_files(certs)
     cmd = [str(exe), *_security(tls), "--disable-runtime-dependency-installation"]
-    if args.expose_control_api:
-        if args.internal_port is not None:
+    if expose_control_api:
+        if internal_port is not None:
             raise FedlgrError("--internal-port is the gateway's: drop it or --expose-control-api")
         print(EXPOSED_CONTROL_WARNING, file=sys.stderr, flush=True)
-        cmd += ["--host", args.host, "--port", str(args.port)]
-        cmd += _database(args)
-        return launch.exec_flower(cmd, args)
-    internal = _internal_port(args)
-    cmd += ["--host", "127.0.0.1", "--port", str(internal), *_database(args)]
+        cmd += ["--host", host, "--port", str(port), *_database(database)]
+        return launch.exec_flower(cmd, print_command, insecure)
+    internal = _internal_port(port, internal_port)
+    cmd += ["--host", "127.0.0.1", "--port", str(internal), *_database(database)]
     executor = None
-    if not args.cold_apps:  # its ServerApps forked from a warm process (flower/executor.py)
+    if not cold_apps:  # its ServerApps forked from a warm process (flower/executor.py)
         cmd += ["--isolation", "process"]
         executor = [sys.executable, "-m", "fedlgr.shell.deploy.flower.executor", "--preload"]
         executor += ["serverapp", "--runtime-api-address", f"127.0.0.1:{internal}"]
         executor += ["--insecure"] if tls is None else ["--root-certificates", str(tls[0])]
-    return _gateway(cmd, args, internal, tls, executor)
+    if insecure:
+        launch.warn_insecure()
+    return _gateway(cmd, host, port, internal, tls, executor, print_command)
 
 
-def _tls_files(args: argparse.Namespace) -> tuple[Path, Path, Path]:
+def _tls_files(certs: Path | None) -> tuple[Path, Path, Path]:
     """``--certs``' ca.pem, server.pem and server.key, checked."""
     # lazy: cryptography
     from fedlgr.shell.deploy.credentials import check_private_mode, warn_if_open
 
-    if args.certs is None:
+    if certs is None:
         raise FedlgrError("--certs DIR is required (fedlgr deploy certs DIR), or --insecure")
-    folder = absolute(args.certs)  # a FIFO is named as such, not as a folder without ca.pem
+    folder = absolute(certs)  # a FIFO is named as such, not as a folder without ca.pem
     if why := not_a_folder(folder):
         raise FedlgrError(f"--certs {folder}: {why} (made by fedlgr deploy certs DIR)")
     tls = tuple(
-        existing(args.certs / name, "--certs", "fedlgr deploy certs DIR")
+        existing(certs / name, "--certs", "fedlgr deploy certs DIR")
         for name in ("ca.pem", "server.pem", "server.key")
     )
     check_private_mode(tls[2], "--certs")
@@ -143,23 +143,23 @@ def _security(tls: tuple[Path, Path, Path] | None) -> list[str]:
     return [*flags, "--enable-supernode-auth"]
 
 
-def _internal_port(args: argparse.Namespace) -> int:
+def _internal_port(port: int, internal_port: int | None) -> int:
     """Flower's own port on 127.0.0.1 behind the gateway: ``--internal-port``, else --port + 1."""
-    internal = args.port + 1 if args.internal_port is None else args.internal_port
-    for option, port in (("--port", args.port), ("--internal-port", internal)):
-        if not 1 <= port <= 65535:
-            raise FedlgrError(f"{option} {port}: a port is 1 to 65535")
-    if internal == args.port:
+    internal = port + 1 if internal_port is None else internal_port
+    for option, number in (("--port", port), ("--internal-port", internal)):
+        if not 1 <= number <= 65535:
+            raise FedlgrError(f"{option} {number}: a port is 1 to 65535")
+    if internal == port:
         raise FedlgrError(f"--internal-port {internal}: must differ from --port (the robots')")
     return internal
 
 
-def _database(args: argparse.Namespace) -> list[str]:
+def _database(database: Path | None) -> list[str]:
     """``--database FILE`` for Flower, its folder checked first: Flower would end in a
     SQLAlchemy traceback ("unable to open database file")."""
-    if args.database is None:
+    if database is None:
         return []
-    path = absolute(args.database)
+    path = absolute(database)
     if path.is_dir():
         raise FedlgrError(f"--database {path}: a folder; name the SuperLink's database file")
     if why := not_a_file(path):  # a link that loops, say, which Flower would be given as is
@@ -173,10 +173,12 @@ def _database(args: argparse.Namespace) -> list[str]:
 
 def _gateway(
     cmd: list[str],
-    args: argparse.Namespace,
+    host: str,
+    port: int,
     internal: int,
     tls: tuple[Path, ...] | None,
     executor: list[str] | None,
+    print_command: bool,
 ) -> int:
     """Print what ``superlink`` runs, then run Flower's ``cmd`` behind the gateway."""
     from fedlgr.shell.deploy import gateway  # lazy: httpx, uvicorn and starlette (~0.6 s)
@@ -189,8 +191,6 @@ def _gateway(
             "127.0.0.1 besides the robots' names (fedlgr deploy certs DIR --host NAME --host "
             "127.0.0.1)"
         )
-    if args.insecure:
-        launch.warn_insecure()
     scheme = "http" if files is None else "https"
     flwr = ["--insecure"] if files is None else ["--ca", str(files.ca)]
     connect = ["fedlgr", "deploy", "connect", "NAME", "--superlink", f"127.0.0.1:{internal}"]
@@ -198,7 +198,7 @@ def _gateway(
     if executor is not None:
         print(shlex.join(executor))
     print(
-        f"fedlgr: the robots' port {scheme}://{args.host}:{args.port} is fedlgr's gateway: "
+        f"fedlgr: the robots' port {scheme}://{host}:{port} is fedlgr's gateway: "
         f"POST /v1/fleet/<name> forwarded to {scheme}://127.0.0.1:{internal}, the rest "
         "refused (403)"
     )
@@ -207,8 +207,8 @@ def _gateway(
         + shlex.join([*connect, *flwr]),
         flush=True,
     )
-    if args.print_command:
+    if print_command:
         return 0
     with terminate_as_interrupt():  # SIGTERM (systemd, docker stop) stops Flower too
         env = launch.flower_env(Path(cmd[0]))
-        return gateway.run(cmd, env, args.host, args.port, internal, files, executor)
+        return gateway.run(cmd, env, host, port, internal, files, executor)

@@ -3,129 +3,136 @@ data), its options checked here, in one line each, before Flower starts."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Annotated
+
+import typer
 
 from fedlgr.errors import ConfigError, FedlgrError
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import (
+    Ca,
+    Insecure,
+    PrintCommand,
     absolute,
-    add_insecure,
-    add_print_command,
-    add_sub_verb,
     address,
     certificates,
     existing,
     no_ca,
     own_folder,
 )
-from fedlgr.shell.cli.parser import Verbs
+from fedlgr.shell.cli.verb import Verb
 from fedlgr.shell.config import MAX_PER_MACHINE
 from fedlgr.shell.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
 
 SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machine
 
+app = typer.Typer()
 
-def add_parser(subs: Verbs) -> None:
-    parser = add_sub_verb(
-        subs,
-        "supernode",
-        "start a robot's SuperNode (runs the ClientApp on its data)",
-        supernode,
-        "Replace this process with flower-supernode, connected to the SuperLink over TLS with "
-        "the robot's registered key; the ClientApp reads the robot's data folder.",
-    )
-    _add_connection(parser)
-    _add_data(parser)
-    _add_service(parser)
-    add_insecure(parser)
-    add_print_command(parser)
-
-
-def _add_connection(parser: argparse.ArgumentParser) -> None:
-    """Where the SuperLink is and how the robot proves who it is."""
-    parser.add_argument(
-        "--superlink", required=True, metavar="HOST:PORT", help="the SuperLink's fleet API"
-    )
-    parser.add_argument("--ca", type=Path, metavar="CA.pem", help="the deployment's ca.pem")
-    parser.add_argument("--key", type=Path, metavar="KEY", help="the robot's private node key")
-
-
-def _add_data(parser: argparse.ArgumentParser) -> None:
-    """What the robot trains on, and the folders and files of its own."""
-    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="MANNERS-DB layout")
-    parser.add_argument(
+# The options whose help takes several lines, declared here to keep supernode() short.
+OwnData = Annotated[
+    bool,
+    typer.Option(
         "--own-data",
-        action="store_true",
         help="the robot's own data: all of --data is its shard, split into its own train and "
         "test scenes by data.seed (default: --data holds the whole dataset and the robot "
         "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
-    )
-    parser.add_argument(
-        "--client",
-        type=int,
+    ),
+]
+Client = Annotated[
+    int | None,
+    typer.Option(
         metavar="K",
         help="the client slot this robot expects; the roster decides, and a run whose roster "
-        "gives its key another slot is refused by the robot (default: whatever the roster says)",
-    )
-    parser.add_argument("--state-dir", type=Path, metavar="DIR", help="private state between runs")
-    parser.add_argument("--cache-dir", type=Path, metavar="DIR", help="decoded-image cache")
-    parser.add_argument(
-        "--weights",
-        type=Path,
+        "gives its key another slot is refused by the robot (default: whatever the roster "
+        "says)",
+    ),
+]
+Weights = Annotated[
+    Path | None,
+    typer.Option(
         metavar="FILE",
         help="this robot's copy of the root weights file, for runs whose model.weights is a "
         "file (a robot never reads a path the server names)",
-    )
-    parser.add_argument("--threads", type=int, metavar="N", help="torch threads")
-
-
-def _add_service(parser: argparse.ArgumentParser) -> None:
-    """How the SuperNode keeps in touch with the SuperLink, and how it runs the apps."""
-    parser.add_argument(
-        "--max-retries", type=int, metavar="N", help="give up after N failed connections"
-    )
-    parser.add_argument(
-        "--max-wait-time", type=float, metavar="S", help="give up after S seconds of trying"
-    )
-    parser.add_argument(
-        "--idle-s",
-        type=float,
+    ),
+]
+IdleS = Annotated[
+    float | None,
+    typer.Option(
         metavar="S",
         help="the robot service (which keeps data and models loaded between messages) "
         "leaves after S seconds without a message (default 900)",
-    )
-    parser.add_argument(
-        "--poll-s",
-        type=float,
-        default=0.5,
+    ),
+]
+PollS = Annotated[
+    float,
+    typer.Option(
         metavar="S",
-        help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (default "
-        "%(default)s; Flower's own is 3, which every round waited out)",
-    )
-    parser.add_argument(
-        "--heartbeat-s",
-        type=float,
-        default=30.0,
+        help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (Flower's own "
+        "is 3, which every round waited out)",
+    ),
+]
+HeartbeatS = Annotated[
+    float,
+    typer.Option(
         metavar="S",
-        help="the heartbeat interval this robot declares, 10 to 1800 (default %(default)g, "
+        help="the heartbeat interval this robot declares, 10 to 1800 (the default is "
         "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
         "restarted SuperNode, after two intervals",
-    )
-    parser.add_argument(
+    ),
+]
+ColdApps = Annotated[
+    bool,
+    typer.Option(
         "--cold-apps",
-        action="store_true",
         help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
         "default they are forked from a process that has imported them",
-    )
-    parser.add_argument(
-        "--port", type=int, default=SUPERNODE_PORT, help="its local API (default %(default)s)"
-    )
+    ),
+]
 
 
-def supernode(args: argparse.Namespace) -> int:
+@app.command(
+    "supernode",
+    cls=Verb,
+    short_help="start a robot's SuperNode (runs the ClientApp on its data)",
+)
+def supernode(
+    superlink: Annotated[str, typer.Option(metavar="HOST:PORT", help="the SuperLink's fleet API")],
+    data: Annotated[Path, typer.Option(metavar="DIR", help="MANNERS-DB layout")],
+    ca: Ca = None,
+    key: Annotated[
+        Path | None, typer.Option(metavar="KEY", help="the robot's private node key")
+    ] = None,
+    own_data: OwnData = False,
+    client: Client = None,
+    state_dir: Annotated[
+        Path | None, typer.Option(metavar="DIR", help="private state between runs")
+    ] = None,
+    cache_dir: Annotated[
+        Path | None, typer.Option(metavar="DIR", help="decoded-image cache")
+    ] = None,
+    weights: Weights = None,
+    threads: Annotated[int | None, typer.Option(metavar="N", help="torch threads")] = None,
+    max_retries: Annotated[
+        int | None, typer.Option(metavar="N", help="give up after N failed connections")
+    ] = None,
+    max_wait_time: Annotated[
+        float | None, typer.Option(metavar="S", help="give up after S seconds of trying")
+    ] = None,
+    idle_s: IdleS = None,
+    poll_s: PollS = 0.5,
+    heartbeat_s: HeartbeatS = 30.0,
+    cold_apps: ColdApps = False,
+    port: Annotated[int, typer.Option(help="its local API")] = SUPERNODE_PORT,
+    insecure: Insecure = False,
+    print_command: PrintCommand = False,
+) -> int:
+    """Replace this process with flower-supernode, connected to the SuperLink over TLS with
+    the robot's registered key; the ClientApp reads the robot's data folder."""
+    args = SimpleNamespace(**locals())  # the options, as the steps below read them
     from fedlgr.shell.data.ratings import read_ratings  # lazy: numpy
 
     launch.flower_command("flower-supernode")  # Flower is installed here
@@ -135,12 +142,12 @@ def supernode(args: argparse.Namespace) -> int:
     # message reaches the robot (the images are decoded then, at the run's image size).
     read_ratings(data)
     settings = _node_config(args, data)
-    cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(args.port)]
-    cmd += _retries(args)
-    return launch.exec_flower(cmd, args)
+    cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(port)]
+    cmd += _retries(max_retries, max_wait_time)
+    return launch.exec_flower(cmd, print_command, insecure)
 
 
-def _check_options(args: argparse.Namespace) -> Path:
+def _check_options(args: SimpleNamespace) -> Path:
     """The options Flower would take as they are, checked; the absolute ``--data`` folder."""
     address(args.superlink)
     if args.client is not None and args.client < 0:
@@ -163,7 +170,7 @@ def _check_options(args: argparse.Namespace) -> Path:
     return data
 
 
-def _launcher(args: argparse.Namespace) -> list[str]:
+def _launcher(args: SimpleNamespace) -> list[str]:
     """flower-supernode, its idle poll shortened, its heartbeat as chosen and its ClientApps
     forked from a warm process (fedlgr/shell/deploy/flower/supernode.py and executor.py say
     why)."""
@@ -174,10 +181,10 @@ def _launcher(args: argparse.Namespace) -> list[str]:
     return [*cmd, "--superlink", args.superlink]
 
 
-def _credentials(args: argparse.Namespace) -> list[str]:
+def _credentials(args: SimpleNamespace) -> list[str]:
     """TLS with the deployment's CA and the robot's node key, or ``--insecure``."""
     if args.insecure:
-        no_ca(args)
+        no_ca(args.ca)
         if args.key is not None:
             raise FedlgrError(
                 "--insecure turns TLS off, and SuperNode authentication needs TLS: drop --key "
@@ -192,7 +199,7 @@ def _credentials(args: argparse.Namespace) -> list[str]:
     return [*cmd, "--auth-supernode-private-key", str(key)]
 
 
-def _node_config(args: argparse.Namespace, data: Path) -> list[str]:
+def _node_config(args: SimpleNamespace, data: Path) -> list[str]:
     """The ClientApp's ``key=value`` settings (``--node-config``), its folders made."""
     settings = [f"data-path={launch.toml_string(str(data))}"]
     if args.client is not None:
@@ -235,17 +242,12 @@ def _weights(given: Path) -> Path:
     return weights
 
 
-def _retries(args: argparse.Namespace) -> list[str]:
+def _retries(max_retries: int | None, max_wait_time: float | None) -> list[str]:
     """``--max-retries`` and ``--max-wait-time`` for Flower, each 0 or more."""
-    for option, value in (
-        ("--max-retries", args.max_retries),
-        ("--max-wait-time", args.max_wait_time),
-    ):
+    cmd = []
+    for option, value in (("--max-retries", max_retries), ("--max-wait-time", max_wait_time)):
         if value is not None and not value >= 0:  # NaN too
             raise FedlgrError(f"{option} {value}: must be 0 or more")
-    cmd = []
-    if args.max_retries is not None:
-        cmd += ["--max-retries", str(args.max_retries)]
-    if args.max_wait_time is not None:
-        cmd += ["--max-wait-time", str(args.max_wait_time)]
+        if value is not None:
+            cmd += [option, str(value)]
     return cmd

@@ -1,0 +1,68 @@
+"""What the verb modules share: :class:`Verb`, the command typer makes of a verb's
+function, and the arguments and options of several verbs. Typer and click only, so that
+``fedlgr --help`` stays fast."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import click
+import typer
+import typer.core
+
+# Click's own help layout, which typer keeps without rich: with rich installed, typer 0.20
+# writes "[default: 1]" as "\[default: 1]" in it, and imports rich to do so.
+typer.core.HAS_RICH = False
+
+
+class Verb(typer.core.TyperCommand):
+    """A verb's command (``@app.command(NAME, cls=Verb)``). Invoking it hands its parsed
+    context back: :func:`fedlgr.shell.cli.main` calls the function, within its checks and
+    guards, and :func:`fedlgr.shell.cli.parse` (the docs' test) calls nothing. Its
+    ``--resume`` may come without a RUN_ID (True then): click's options can leave their
+    value out, typer cannot declare one that does."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.params = [_bare_or_valued(p) if p.name == "resume" else p for p in self.params]
+
+    def invoke(self, ctx: click.Context) -> click.Context:
+        return ctx
+
+
+def _bare_or_valued(option: click.Parameter) -> click.Option:
+    return click.Option(
+        option.opts,
+        is_flag=False,
+        flag_value=True,
+        type=click.UNPROCESSED,
+        metavar=option.metavar,
+        help=option.help,
+    )
+
+
+def parse_crop(text: str) -> tuple[int | None, ...]:
+    """``--crop 295,,1313,`` -> (295, None, 1313, None)."""
+    parts = text.split(",")
+    if len(parts) != 4:
+        raise typer.BadParameter("expected LEFT,TOP,RIGHT,BOTTOM (leave one empty for an edge)")
+    try:
+        return tuple(int(p) if p.strip() else None for p in parts)
+    except ValueError as err:
+        raise typer.BadParameter(f"not a pixel position: {err}") from None
+
+
+Overrides = Annotated[list[str], typer.Argument(metavar="[key=value]...")]
+TrackingUri = Annotated[
+    str | None,
+    typer.Option(
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI or sqlite:///mlflow.db with "
+        "artifacts in mlruns/)"
+    ),
+]
+Crop = Annotated[
+    tuple | None,
+    typer.Option(
+        parser=parse_crop, metavar="L,T,R,B", help="LEFT,TOP,RIGHT,BOTTOM before resizing"
+    ),
+]
