@@ -643,3 +643,45 @@ def test_the_settings_reference_is_generated_from_the_declarations():
     assert "| `train.epochs` | int, in 1..100000 | `10` | local epochs per round |" in written
     assert "| `federated.prox.mu` | float, >= 0 | `0.01` |" in written
     assert "| `train.precision` | one of 32-true, bf16-mixed, 16-mixed |" in written
+
+
+def test_what_the_differential_sweep_of_the_pydantic_settings_found(tmp_path, monkeypatch):
+    """A sweep of 5,730 cases against the settings before they moved to pydantic found: a
+    switch taken as a number (federated.dp.clip=true turned DP on), a file's section given
+    one value whose settings a later layer then silently dropped, quoted counts and
+    ${oc.env:...,5} refused, non-text keys and positional arguments ending in a TypeError,
+    and integer task values stored as floats (another config hash)."""
+    from fedlgr.shell.config import TrainConfig, config_from_data
+    from fedlgr.shell.config.export import config_hash
+
+    for override in ("federated.dp.clip=true", "train.lr_root=false"):
+        key = override.partition("=")[0]
+        assert refused([override]).startswith(f"command line: {key}: Value ")
+    assert refused(["runtime.progress=1.0"]).startswith("command line: runtime.progress: Value")
+    assert "train.lr_root=" in refused(["train.lr_root=1" + "0" * 400])  # not an OverflowError
+    masked = tmp_path / "masked.yaml"
+    masked.write_text("includes: [debug/fast]\ntrain: 5\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(masked, ["train.epochs=3"])
+    assert str(err.value) == (
+        f"{masked.resolve()}: train=5: a section of settings, not one value; set its parts "
+        "(e.g. train.epochs=...)"
+    )
+    typed = tmp_path / "typed.yaml"
+    typed.write_text("train:\n  epochs: abc\n")
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(typed.resolve()))}: train.epochs"):
+        load_config(typed, ["train.epochs=3"])  # refused where written, as before
+    monkeypatch.delenv("FEDLGR_EPOCHS", raising=False)
+    assert load_config(None, ["train.epochs=${oc.env:FEDLGR_EPOCHS,5}"]).train.epochs == 5
+    assert load_config(None, ["train.epochs='3'"]).train.epochs == 3
+    with pytest.raises(ConfigError) as err:
+        config_from_data({5: 1}, "server")
+    assert str(err.value) == "server: 5: unknown setting (--print-config lists them)"
+    with pytest.raises(ConfigError, match=r"^train\.epochs=0: must be >= 1$"):
+        TrainConfig(0)
+    tasks = "data.tasks=[{name: a, column: Using circle, value: 1}]"
+    config = load_config(None, [tasks, "continual.tasks=[a]", "method=FedAvg-EWC"])
+    assert config.data.tasks[0].value == 1 and isinstance(config.data.tasks[0].value, int)
+    assert config_hash(config) != config_hash(
+        load_config(None, [tasks.replace("1}", "1.0}"), "continual.tasks=[a]", "method=FedAvg-EWC"])
+    )

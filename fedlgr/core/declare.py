@@ -4,8 +4,10 @@ the config's words, one line naming the full setting (``federated.prox.mu=-1: mu
 0``). Pydantic types and bounds the values; the rules a bound cannot say (one setting
 against another) are each section's ``__post_init__``, which raises :class:`ConfigError`.
 
-Integers are strict (``10.0`` where a count goes is refused, not rounded) and floats
-finite, as OmegaConf and fedlgr's own checks had them before."""
+As OmegaConf read them before: a count takes an integer or its digits (``5``, ``"5"``:
+``${oc.env:FEDLGR_X,5}`` gives a string), never ``10.0`` or ``true``; a number takes a
+number or its text (YAML reads ``1e-3`` as text), never ``true``, and is finite; a switch
+takes ``true``/``false`` (or their words: ``yes``, ``on``, 1, 0), never ``1.0``."""
 
 from __future__ import annotations
 
@@ -14,12 +16,47 @@ import functools
 import typing
 from typing import Annotated, Any
 
-from pydantic import ConfigDict, Field, Strict, ValidationError
+from pydantic import (
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PydanticUserError,
+    Strict,
+    TypeAdapter,
+    ValidationError,
+)
 from pydantic.dataclasses import dataclass as pydantic_dataclass
+from pydantic_core import PydanticCustomError
 
 from fedlgr.errors import ConfigError
 
-Int = Annotated[int, Strict()]  # a count: 10.0 or "10" is refused, not converted
+
+def _count(value: Any) -> Any:
+    """An integer's digits as the integer (``"5"``); anything else for the strict check."""
+    if isinstance(value, str) and value.strip().lstrip("+-").isdigit():
+        return int(value)
+    return value
+
+
+def _number(value: Any) -> Any:
+    """A number, not a switch; an integer too large for a float is not finite."""
+    if isinstance(value, bool):
+        raise PydanticCustomError("float_type", "not a number")
+    if isinstance(value, int) and abs(value) > 1e308:
+        raise PydanticCustomError("finite_number", "not finite")
+    return value
+
+
+def _switch(value: Any) -> Any:
+    """A switch, not a measure: ``1.0`` is refused (``1`` and ``yes`` are read)."""
+    if isinstance(value, float):
+        raise PydanticCustomError("bool_type", "not a switch")
+    return value
+
+
+Int = Annotated[int, Strict(), BeforeValidator(_count)]  # 10.0 refused, not rounded
+Float = Annotated[float, BeforeValidator(_number)]
+Bool = Annotated[bool, BeforeValidator(_switch)]
 CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False, coerce_numbers_to_str=True)
 MAX_EPOCHS = 100_000  # no config (a robot's included) asks for a run that never ends
 EPOCHS_BOUND = "at most {bound} epochs (a fixed bound; the paper's longest is the VAE's 300)"
@@ -46,13 +83,18 @@ def section(prefix: str):
         made = pydantic_dataclass(cls, frozen=True, config=CONFIG)
         made.__setting_prefix__ = prefix
         init = made.__init__
+        names = [f.name for f in dataclasses.fields(made)]
 
         @functools.wraps(init)
         def __init__(self, *args: Any, **kwargs: Any) -> None:
+            # by name: a refusal then names the setting (TaskSpec("circle", column))
+            if len(args) > len(names):
+                raise TypeError(f"{cls.__name__}: {len(args)} values for {len(names)} settings")
+            given = {**dict(zip(names, args, strict=False)), **kwargs}
             try:
-                init(self, *args, **kwargs)
+                init(self, **given)
             except ValidationError as err:
-                found = refusals(err, type(self), kwargs)
+                found = refusals(err, type(self), given)
                 refused = ConfigError(min(found, key=lambda r: not r.shape).problem)
                 refused.refusals = found  # the loader names the layer of a shape's fault
                 raise refused from None
@@ -95,8 +137,9 @@ class Refusal(typing.NamedTuple):
     layer that wrote it) rather than the value itself."""
 
     setting: str
-    problem: str
+    problem: str  # the whole line: ``train.epochs=0: must be >= 1``
     shape: bool
+    reason: str  # what is wrong, without the setting: ``must be >= 1``
 
 
 def refusals(err: ValidationError, cls: type, given: Any) -> list[Refusal]:
@@ -106,52 +149,80 @@ def refusals(err: ValidationError, cls: type, given: Any) -> list[Refusal]:
 
 
 def _said(e: dict, cls: type, given: Any) -> Refusal:
+    # a union's member is named in the location too (``function-before[...]``): not a setting
+    e = {**e, "loc": tuple(p for p in e["loc"] if isinstance(p, int) or "[" not in p)}
     names = [part for part in e["loc"] if isinstance(part, str)]
     _, field, hint = _field(cls, names)
-    setting = getattr(cls, "__setting_prefix__", "") + ".".join(names)
+    setting = getattr(cls, "__setting_prefix__", "") + _named(given, e["loc"])
     value = _value(given, names, e)
-    if _bare(hint) is float and isinstance(value, int) and not isinstance(value, bool):
+    if _bare(hint) is float and type(value) is int and abs(value) <= 1e308:
         value = float(value)  # as the setting holds it: timeout_s=0 is 0.0
+    reason, shape, named = _reason(e, hint, field, value, setting)
+    if named:  # the value is not said (an unknown name, a number's text)
+        return Refusal(setting, f"{setting}: {reason}", shape, reason)
+    shown = repr(value) if e["type"] == "literal_error" else _shown(value)
+    return Refusal(setting, f"{setting}={shown}: {reason}", shape, reason)
+
+
+def _reason(e: dict, hint: Any, field: Any, value: Any, setting: str) -> tuple[str, bool, bool]:
+    """What is wrong with ``value``, whether it is its shape, and whether the line names
+    the setting alone (the reason says the value)."""
     kind = e["type"]
     if kind in ("unexpected_keyword_argument", "extra_forbidden"):
-        return Refusal(setting, f"{setting}: unknown setting", True)
+        return "unknown setting", True, True
     if kind in ("dataclass_type", "dataclass_exact_type") and not isinstance(value, dict):
         example = _first_setting(hint)
-        return Refusal(
-            setting,
-            f"{setting}={_shown(value)}: a section of settings, not one value; set its parts "
-            f"(e.g. {setting}.{example}=...)",
-            True,
+        reason = (
+            f"a section of settings, not one value; set its parts (e.g. {setting}.{example}=...)"
         )
+        return reason, True, False
     if kind in ("tuple_type", "list_type") and isinstance(value, dict):
-        return Refusal(setting, f"{setting}: a list goes here, not a mapping ({value})", True)
+        return f"a list goes here, not a mapping ({value})", True, True
     if kind in ("too_short", "too_long", "missing") and isinstance(value, list | tuple):
         wanted = len(typing.get_args(_bare(hint)))
-        return Refusal(
-            setting,
-            f"{setting}={_shown(value)}: a list of {wanted} values expected, {len(value)} given",
-            True,
-        )
+        return f"a list of {wanted} values expected, {len(value)} given", True, False
+    return _value_reason(e, hint, field)
+
+
+def _value_reason(e: dict, hint: Any, field: Any) -> tuple[str, bool, bool]:
+    """:func:`_reason` of a value (not its shape)."""
+    kind, given = e["type"], e["input"]
     if kind in ("int_type", "float_type", "float_parsing", "int_parsing"):
-        if isinstance(e["input"], list | dict | tuple):
-            return Refusal(
-                setting, f"{setting}={_shown(value)}: a list or mapping where a number goes", False
-            )
-        if isinstance(e["input"], float) and kind == "int_type":
-            return Refusal(
-                setting, f"{setting}={_shown(value)}: must be an integer, not a float", False
-            )
+        if isinstance(given, list | dict | tuple):
+            return "a list or mapping where a number goes", False, False
+        if isinstance(given, float) and kind == "int_type":
+            return "must be an integer, not a float", False, False
         what = "an integer" if kind.startswith("int") else "a number"
-        return Refusal(setting, f"{setting}: Value {e['input']!r} is not {what}", True)
+        return f"Value {given!r} is not {what}", True, True
     if kind == "finite_number":
-        return Refusal(setting, f"{setting}={_shown(value)}: must be a finite number", False)
+        return "must be a finite number", False, False
     if kind == "literal_error":
         options = ", ".join(str(o) for o in typing.get_args(_bare(hint)))
-        return Refusal(setting, f"{setting}={value!r}: must be one of {options}", False)
+        return f"must be one of {options}", False, False
     if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
-        return Refusal(setting, f"{setting}={_shown(value)}: {_bound(field, kind)}", False)
-    shape = kind in SHAPE
-    return Refusal(setting, f"{setting}={_shown(value)}: {e['msg']}", shape)
+        return _bound(field, kind), False, False
+    if kind in ("bool_type", "bool_parsing"):
+        return f"Value {given!r} is not true or false", True, True
+    if kind in ("string_type",):
+        return f"Value {given!r} is not a text", True, True
+    return e["msg"], kind in SHAPE, False
+
+
+def _named(given: Any, loc: tuple) -> str:
+    """The dotted setting at ``loc``; an entry of a list of named sections by its name
+    (``data.tasks.circle.value``), of other lists not at all (the list is the setting)."""
+    parts, here = [], given
+    for part in loc:
+        if isinstance(part, int):
+            item = here[part] if isinstance(here, list | tuple) and part < len(here) else None
+            name = item.get("name") if isinstance(item, dict) else getattr(item, "name", None)
+            if isinstance(name, str):
+                parts.append(name)
+            here = item
+            continue
+        parts.append(part)
+        here = here.get(part) if isinstance(here, dict) else getattr(here, part, None)
+    return ".".join(parts)
 
 
 def _field(cls: type, names: list[str]):
@@ -200,9 +271,9 @@ def _value(given: Any, names: list[str], e: dict) -> Any:
 
 
 def _shown(value: Any) -> str:
-    if isinstance(value, tuple):
-        value = list(value)
-    return str(value)
+    """A value as the line shows it: a list as written, a long one cut short."""
+    text = str(list(value) if isinstance(value, tuple) else value)
+    return text if len(text) <= 120 else f"{text[:100]}..."
 
 
 def _bound(field: Any, kind: str) -> str:
@@ -211,11 +282,13 @@ def _bound(field: Any, kind: str) -> str:
     extra = (field.json_schema_extra or {}) if field is not None else {}
     said = extra.get("said", {})
     limits = _limits(field)
+    if not limits:
+        return "out of its bounds"
     if "said" in said:
         return said["said"]
     if "over" in said:
         if kind.startswith("less"):
-            return said["over"].format(bound=_number(limits.get("le", limits.get("lt"))))
+            return said["over"].format(bound=_figure(limits.get("le", limits.get("lt"))))
         limits = {k: v for k, v in limits.items() if k in ("ge", "gt")}
     why = f" ({said['why']})" if "why" in said else ""
     return f"must be {_range(limits)}{why}"
@@ -235,16 +308,16 @@ def _range(limits: dict[str, float]) -> str:
     high = limits.get("le", limits.get("lt"))
     if low is not None and high is not None:
         if "ge" in limits and "le" in limits:
-            return f"in {_number(low)}..{_number(high)}"
+            return f"in {_figure(low)}..{_figure(high)}"
         opening = "[" if "ge" in limits else "("
         closing = "]" if "le" in limits else ")"
-        return f"in {opening}{_number(low)}, {_number(high)}{closing}"
+        return f"in {opening}{_figure(low)}, {_figure(high)}{closing}"
     if low is not None:
-        return f"{'>=' if 'ge' in limits else '>'} {_number(low)}"
-    return f"{'<=' if 'le' in limits else '<'} {_number(high)}"
+        return f"{'>=' if 'ge' in limits else '>'} {_figure(low)}"
+    return f"{'<=' if 'le' in limits else '<'} {_figure(high)}"
 
 
-def _number(value: float) -> str:
+def _figure(value: float) -> str:
     return str(value) if isinstance(value, int) else f"{value:g}"
 
 
@@ -290,3 +363,47 @@ def bounds_of(field: Any) -> str:
     """A setting's bounds as its refusal says them (``>= 1``, ``in [0, 1)``), or ''."""
     limits = _limits(field)
     return _range(limits) if limits else ""
+
+
+def section_of(hint: Any) -> type | None:
+    """The section a field holds (its dataclass), None for a setting."""
+    if typing.get_origin(hint) is tuple:
+        return None
+    return next((a for a in _options(hint) if dataclasses.is_dataclass(a)), None)
+
+
+def type_problem(cls: type, name: str, value: Any) -> str | None:
+    """What is wrong with the type of ``value`` for setting ``name`` of section ``cls``
+    (its bounds and choices aside: a later layer of a config may still set another), in
+    one line; None where the type fits. A list's items are checked with the whole config."""
+    try:
+        _adapter(cls, name).validate_python(value)
+    except ValidationError as err:
+        listed = typing.get_origin(cls.__pydantic_fields__[name].annotation) is tuple
+        for e in err.errors():
+            if not any(isinstance(part, int) for part in e["loc"]):  # an item: checked later
+                loc = (name, *e["loc"]) if listed else (name,)  # not a union's member name
+                return _said({**e, "loc": loc}, cls, {name: value}).problem
+    return None
+
+
+@functools.cache
+def _adapter(cls: type, name: str) -> Any:
+    field = cls.__pydantic_fields__[name]
+    kept = [m for m in field.metadata if isinstance(m, Strict | BeforeValidator)]  # no bounds
+    hint = Annotated[(_loose(field.annotation), *kept)] if kept else _loose(field.annotation)
+    try:  # numbers read as text where text goes, as the sections do (CONFIG)
+        return TypeAdapter(hint, config=ConfigDict(coerce_numbers_to_str=True))
+    except PydanticUserError:  # a type with a config of its own (a list of sections)
+        return TypeAdapter(hint)
+
+
+def _loose(hint: Any) -> Any:
+    """``hint`` with its choices as any value: a choice (``server_eval=true`` is ``on``) is
+    checked once the layers are merged."""
+    if typing.get_origin(hint) is typing.Literal:
+        return str | bool
+    options = typing.get_args(hint)
+    if type(None) in options and len(options) == 2:
+        return _loose(_options(hint)[0]) | None
+    return hint

@@ -17,7 +17,16 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from fedlgr.core.declare import EPOCHS_BOUND, MAX_EPOCHS, Int, renamed, section, setting
+from fedlgr.core.declare import (
+    EPOCHS_BOUND,
+    MAX_EPOCHS,
+    Bool,
+    Float,
+    Int,
+    renamed,
+    section,
+    setting,
+)
 from fedlgr.errors import ConfigError
 
 
@@ -34,7 +43,7 @@ class Method:
     scopes: tuple[str, ...] = ("full", "root")  # the aggregation scopes it works with
     # (strategy, scope) -> its name where it is not the scope's prefix + suffix (FedLGR)
     names: dict[tuple[str, str], str] = field(default_factory=dict)
-    in_paper: bool = True  # a row of the paper's tables (else a report shows it where it ran)
+    in_paper: Bool = True  # a row of the paper's tables (else a report shows it where it ran)
 
     def load(self) -> Any:
         """The method's class (imports its module: torch)."""
@@ -65,7 +74,7 @@ def _register(family: str, *methods: Method) -> dict[str, Method]:
 
 @section("")
 class ProxSettings:
-    mu: float = setting(0.01, "client loss + mu/2 ||w - w_global||^2", ge=0)
+    mu: Float = setting(0.01, "client loss + mu/2 ||w - w_global||^2", ge=0)
 
 
 @section("")
@@ -73,9 +82,9 @@ class OptSettings:
     """FedOpt's server optimiser (Reddi et al. 2021, Algorithm 2): x <- x + lr m / (sqrt(v)
     + tau), v by the variant (FedAdam, FedYogi, FedAdagrad; adagrad reads betas[0] only)."""
 
-    lr: float = setting(0.01, "the server's learning rate", gt=0)
-    betas: tuple[float, float] = setting((0.9, 0.99), "the moments' decay rates, each in [0, 1)")
-    tau: float = setting(1e-3, "the adaptivity", gt=0)
+    lr: Float = setting(0.01, "the server's learning rate", gt=0)
+    betas: tuple[Float, Float] = setting((0.9, 0.99), "the moments' decay rates, each in [0, 1)")
+    tau: Float = setting(1e-3, "the adaptivity", gt=0)
     variant: Literal["adam", "yogi", "adagrad"] = setting("adam", "FedAdam, FedYogi, FedAdagrad")
     v0: Literal["tau2", "zero"] = setting(
         "tau2", "the second moment's start: the paper's tau^2, or zero (fedlgr's earlier form)"
@@ -90,7 +99,7 @@ class OptSettings:
 
 @section("")
 class DistillSettings:
-    weight: float = setting(0.5, "the teacher term's weight in the student loss", ge=0, le=1)
+    weight: Float = setting(0.5, "the teacher term's weight in the student loss", ge=0, le=1)
 
 
 @section("")
@@ -99,18 +108,18 @@ class AvgMSettings:
     default keeps Hsu et al.'s effective learning rate lr / (1 - momentum) at 1: lr 1 with
     momentum 0.9 diverged on the demo (docs/methods.md)."""
 
-    momentum: float = setting(0.9, "the server's momentum", ge=0, lt=1)
-    lr: float = setting(0.1, "the server's learning rate", gt=0)
+    momentum: Float = setting(0.9, "the server's momentum", ge=0, lt=1)
+    lr: Float = setting(0.1, "the server's learning rate", gt=0)
 
 
 @section("")
 class ScaffoldSettings:
-    lr: float = setting(1.0, "the global learning rate", gt=0)
+    lr: Float = setting(1.0, "the global learning rate", gt=0)
 
 
 @section("")
 class TrimmedSettings:
-    beta: float = setting(0.2, "the fraction cut at either end", ge=0, lt=0.5)
+    beta: Float = setting(0.2, "the fraction cut at either end", ge=0, lt=0.5)
 
 
 @section("")
@@ -173,20 +182,20 @@ class EWCSettings:
     """EWC and EWC-Online: lambda_ / 2 * sum F (theta - theta*)^2. The default lambda is
     sweeps/ewc.yaml's best on the synthetic descriptors (docs/fedlgr.md, "EWC's lambda")."""
 
-    lambda_: float = setting(1000.0, "the penalty's coefficient", ge=0)
+    lambda_: Float = setting(1000.0, "the penalty's coefficient", ge=0)
     fisher: Literal["empirical", "model", "batch", "batch_model"] = setting(
         "empirical",
         "each scene's squared gradient averaged over the task's scenes, of its MSE to the "
         "labels (empirical, Kirkpatrick et al.'s) or to outputs + N(0, 4) noise (model); "
         "batch, batch_model: each mini-batch's, no 1/2 in the penalty (fedlgr's earlier form)",
     )
-    gamma: float = setting(0.9, "EWC-Online: the running Fisher's decay", ge=0, le=1)
+    gamma: Float = setting(0.9, "EWC-Online: the running Fisher's decay", ge=0, le=1)
 
 
 @section("")
 class SISettings:
-    c: float = setting(1.0, "the penalty's coefficient", ge=0)
-    xi: float = setting(0.1, "the damping", ge=0)
+    c: Float = setting(1.0, "the penalty's coefficient", ge=0)
+    xi: Float = setting(0.1, "the damping", ge=0)
     clamp: Literal["none", "task", "total"] = setting(
         "none",
         "none (Zenke et al.'s eq. 5) | task (each task's gain clamped at 0: fedlgr's earlier "
@@ -201,7 +210,7 @@ class SISettings:
 
 @section("")
 class MASSettings:
-    lambda_: float = setting(1.0, "the penalty's coefficient", ge=0)
+    lambda_: Float = setting(1.0, "the penalty's coefficient", ge=0)
     importance: Literal["sample", "batch"] = setting(
         "sample",
         "|gradient of each scene's squared output norm|, averaged (Aljundi et al.'s), or of "
@@ -212,14 +221,14 @@ class MASSettings:
 @section("")
 class NRSettings:
     memory: Int = setting(100, "scenes kept per client (all past tasks together)", ge=0)
-    replay_ratio: float = setting(0.5, "memory samples per current sample in a batch", ge=0)
+    replay_ratio: Float = setting(0.5, "memory samples per current sample in a batch", ge=0)
 
 
 @section("")
 class LwFSettings:
     """LwF for regression: loss + alpha * mean (f(x) - f_start(x))^2 from the second task."""
 
-    alpha: float = setting(1.0, "the distillation term's weight", ge=0)
+    alpha: Float = setting(1.0, "the distillation term's weight", ge=0)
 
 
 @section("")
@@ -236,7 +245,7 @@ class LGRSettings:
     replay: Literal["generator", "stored"] = setting(
         "generator", "generator | stored (the oracle: real past latents kept)"
     )
-    freeze_root_bn: bool = setting(True, "root BatchNorm statistics frozen from task 2")
+    freeze_root_bn: Bool = setting(True, "root BatchNorm statistics frozen from task 2")
     hidden: Int = setting(512, "the VAE's hidden width", ge=1)
     latent: Int = setting(16, "the VAE's latent size", ge=1)
     epochs: Int = setting(
@@ -249,16 +258,16 @@ class LGRSettings:
     patience: Int = setting(
         20, "... stop after this many epochs without held-out gain (0: never)", ge=0
     )
-    holdout: float = setting(
+    holdout: Float = setting(
         0.2, "... the share of a task's latents held out (none under 10 latents)", ge=0, lt=1
     )
     batch_size: Int = setting(32, "the VAE's batch size", ge=1)
-    lr: float = setting(1e-3, "the generator's learning rate", ge=0)
-    beta: float = setting(4.0, "the VAE's KL term's weight", ge=0)
+    lr: Float = setting(1e-3, "the generator's learning rate", ge=0)
+    beta: Float = setting(4.0, "the VAE's KL term's weight", ge=0)
     sampler: Literal["posterior", "prior"] = setting(
         "posterior", "VAE codes from a Gaussian fitted to the training codes, or the prior"
     )
-    lr_root: float = setting(1e-5, "the root's learning rate from task 2 on (lr_R)", ge=0)
+    lr_root: Float = setting(1e-5, "the root's learning rate from task 2 on (lr_R)", ge=0)
     root_epochs: Int | None = setting(
         1,
         "two_phase: root epochs per round (null: train.epochs)",
@@ -266,17 +275,17 @@ class LGRSettings:
         le=MAX_EPOCHS,
         over=EPOCHS_BOUND,
     )
-    replay_ratio: float = setting(4.0, "pseudo-samples per real sample for the top", ge=0)
+    replay_ratio: Float = setting(4.0, "pseudo-samples per real sample for the top", ge=0)
     drift: Literal["none", "compensate", "distill", "compensate+distill"] = setting(
         "distill", "keeping replayed latents valid while the root learns (docs/fedlgr.md)"
     )
-    compensate_ridge: float = setting(
+    compensate_ridge: Float = setting(
         1.0,
         "compensate: the drift map's ridge (x mean eigenvalue)",
         gt=0,
         why="the drift map is fitted on a client's scenes, fewer than the root's features",
     )
-    distill_weight: float = setting(10.0, "distill: the latent distillation's weight", ge=0)
+    distill_weight: Float = setting(10.0, "distill: the latent distillation's weight", ge=0)
     train_blocks: Int | None = setting(
         1, "from task 2 only the root's last k blocks train (null: all)", ge=0
     )

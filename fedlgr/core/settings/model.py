@@ -15,7 +15,7 @@ from typing import Literal
 from pydantic import field_validator
 
 from fedlgr.core.data.columns import USING_ARROW, USING_CIRCLE
-from fedlgr.core.declare import EPOCHS_BOUND, MAX_EPOCHS, Int, section, setting
+from fedlgr.core.declare import EPOCHS_BOUND, MAX_EPOCHS, Bool, Float, Int, section, setting
 from fedlgr.core.methods import CONTINUAL, SCOPES, STRATEGIES, method_name
 from fedlgr.core.settings import rules
 from fedlgr.core.settings.rules import (
@@ -62,7 +62,7 @@ class TaskSpec:
 
     name: str
     column: str
-    value: float = 1.0
+    value: Float | Int = 1.0  # an integer stays one (the config's hash is of what was written)
 
 
 DEFAULT_TASKS = (TaskSpec("circle", USING_CIRCLE, 1.0), TaskSpec("arrow", USING_ARROW, 1.0))
@@ -74,9 +74,9 @@ class NoiseConfig:
     training scene becomes ``data.augment_copies`` rows with Gaussian noise on its 27
     descriptors, drawn once (the LEAP-HRI'24 benchmark's augmentation, docs/leap_hri24.md)."""
 
-    std: float = setting(0.01, "the noise's standard deviation on each descriptor (0..1)", ge=0)
-    original: bool = setting(False, "the first copy is the scene itself, without noise")
-    cumulative: bool = setting(
+    std: Float = setting(0.01, "the noise's standard deviation on each descriptor (0..1)", ge=0)
+    original: Bool = setting(False, "the first copy is the scene itself, without noise")
+    cumulative: Bool = setting(
         False,
         "copy k carries the sum of k draws (std x sqrt(k)), as the LEAP-HRI'24 code's noise "
         "ran; false: every copy its own draw",
@@ -105,12 +105,12 @@ class DataConfig:
     on_bad_image: Literal["error", "skip"] = setting(
         "error", "an unreadable image stops the run, or its scene is left out"
     )
-    cache: bool = setting(True, "decode the images once into a store under cache_dir")
+    cache: Bool = setting(True, "decode the images once into a store under cache_dir")
     cache_dir: Path = setting(
         doc="the image store's folder ($FEDLGR_CACHE_DIR, else ~/.cache/fedlgr)",
         factory=default_cache_dir,
     )
-    test_fraction: float = setting(
+    test_fraction: Float = setting(
         0.25,
         "the share of scenes in the common test set",
         gt=0,
@@ -119,14 +119,14 @@ class DataConfig:
     )
     clients: Int = setting(2, "how many clients", ge=1, said="need at least 1 client")
     partition: Literal["iid", "dirichlet"] = setting("iid", "how training scenes go to clients")
-    dirichlet_alpha: float = setting(0.5, "partition=dirichlet's concentration", gt=0)
+    dirichlet_alpha: Float = setting(0.5, "partition=dirichlet's concentration", gt=0)
     partition_key: Literal["task", "label"] = setting(
         "task", "dirichlet groups: the scene's task, or its mean-label quartile"
     )
     tasks: tuple[TaskSpec, ...] = setting(
         DEFAULT_TASKS, "the continual-learning tasks: a name, a column and its value"
     )
-    augment: bool = setting(
+    augment: Bool = setting(
         False,
         "images: each training scene shown augment_copies times an epoch, flipped and "
         "rotated; descriptors: augment_copies noisy rows per training scene (data.noise)",
@@ -151,19 +151,19 @@ class ModelConfig:
         "auto", "auto: mobilenet_v2 for images, mlp for features"
     )
     weights: str = setting("none", "imagenet | none | path to a state dict file")
-    width: float = setting(1.0, "MobileNetV2's width multiplier (tests use a tiny one)", gt=0)
+    width: Float = setting(1.0, "MobileNetV2's width multiplier (tests use a tiny one)", gt=0)
     mlp_hidden: tuple[Int, ...] = setting((256, 256), "the mlp root's hidden sizes")
     mlp_block: Literal["linear_bn_relu", "linear"] = setting(
         "linear_bn_relu",
         "each hidden size's block (linear: an affine root, the LEAP-HRI'24 model is "
         "mlp_hidden=[16] mlp_block=linear top_hidden=16)",
     )
-    mode_flags: bool = setting(True, "the mlp root reads the 2 mode flags; false: 27 descriptors")
+    mode_flags: Bool = setting(True, "the mlp root reads the 2 mode flags; false: 27 descriptors")
     top_hidden: Int = setting(32, "the top's hidden width", ge=1)
-    output_bias: float | None = setting(
+    output_bias: Float | None = setting(
         3.0, "the initial output bias (the Likert scale's middle); null: the Linear's own"
     )
-    channels_last: bool = setting(True, "faster convolutions on CPU and GPU")
+    channels_last: Bool = setting(True, "faster convolutions on CPU and GPU")
 
     def __post_init__(self) -> None:
         rules.model(self)
@@ -175,20 +175,20 @@ class TrainConfig:
 
     epochs: Int = epochs(10, "local epochs per round")
     batch_size: Int = setting(16, "training batch size", ge=1)
-    lr_root: float = setting(1e-3, "the root's Adam learning rate", ge=0)
-    lr_top: float = setting(1e-3, "the top's Adam learning rate", ge=0)
-    betas: tuple[float, float] = setting((0.9, 0.999), "Adam's two decay rates, each in [0, 1)")
+    lr_root: Float = setting(1e-3, "the root's Adam learning rate", ge=0)
+    lr_top: Float = setting(1e-3, "the top's Adam learning rate", ge=0)
+    betas: tuple[Float, Float] = setting((0.9, 0.999), "Adam's two decay rates, each in [0, 1)")
     max_batches: Int | None = setting(None, "cap per epoch (fast dev runs)", ge=1)
-    reset_optimizer: bool = setting(
+    reset_optimizer: Bool = setting(
         False, "a fresh Adam state every round instead of the client's own"
     )
     eval_batch_size: Int = setting(128, "evaluation batch size", ge=1)
-    compat_batch_metrics: bool = setting(
+    compat_batch_metrics: Bool = setting(
         False,
         "the LEAP-HRI'24 benchmark's biased per-batch scores (docs/leap_hri24.md); for "
         "comparison only",
     )
-    weight_decay: float = setting(
+    weight_decay: Float = setting(
         0.0, "Adam's L2 penalty on every parameter (the LEAP-HRI'24 code's 0.01)", ge=0
     )
     precision: Literal["32-true", "bf16-mixed", "16-mixed"] = setting("32-true", "Fabric's")
@@ -207,14 +207,14 @@ class FaultsConfig:
     after the round's deadline (dropped), and Byzantine clients whose uploads are altered
     before the server sees them, or who train on poisoned labels."""
 
-    dropout: float = setting(
+    dropout: Float = setting(
         0.0,
         "the probability that a chosen client drops out of a round",
         ge=0,
         lt=1,
         why="the probability that a chosen client drops out of a round",
     )
-    straggler: float = setting(
+    straggler: Float = setting(
         0.0,
         "the probability that a client's upload comes after the deadline (dropped)",
         ge=0,
@@ -230,11 +230,11 @@ class FaultsConfig:
     attack: Literal["sign_flip", "noise", "scale", "labels"] = setting(
         "sign_flip", "what the Byzantine clients send"
     )
-    noise: float = setting(
+    noise: Float = setting(
         1.0, "attack=noise: the Gaussian's standard deviation", ge=0, said="must be 0 or more"
     )
-    scale: float = setting(10.0, "attack=scale: the factor on their update")
-    label: float = setting(5.0, "attack=labels: the rating of every action in their scenes")
+    scale: Float = setting(10.0, "attack=scale: the factor on their update")
+    label: Float = setting(5.0, "attack=labels: the rating of every action in their scenes")
 
 
 @section("federated.dp.")
@@ -243,32 +243,32 @@ class DPConfig:
     client's update clipped to an L2 norm, Gaussian noise on their sum, the accountant's
     epsilon for ``delta`` after every round. Off while ``clip`` is 0."""
 
-    clip: float = setting(
+    clip: Float = setting(
         0.0, "the L2 norm each update is clipped to (adaptive: the first one); 0: off", ge=0
     )
-    noise_multiplier: float = setting(
+    noise_multiplier: Float = setting(
         1.0, "the noise's standard deviation over the clip norm", ge=0
     )
-    delta: float = setting(
+    delta: Float = setting(
         1e-5, "the delta epsilon is reported for (below 1 / clients)", gt=0, lt=1
     )
     clipping: Literal["fixed", "adaptive"] = setting(
         "fixed", "adaptive: the clip norm moves to a quantile (Andrew et al. 2021)"
     )
-    quantile: float = setting(
+    quantile: Float = setting(
         0.5,
         "adaptive: the share of updates the clip norm aims to leave unclipped",
         gt=0,
         lt=1,
         why="the share of updates that adaptive clipping aims to leave unclipped",
     )
-    clip_lr: float = setting(0.2, "adaptive: the clip norm's geometric step", gt=0)
-    count_noise: float = setting(
+    clip_lr: Float = setting(0.2, "adaptive: the clip norm's geometric step", gt=0)
+    count_noise: Float = setting(
         0.0,
         "adaptive: the noise on the count of unclipped updates (0: expected clients / 20)",
         ge=0,
     )
-    target_epsilon: float = setting(
+    target_epsilon: Float = setting(
         0.0, "over 0: the run stops before a round would exceed it", ge=0
     )
 
@@ -312,7 +312,7 @@ class FederatedConfig:
         "the server scores the global model on the test scenes every round (on: full scope "
         "only; auto: where the server holds a whole model)",
     )
-    fraction: float = setting(
+    fraction: Float = setting(
         1.0,
         "the share of the clients that train in a round (drawn from the seed)",
         gt=0,
@@ -326,7 +326,7 @@ class FederatedConfig:
     eval_every: Int = setting(
         1, "clients score every eval_every-th round, each task's last and the run's last", ge=1
     )
-    norm_ratio: float = setting(
+    norm_ratio: Float = setting(
         10.0,
         "an update over this many times the median of the round's other updates' norms is "
         "refused (0: no such check)",
@@ -394,20 +394,20 @@ class RuntimeConfig:
         le=MAX_PER_MACHINE,
         over=PER_MACHINE,
     )
-    progress: bool = setting(True, "progress bars")
+    progress: Bool = setting(True, "progress bars")
     idle_clients: Literal["auto", "live", "memory", "disk"] = setting(
         "auto",
         "where a client not at work keeps its state (docs/runtimes.md, 'Many clients'); "
         "the results are the same whichever holds them",
     )
-    idle_memory_mb: float = setting(
+    idle_memory_mb: Float = setting(
         1024.0,
         "MiB of idle clients' state held in memory before the rest goes to disk",
         ge=0,
         said="must be 0 or more (MiB of idle clients' state held in memory before the "
         "rest goes to disk)",
     )
-    timeout_s: float = setting(
+    timeout_s: Float = setting(
         1800.0,
         "how long a process of a multi-process run waits for the others",
         ge=1,
@@ -425,8 +425,8 @@ class SecAggConfig:
     """Secure aggregation on robots (Flower's SecAgg+, docs/deployment.md): the server
     sees only the sum of the chosen robots' masked, clipped and quantised updates."""
 
-    enabled: bool = setting(False, "SecAgg+ on")
-    clipping_range: float = setting(1.0, "every value sent is clipped to [-this, this]", gt=0)
+    enabled: Bool = setting(False, "SecAgg+ on")
+    clipping_range: Float = setting(1.0, "every value sent is clipped to [-this, this]", gt=0)
     quantization_range: Int = setting(
         4_194_304,
         "levels over [-clipping_range, clipping_range] (2^22)",
@@ -440,14 +440,14 @@ class SecAggConfig:
         "the most samples a robot weighs: its update travels as n / max_samples x update",
         ge=1,
     )
-    shares: float = setting(
+    shares: Float = setting(
         1.0,
         "the share of the round's robots each robot's key is split among",
         gt=0,
         le=1,
         why="a share of the round's robots",
     )
-    threshold: float = setting(
+    threshold: Float = setting(
         0.5,
         "the share of those shares that rebuilds a key (at least 2)",
         gt=0,
@@ -461,8 +461,8 @@ class DeployConfig:
     """Real robots behind a Flower SuperLink (``fedlgr deploy``; docs/deployment.md)."""
 
     min_clients: Int | None = setting(None, "replies a round needs to go on (default: half)", ge=1)
-    join_timeout_s: float = setting(300.0, "how long round 1 waits for the robots to join", gt=0)
-    round_timeout_s: float = setting(600.0, "how long the server waits in one exchange", gt=0)
+    join_timeout_s: Float = setting(300.0, "how long round 1 waits for the robots to join", gt=0)
+    round_timeout_s: Float = setting(600.0, "how long the server waits in one exchange", gt=0)
     evaluate: Literal["with_next_round", "separate"] = setting(
         "with_next_round",
         "a robot scores the new global tensors with the next round's training message, or "
@@ -480,7 +480,7 @@ class DeployConfig:
 class TrackingConfig:
     """MLflow: local sqlite store by default, or a server (``tracking.uri``)."""
 
-    enabled: bool = setting(True, "log to MLflow")
+    enabled: Bool = setting(True, "log to MLflow")
     uri: str | None = setting(None, "default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db")
     experiment: str = setting("fedlgr", "the MLflow experiment")
     run_name: str | None = setting(None, "default: the method and setting, e.g. FedAvg-2c-noaug")
@@ -491,10 +491,10 @@ class TrackingConfig:
     checkpoint_dir: str | None = setting(
         None, "default: checkpoints/ next to a sqlite store, else ./"
     )
-    heartbeat_s: float = interval(30.0, "a live run's tag fedlgr.heartbeat is never older", "beats")
-    system_metrics: bool = setting(True, "MLflow's system metrics (CPU, memory, GPU)")
-    system_metrics_s: float = interval(10.0, "seconds between two samples of them", "samples")
-    detail_metrics: bool = setting(
+    heartbeat_s: Float = interval(30.0, "a live run's tag fedlgr.heartbeat is never older", "beats")
+    system_metrics: Bool = setting(True, "MLflow's system metrics (CPU, memory, GPU)")
+    system_metrics_s: Float = interval(10.0, "seconds between two samples of them", "samples")
+    detail_metrics: Bool = setting(
         False,
         "per-client and per-action metrics in MLflow too (results.csv always has them)",
     )
@@ -520,7 +520,7 @@ class ContinualConfig:
     importance_batches: Int | None = setting(
         None, "batches for Fisher / MAS importance (null: all)", ge=1
     )
-    freeze_root_bn: bool = setting(
+    freeze_root_bn: Bool = setting(
         False, "root BatchNorm statistics frozen from task 2 (FedLGR: continual.lgr's)"
     )
 

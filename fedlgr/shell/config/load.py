@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from fedlgr.core.declare import section_of, type_problem
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
 from fedlgr.core.settings import ExperimentConfig
 from fedlgr.errors import ConfigError, first_line
@@ -133,6 +134,7 @@ def _merge(layers: list) -> Any:
 
     merged = OmegaConf.create(to_plain(ExperimentConfig()))
     for source, node in layers:
+        _check_types(source, plain(node))
         try:
             if "method" in node and node["method"] is not None:
                 node = _expand_method(node, merged)
@@ -145,6 +147,33 @@ def _merge(layers: list) -> Any:
             written = OmegaConf.to_container(node, resolve=False)
             raise ConfigError(f"{source}: {container_mismatch(merged, written) or err}") from err
     return merged
+
+
+def _check_types(source: str, values: Any, cls: type = ExperimentConfig, at: str = "") -> None:
+    """A layer's values of the wrong type, refused naming the layer (as OmegaConf's typed
+    merge did): a section given one value, a word where a number goes. Bounds and choices
+    are checked once the layers are merged, where a later layer may have set another."""
+    if not isinstance(values, dict):
+        return
+    fields = cls.__pydantic_fields__
+    for key, value in values.items():
+        name = f"{at}{key}"
+        if not isinstance(key, str):
+            raise ConfigError(f"{source}: {name}: unknown setting (--print-config lists them)")
+        if key not in fields or value == "???" or (isinstance(value, str) and "${" in value):
+            continue  # an unknown name is named once the layers are merged
+        section = section_of(fields[key].annotation)
+        if section is None:
+            if problem := type_problem(cls, key, value):
+                raise ConfigError(f"{source}: {problem}")
+        elif isinstance(value, dict):
+            _check_types(source, value, section, f"{name}.")
+        else:
+            first = next(iter(section.__pydantic_fields__))
+            raise ConfigError(
+                f"{source}: {name}={value}: a section of settings, not one value; set its "
+                f"parts (e.g. {name}.{first}=...)"
+            )
 
 
 def _named(merged: Any) -> Any:
@@ -174,10 +203,16 @@ def _to_object(merged: Any, layers: list, interpolated: dict) -> ExperimentConfi
     try:
         return ExperimentConfig(**values)
     except ConfigError as err:
-        shapes = [r for r in getattr(err, "refusals", ()) if r.shape]
+        refused = getattr(err, "refusals", ())
+        shapes = [r for r in refused if r.shape or _through(r.setting, interpolated)]
         if not shapes:
             raise
         raise ConfigError(_said_with_layer(shapes, layers, interpolated)) from None
+
+
+def _through(key: str, interpolated: dict) -> bool:
+    """Did ``key`` get its value from a ``${...}``?"""
+    return any(key == k or key.startswith(f"{k}.") for k in interpolated)
 
 
 def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
@@ -185,10 +220,10 @@ def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
     found = []
     for refused in shapes:
         key = refused.setting
-        if key in interpolated:
-            source, value = interpolated[key]
-            reason = refused.problem.split(": ", 1)[-1]
-            found.append((-1, 0, f"{source}: {key}={value!r}: {reason}"))
+        through = [k for k in interpolated if key == k or key.startswith(f"{k}.")]
+        if through:  # said with what was written: ${...}
+            source, value = interpolated[through[0]]
+            found.append((-1, 0, f"{source}: {through[0]}={value!r}: {refused.reason}"))
             continue
         writers = [
             (i, _names(values).index(name), source, values)
