@@ -75,6 +75,19 @@ def setting(default: Any = dataclasses.MISSING, doc: str = "", **rule: Any) -> A
     return Field(default, description=doc, json_schema_extra=extra, **rule)
 
 
+def epoch_count(default: int | None, doc: str, least: int = 1) -> Any:
+    """A count of epochs: at most MAX_EPOCHS, so that no config (a robot's included, sent
+    by its server) asks for a run that never ends."""
+    return setting(default, doc, ge=least, le=MAX_EPOCHS, over=EPOCHS_BOUND)
+
+
+def betas(setting_: str, values: Any) -> None:
+    """Adam's two decay rates, each in [0, 1) as torch.optim.Adam requires: said at once,
+    not by torch after the data has loaded."""
+    if len(values) != 2 or not all(0.0 <= b < 1.0 for b in values):
+        raise ConfigError(f"{setting_}={list(values)}: two decay rates, each in [0, 1)")
+
+
 def section(prefix: str):
     """A frozen pydantic dataclass whose settings are named ``prefix`` + field
     (``train.``); building it refuses a bad value with :class:`ConfigError`, one line."""

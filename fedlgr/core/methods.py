@@ -18,11 +18,11 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from fedlgr.core.declare import (
-    EPOCHS_BOUND,
-    MAX_EPOCHS,
     Bool,
     Float,
     Int,
+    betas,
+    epoch_count,
     renamed,
     section,
     setting,
@@ -91,10 +91,7 @@ class OptSettings:
     )
 
     def __post_init__(self) -> None:
-        if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
-            raise ConfigError(
-                f"federated.opt.betas={list(self.betas)}: two decay rates, each in [0, 1)"
-            )
+        betas("federated.opt.betas", self.betas)
 
 
 @section("")
@@ -248,13 +245,7 @@ class LGRSettings:
     freeze_root_bn: Bool = setting(True, "root BatchNorm statistics frozen from task 2")
     hidden: Int = setting(512, "the VAE's hidden width", ge=1)
     latent: Int = setting(16, "the VAE's latent size", ge=1)
-    epochs: Int = setting(
-        300,
-        "the VAE's most epochs at the end of each task",
-        ge=1,
-        le=MAX_EPOCHS,
-        over=EPOCHS_BOUND,
-    )
+    epochs: Int = epoch_count(300, "the VAE's most epochs at the end of each task")
     patience: Int = setting(
         20, "... stop after this many epochs without held-out gain (0: never)", ge=0
     )
@@ -268,12 +259,8 @@ class LGRSettings:
         "posterior", "VAE codes from a Gaussian fitted to the training codes, or the prior"
     )
     lr_root: Float = setting(1e-5, "the root's learning rate from task 2 on (lr_R)", ge=0)
-    root_epochs: Int | None = setting(
-        1,
-        "two_phase: root epochs per round (null: train.epochs)",
-        ge=0,
-        le=MAX_EPOCHS,
-        over=EPOCHS_BOUND,
+    root_epochs: Int | None = epoch_count(
+        1, "two_phase: root epochs per round (null: train.epochs)", 0
     )
     replay_ratio: Float = setting(4.0, "pseudo-samples per real sample for the top", ge=0)
     drift: Literal["none", "compensate", "distill", "compensate+distill"] = setting(

@@ -15,7 +15,7 @@ from typing import Literal
 from pydantic import field_validator
 
 from fedlgr.core.data.columns import USING_ARROW, USING_CIRCLE
-from fedlgr.core.declare import EPOCHS_BOUND, MAX_EPOCHS, Bool, Float, Int, section, setting
+from fedlgr.core.declare import Bool, Float, Int, betas, epoch_count, section, setting
 from fedlgr.core.methods import CONTINUAL, SCOPES, STRATEGIES, method_name
 from fedlgr.core.settings import rules
 from fedlgr.core.settings.rules import (
@@ -31,10 +31,9 @@ from fedlgr.core.settings.rules import (
 SEED = f"must be in 0..{SEED_LIMIT - 1} (numpy's and Lightning's seeding take 32-bit seeds)"
 
 
-def epochs(default: int | None, doc: str, least: int = 1) -> int | None:
-    """A count of epochs: at most MAX_EPOCHS, so that no config (a robot's included, sent
-    by its server) asks for a run that never ends."""
-    return setting(default, doc, ge=least, le=MAX_EPOCHS, over=EPOCHS_BOUND)
+def per_machine(default: int | None, doc: str) -> int | None:
+    """Processes, torch threads or client threads on one machine: at most MAX_PER_MACHINE."""
+    return setting(default, doc, ge=1, le=MAX_PER_MACHINE, over=PER_MACHINE)
 
 
 def interval(default: float, doc: str, what: str) -> float:
@@ -173,7 +172,7 @@ class ModelConfig:
 class TrainConfig:
     """Local training of each client, and evaluation."""
 
-    epochs: Int = epochs(10, "local epochs per round")
+    epochs: Int = epoch_count(10, "local epochs per round")
     batch_size: Int = setting(16, "training batch size", ge=1)
     lr_root: Float = setting(1e-3, "the root's Adam learning rate", ge=0)
     lr_top: Float = setting(1e-3, "the top's Adam learning rate", ge=0)
@@ -194,7 +193,7 @@ class TrainConfig:
     precision: Literal["32-true", "bf16-mixed", "16-mixed"] = setting("32-true", "Fabric's")
 
     def __post_init__(self) -> None:
-        rules.betas("train.betas", self.betas)
+        betas("train.betas", self.betas)
 
 
 # --------------------------------------------------------------------------- federated
@@ -366,33 +365,19 @@ class RuntimeConfig:
     """Where the clients run: one process by default, or sharded over processes/nodes."""
 
     accelerator: Literal["auto", "cpu", "gpu", "cuda"] = setting("auto", "auto | cpu | gpu")
-    devices: Int = setting(
-        1,
-        "processes per node; clients are sharded over all processes",
-        ge=1,
-        le=MAX_PER_MACHINE,
-        over=PER_MACHINE,
-    )
+    devices: Int = per_machine(1, "processes per node; clients are sharded over all processes")
     num_nodes: Int = setting(1, "machines", ge=1)
     launcher: Literal["ddp", "ddp_spawn"] = setting("ddp", "ddp re-runs the command per process")
-    threads: Int | None = setting(
-        None,
-        "torch threads per process (default: cores / processes)",
-        ge=1,
-        le=MAX_PER_MACHINE,
-        over=PER_MACHINE,
+    threads: Int | None = per_machine(
+        None, "torch threads per process (default: cores / processes)"
     )
     concurrency: Literal["auto", "sequential", "threads", "batched"] = setting(
         "auto",
         "how a process's clients train: one after another, side by side in threads, or "
         "stacked into one model (a GPU); auto: threads on CPU with several clients",
     )
-    workers: Int | None = setting(
-        None,
-        "clients at once with threads (default: min(clients, threads))",
-        ge=1,
-        le=MAX_PER_MACHINE,
-        over=PER_MACHINE,
+    workers: Int | None = per_machine(
+        None, "clients at once with threads (default: min(clients, threads))"
     )
     progress: Bool = setting(True, "progress bars")
     idle_clients: Literal["auto", "live", "memory", "disk"] = setting(

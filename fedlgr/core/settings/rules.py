@@ -38,13 +38,6 @@ def format_bytes(n: float) -> str:
     return f"{n:.0f} B" if k == 0 else f"{n:.1f} {units[k]}"
 
 
-def betas(setting: str, values: Any) -> None:
-    """Adam's two decay rates, each in [0, 1) as torch.optim.Adam requires: said at once,
-    not by torch after the data has loaded."""
-    if len(values) != 2 or not all(0.0 <= b < 1.0 for b in values):
-        raise ConfigError(f"{setting}={list(values)}: two decay rates, each in [0, 1)")
-
-
 # --------------------------------------------------------------------------- within a section
 
 

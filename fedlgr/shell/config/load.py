@@ -216,15 +216,17 @@ def _to_object(merged: Any, layers: list, interpolated: dict) -> ExperimentConfi
         return ExperimentConfig(**values)
     except ConfigError as err:
         refused = getattr(err, "refusals", ())
-        shapes = [r for r in refused if r.shape or _through(r.setting, interpolated)]
+        shapes = [
+            r for r in refused if r.shape or _interpolated_at(r.setting, interpolated) is not None
+        ]
         if not shapes:
             raise
         raise ConfigError(_said_with_layer(shapes, layers, interpolated)) from None
 
 
-def _through(key: str, interpolated: dict) -> bool:
-    """Did ``key`` get its value from a ``${...}``?"""
-    return any(key == k or key.startswith(f"{k}.") for k in interpolated)
+def _interpolated_at(key: str, interpolated: dict) -> str | None:
+    """The setting whose ``${...}`` gave ``key`` its value (it, or a section holding it)."""
+    return next((k for k in interpolated if key == k or key.startswith(f"{k}.")), None)
 
 
 def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
@@ -232,15 +234,15 @@ def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
     found = []
     for refused in shapes:
         key = refused.setting
-        through = [k for k in interpolated if key == k or key.startswith(f"{k}.")]
-        if through:  # said with what was written: ${...}
-            source, value = interpolated[through[0]]
-            found.append((-1, 0, f"{source}: {through[0]}={value!r}: {refused.reason}"))
+        through = _interpolated_at(key, interpolated)
+        if through is not None:  # said with what was written: ${...}
+            source, value = interpolated[through]
+            found.append((-1, 0, f"{source}: {through}={value!r}: {refused.reason}"))
             continue
         writers = [
-            (i, _names(values).index(name), source, values)
+            (i, at, source, values)
             for i, (source, values) in enumerate(written)
-            for name in _names(values)
+            for at, name in enumerate(_names(values))
             if _names_it(name, key)
         ]
         if not writers:
