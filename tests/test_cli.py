@@ -28,7 +28,8 @@ from tests.support.runs import FAST
 
 
 def test_help_does_not_import_heavy_modules():
-    """``fedlgr --help`` stays fast because torch & co. load only inside the verbs."""
+    """``fedlgr --help`` stays fast because torch & co. load only inside the verbs, and the
+    settings (pydantic, OmegaConf) only when a verb reads them."""
     code = (
         "import contextlib, io, sys\n"
         "from fedlgr.shell.cli import main\n"
@@ -36,7 +37,7 @@ def test_help_does_not_import_heavy_modules():
         "    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(io.StringIO()):\n"
         "        main([*verb, '--help'])\n"
         "heavy = [m for m in ('torch', 'torchvision', 'lightning', 'mlflow', 'optuna', 'numpy',"
-        " 'flwr') if m in sys.modules]\n"
+        " 'flwr', 'pydantic', 'omegaconf') if m in sys.modules]\n"
         "print(heavy)\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

@@ -9,8 +9,8 @@ from typing import Annotated, Literal
 import typer
 
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.cli.verb import Crop, Verb
-from fedlgr.shell.config import DataConfig
 from fedlgr.shell.console import Progress, table
 from fedlgr.shell.signals import terminate_as_interrupt
 
@@ -83,7 +83,7 @@ def check(
     """Validate FOLDER (a MANNERS-DB-layout folder) and summarise it: its scenes, and
     their split between the clients."""
     summarise(
-        DataConfig(
+        conf.DataConfig(
             path=folder,
             modality=modality,
             image_size=size,

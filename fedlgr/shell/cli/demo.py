@@ -22,14 +22,14 @@ from typing import Annotated, Literal
 import typer
 
 from fedlgr.core.metrics import SCORES, headline_scores
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.stores import check_tracking
 from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verb
-from fedlgr.shell.config import CONF_DIR, load_config
 from fedlgr.shell.console import Progress, table
 
 DEFAULT_DATA = Path("data/manners-synth")
-DEMO_CONFIG = CONF_DIR / "experiment" / "demo.yaml"
-FCL_CONFIG = CONF_DIR / "experiment" / "demo_fcl.yaml"
+DEMO_CONFIG = conf.CONF_DIR / "experiment" / "demo.yaml"
+FCL_CONFIG = conf.CONF_DIR / "experiment" / "demo_fcl.yaml"
 METHODS = ("FedAvg", "FedRootAvg")
 FCL_METHODS = ("FedRoot-FT", "FedLGR")
 FEATURES_FCL = ["data.modality=features", "model.root=mlp", "continual.rounds_per_task=8"]
@@ -96,7 +96,7 @@ def demo(
         return _fcl_demo(overrides, data, seed, modality, pretrain_scenes, pretrain_images)
     results = []
     for method in METHODS:
-        config = load_config(DEMO_CONFIG, [*overrides, f"method={method}"])
+        config = conf.load_config(DEMO_CONFIG, [*overrides, f"method={method}"])
         print()
         results.append(run_experiment(config, show_runs=False))
     rows = []
@@ -133,7 +133,7 @@ def _fcl_demo(
     if modality == "features":
         base = FEATURES_FCL
     else:
-        probe = load_config(FCL_CONFIG, overrides)
+        probe = conf.load_config(FCL_CONFIG, overrides)
         root = synthetic_root(
             data.parent / "pretrain",
             seed=seed,
@@ -147,7 +147,7 @@ def _fcl_demo(
         base = [f"model.weights={root}"]
     results = []
     for method in FCL_METHODS:
-        config = load_config(FCL_CONFIG, [*base, *overrides, f"method={method}"])
+        config = conf.load_config(FCL_CONFIG, [*base, *overrides, f"method={method}"])
         print()
         results.append(run_experiment(config, show_runs=False))
     print(

@@ -7,8 +7,8 @@ from typing import Annotated
 
 import typer
 
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.cli.verb import Crop, Verb
-from fedlgr.shell.config import DataConfig
 from fedlgr.shell.console import Progress
 
 app = typer.Typer()
@@ -37,7 +37,7 @@ def pretrain(
     from fedlgr.shell.pretrain import pretrain_root
 
     with Progress("decoding images", unit="img") as bar:  # only when not cached yet
-        scenes = load_scenes(DataConfig(path=data, image_size=size, crop=crop), progress=bar)
+        scenes = load_scenes(conf.DataConfig(path=data, image_size=size, crop=crop), progress=bar)
     with Progress("pretraining", unit="img") as bar:
         result = pretrain_root(scenes, out, width=width, images=images, seed=seed, progress=bar)
     print(

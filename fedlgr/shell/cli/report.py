@@ -8,8 +8,8 @@ from typing import Annotated, Literal
 
 import typer
 
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.cli.verb import TrackingUri, Verb
-from fedlgr.shell.config import TrackingConfig
 from fedlgr.shell.tracking.uri import masked_text, resolve_uri
 
 app = typer.Typer()
@@ -103,7 +103,7 @@ def report(
 
     uri = resolve_uri(tracking_uri)
     if experiment is None and sweep is None:
-        experiment = TrackingConfig().experiment
+        experiment = conf.TrackingConfig().experiment
     settings = {}
     for item in where:
         key, sep, value = item.partition("=")

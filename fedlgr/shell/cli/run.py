@@ -7,10 +7,10 @@ from typing import Annotated
 
 import typer
 
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.paths import check_data_path
 from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.cli.verb import TrackingUri, Verb
-from fedlgr.shell.config import find_config, load_config, to_yaml
 from fedlgr.shell.signals import terminate_as_interrupt
 
 app = typer.Typer()
@@ -97,9 +97,9 @@ def run(
     path, overrides = split_config_and_overrides(items)
     if tracking_uri:
         overrides.append(f"tracking.uri={tracking_uri}")
-    config = load_config(None if path is None else find_config(path), overrides)
+    config = conf.load_config(None if path is None else conf.find_config(path), overrides)
     if print_config:
-        print(to_yaml(config), end="")
+        print(conf.to_yaml(config), end="")
         return 0
     check_data_path(config.data.path)  # before torch's import (~12 s), as is the next check
     if config.tracking.enabled:  # before torch's import (~12 s): an unreachable URI fails now

@@ -10,9 +10,9 @@ from typing import Annotated
 import typer
 
 from fedlgr.errors import FedlgrError
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.stores import check_tracking
 from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verb
-from fedlgr.shell.config import SWEEPS_DIR
 from fedlgr.shell.machine import available_cores
 from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.tracking.uri import given_uri, masked_echo, sqlite_file
@@ -27,7 +27,7 @@ def shipped_sweeps() -> list[tuple[str, str]]:
     installed package's): its ``description:``, else its header comment's first line if
     short. Plain text reading, no YAML parser: ``fedlgr --help`` builds this too."""
     listing = []
-    for path in sorted(SWEEPS_DIR.glob("*.yaml")):
+    for path in sorted(conf.SWEEPS_DIR.glob("*.yaml")):
         lines = path.read_text(encoding="utf-8").splitlines()
         described = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("description:")]
         header = lines[0].lstrip("# ").strip() if lines and lines[0].startswith("#") else ""
@@ -42,7 +42,7 @@ def _sweep_epilog() -> str:
         return ""
     width = max(len(name) for name, _ in listing)
     lines = [f"{name.ljust(width)}  {text}".rstrip() for name, text in listing]
-    return f"\b\nshipped sweeps (in {SWEEPS_DIR}):\n" + "\n".join(lines)  # \b: as written
+    return f"\b\nshipped sweeps (in {conf.SWEEPS_DIR}):\n" + "\n".join(lines)  # \b: as written
 
 
 @app.command(

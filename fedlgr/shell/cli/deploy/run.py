@@ -14,11 +14,10 @@ from typing import Annotated
 import typer
 
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.checks.experiment import check_robots_are_real
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import PrintCommand, absolute
 from fedlgr.shell.cli.verb import Overrides, Verb
-from fedlgr.shell.config import load_config
 from fedlgr.shell.deploy.flower import APP_DIR
 from fedlgr.shell.tracking.uri import masked_uris
 
@@ -127,9 +126,10 @@ def _check_config(config: Path, overrides: list[str]) -> None:
     if not config.is_file():
         print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
         return
+    from fedlgr.shell.checks.experiment import check_robots_are_real  # lazy: pydantic
     from fedlgr.shell.deploy.roster import roster_of  # lazy: cryptography and yaml
 
-    loaded = load_config(config, overrides)
+    loaded = conf.load_config(config, overrides)
     check_robots_are_real(loaded)
     roster_of(loaded)
 

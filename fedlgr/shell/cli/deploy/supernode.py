@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from fedlgr.errors import ConfigError, FedlgrError
+from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.cli.deploy.options import (
@@ -25,7 +26,6 @@ from fedlgr.shell.cli.deploy.options import (
     own_folder,
 )
 from fedlgr.shell.cli.verb import Verb
-from fedlgr.shell.config import MAX_PER_MACHINE
 from fedlgr.shell.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
 
 SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machine
@@ -152,9 +152,9 @@ def _check_options(args: SimpleNamespace) -> Path:
     address(args.superlink)
     if args.client is not None and args.client < 0:
         raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
-    if args.threads is not None and not 1 <= args.threads <= MAX_PER_MACHINE:
+    if args.threads is not None and not 1 <= args.threads <= conf.MAX_PER_MACHINE:
         raise FedlgrError(
-            f"--threads {args.threads}: 1 to {MAX_PER_MACHINE} (runtime.threads' bound)"
+            f"--threads {args.threads}: 1 to {conf.MAX_PER_MACHINE} (runtime.threads' bound)"
         )
     data = absolute(args.data)
     if why := not_a_folder(data):  # a file or a loop there is named, not "no such folder"
