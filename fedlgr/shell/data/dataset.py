@@ -1,11 +1,7 @@
 """A dataset folder as per-scene tensors: what every training path reads.
 
-``load_scenes(config)`` reads ``all_data.csv`` (validated, ratings averaged per stamp) and,
-for the image modality, the decode-once image store. The result holds, in stamp order,
-the targets (mean rating of the 8 actions), the features-modality inputs (27 descriptors
-+ 2 mode flags) and, for images, a uint8 ``(N, 3, S, S)`` tensor. ``load_split`` also
-splits them, from the CSV before any image is decoded, so a split that cannot be used is
-refused in a moment.
+The targets and descriptors come from ``all_data.csv`` (ratings averaged per stamp), the
+images of the image modality from the decode-once image store.
 """
 
 from __future__ import annotations
@@ -66,10 +62,9 @@ def load_split(
     scheduled: Sequence[str] = (),
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Scenes, FederatedSplit]:
-    """The scenes of ``config`` and their :func:`make_split` (``scheduled``: the tasks
-    every client must hold). The split is made from ``all_data.csv`` before any image is
-    decoded, so a split that cannot be used is refused in a moment; it is made again
-    where images that failed to decode dropped scenes."""
+    """The scenes of ``config`` and their :func:`make_split` (``scheduled``: the tasks every
+    client must hold), split before any image is decoded so that a split that cannot be used
+    is refused at once; split again where images that failed to decode dropped scenes."""
     table = read_table(config)
     split = make_split(table, config, scheduled)
     scenes = load_scenes(config, progress, table)

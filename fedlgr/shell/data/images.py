@@ -1,9 +1,7 @@
 """Match scene images to stamps, decode them once into a uint8 tensor store, cache it.
 
-Images are decoded, cropped and resized exactly once (``decode`` below); the resulting
-``(N, 3, S, S)`` uint8 tensor is kept in memory and saved under the cache folder keyed by
-the source files (name, size, modification time) and the settings, so a second load of
-the same data reads one file and decodes nothing. Training never touches a PNG.
+The store is cached under a key of the source files (name, size, mtime) and the settings, so a
+second load decodes nothing; training never touches a PNG.
 """
 
 from __future__ import annotations
@@ -31,8 +29,7 @@ from fedlgr.shell.checks.paths import broken_link
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _STAMP_PREFIX = re.compile(r"^(\d+)(?!\d)")
 CACHE_FORMAT = 1
-# Smaller images are refused as degenerate (a 1x1 file among renders): every image is
-# resized to data.image_size, so the sizes may differ, but one this small shows no scene.
+# Smaller images are refused as degenerate (a 1x1 file among renders): they show no scene.
 MIN_IMAGE_SIDE = 8
 
 Crop = tuple[int | None, int | None, int | None, int | None]
@@ -80,10 +77,7 @@ def _listing(items: list, limit: int = 10) -> str:
 
 def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
     """Read one image as RGB, crop it, resize it to ``size`` x ``size``: (3, S, S) uint8.
-
-    Pillow decodes (torchvision 0.29 deprecated its own decoders in favour of TorchCodec,
-    a further dependency); resizing is torchvision's v2 antialiased resize on the tensor.
-    """
+    Pillow decodes, as torchvision deprecated its own decoders for TorchCodec, a dependency more."""
     try:
         with Image.open(path) as file:
             _refuse_oversized(path, file)
@@ -161,11 +155,8 @@ def load_image_store(
     cache_dir: Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> ImageStore:
-    """Decode the image of every stamp once, or read the store from the cache.
-
-    ``on_bad_image="skip"`` drops scenes whose image is missing or cannot be decoded, with a
-    warning naming them; ``"error"`` raises a :class:`DataError` naming the file/stamps.
-    """
+    """Decode the image of every stamp once, or read the store from the cache; a scene without
+    a usable image is dropped with a warning (``on_bad_image="skip"``) or refused (``"error"``)."""
     match = match_images(image_dir, stamps)
     if match.orphans:
         warnings.warn(
@@ -213,9 +204,8 @@ def _check_store_fits(n: int, size: int) -> None:
 
 
 def _check_cache_dir(cache_dir: Path) -> None:
-    """Refuse a cache folder that is, or lies under, a file, a device or pipe, or a link
-    that loops or leads nowhere, before decoding: after it, the cache could only be skipped
-    with a warning, its decoding lost."""
+    """Refuse a cache folder that is, or lies under, a file, a device or a broken link, before
+    decoding: after it, the cache could only be skipped with a warning, its decoding lost."""
     if why := broken_link(cache_dir):
         setting = cache_dir_setting(cache_dir)
         raise ConfigError(
@@ -239,8 +229,7 @@ def _read_cache(cache_file: Path, wanted: list[int], size: int, n_missing: int):
     try:
         saved = torch.load(cache_file, weights_only=True)
     except Exception as err:
-        # torch.load raises IndexError, UnpicklingError, RuntimeError, EOFError, ... on
-        # damage; a damaged cache is rebuilt, never fatal
+        # torch.load raises any of many errors on damage; a damaged cache is rebuilt, never fatal
         reason = first_line(err)
         warnings.warn(
             f"{cache_file}: unreadable image cache, decoding again ({reason})", stacklevel=3
@@ -265,13 +254,8 @@ def _describe(value) -> str:
 
 
 def _cache_mismatch(saved, wanted: list[int], size: int, n_missing: int) -> str | None:
-    """Why ``saved`` is not the store of the ``wanted`` stamps at ``size`` px, or ``None``.
-
-    The key covers the files, the size, the crop and the policy, so a matching store holds
-    uint8 ``(N, 3, size, size)`` images of stamps taken in order from ``wanted``, and
-    ``skipped`` names the ``n_missing`` stamps without an image plus one entry per image
-    left out, so that ``N + len(skipped) == len(wanted) + n_missing``.
-    """
+    """Why ``saved`` is not the store its key promises, or ``None``: uint8 ``(N, 3, size, size)``
+    images of stamps in ``wanted``'s order, and ``N + len(skipped) == len(wanted) + n_missing``."""
     if not isinstance(saved, dict) or not {"stamps", "images", "skipped"} <= saved.keys():
         return "not a dict of stamps, images and skipped"
     stamps, images, skipped = saved["stamps"], saved["images"], saved["skipped"]

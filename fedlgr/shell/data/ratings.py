@@ -1,8 +1,7 @@
 """Read and validate ``all_data.csv``, and average the ratings of each scene (docs/data.md).
 
-Every problem is reported with the file, the row (data rows count from 1; the header is
-line 1 of the file, so row r is line r + 1) or the stamp, and the column. All problems in
-a file are collected before raising, so one run shows what needs fixing.
+Every problem in a file is collected, each named by row (row r is line r + 1) or stamp and
+column, so that one run shows what needs fixing.
 """
 
 from __future__ import annotations
@@ -29,10 +28,8 @@ from fedlgr.errors import DataError, join_problems
 
 _VALUE_COLUMNS = (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS, *LABEL_COLUMNS)
 
-# MANNERS-DB normalises its descriptors to 0..1, and even raw counts and distances stay in
-# the tens, so a magnitude above a million can only be a unit or typing error or a
-# sentinel (1e308, -9999999). Let in, it dominates the standardised inputs and overflows
-# float32 (max 3.4e38) once squared in a variance or a loss.
+# Descriptors are 0..1 (raw ones stay in the tens): a magnitude over a million is an error or a
+# sentinel, and overflows float32 once squared in a variance or a loss.
 DESCRIPTOR_LIMIT = 1e6
 _INT64 = np.iinfo(np.int64)
 
@@ -101,10 +98,8 @@ def _parse_stamp(text: str, where: str, problems: list[str]) -> int:
 
 
 def read_ratings(path: Path | str) -> SceneTable:
-    """Read a MANNERS-DB ``all_data.csv`` and average its ratings per stamp.
-
-    Raises :class:`DataError` naming the file and every row/stamp and column at fault.
-    """
+    """Read a MANNERS-DB ``all_data.csv`` and average its ratings per stamp; a
+    :class:`DataError` names every row/stamp and column at fault."""
     path = Path(path)
     if path.is_dir():
         path = path / CSV_NAME
@@ -145,11 +140,8 @@ def read_ratings(path: Path | str) -> SceneTable:
 
 
 def _average(path: Path, row_stamps: np.ndarray, parsed: np.ndarray) -> SceneTable:
-    """Mean of ``parsed`` (one row per rating, ``_VALUE_COLUMNS``) over each stamp's rows.
-
-    Only the labels are averaged: the mode flags and descriptors describe the scene, so all
-    rows of a stamp must agree on them (two scenes under one stamp are an error, not a mean).
-    """
+    """Mean of ``parsed`` (a row per rating) over each stamp's rows, which must agree on the mode
+    flags and descriptors: they describe the scene, and only the labels are averaged."""
     stamps, inverse, counts = np.unique(row_stamps, return_inverse=True, return_counts=True)
     scene = [_VALUE_COLUMNS.index(c) for c in (*MODE_COLUMNS, *DESCRIPTOR_COLUMNS)]
     lo = np.full((len(stamps), len(scene)), np.inf)

@@ -1,18 +1,7 @@
 """Train/test split, client shards and continual-learning tasks (docs/data.md).
 
-All functions work on positions into a :class:`~fedlgr.shell.data.dataset.Scenes` and are
-deterministic for a seed. The test set is shared by every client.
-
-* ``train_test_split``: 3:1 over scenes, stratified by group (the task by default) so both
-  tasks are in the test set in proportion.
-* ``shard_clients``: IID equal-size shards (sizes differ by at most one), or non-IID
-  shards where each client's share of every group is drawn from Dirichlet(alpha)
-  (Hsu et al. 2019): small alpha gives clients dominated by one group.
-* ``split_tasks``: the scenes of each task, in the schedule's order.
-* ``make_split``: all of it for a :class:`~fedlgr.shell.config.DataConfig`. A client may
-  hold no training scenes of a task (plain FL trains on all of a client's scenes at once),
-  except of the tasks a continual-learning schedule trains each client on in turn: those
-  are refused with the largest ``data.clients`` that gives every client each of them.
+All work on positions into the scenes and are deterministic for a seed; the test set is shared
+by every client.
 """
 
 from __future__ import annotations
@@ -55,10 +44,8 @@ def shard_clients(
     groups: np.ndarray | None = None,
     alpha: float = 0.5,
 ) -> list[np.ndarray]:
-    """Split the positions ``train`` into ``n_clients`` sorted shards.
-
-    ``groups`` (one id per entry of ``train``) is needed for ``partition="dirichlet"``.
-    """
+    """Split the positions ``train`` into ``n_clients`` sorted shards: IID, or each client's
+    share of every one of ``groups`` drawn from Dirichlet(``alpha``) (Hsu et al. 2019)."""
     if n_clients > len(train):
         raise ConfigError(
             f"data.clients={n_clients}: more clients than the {len(train)} training scenes"
@@ -91,10 +78,7 @@ def _iid_order(train: np.ndarray, seed: int) -> np.ndarray:
 
 
 def task_members(table: SceneTable, tasks: tuple[TaskSpec, ...]) -> np.ndarray:
-    """For each scene, the position of its task in ``tasks`` (-1 if it belongs to none).
-
-    A scene matching two tasks is an error: tasks must not overlap.
-    """
+    """For each scene, the position of its task in ``tasks`` (-1: none); overlaps are refused."""
     member = np.full(len(table), -1, dtype=np.int64)
     for t, task in enumerate(tasks):
         # Values are means over raters: 0.7 averaged over 3 rows is 0.6999999999999998.
@@ -139,9 +123,8 @@ def _label_quartile(table: SceneTable) -> np.ndarray:
 def make_split(
     table: SceneTable, config: DataConfig, scheduled: Sequence[str] = ()
 ) -> FederatedSplit:
-    """Train/test, client shards and per-client tasks for ``config``, seeded by
-    ``config.seed``. The shared test set must hold every task. A client may hold no
-    training scenes of a task, except of those ``scheduled`` (``continual.tasks``: a
+    """Train/test, client shards and per-client tasks for ``config``. The test set must hold
+    every task; a client may lack one but those ``scheduled`` (``continual.tasks``: a
     continual-learning schedule trains every client on each of them in turn)."""
     member = task_members(table, config.tasks)
     train, test = train_test_split(member, config.test_fraction, config.seed)
@@ -182,9 +165,8 @@ def _lacking(labels: np.ndarray, sizes: Sequence[int], needed: Sequence[int]) ->
 def _most_clients(
     member: np.ndarray, train: np.ndarray, groups: np.ndarray, config: DataConfig, needed
 ) -> tuple[int | None, int]:
-    """The largest client count below ``config.clients`` whose split gives every client
-    scenes of every task in ``needed`` (None: none found), and the smallest count tried
-    (the search stops after ``_SEARCH_S`` seconds)."""
+    """The largest client count below ``config.clients`` that gives every client every task in
+    ``needed`` (None: none found in ``_SEARCH_S``), and the smallest count tried."""
     stop = time.perf_counter() + _SEARCH_S
     order = member[_iid_order(train, config.seed)]  # the IID shards of any client count
     for n in range(config.clients - 1, 0, -1):

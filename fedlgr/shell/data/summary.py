@@ -35,9 +35,8 @@ def describe_scenes(scenes: Scenes) -> str:
 
 
 def describe_split(split: FederatedSplit, most: int = 20) -> str:
-    """One row per client and one for the shared test set. Over ``most`` clients, the
-    first ``most // 2`` rows, then the scenes per client (min, median, max) and how many
-    clients hold no training scenes of each task (plain FL allows it)."""
+    """One row per client and one for the shared test set; over ``most`` clients, the first
+    ``most // 2`` rows and the scenes per client (min, median, max, clients with none)."""
     tasks = list(split.test_tasks)
     clients = split.clients
     shown = clients if len(clients) <= most else clients[: most // 2]

@@ -1,10 +1,7 @@
 """``fedlgr report``: the paper's Tables I-IV and plots, regenerated from what MLflow holds.
 
-:func:`make_report` reads the finished runs of an experiment or a sweep
-(:mod:`~fedlgr.shell.report.runs`), builds the tables (:mod:`~fedlgr.shell.report.tables`, pure),
-writes each as ``tableN.md``, ``.tex`` and ``.csv`` (:mod:`~fedlgr.shell.report.render`) next to
-the PNGs (:mod:`~fedlgr.shell.report.plots`), and logs the folder back to MLflow under
-``report/``.
+Each table is written as ``tableN.md``, ``.tex`` and ``.csv`` next to the PNGs, and the folder
+logged back to MLflow under ``report/``.
 """
 
 from __future__ import annotations
@@ -114,18 +111,9 @@ def make_report(
     paper: bool = False,
     storage: str | None = None,
 ) -> ReportResult:
-    """Write the tables and plots of ``experiment`` or one study of ``sweep`` to ``out``
-    (default ``reports/<experiment>`` or ``reports/sweeps/<sweep>/<study>-<parent run>``,
-    a sub-folder per filter) and, with ``log``, log them to MLflow.
-
-    Each cell averages replicates only (:mod:`~fedlgr.shell.report.cells`): repeats of one seed
-    count once, runs of other settings in one cell are refused (narrow them with
-    ``where``, e.g. ``{"federated.rounds": "20"}``). ``paper``: Tables I and II carry the
-    paper's published values under each method's runs (:mod:`~fedlgr.shell.report.paper`).
-
-    A sweep's report also has a row per trial (``trials.md``/``.csv``) and Optuna's plots
-    (:mod:`~fedlgr.shell.report.sweep`), its study read from ``storage`` (default: the one
-    its parent run names), and its paper tables only the rows and columns with values."""
+    """Write the tables and plots of ``experiment`` or one study of ``sweep`` to ``out`` and,
+    with ``log``, log them to MLflow. A cell averages replicates only: runs of other settings
+    are refused (narrow them with ``where``); ``paper`` adds the paper's published values."""
     if out is not None:  # before reading the store: a wrong --out fails at once
         _check_folder(Path(out))
     client = mlflow_runs.open_store(uri)

@@ -1,16 +1,7 @@
 """Which runs a table cell may average: replicates, runs whose settings differ only in seeds.
 
-A cell of a table is (benchmark, method, clients, augmentation). It averages the runs whose
-resolved configs - the flattened config each run logs as MLflow params
-(:func:`fedlgr.shell.tracking.context.run_params`) - are equal except for the seeds
-(:data:`SEEDS`). Runs of one cell with other settings (e.g. ``federated.rounds``) are
-refused in one line that names the cell and the settings, with how to report them apart
-(``--where KEY=VALUE``, or separate experiments). Two runs with the same settings AND seeds
-(a repeat, e.g. a run made again after a resume test) are one replicate: the newest (by
-start time) is kept, and the report says so once.
-
-Runs without logged params (made by hand, or by something other than fedlgr's Tracker)
-cannot be compared: each counts as a replicate of its own.
+Repeats of one seed count once (the newest); a cell whose runs differ in other settings is
+refused. A run that logged no params cannot be compared: it is a replicate of its own.
 """
 
 from __future__ import annotations
@@ -21,15 +12,9 @@ from collections.abc import Sequence
 from fedlgr.shell.report.runs import ReportError, RunRecord
 from fedlgr.shell.tracking.context import used_settings
 
-# The seeds: model initialisation, batch order and augmentation (``seed``), and the split of
-# the scenes into clients and train/test (``data.seed``). Runs differing only here are
-# replicates of one experiment.
+# Runs differing only in these seeds (training; the split into clients) are replicates.
 SEEDS = ("seed", "data.seed")
-# Settings that change no number a table shows, so they never split a cell: where and how a
-# run is recorded (``tracking.*``: experiment, run name, checkpoints, heartbeats, system
-# metrics), where and how it runs (``runtime.*``: processes, threads, concurrency,
-# accelerator, progress bar, timeouts - the same training on other hardware), and the
-# decoded-image cache (``data.cache``, ``data.cache_dir``).
+# Settings that change no number a table shows (how a run is recorded, run or cached).
 IGNORED_PREFIXES = ("tracking.", "runtime.")
 IGNORED = frozenset({"data.cache", "data.cache_dir"})
 
@@ -48,9 +33,8 @@ def describe(cell: Cell) -> str:
 
 
 def settings(record: RunRecord) -> dict[str, str] | None:
-    """The run's settings that a cell must share: the params it uses (a run that logged
-    every setting, as fedlgr did before, is read as if it had logged only those) but the
-    seeds and the :data:`IGNORED` ones; None for a run that logged no params."""
+    """The settings a cell's runs must share: the params the run uses, but the seeds and
+    :data:`IGNORED`; None for a run that logged no params."""
     if not record.params:
         return None
     used = used_settings(record.params, record.tags.get("runtime") == "flower")
@@ -67,8 +51,7 @@ def seeds(record: RunRecord) -> str:
 
 
 def newest_per_seed(records: Sequence[RunRecord]) -> tuple[list[RunRecord], str | None]:
-    """One run per cell, settings and seeds: the newest by start time. Returns the runs
-    kept and, where repeats were left out, one line that says so."""
+    """One run per cell, settings and seeds, the newest; and a line naming the repeats left out."""
     groups: dict[tuple, list[RunRecord]] = {}
     for r in records:
         found = settings(r)
@@ -95,10 +78,8 @@ def newest_per_seed(records: Sequence[RunRecord]) -> tuple[list[RunRecord], str 
 
 
 def best_per_cell(records: Sequence[RunRecord], objective: str) -> list[RunRecord]:
-    """A sweep over coefficients has several settings per cell: the table shows the best of
-    them by the sweep's objective (e.g. ``minimize test/rmse``, the paper's grid-searched
-    coefficients), averaged over its seeds when the sweep has several. The runs of the best
-    setting of each cell; every run where ``objective`` is not one."""
+    """The runs of each cell's best setting by a sweep's ``objective`` (e.g. ``minimize
+    test/rmse``), as a sweep has several per cell; every run where ``objective`` is not one."""
     direction, _, metric = objective.partition(" ")
     if direction not in ("minimize", "maximize") or not metric:
         return list(records)

@@ -1,10 +1,6 @@
 """The paper's published Tables I and II (Churamani et al. 2024, arXiv:2405.15773, on
-MANNERS-DB), as data, and the rows they add to a report (``fedlgr report --paper``).
-
-Each of the paper's rows goes right under the report's row of the same method, named
-``<method> (paper)``, in the columns the paper has (loss, RMSE and PCC; 2 and 10 clients;
-Table II after Task 1 and after Task 2); its cells are never marked best: the marks compare
-the runs. The values are copied from the paper's LaTeX source as printed (three decimals).
+MANNERS-DB) as printed, and the rows they add under each method (``fedlgr report --paper``);
+never marked best, as the marks compare runs.
 """
 
 from __future__ import annotations
@@ -131,8 +127,7 @@ TABLE2: dict[tuple[bool, str], tuple[tuple[float, ...], tuple[float, ...]]] = {
     ),
 }
 
-# The score columns of the paper's Tables I and II, in its order: fixed, not
-# fedlgr.core.metrics.SCORES, since these rows copy what the paper printed (no CCC).
+# The paper's score columns, in its order: not metrics.SCORES, as they copy what it printed.
 SCORES = ("loss", "rmse", "pcc")
 CLIENTS = (2, 10)
 

@@ -1,14 +1,6 @@
 """The report's PNGs (matplotlib, Agg backend): per-round curves, forgetting and costs.
 
-* ``{fl,fcl}_curves.png``: every headline score per round (test RMSE, PCC, CCC: a column
-  of panels each), a line per method (the mean over its runs), a row of panels per setting
-  (clients, augmentation);
-* ``forgetting.png``: Task 1's forgetting at the end (``after_task{K}/forgetting/...``,
-  positive = forgotten) of every headline score, a bar per method and setting;
-* ``{fl,fcl}_costs.png``: CPU s and GPU % per client per round, a bar per method and
-  setting.
-
-A plot without data is not drawn.
+A line or bar per method (the mean over its runs), per setting; a plot without data is not drawn.
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
 """A :class:`~fedlgr.shell.report.tables.Table` as Markdown, LaTeX and CSV.
 
-Markdown and LaTeX follow the paper: the best value of a column **bold** (``\\textbf``),
-the second-best [bracketed], a missing value "—"; Tables III/IV add the FedRoot reduction
-as "(▼ 86.6%)". The CSV holds the same values unrounded and unmarked, a missing value
-empty, with one ``... reduction %`` column after each FedRoot cost column.
+Markdown and LaTeX mark a column's best **bold** and second-best [bracketed], as the paper
+does; the CSV holds the same values unrounded and unmarked.
 """
 
 from __future__ import annotations

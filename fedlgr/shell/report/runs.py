@@ -1,16 +1,7 @@
 """Finished fedlgr runs read back from MLflow, and the report logged back to it.
 
-A report covers the FINISHED runs of one experiment (``--experiment``) or the trials of
-one study of a sweep (``--sweep``: runs tagged ``sweep=NAME``, in every experiment or in
-the named one). Runs that are not experiments are left out: report runs (tag
-``fedlgr.kind=report``) and sweep parent runs (``fedlgr.kind=sweep``), as are runs without
-the ``method`` and ``benchmark`` tags that :class:`fedlgr.shell.tracking.mlflow_run.Tracker` sets.
-
-A sweep's studies are told apart by their parent run (the trials' ``mlflow.parentRunId``):
-a study keeps its parent run's id in its Optuna storage, so relaunching it reuses it, while
-the same sweep launched on a fresh storage - a new study, maybe of the same name - makes a
-new one. The report reads one study (the newest parent run, or ``--study``) and is logged
-to that study's parent run.
+A report covers one experiment's finished runs, or one study of a sweep (told apart by its
+parent run, which the report is logged to); report runs and sweep parent runs are left out.
 """
 
 from __future__ import annotations
@@ -30,8 +21,7 @@ from fedlgr.shell.tracking.store import open_client
 
 KIND = "fedlgr.kind"
 NOT_EXPERIMENTS = ("report", "sweep")
-# Swept settings that place a trial in a table cell rather than tune it, and the seeds,
-# which make replicates of one setting (fedlgr.shell.report.cells.SEEDS).
+# Swept settings that place a trial in a table cell rather than tune it, and the seeds.
 CELL_KEYS = frozenset({"method", "data.clients", "data.augment", "config", "seed", "data.seed"})
 
 
@@ -77,9 +67,8 @@ class RunRecord:
 
     @property
     def swept(self) -> dict[str, object]:
-        """A sweep trial's swept values (tag ``swept``, JSON), but those that choose the
-        table cell (method, clients, augmentation, base config) and the seeds; {} for other
-        runs."""
+        """A sweep trial's swept values (tag ``swept``) but those that choose its table cell
+        and the seeds; {} for other runs."""
         try:
             params = json.loads(self.tags.get("swept", "{}"))
         except ValueError:

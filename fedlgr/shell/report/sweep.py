@@ -1,14 +1,7 @@
 """A sweep's own report: each trial's swept settings against the objective and the scores.
 
-The paper's tables show a study's best trial per cell; this answers the sweep's question -
-how the objective moves with the settings it searched. :func:`read_trials` reads the study
-from its Optuna storage, found as the sweep wrote it down (its parent run's tags ``storage``
-and ``study``; ``--storage`` for another URL, e.g. where a password was masked), and each
-trial's test scores from its MLflow run. When the storage cannot be reached, the trials come
-from the parent run's child runs in MLflow instead (tags ``trial`` and ``swept``), which the
-report says in one line. :func:`write_trials` writes them as ``trials.md`` and
-``trials.csv``, a row per trial, best first; :mod:`~fedlgr.shell.report.sweep_plots` draws
-Optuna's plots of the same study.
+The study is read from the Optuna storage its parent run's tags name or, where that cannot be
+reached, from the parent run's child runs in MLflow.
 """
 
 from __future__ import annotations
@@ -109,7 +102,7 @@ def _load_study(url: str, name: str, parent_id: str):
             return None, f"{shown}: no file {path} here; report where the sweep ran, or --storage"
         if server_database(url):
             check_database(url, "--storage")
-        import optuna  # lazy: optuna (~1 s), only for a sweep's report
+        import optuna  # lazy: optuna, only for a sweep's report
 
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         study = optuna.load_study(study_name=name, storage=url)
@@ -234,8 +227,7 @@ def write_sweep_views(selection: Selection, out: Path, storage: str | None) -> S
 
 def without_empty(table: Table) -> Table:
     """A sweep's paper table with only the rows and columns that hold a value: a sweep of
-    one method has no business showing the paper's other methods as rows of dashes (an
-    experiment's report keeps them: it reproduces the paper's layout)."""
+    one method need not show the paper's other methods as rows of dashes."""
     rows = [row for block in table.blocks for _, row in block.rows]
     keep = [j for j in range(len(table.columns)) if any(r[j].value is not None for r in rows)]
     table.columns = [table.columns[j] for j in keep]

@@ -1,13 +1,5 @@
 """Optuna's own views of a sweep's study, as PNGs (``optuna.visualization.matplotlib``).
 
-* ``optuna_history.png``: the objective of each completed trial in the order they ran, and
-  the best so far;
-* ``optuna_slice.png``: the objective against each swept setting (a panel per setting);
-* ``optuna_importances.png``: how much each setting explains of the objective (fANOVA) -
-  only with 2 or more settings that vary and :data:`MIN_TRIALS_FOR_IMPORTANCE` completed
-  trials, and the report says why not otherwise;
-* ``optuna_contour.png``: the objective over each pair of settings - with 2 or more.
-
 Optuna marks these functions experimental; the warning is silenced around them only.
 """
 

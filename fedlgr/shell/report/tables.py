@@ -1,19 +1,7 @@
 """The paper's Tables I-IV as data, built from run records (pure: no MLflow, no files).
 
-* Table I (FL) and Table II (FCL): a row per method, column groups per number of clients
-  (the paper's 2 and 10, plus any other count that has runs), row blocks without / with
-  augmentation. Table I gives the final Loss, RMSE and PCC; Table II the same after Task 1
-  and after Task 2 (``after_task{k}/test/*``). In each column of each block the best value
-  is marked ``best`` and the second-best ``second`` (the paper's bold and [brackets]).
-* Tables III and IV (costs): a column per method, FedRoot variants next to their
-  full-model counterparts (FedAvg | FedRootAvg, FedAvg-EWC | FedRoot-EWC, ...; FedLGR has
-  none in the paper), rows CPU s and GPU % per client per round (``mean/cost/*``; wall time
-  and upload too), a block per setting that has runs. As in the paper, the lower value of
-  each pair is marked and the FedRoot cell carries its reduction in %.
-
-Several runs of one cell (same method, clients and augmentation) are averaged: replicates,
-whose settings differ only in their seeds (:mod:`fedlgr.shell.report.cells` makes sure of it); a
-cell without runs has no value, and a block without runs is left out.
+Tables I/II give each method's scores, the best and second-best marked; Tables III/IV its costs,
+each FedRoot variant beside its full-model counterpart with its reduction in %.
 """
 
 from __future__ import annotations
@@ -38,9 +26,8 @@ PAPER_CPU = "mean/cost/paper_cpu_s"
 
 
 def _cost_rows() -> tuple[tuple[str, str, float, int], ...]:
-    """Row label, run-level metric (per client per round, mean over rounds), scale and
-    decimals of every cost with a report label (fedlgr.core.metrics.COSTS); the paper's
-    CPU after the CPU."""
+    """Row label, run-level metric, scale and decimals of every cost with a report label;
+    the paper's CPU after the CPU."""
     rows = []
     for c in METRIC_COSTS:
         if c.label:
@@ -114,10 +101,8 @@ class Table:
 
 
 def mark_best(values: Sequence[float | None], lower_is_better: bool, decimals: int) -> list[str]:
-    """``best`` for the best value, ``second`` for the second-best, "" otherwise.
-
-    Values are compared as shown (rounded to ``decimals``), so equal-looking values get
-    the same mark; missing or non-finite values get none."""
+    """``best`` for the best value, ``second`` for the second-best, "" otherwise; compared as
+    shown (rounded to ``decimals``), so equal-looking values get the same mark."""
     shown = [
         float(f"{v:.{decimals}f}") if v is not None and math.isfinite(v) else None for v in values
     ]
@@ -149,9 +134,8 @@ def reduction_percent(full: float | None, root: float | None) -> float | None:
 
 
 def method_order(benchmark: str, records: Sequence[RunRecord]) -> list[str]:
-    """The table's rows: the paper's methods in ``fedlgr.core.methods`` order (Table II without
-    the -FT baselines), then -FT baselines, methods the paper has not (``in_paper``) and
-    unknown methods that have runs."""
+    """The table's rows: the paper's methods in ``fedlgr.core.methods`` order, then the -FT
+    baselines, other and unknown methods that have runs."""
     known = list(METHODS if benchmark == "FL" else FCL_METHODS)
     paper = [m for m in known if not m.endswith("-FT") and in_paper(m)]
     with_runs = {r.method for r in records if r.benchmark == benchmark}

@@ -1,49 +1,7 @@
 """A seeded synthetic living room written in the exact MANNERS-DB layout (docs/data.md).
 
-``fedlgr data synth --out DIR --scenes N --seed S [--size PX]`` writes ``DIR/all_data.csv``
-(one row per rating, the 38 MANNERS-DB columns in order) and ``DIR/images/<stamp>.png``, so
-every downstream code path is the one the real dataset takes. Stamps start at 250.
-
-What is in a scene (``layout.py``): walls, a sofa against a wall, a table, maybe a rug and a
-plant, a speaker; the robot with its heading and its operating mode - a **circle** (work
-radius 0.12..0.32 of the room) or an **arrow** (direction of operation, length 0.2..0.45);
-0-3 people on the sofa, maybe a conversation group of 2-4 people facing its centre (which
-sometimes encloses the robot), 0-3 more people standing about (about a third of them
-children), 0-2 dogs or cats, and music playing in a third of the scenes. Colours and floor
-textures vary from scene to scene. The 27 descriptors are computed from this layout and
-normalised to 0..1 (distances by 1.2, counts by their maxima).
-
-The appropriateness model (``appropriateness.py``), per action, on the 1..5 scale:
-
-* everyone and everything in the robot's **zone** costs appropriateness: an adult 0.4-1.1
-  (most for vacuuming and carrying big objects), a child more (0.6-1.4; warm food and big
-  objects are the worst near children), an animal 0.3-1.0 (small and big objects: tripping);
-* room-wide: music makes vacuuming (-0.9), mopping and conversation less appropriate;
-  people on the sofa make vacuuming and mopping less appropriate; every person and child in
-  the room costs a little for the noisy and bulky actions; a gathered group costs carrying
-  big objects and interrupting with a conversation;
-* serving: if the closest person is near (< 0.3) and faces the robot, carrying food and
-  drinks and starting a conversation become more appropriate; someone very near (< 0.2)
-  who does not face the robot makes carrying drinks and food riskier;
-* conversation starts low (2.0) and rises with each person in the zone who faces the robot.
-
-The two modes obey **different rules**, so learning arrow after circle can make a model
-forget circle:
-
-* circle: the zone is the disc of the work radius, all around the robot;
-* arrow: the zone is the corridor ahead of the robot (the arrow's length, +-0.12 wide);
-  people behind the robot do not count, people in the corridor who do not face the robot
-  count 1.6x, children 1.5x and animals 1.4x more; music and the sofa weigh only 0.2 as
-  much; serving needs the person ahead of the robot; carrying food and drinks gains +0.9,
-  carrying objects +0.8, starting a conversation +0.3, and cleaning loses 0.6.
-
-Raters: a pool of 60 simulated raters with a personal bias (sd 0.35); each scene is rated
-by 4-6 of them, each rating ``round(truth + bias + N(0, 0.5^2))`` clipped to 1..5. The
-dataset's target is the mean over a scene's raters, as for MANNERS-DB.
-
-Everything is drawn from ``numpy.random.default_rng([seed, ...])`` streams keyed by the
-scene's index, so a seed always gives byte-identical files, and the first N scenes of a
-larger set are the same N scenes.
+Written as ``all_data.csv`` and ``images/<stamp>.png``, so every code path is the real dataset's;
+each scene is drawn from streams keyed by its index, so a larger set starts with the same scenes.
 """
 
 from __future__ import annotations
@@ -142,10 +100,8 @@ def synthesize(
     force: bool = False,
     progress=None,
 ) -> SynthSummary:
-    """Write ``scenes`` synthetic scenes to ``out`` in the MANNERS-DB layout.
-
-    ``progress``, if given, is called as ``progress(scenes_written, scenes)``.
-    """
+    """Write ``scenes`` synthetic scenes to ``out`` in the MANNERS-DB layout; ``progress``, if
+    given, is called as ``progress(scenes_written, scenes)``."""
     if not 1 <= scenes <= MAX_SCENES:
         raise ConfigError(
             f"scenes={scenes}: 1 to {MAX_SCENES:,} scenes (MANNERS-DB has 1000; each scene is "

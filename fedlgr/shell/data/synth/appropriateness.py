@@ -1,22 +1,7 @@
 """The appropriateness model of the synthetic living room, and its simulated raters.
 
-Each action's true appropriateness is ``base - penalties + bonuses`` on the 1..5 scale,
-computed from the layout (see the package docstring for the rules in words). The two
-operating modes read the room differently:
-
-* **circle** - the robot works in place: what counts is who is *inside the work radius*,
-  wherever they are around the robot, whether they see it or not.
-* **arrow** - the robot travels along its direction of operation: what counts is who is
-  *in the corridor ahead* (up to the arrow's length, +-0.12 to the side); people behind
-  the robot do not matter, people ahead who do not face the robot (and so do not see it
-  coming) count 1.6x, and children and animals in the path count more than in a circle.
-  Transport is what the arrow mode is for, so against the circle mode carrying food and
-  drinks gains +0.9, carrying objects +0.8 and starting a conversation +0.3, while
-  cleaning loses 0.6 (offsets this large make a model trained on circle visibly forget it
-  when it learns arrow - the FCL benchmark relies on that).
-
-Raters: a fixed pool of simulated people, each with a personal bias; every rating is
-``round(true + bias + noise)`` clipped to 1..5, and several raters see each scene.
+The circle mode counts who is inside the work radius, the arrow mode who is in the corridor
+ahead: rules different enough that a model learning arrow after circle forgets circle (for FCL).
 """
 
 from __future__ import annotations
@@ -45,6 +30,7 @@ _GROUP = np.array([-0.2, -0.1, 0.0, 0.0, 0.0, 0.0, -0.4, -0.2])  # a group is ga
 _SERVE = np.array([0.0, 0.0, 0.3, 0.3, 0.5, 0.1, 0.0, 0.6])
 # Someone near (< 0.2) who does not face the robot (may bump into it).
 _BLIND = np.array([-0.2, -0.2, -0.3, -0.2, -0.5, -0.1, -0.3, 0.0])
+# Arrow mode is for transport: carrying gains, cleaning loses.
 _ARROW_SHIFT = np.array([-0.6, -0.6, 0.9, 0.9, 0.9, 0.8, 0.8, 0.3])
 # Arrow mode: children and animals in the path are tripping hazards.
 _ARROW_CHILD_FACTOR, _ARROW_ANIMAL_FACTOR = 1.5, 1.4

@@ -1,11 +1,6 @@
 """Draw a layout as a top-down living-room picture with Pillow.
 
-The scene is drawn at twice the requested size and box-filtered down, which softens edges
-at no real cost. What a model can see: walls, floor texture, rug, sofa, table, plant, a
-speaker (with sound waves and notes when music plays), the robot (white disc, dark wedge
-pointing where it faces), its operating zone (a cyan ring for the circle mode, a cyan
-arrow for the arrow mode), adults and children (coloured bodies, a head offset towards
-where they face), and dogs and cats.
+The scene is drawn at twice the requested size and box-filtered down, which softens edges.
 """
 
 from __future__ import annotations

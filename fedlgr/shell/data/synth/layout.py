@@ -1,9 +1,7 @@
 """Random living-room layouts and the 27 MANNERS-DB descriptors computed from them.
 
-A layout lives in the unit square seen from above (x to the right, y down, as in the
-image); angles are in radians, measured like ``atan2(dy, dx)`` in that frame. Everything
-the renderer draws and everything the appropriateness model reads comes from here, so the
-descriptors, the labels and the picture always agree.
+A layout lives in the unit square seen from above (y down, as in the image; angles as
+``atan2(dy, dx)``); picture, descriptors and labels all come from it, so they always agree.
 """
 
 from __future__ import annotations
@@ -180,9 +178,8 @@ def _free_spot(rng, taken, obstacles, spacing=0.07, lo=0.1, hi=0.9, tries=40):
 
 
 def sample_layout(rng: np.random.Generator) -> Layout:
-    """Draw one living-room scene. All randomness comes from ``rng``, in this order (a
-    seed's scenes depend on it): furniture, robot, people on the sofa, a conversation
-    group, people standing about, animals, speaker, music, style."""
+    """Draw one living-room scene from ``rng``; a seed's scenes depend on the order of the draws
+    (furniture, robot, people on the sofa, group, people standing, animals, speaker, music)."""
     sofa, sofa_side = _sofa(rng)
     tx, ty = rng.uniform(0.3, 0.6, size=2)
     table = (float(tx), float(ty), float(tx) + 0.16, float(ty) + 0.1)
@@ -315,11 +312,8 @@ def _animals(rng: np.random.Generator, furniture, taken: list) -> list[Animal]:
 
 
 def descriptors(layout: Layout) -> np.ndarray:
-    """The 27 MANNERS-DB descriptors, in ``DESCRIPTOR_COLUMNS`` order, each in 0..1.
-
-    Absent things read as far away and not facing: distance 1, direction 1 (behind),
-    facing flags 0; a missing group has size, radius and flags 0 and distance 1.
-    """
+    """The 27 MANNERS-DB descriptors in ``DESCRIPTOR_COLUMNS`` order, each in 0..1; absent
+    things read as far away (distance 1), behind (direction 1) and not facing (flags 0)."""
     lx, ly = layout.robot_x, layout.robot_y
     by_distance = sorted(layout.people, key=lambda p: distance(layout, p.x, p.y))
     nearest = (by_distance + [None] * 3)[:3]
