@@ -1,11 +1,7 @@
-"""The ``fedlgr`` command: one console script with verbs.
+"""The ``fedlgr`` command: one console script with verbs, each a typed function (typer).
 
-Each verb is a typed function in a module of this package, its options declared in its
-signature (typer), which imports what is heavy (torch, MLflow, Optuna, Flower) only when
-it runs, so ``fedlgr --help`` answers without loading torch. This module gathers the
-verbs, parses a command line with click, and runs the verb. Errors the user can fix
-(:class:`fedlgr.errors.FedlgrError`) are printed as one line and exit with status 1; a
-command line that does not parse, with status 2.
+A verb imports what is heavy only when it runs, so ``fedlgr --help`` answers without torch; an
+error the user can fix is one line and exit status 1, a command line that does not parse 2.
 """
 
 from __future__ import annotations
@@ -67,11 +63,9 @@ def command() -> click.Group:
 
 
 def parse(argv: list[str] | None = None) -> SimpleNamespace:
-    """The verb of ``argv`` (``verb``: its name, ``run``: its function, given its
-    arguments) and its arguments by name. ``--help`` and ``--version`` exit with status 0,
-    a usage error with 2 and a line on stderr, as argparse did. Overrides (``key=value``)
-    may come before, between and after options; ``--resume key=value`` is a bare
-    ``--resume``, then an override."""
+    """The verb of ``argv`` (``verb``: its name, ``run``: its function, given its arguments)
+    and its arguments by name; ``--help`` and ``--version`` exit 0, a usage error 2. Overrides
+    may come anywhere; ``--resume key=value`` is a bare ``--resume``, then an override."""
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         ctx = command().invoke(command().make_context("fedlgr", argv))
@@ -145,9 +139,8 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
 
 
 def _interrupted(err: KeyboardInterrupt, exits: bool) -> int:
-    """Say that a Ctrl-C or a SIGTERM/SIGHUP stopped the verb, and return the shell's exit
-    status for it (128 + the signal). ``exits``: the process is fedlgr and exits now (not a
-    caller's, e.g. a test's)."""
+    """Say that a Ctrl-C or a SIGTERM/SIGHUP stopped the verb; the shell's exit status for it
+    (128 + the signal). ``exits``: the process is fedlgr's and exits now (not a test's)."""
     terminated = isinstance(err, Terminated)
     name = str(err) if terminated and str(err) in ("SIGTERM", "SIGHUP") else "SIGTERM"
     code = 128 + (signal.Signals[name] if terminated else signal.SIGINT)  # the shell's way
@@ -164,12 +157,9 @@ def _interrupted(err: KeyboardInterrupt, exits: bool) -> int:
 
 
 def _leave_quickly() -> None:
-    """After an interrupt everything is recorded and the last line printed; what is left
-    is memory the exit returns. The garbage collections of the interpreter's teardown took
-    4-5 s after a sweep (a SIGTERM obeyed in ~9 s; 1.9 s without them): its objects are
-    left out of them (``gc.freeze``), and what the teardown then says of objects it did not
-    free (nanobind's leak report for triton's types) goes nowhere - fedlgr's line was the
-    last."""
+    """Exit fast after an interrupt: the teardown's garbage collections, seconds after a sweep,
+    skip its objects (``gc.freeze``), and what it says of objects it did not free (nanobind's
+    leak report) goes nowhere, so fedlgr's line stays the last."""
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

@@ -1,17 +1,7 @@
 """``fedlgr demo``: the README's main job on the embedded synthetic data.
 
-Generates the synthetic living room if the folder has no ``all_data.csv``, then runs a
-short FedAvg vs FedRootAvg comparison on it (``conf/experiment/demo.yaml``: 2 clients,
-random-init MobileNetV2, augmentation) tracked in MLflow, and prints a table of test
-scores and per-client costs.
-
-``fedlgr demo --fcl`` shows forgetting instead: FedRoot without a CL method (FedRoot-FT)
-vs FedLGR, circle then arrow (``conf/experiment/demo_fcl.yaml``). By default on the
-scenes' descriptors (``--modality features``: an MLP root, 8 rounds per task, about
-40 s), where FedLGR's latent space stays put and replay protects circle; with
-``--modality image`` on the images, from a root pretrained once, offline, on another
-synthetic set's descriptors (``fedlgr.shell.pretrain``) - there a MobileNetV2 root's
-latents drift in Task 2 and replay protects circle only in part (bench/README.md).
+FedAvg vs FedRootAvg on a synthetic living room, made if absent; ``--fcl`` shows forgetting
+instead: FedRoot-FT vs FedLGR, circle then arrow, on the descriptors or the images.
 """
 
 from __future__ import annotations

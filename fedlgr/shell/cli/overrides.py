@@ -13,9 +13,8 @@ from fedlgr.shell.tracking.uri import mask_password
 
 def check_repeats(args: SimpleNamespace) -> None:
     """Refuse a setting given twice with two values, or ``--tracking-uri`` with another
-    ``tracking.uri=``. One value spelled twice (``seed=1 'seed =01'``, one sqlite file by
-    two paths) and ``tracking.uri=null`` pass. A sweep's worker processes are given both by
-    the sweep that starts them, and are not checked."""
+    ``tracking.uri=``; one value spelled twice passes. A sweep's workers, given both by the
+    sweep, are not checked."""
     given: dict[str, tuple[str, object]] = {}
     for item in getattr(args, "items", None) or getattr(args, "overrides", None) or []:
         key, is_override, text = item.partition("=")

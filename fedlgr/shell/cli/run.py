@@ -15,9 +15,7 @@ from fedlgr.shell.signals import terminate_as_interrupt
 
 app = typer.Typer()
 
-# The setting groups and where each is documented (every setting with its default:
-# --print-config). Plain text: the help loads no config code. \b keeps click from
-# re-wrapping the listing.
+# Plain text, as the help loads no config code; \b keeps click from re-wrapping the listing.
 SETTINGS_EPILOG = """settings, as key=value (each one's default: fedlgr run --print-config):
 
 \b
@@ -101,8 +99,8 @@ def run(
     if print_config:
         print(conf.to_yaml(config), end="")
         return 0
-    check_data_path(config.data.path)  # before torch's import (~12 s), as is the next check
-    if config.tracking.enabled:  # before torch's import (~12 s): an unreachable URI fails now
+    check_data_path(config.data.path)  # before torch's import (seconds), as is the next check
+    if config.tracking.enabled:  # before torch's import: an unreachable URI fails now
         check_reachable(uri(config))
 
     from fedlgr.shell.run.experiment import run_experiment  # lazy: torch and Fabric

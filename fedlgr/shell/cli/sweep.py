@@ -148,8 +148,8 @@ def _tracking_uris(overrides: list[str]) -> list[str]:
 def _not_the_tracking_store(
     optuna_file: Path | None, storage: str, tracking_uri: str | None, overrides: list[str]
 ) -> None:
-    """One sqlite file for the study and the MLflow runs fails after 11 s with Alembic's
-    "No such revision or branch" and leaves both sets of tables in it: refused first."""
+    """One sqlite file for the study and the MLflow runs fails late with Alembic's "No such
+    revision or branch" and leaves both sets of tables in it: refused first."""
     uri = given_uri(tracking_uri, overrides)
     if optuna_file is None or not uri.startswith("sqlite:///"):
         return

@@ -16,11 +16,9 @@ typer.core.HAS_RICH = False
 
 
 class Verb(typer.core.TyperCommand):
-    """A verb's command (``@app.command(NAME, cls=Verb)``). Invoking it hands its parsed
-    context back: :func:`fedlgr.shell.cli.main` calls the function, within its checks and
-    guards, and :func:`fedlgr.shell.cli.parse` (the docs' test) calls nothing. Its
-    ``--resume`` may come without a RUN_ID (True then): click's options can leave their
-    value out, typer cannot declare one that does."""
+    """A verb's command (``@app.command(NAME, cls=Verb)``): invoking it hands its parsed context
+    back, for :func:`fedlgr.shell.cli.main` to call within its checks. Its ``--resume`` may come
+    without a RUN_ID (True): click's options can leave their value out, typer's cannot."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)

@@ -16,9 +16,8 @@ from fedlgr.shell.cli.verb import Verb
 if TYPE_CHECKING:
     from fedlgr.shell.deploy.roster import Roster
 
-# NAME and NAME.pub share the folder with the deployment's other files: a robot named after
-# one of them (or after another robot's public key) would overwrite it, or lose its private
-# key to it.
+# NAME and NAME.pub share the folder with the deployment's other files: a robot named after one
+# of them (or another robot's public key) would overwrite it, or lose its private key to it.
 TAKEN_NAMES = {"roster.yaml", "ca.pem", "ca.key", "server.pem", "server.key"}
 
 

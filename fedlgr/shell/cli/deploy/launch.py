@@ -42,8 +42,7 @@ def flower_env(exe: Path) -> dict[str, str]:
     env = {**os.environ, "PATH": f"{exe.parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     env.setdefault("FLWR_TELEMETRY_ENABLED", "0")
     env.setdefault("FLWR_DISABLE_UPDATE_CHECK", "1")  # flwr is pinned (pyproject.toml)
-    # How often a SuperExec looks for work (a ServerApp to start on the SuperLink, a
-    # ClientApp per message on a robot): Flower's default of 1 s adds up to 1 s per message.
+    # How often a SuperExec looks for work: Flower's default of 1 s adds up to 1 s per message.
     env.setdefault("FLWR_SUPEREXEC_TASK_POLL_INTERVAL", "0.2")
     return env
 

@@ -64,11 +64,8 @@ def address(given: str) -> None:
 
 def own_folder(folder: Path, option: str, make: bool) -> Path:
     """A folder the robot writes (``--state-dir``, ``--cache-dir``), checked before Flower
-    starts rather than when a run's first message arrives, since a path such as ``/proc/x``
-    or a private key's file would otherwise be taken: an existing folder it can write in, or
-    one it can make - made here, and with ``--print-command`` (``make`` False) made and
-    removed again, as only trying tells (root may write anywhere by its permissions, yet not
-    in /proc)."""
+    starts, which would take ``/proc/x`` or a key's file: one it can write in, or make (without
+    ``make``, made and removed, as only trying tells: root may not write in /proc)."""
     path = absolute(folder)
     if why := not_a_folder(path):  # a file there is named as such, not as "cannot make it"
         raise FedlgrError(f"{option} {path}: {why}")

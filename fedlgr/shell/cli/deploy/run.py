@@ -83,10 +83,9 @@ def run(
 
 
 def _refuse_passwords(overrides: list[str]) -> None:
-    """An override that holds a password (a URI's ``user:password@`` or ``password=``) is
-    refused: it would stand in the printed ``flwr run`` command, in the SuperLink's
-    database (the run's config) and in the run config of every robot. The ServerApp
-    finds the password on the SuperLink's machine instead (docs/deployment.md)."""
+    """Refuse an override that holds a password (``user:password@``, ``password=``): it would be
+    printed, kept in the SuperLink's database and sent to every robot. The ServerApp finds it
+    on the SuperLink's machine instead (docs/deployment.md)."""
     for override in overrides:
         key, _, value = override.partition("=")
         # also libpq's keyword form, "host=db user=me password=..."
@@ -102,10 +101,9 @@ def _refuse_passwords(overrides: list[str]) -> None:
 
 
 def _check_connection(name: str | None) -> None:
-    """The SuperLink ``flwr run`` will submit to must be one ``fedlgr deploy connect``
-    named: with none, flwr 1.42 writes its own config, whose default ``local`` starts a
-    simulation SuperLink and SuperExec of its own in the background - left running after
-    the run fails, with the app installed under ``~/.flwr``."""
+    """The SuperLink ``flwr run`` submits to must be one ``fedlgr deploy connect`` named: without
+    one, flwr's own default ``local`` starts a simulation SuperLink in the background, left
+    running after the run fails."""
     path, config = launch.flower_config()
     links = config.get("superlink", {})
     chosen = name or links.get("default")
@@ -120,9 +118,8 @@ def _check_connection(name: str | None) -> None:
 
 
 def _check_config(config: Path, overrides: list[str]) -> None:
-    """The config and its roster, loaded here, in a second, rather than on the server after
-    the run was submitted and its ServerApp started (~40 s): a typo is the commonest
-    mistake. Runs are submitted on the SuperLink's machine, where the ServerApp reads them."""
+    """The config and its roster, loaded here rather than on the server once the run's ServerApp
+    started: a typo is the commonest mistake."""
     if not config.is_file():
         print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
         return

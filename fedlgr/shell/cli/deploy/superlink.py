@@ -181,7 +181,7 @@ def _gateway(
     print_command: bool,
 ) -> int:
     """Print what ``superlink`` runs, then run Flower's ``cmd`` behind the gateway."""
-    from fedlgr.shell.deploy import gateway  # lazy: httpx, uvicorn and starlette (~0.6 s)
+    from fedlgr.shell.deploy import gateway  # lazy: httpx, uvicorn and starlette
 
     files = None if tls is None else gateway.Tls(*tls)
     if files is not None and not gateway.covers_loopback(files.cert):

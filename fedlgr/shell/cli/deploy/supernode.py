@@ -172,8 +172,7 @@ def _check_options(args: SimpleNamespace) -> Path:
 
 def _launcher(args: SimpleNamespace) -> list[str]:
     """flower-supernode, its idle poll shortened, its heartbeat as chosen and its ClientApps
-    forked from a warm process (fedlgr/shell/deploy/flower/supernode.py and executor.py say
-    why)."""
+    forked from a warm process (shell/deploy/flower/supernode.py and executor.py say why)."""
     cmd = [sys.executable, "-m", "fedlgr.shell.deploy.flower.supernode"]
     cmd += ["--poll-s", str(args.poll_s), "--heartbeat-s", f"{args.heartbeat_s:g}"]
     if not args.cold_apps:
