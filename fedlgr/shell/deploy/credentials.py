@@ -1,20 +1,6 @@
-"""What a deployment needs before it starts: TLS certificates for the SuperLink and a key
-pair per robot (``fedlgr deploy certs`` / ``fedlgr deploy node-key``).
-
-* ``certs``: a certificate authority (``ca.pem``, keep ``ca.key`` offline) and a server
-  certificate for the SuperLink's host names and addresses (``server.pem``,
-  ``server.key``). Robots and ``flwr`` trust ``ca.pem``. For a production deployment use
-  your organisation's CA instead; these are for a lab or a household.
-* ``node-key``: an ECDSA (P-384) key pair in OpenSSH format - the private key stays on
-  the robot (``flower-supernode --auth-supernode-private-key``), the public one is
-  registered with the SuperLink (``flwr supernode register NAME.pub``). A SuperNode whose
-  key is not registered is refused.
-
-The same files ``openssl`` and ``ssh-keygen -t ecdsa -b 384`` would make, written with
-``cryptography`` (installed with Flower) so that the tests need neither tool. Every file is
-created new (``O_EXCL | O_NOFOLLOW``: never through a symbolic link), private keys with
-mode 0600 from their first byte.
-"""
+"""What a deployment needs before it starts: TLS certificates for the SuperLink and an ECDSA key
+pair per robot (``fedlgr deploy certs`` / ``node-key``). Every file is created new (``O_EXCL |
+O_NOFOLLOW``: never through a symbolic link), private keys 0600 from their first byte."""
 
 from __future__ import annotations
 
@@ -39,10 +25,9 @@ DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 
 
 def check_free(paths, force: bool, replacing: str) -> None:
-    """Refuse, before anything is written, a symbolic link at any of ``paths`` (even with
-    ``force``: credentials are never written through a link), something there that is not
-    a regular file, and an existing file unless ``force`` (``replacing`` says what
-    replacing it does)."""
+    """Refuse, before anything is written, a symbolic link at any of ``paths`` (even with ``force``:
+    credentials are never written through a link), something there that is not a regular file, and
+    an existing file unless ``force`` (``replacing`` says what replacing it does)."""
     for path in paths:
         if path.is_symlink():
             raise FedlgrError(
@@ -56,10 +41,9 @@ def check_free(paths, force: bool, replacing: str) -> None:
 
 
 def _write(path: Path, data: bytes, private: bool, force: bool = False) -> None:
-    """``data`` as a new file at ``path``: ``O_EXCL | O_NOFOLLOW``, so an existing file or
-    a symbolic link (dangling or not) is refused; a private file is 0600 from its first
-    byte, whatever the umask. ``force`` first removes a regular file there (a new inode:
-    a hard link to the old one keeps the old bytes)."""
+    """``data`` as a new file at ``path`` (``O_EXCL | O_NOFOLLOW``: an existing file or a link is
+    refused), a private one 0600 from its first byte. ``force`` first removes a regular file there:
+    a new inode, so a hard link to the old one keeps the old bytes."""
     if force and path.is_file() and not path.is_symlink():
         path.unlink()
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
@@ -87,8 +71,8 @@ def _private_bytes(key, encoding) -> bytes:
 
 
 def _folder(folder: Path) -> None:
-    """The credentials folder, made 0700 (it holds private keys and the roster: under
-    umask 000 it was 0777, and anyone could replace a public key or the roster in it)."""
+    """The credentials folder, made 0700: it holds private keys and the roster, which nobody else
+    may replace."""
     if why := not_a_folder(folder):  # named as what it is: mkdir would say "File exists"
         raise FedlgrError(f"{folder}: {why}")
     try:
@@ -161,9 +145,8 @@ def check_host(host: str) -> None:
 
 
 def check_node_key(path: Path, option: str = "--key") -> None:
-    """``path`` holds a robot's private node key (OpenSSH, as ``node-key`` writes it): not
-    its ``.pub`` half or another file, which Flower would refuse only as the SuperNode
-    starts, in a traceback."""
+    """``path`` holds a robot's private node key (OpenSSH), not its ``.pub`` half or another file,
+    which Flower would refuse only in a traceback as the SuperNode starts."""
     try:
         serialization.load_ssh_private_key(path.read_bytes(), password=None)
     except (ValueError, TypeError, UnsupportedAlgorithm) as err:

@@ -1,17 +1,6 @@
-"""The robots' port of ``fedlgr deploy superlink``: a gateway that serves Flower's Fleet API
-(what SuperNodes call) and nothing else, in front of a SuperLink bound to 127.0.0.1.
-
-Flower 1.42's SuperLink serves all its HTTP APIs on one ``--host``/``--port`` - the Fleet
-API (``/v1/fleet/...``: register, activate, heartbeats, pull and push of messages and
-objects), the Control API (``/v1/control/...``: ``flwr supernode register`` of any key,
-``flwr run``, which runs code on the server) and the Runtime API of its own processes - and
-has no option to serve the Fleet API alone on a port. The open-source Control API has no
-login, so whoever reaches the robots' port with the public ``ca.pem`` could register a key
-and submit runs. fedlgr therefore writes this small reverse proxy: ``POST /v1/fleet/<name>``
-is forwarded to the loopback SuperLink (over TLS, verified with ``ca.pem``; bodies streamed
-both ways, headers passed on but the hop-by-hop ones), everything else is answered 403.
-SuperNodes speak HTTP/1.1 with unary requests (``flwr.supernode.fleet_http_client``).
-"""
+"""The robots' port of ``fedlgr deploy superlink``: forwards Flower's Fleet API (POSTs to
+``/v1/fleet/...``) to a SuperLink bound to 127.0.0.1 and refuses all else (403), since Flower serves
+its Control API, which has no login and runs code on the server, on the same port."""
 
 from __future__ import annotations
 
@@ -58,7 +47,7 @@ HOP_BY_HOP = frozenset(
 )
 UPSTREAM_TIMEOUT_S = 300.0  # above the SuperNode's own 30 s per request
 EXECUTOR = "fedlgr.shell.deploy.flower.executor"  # the module of the executor's command
-READY_TIMEOUT_S = 300.0  # flower-superlink listens after ~10 s here
+READY_TIMEOUT_S = 300.0  # flower-superlink takes seconds to listen
 STOP_GRACE_S = 15.0  # its shutdown stops its SuperExec and a run's ServerApp
 
 
@@ -159,12 +148,9 @@ def run(
     tls: Tls | None,
     executor: list[str] | None = None,
 ) -> int:
-    """Start the ``superlink`` command (Flower bound to 127.0.0.1:``internal_port``) and
-    serve the gateway on ``host``:``port`` once Flower listens; plain HTTP if ``tls`` is
-    None. ``executor``: the command of the SuperExec that runs its ServerApps (Flower in
-    ``process`` isolation; ``--parent-pid`` Flower's is added), started once Flower
-    listens. Flower and the executor are stopped (SIGTERM, SIGKILL after a grace) however
-    this ends; either dying ends the gateway with a :class:`FedlgrError`."""
+    """Start the ``superlink`` command (Flower on 127.0.0.1:``internal_port``), then the
+    ``executor`` SuperExec and the gateway on ``host``:``port`` (plain HTTP without ``tls``). Both
+    children are stopped however this ends; either dying is a :class:`FedlgrError`."""
     listener = _bind(host, port)  # a port in use is refused before Flower starts
     children = [subprocess.Popen(superlink, env=env, preexec_fn=_die_with_parent)]
     try:
@@ -203,8 +189,7 @@ async def _serve(
     watch = asyncio.create_task(_watch(children, server))
     _say(f"serving {scheme}://{host}:{port} (Fleet API only) for the SuperLink at 127.0.0.1")
     try:
-        # uvicorn stops on SIGTERM/SIGINT, then raises the signal again: the caller's
-        # handler (fedlgr.shell.signals.terminate_as_interrupt) turns it into an interrupt.
+        # uvicorn re-raises SIGTERM/SIGINT once stopped: the caller's handler makes it an interrupt.
         await server.serve(sockets=[listener])
     finally:
         watch.cancel()

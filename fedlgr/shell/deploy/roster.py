@@ -1,24 +1,6 @@
-"""The federation's roster: which robot (its name and client slot) holds which public key.
-
-``fedlgr deploy node-key DIR NAME`` adds each new robot to ``DIR/roster.yaml``; a Flower
-run names the file (``deploy.roster``). The ServerApp sends work only to nodes whose key
-the SuperLink authenticated (SuperNode authentication) and the roster lists, and it gives
-each its slot: a node never chooses its own client. Any other node that comes online is
-refused - sent nothing - and named in the run's output and its MLflow tag
-``fedlgr.refused``.
-
-The file is plain YAML, read as data::
-
-    robots:
-    - name: robot0
-      client: 0
-      key: ecdsa-sha2-nistp384 AAAA...   # the robot's NAME.pub
-      scenes: 120                        # optional: the most training scenes it holds
-
-``scenes`` bounds the sample count the robot may claim with an upload (its weight in the
-mean): the server refuses a larger one (``fedlgr.core.server.screen``); without it, any
-positive whole number is taken.
-"""
+"""The federation's roster (``roster.yaml``, named by ``deploy.roster``): which robot (name, client
+slot) holds which public key, and optionally the most scenes it may claim. The ServerApp sends work
+only to authenticated nodes it lists, each in its slot: a node never chooses its own."""
 
 from __future__ import annotations
 

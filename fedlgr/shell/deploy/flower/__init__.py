@@ -1,16 +1,6 @@
-"""fedlgr on Flower's Deployment Runtime: a SuperLink (the server), one SuperNode per
-robot, and ``flwr run`` of the app in ``APP_DIR``.
-
-* ``server_app.py`` - the ServerApp: the schedule, aggregation and MLflow logging, on the
-  SuperLink's machine.
-* ``nodes.py`` - which of the SuperLink's nodes take part in a run (the roster's robots),
-  for the ServerApp.
-* ``client_app.py`` - the ClientApp: a robot's data, model and private state, on its
-  SuperNode's machine.
-* ``wire.py`` - the round messages as Flower records.
-
-docs/deployment.md has the commands.
-"""
+"""fedlgr on Flower's Deployment Runtime: a SuperLink running the ServerApp (:mod:`.server_app`),
+one SuperNode per robot running the ClientApp (:mod:`.client_app`), and ``flwr run`` of the app in
+``APP_DIR``. docs/deployment.md has the commands."""
 
 from pathlib import Path
 

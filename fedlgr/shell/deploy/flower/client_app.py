@@ -1,12 +1,6 @@
-"""The ClientApp: what Flower's SuperNode starts on a robot for each message.
-
-It is deliberately thin (no torch): it passes the message to the robot's long-lived
-service (:mod:`.service`), which holds the robot's data, model and private state
-(:mod:`.robot`), and sends back its reply. A failure on the robot becomes Flower's error
-reply, which the server reports with the robot's message. In a SecAgg+ round
-(``deploy.secagg``) Flower's ``secaggplus_mod`` answers the protocol's key stages itself
-and masks the robot's reply (:mod:`.masked`) before it leaves.
-"""
+"""The ClientApp, which Flower's SuperNode starts on a robot for each message: thin (no torch), it
+hands the message to the robot's long-lived service (:mod:`.service`) and returns its reply. In a
+SecAgg+ round Flower's ``secaggplus_mod`` masks the reply (:mod:`.masked`) before it leaves."""
 
 from __future__ import annotations
 
@@ -41,9 +35,8 @@ def check_slot(node_config: dict, content) -> None:
 
 
 def secure_mod(msg: Message, context: Context, call_next: ClientAppCallable) -> Message:
-    """Flower's ``secaggplus_mod`` for the messages of a SecAgg+ round (``deploy.secagg``:
-    they carry its record); every other message goes to the robot unchanged - the mod
-    itself would refuse a train message without that record."""
+    """Flower's ``secaggplus_mod`` for a SecAgg+ round's messages (they carry its record); any other
+    message goes to the robot unchanged, since the mod would refuse a train message without it."""
     if RECORD_KEY_CONFIGS in msg.content.config_records:
         return secaggplus_mod(msg, context, call_next)
     return call_next(msg, context)

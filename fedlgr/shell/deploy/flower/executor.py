@@ -1,32 +1,6 @@
-"""A warm SuperExec: Flower's own task loop, each app process forked from a process that
-has Flower and fedlgr's app already imported.
-
-Flower runs every ClientApp message and every ServerApp run in a process of its own: its
-SuperExec (``flower-superexec``, started by the SuperNode and the SuperLink in their
-default ``subprocess`` isolation) launches ``flwr-clientapp`` / ``flwr-serverapp`` per
-task, and each new Python process spends seconds importing before it does anything - ~3 s
-for a ClientApp that then answers in 0.2 s, ~10 s for the ServerApp (torch, torchvision,
-MLflow). bench/README.md "Flower rounds" has the figures.
-
-Flower's ``process`` isolation leaves the SuperExec to the operator, and Flower's SuperExec
-takes an executor (``flwr.supercore.superexec.executor.Executor``: the thing that starts a
-task's process). Flower 1.42 ships two, ``subprocess`` and ``kubernetes``; its factory has
-no way to name another and ``run_superexec`` takes none (docs/deployment.md, "Rounds that
-cost seconds"), so this module runs Flower's own ``run_superexec`` loop with its factory
-answering :class:`ForkExecutor`: a task's process is ``os.fork()`` of this one, which then
-runs the function behind the console script Flower would have started (``flwr-clientapp``
-/ ``flwr-serverapp``, found by that name, with the same arguments). What a task does - the
-Runtime API, its token, heartbeats, the app - is Flower's code unchanged; only the imports
-are done once. ``fedlgr deploy supernode`` and ``fedlgr deploy superlink`` start it
-(``--cold-apps`` goes back to Flower's SuperExec).
-
-Forking is safe here because this process only imports: it runs no torch operation (no
-thread pool exists yet) and touches no GPU before a fork, and its other threads (Flower's
-parent-process monitor and :func:`leave_with`'s) hold no lock the child needs.
-
-    python -m fedlgr.shell.deploy.flower.executor --runtime-api-address HOST:PORT
-        [--insecure | --root-certificates CA.pem] [--parent-pid PID] [--preload MODULE ...]
-"""
+"""A warm SuperExec: Flower's own task loop, each app process forked from this one, which has Flower
+and fedlgr's app imported. Flower's factory names no other executor, so ``get_executor`` is
+replaced; forking is safe, since before a fork this process only imports (no torch pool, no GPU)."""
 
 from __future__ import annotations
 
@@ -129,9 +103,8 @@ class ForkExecutor:
 
 
 def _run_child(app, argv: list[str], quiet: bool, owner: int) -> None:
-    """In the forked task process: Flower's entry point as a fresh process would run it,
-    leaving when the executor ``owner`` has gone (Flower's monitor in the task, watching
-    the same pid, counts an unreaped one as alive)."""
+    """In the forked task process: Flower's entry point as a fresh process would run it, leaving
+    when the executor ``owner`` has gone (Flower's monitor counts an unreaped one as alive)."""
     code = 1
     try:
         # lazy: flwr (seconds): the executor watches its parent before any slow import
@@ -162,12 +135,9 @@ def _run_child(app, argv: list[str], quiet: bool, owner: int) -> None:
 
 
 def leave_with(parent_pid: int) -> None:
-    """Exit at once (quietly, status 0) when ``parent_pid`` has ended or this process is
-    orphaned. Flower's own monitor (``run_superexec(parent_pid=...)``, ``os.kill(pid, 0)``)
-    counts a parent that exited but is not reaped yet - a zombie - as alive, so the executor
-    of a SuperNode that gave up on its SuperLink would retry the gone Runtime API for ever.
-    The exit is ``os._exit``: the interpreter's would wait for
-    Flower's threads, and with the parent gone nothing is left to close gracefully."""
+    """Exit at once (quietly, status 0) when ``parent_pid`` has ended or this process is orphaned:
+    Flower's own monitor counts an unreaped parent as alive, and would retry a gone Runtime API for
+    ever. ``os._exit``, since the interpreter's exit would wait for Flower's threads."""
     parent = os.getppid()
 
     def watch() -> None:
@@ -227,9 +197,7 @@ if __name__ == "__main__":
     try:
         sys.exit(main())
     except KeyboardInterrupt:
-        # Stopped by its SuperNode or SuperLink as that exits (a SuperNode that gave up on
-        # an unreachable SuperLink), possibly while still importing what it preloads: a
-        # traceback then says nothing. It exits at once: the interpreter's exit would wait
-        # for Flower's threads (a connection retried for ever), and the process would stay.
+        # Stopped by its SuperNode or SuperLink, maybe while still importing: exit at once, since
+        # the interpreter's exit would wait for Flower's threads.
         _flush()
         os._exit(130)

@@ -1,6 +1,6 @@
-"""The robot's socket (:mod:`.service`): where it is, and how a message travels on it - a
-JSON header and Flower's own protobuf encoding of the message's content, nothing pickled.
-Both ends read it: the thin ClientApp's side and the robot's (:mod:`.robot`)."""
+"""The robot's socket (:mod:`.service`): where it is, and how a message travels on it - a JSON
+header and Flower's own protobuf encoding of its content, nothing pickled. Both ends read it: the
+ClientApp's side and the robot's (:mod:`.robot`)."""
 
 from __future__ import annotations
 
@@ -52,13 +52,13 @@ def _exactly(conn: socket.socket, n: int) -> bytes:
 
 
 def encode(content) -> bytes:
-    from flwr.common.serde import recorddict_to_proto  # lazy: flwr and protobuf (~1 s)
+    from flwr.common.serde import recorddict_to_proto  # lazy: flwr and protobuf, slow to import
 
     return recorddict_to_proto(content).SerializeToString()
 
 
 def decode(data: bytes):
-    # lazy: flwr and protobuf (~1 s)
+    # lazy: flwr and protobuf, slow to import
     from flwr.common.serde import recorddict_from_proto
     from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
 

@@ -1,22 +1,6 @@
-"""What a robot puts into SecAgg+'s masked sum (``deploy.secagg``), and how the server
-reads the sum back: one float64 vector per robot, the same layout on both sides.
-
-The layout, in order: each shared tensor of the server's key order (the order of the
-global tensors in the train message), flattened; the strategy's payload tensors by sorted
-key; the robot's weight; under DP its centred "within the clip norm" bit, +-1/2
-(:data:`fedlgr.core.privacy.UNCLIPPED`, :func:`fedlgr.core.privacy.centred_bit`).
-
-Without DP the robot sends its update (its shared tensors minus the global ones it trained
-from) times ``n / max_samples`` and its weight ``n / max_samples`` (``n``: its sample
-count), the payload as it is: the sum gives the sample-weighted sum of the updates, the sum
-of the counts and the plain sum of the payloads, as :meth:`ServerSide.sums` does. Under DP
-(``federated.dp``) it clips its update and payload together to the server's clip norm
-(:func:`fedlgr.core.privacy.clip`, as ``Privacy.clipped`` does on the server), weighs 1
-and adds its bit (with fixed clipping too, unused there: the vector's length depends on
-``federated.dp`` alone, one value more than without DP).
-Flower's SecAgg+ weighs every robot 1 (``num_examples`` 1, ``max_weight`` 1), so no weight
-is quantised: the weights travel inside the vector.
-"""
+"""What a robot puts into SecAgg+'s masked sum (``deploy.secagg``) and how the server reads the sum
+back: one float64 vector per robot (:func:`layout`). Flower's SecAgg+ weighs every robot 1, so a
+robot's weight travels inside the vector: its update pre-multiplied, or clipped under DP."""
 
 from __future__ import annotations
 
@@ -48,10 +32,9 @@ def layout(shared: Mapping[str, torch.Tensor], payload: Mapping[str, torch.Tenso
 
 
 def robot_vector(res: TrainRes, start: Weights, settings: Mapping) -> tuple[np.ndarray, int]:
-    """A robot's vector (float64) for its upload ``res`` trained from the global tensors
-    ``start``; ``settings``: the message's :data:`RECORD` (``clip`` > 0: DP's clip norm,
-    else ``max_samples``). Also: how many of its values SecAgg+ will clip to
-    ``clipping_range`` (0 unless the range is too small for this update)."""
+    """A robot's float64 vector for its upload ``res`` trained from the global tensors ``start``
+    (``settings``: the message's :data:`RECORD`; ``clip`` > 0 under DP), and how many of its values
+    SecAgg+ will clip to ``clipping_range``."""
     update = {f"w/{k}": res.weights[k].double() - start[k].double() for k in start}
     update |= {f"p/{k}": v.double() for k, v in res.payload.items()}
     bound = float(settings["clip"])
@@ -84,12 +67,9 @@ def split(vector: np.ndarray, parts: list[tuple[str, tuple[int, ...]]]) -> Weigh
 
 
 def error_bound(secagg, robots: int, total: float, dp: bool) -> float:
-    """The most one coordinate of the released mean update can be off from the plain
-    mean of the same updates (none clipped by ``clipping_range``): each robot's value is
-    stochastically rounded to a step of ``2 c / Q`` (off by less than one step), so the sum
-    of ``robots`` values is off by less than ``robots x 2c/Q``; without DP the sum is of
-    ``n / W x update`` and is divided by ``total / W`` (``total``: the summed sample
-    count), under DP it is the sum itself (divide by ``q N`` for the mean)."""
+    """The most one coordinate of the released mean update can be off from the plain mean (none
+    clipped): each robot's value is rounded to a step of ``2 c / Q``, so the sum is off by under
+    ``robots x 2c/Q`` - the bound under DP, divided by ``total / W`` without."""
     step = 2 * secagg.clipping_range / secagg.quantization_range
     if dp:
         return robots * step
@@ -99,10 +79,9 @@ def error_bound(secagg, robots: int, total: float, dp: bool) -> float:
 def encode_secure_res(
     res: TrainRes, start: Weights, settings: Mapping, evaluated: EvaluateRes | None = None
 ) -> tuple[RecordDict, int]:
-    """A robot's SecAgg+ train reply before Flower's ``secaggplus_mod`` masks it: its
-    vector as a legacy ``FitRes`` (weight 1), and in the clear its client, its training
-    figures but its sample count (:data:`HIDDEN`) and the previous round's scores. Also: how many
-    values ``clipping_range`` clips (:func:`robot_vector`)."""
+    """A robot's SecAgg+ train reply before ``secaggplus_mod`` masks it: its vector as a legacy
+    ``FitRes`` (weight 1) and, in the clear, its client, its figures but :data:`HIDDEN` and the
+    previous round's scores; also how many values ``clipping_range`` clips."""
     vector, outside = robot_vector(res, start, settings)
     fit = FitRes(Status(Code.OK, ""), ndarrays_to_parameters([vector]), 1, {})
     content = compat.fitres_to_recorddict(fit, keep_input=False)

@@ -1,12 +1,6 @@
-"""The robots of a run as the ServerApp sees them: which of the SuperLink's nodes take part,
-and the exchange of messages with them.
-
-A node seen for the first time is admitted if the roster lists the key the SuperLink
-authenticated it with (its client slot is the roster's), else refused - named, tagged and
-never sent a message. Without a roster every node is admitted, with no slot of its own.
-An exchange sends each node its message and waits ``deploy.round_timeout_s`` at most for
-the replies; a robot's error reply is reported, not raised.
-"""
+"""The robots of a run as the ServerApp sees them. A node seen first is admitted if the roster lists
+its authenticated key (in the roster's slot; without a roster, any node), else refused and never
+sent a message; an exchange waits ``deploy.round_timeout_s`` at most for the replies."""
 
 from __future__ import annotations
 
@@ -33,9 +27,8 @@ def quorum(clients: int) -> int:
 
 
 class Nodes:
-    """The admitted nodes, their client slots and names, the refused ones and the errors of
-    the last exchange; ``tag`` records a run-level fact in MLflow (``fedlgr.refused``,
-    ``fedlgr.robots``)."""
+    """The admitted nodes, their client slots and names, the refused ones and the last exchange's
+    errors; ``tag`` records a run-level fact in MLflow."""
 
     def __init__(
         self,
@@ -115,11 +108,9 @@ class Nodes:
         label: str = "",
         kinds: dict[int, str] | None = None,
     ):
-        """Send ``contents`` (node -> message content), each a message of type ``kind``
-        unless ``kinds`` names another for its node; the replies that came back in time,
-        by node. Error replies (a robot's exception) are reported, not raised: a robot
-        whose SuperNode claims a slot the roster does not give it is refused. ``run_id``: the
-        MLflow run each message is stamped with."""
+        """Send ``contents`` (node -> content) as messages of type ``kind`` (or a node's in
+        ``kinds``), stamped with the MLflow ``run_id``; the replies back in time, by node. Error
+        replies are reported, not raised; a robot claiming another slot is refused."""
         kinds = kinds or {}
         messages = [
             Message(
@@ -158,9 +149,8 @@ class Nodes:
         return out
 
     def _send_and_receive(self, messages: list[Message]) -> list[Message]:
-        """The replies to ``messages`` that arrive within ``deploy.round_timeout_s``.
-        Grid.send_and_receive polls every 3 s: up to 6 s idle per round for two exchanges.
-        The same push/pull with a 0.2 s poll."""
+        """The replies to ``messages`` that arrive within ``deploy.round_timeout_s``:
+        ``Grid.send_and_receive``'s push and pull, polled every ``POLL_S`` instead of its 3 s."""
         return push_and_pull(self.grid, messages, self.config.deploy.round_timeout_s)
 
 

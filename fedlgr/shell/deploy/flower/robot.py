@@ -1,26 +1,6 @@
-"""A robot's client between Flower messages: its data, model and private state.
-
-:func:`handle` answers one message (``train`` or ``evaluate``) with
-:class:`fedlgr.core.client.side.ClientSide`, the very code the in-process
-orchestrator runs. It runs inside the robot service (:mod:`.service`), a long-lived
-process per robot, so torch, the data and the models are loaded once, not per message.
-
-The robot's SuperNode says where its data is (``--node-config
-'data-path="/data/manners-db"'``; optional: ``client``, the slot it expects, and
-``state-dir``, ``cache-dir``, ``weights``, ``threads``); the server says which client it
-is (its slot on the roster). The server sends the run's resolved config with every
-message; the robot reads it as data (:func:`robot_config`: no interpolation, no
-``includes``, and every path it reads or writes is its SuperNode's, never the server's),
-loads its folder and takes its shard (``data.clients`` and ``data.seed`` fix the split, as
-in ``fedlgr run``) - or, with ``own-data`` (``fedlgr deploy supernode --own-data``), the
-whole folder: the robot's own scenes, split into its train and test scenes.
-
-Its private state - the top, the optimiser, FedLGR's generator and labeller, CL
-importance and memories, the batch generators - never leaves: it is kept in memory and
-written after every message to ``<state-dir>/run-<Flower run id>/client-<k>.ckpt``, so a
-robot whose service or SuperNode is restarted rejoins with it. Only the shared tensors
-leave (``ClientSide.upload`` checks them against the scope's keys).
-"""
+"""A robot's client between Flower messages: :func:`handle` answers each with
+:class:`~fedlgr.core.client.side.ClientSide` in the robot service. The server's config is read as
+data, its paths the robot's own; the private state never leaves, and is saved after each message."""
 
 from __future__ import annotations
 
@@ -80,9 +60,8 @@ class Robot:
         self.path = folder / f"client-{client}.ckpt"
         self.ended = -1  # the last task ended
         self.trained = -1  # the last round trained
-        # The last message answered ([kind, round, round evaluated first or -1]) and the
-        # reply (Flower's encoding): asked again - a server that died after this robot
-        # answered and was resumed - the robot sends the same reply, and trains nothing.
+        # The last message answered ([kind, round, round evaluated or -1]) and its encoded reply,
+        # sent again unchanged (nothing trained) when a resumed server asks again.
         self.answered: list | None = None
         self.reply = b""
         self.digest = data_digest(config)  # of --data: its state is of this data only
@@ -126,9 +105,8 @@ class Robot:
         return reply
 
     def train(self, ins):
-        """The round's training; a robot that missed a task's last round ends that task
-        first (one that missed a task's first round begins it as it trains: ``ClientSide``
-        tells its plugins where a client starts a task)."""
+        """The round's training; a robot that missed a task's last round ends that task first
+        (``ClientSide`` begins a task whose first round it missed as it trains)."""
         plan = ins.plan
         for task in range(self.ended + 1, plan.task):
             if self.client.started >= task:
@@ -165,18 +143,16 @@ def check_client(config: ExperimentConfig, client: int) -> None:
 
 
 def own_split(table, config: ExperimentConfig, client: int):
-    """A robot's own folder as its whole shard: its scenes split into train and test by
-    ``data.seed`` and ``data.test_fraction``, its tasks as configured - the split of a
-    one-client run, labelled ``client``."""
+    """A robot's own folder as its whole shard: the split of a one-client run (``data.seed``,
+    ``data.test_fraction``, its tasks as configured), labelled ``client``."""
     one = make_split(table, dataclasses.replace(config.data, clients=1), config.continual.tasks)
     shard = dataclasses.replace(one.clients[0], client=client)
     return FederatedSplit(one.train, one.test, one.test_tasks, [shard])
 
 
 def robot(run_id: int | str, node_config: dict, config_yaml: str, slot: int | None = None) -> Robot:
-    """This node's robot for the message's run (built on the run's first message), as
-    client ``slot`` - the roster's, sent by the server - or, in a run without a roster,
-    the client its SuperNode names."""
+    """This node's robot for the message's run, built on its first message, as client ``slot`` (the
+    roster's) or, without a roster, the client its SuperNode names."""
     # (a slot other than the SuperNode's --client is refused by the ClientApp already)
     client = int(node_setting(node_config, "client")) if slot is None else slot
     _check_run(run_id)
@@ -206,10 +182,9 @@ class _DataLoader(yaml.SafeLoader):
 
 
 def robot_config(node_config: dict, config_yaml: str) -> ExperimentConfig:
-    """The run's config on this robot: the server's settings read as data - no
-    interpolation, no ``includes`` - with every setting that chooses where the robot
-    reads or writes taken from its SuperNode (or the robot's default), never the
-    server's: ``data.path``, ``data.cache_dir``, a ``model.weights`` file; no tracking."""
+    """The run's config on this robot: the server's settings read as data (no interpolation, no
+    ``includes``), every setting that chooses where the robot reads or writes (``data.path``,
+    ``data.cache_dir``, ``model.weights``) its SuperNode's, never the server's."""
     try:
         settings = yaml.load(config_yaml, Loader=_DataLoader)  # a SafeLoader
     except yaml.YAMLError as err:
@@ -285,9 +260,8 @@ def secure_reply(res, ins, settings, evaluated):
 
 
 def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
-    """The reply (Flower's encoding of its content) to a ``train`` or ``evaluate``
-    message's content. The robot's state is kept under the run the server names (its
-    MLflow run: a resumed run is a new Flower run), else under the Flower run."""
+    """The reply (Flower's encoding) to a ``train`` or ``evaluate`` message's content; the robot's
+    state is kept under the server's run (its MLflow run: a resume is a new Flower run)."""
     with _malformed(kind):
         slot, run = wire.slot(content), wire.run_key(content) or str(run_id)
     _check_run(run)

@@ -1,20 +1,6 @@
-"""Secure aggregation on robots (``deploy.secagg``): a round's training through Flower's
-SecAgg+ (``flwr.server.workflow.SecAggPlusWorkflow``; the robots' ClientApp runs
-``flwr.client.mod.secaggplus_mod``), so that the server sees only the sum of the chosen
-robots' vectors (:mod:`.masked`: their updates, clipped and quantised, their weights and
-payloads), never one robot's.
-
-The workflow is Flower's own, run as it is, with two fedlgr pieces around it:
-:class:`Adapter`, a legacy ``Strategy`` whose ``configure_fit`` names the chosen robots'
-nodes and whose ``aggregate_fit`` keeps the unmasked vector; and :class:`Exchanges`, the
-grid the workflow talks through, which sends fedlgr's own train message (the wire
-encoding, with the global tensors and the SecAgg settings) in the stage that collects
-the masked vectors, polls every 0.2 s instead of 3 s, and counts each stage's bytes.
-
-The server checks what a sum allows - that it is finite, that two robots or more are in
-it, that the summed sample count is at least one per robot - and nothing of a single
-upload (docs/deployment.md, "Secure aggregation").
-"""
+"""Secure aggregation on robots (``deploy.secagg``): a round's training through Flower's own SecAgg+
+workflow, so the server sees only the sum of the chosen robots' vectors (:mod:`.masked`), never one
+robot's; :class:`Adapter` and :class:`Exchanges` fit fedlgr's messages into the workflow."""
 
 from __future__ import annotations
 
@@ -51,9 +37,8 @@ PROTOCOL_ERRORS = (*wire.MALFORMED, np.exceptions.AxisError)
 
 
 class Exchanges:
-    """The grid SecAgg+ talks through: the real one, polled every 0.2 s, each stage's
-    messages counted (their protobuf encoding, both ways); the collect stage's messages
-    are fedlgr's train messages (``contents``) and its replies are kept."""
+    """The grid SecAgg+ talks through: the real one, polled every 0.2 s, its stages' bytes counted;
+    the collect stage sends fedlgr's train messages (``contents``) and keeps the replies."""
 
     def __init__(self, grid: Grid, contents: dict[int, RecordDict]):
         self.grid, self.contents = grid, contents
@@ -141,9 +126,8 @@ class SecureAggregation:
         }
 
     def train(self, plan: RoundPlan, chosen: list[int]) -> tuple[dict, dict]:
-        """The chosen robots' training, summed by SecAgg+: their figures by client
-        (``client -> (node, TrainRes without tensors, bytes of its masked vector)``) and
-        each node's bytes down (fedlgr's train message)."""
+        """The chosen robots' training, summed by SecAgg+: their figures by client (``client ->
+        (node, TrainRes without tensors, masked bytes)``) and each node's bytes down."""
         rounds = self.rounds
         contents, down = {}, {}
         for node in rounds.nodes.online():
@@ -221,10 +205,9 @@ class SecureAggregation:
         trained[client] = (node, TrainRes(client, {}, 0, figures, {}), size)
 
     def release(self, unread: dict[int, str]) -> None:
-        """The next global tensors from the round's sum (``ServerSide.update``, which
-        adds DP's noise), if the sum passes what a sum can be checked for. ``unread``:
-        robots whose clear records were refused (client -> why) - recorded, though their
-        updates are in the sum: SecAgg+ cannot take one out."""
+        """The next global tensors from the round's sum (``ServerSide.update``, which adds DP's
+        noise), if the sum passes its checks. ``unread``: robots whose clear records were refused,
+        recorded though SecAgg+ cannot take their updates out of the sum."""
         self.server.refused = {
             client: f"upload: {why} (its update is in the secure sum)"
             for client, why in unread.items()
@@ -243,15 +226,9 @@ class SecureAggregation:
 
 
 def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, float, dict]:
-    """What ``ServerSide.update`` takes, from the sum of ``count`` robots' vectors
-    (:mod:`.masked`): the sums of their weighted tensors (sum of weighted updates plus the
-    summed weight times the global tensors), the summed sample count (rounded: a whole
-    number; ``count`` under DP) and the payloads' sums. Under DP the sum of the robots'
-    centred bits (``UNCLIPPED``, +-1/2 each) is ``k - total / 2`` for the ``k`` robots
-    within the clip norm: it is rounded to that, exactly, as ``k`` is rounded to a whole
-    number (quantisation leaves it off by under ``total x 2c/Q`` < 1/2, checked at config
-    time). A sum that is not finite, or whose sample count is under one per robot, is
-    refused (``ValueError``)."""
+    """What ``ServerSide.update`` takes from the sum of ``count`` robots' vectors (:mod:`.masked`):
+    tensor, sample-count and payload sums, under DP the bits' sum rounded to ``k - total / 2``. A
+    sum not finite, or under one sample per robot, is refused (``ValueError``)."""
     dp = server.privacy is not None
     payload = server.strategy.payload_template()
     parts = masked.layout(server.global_weights, payload, dp)

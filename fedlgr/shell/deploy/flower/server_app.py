@@ -1,43 +1,6 @@
-"""The ServerApp: a fedlgr run whose clients are robots behind a Flower SuperLink.
-
-``flwr run`` starts it on the SuperLink's machine with the app's run config: ``config``
-(a fedlgr config file on that machine; empty: the defaults) and ``overrides``
-(``key=value`` separated by spaces). It runs the schedule in the same run's life as
-``fedlgr run`` (:class:`fedlgr.shell.run.life.RunLife`) - the same MLflow keys, artifacts
-and summary, plus the tag ``runtime=flower`` - around :class:`FlowerRounds` (a runtime's
-:class:`fedlgr.core.rounds.Rounds`), which speaks to the robots with
-:mod:`fedlgr.shell.deploy.flower.wire` messages and aggregates with
-:class:`fedlgr.core.server.side.ServerSide`, the very code of the in-process runs.
-
-Exchanges: with ``deploy.evaluate=with_next_round`` (the default) a round costs one
-exchange - each robot evaluates the new global tensors at the start of the next round's
-training message, and one last evaluate message ends the run; ``separate`` sends a train
-and an evaluate message every round (what a robot reports for round r then does not wait
-for round r + 1).
-
-Who trains: the strategy chooses each round's clients (``federated.fraction``, with a
-roster); the robots of the others score the new global tensors but do not train.
-
-Drop-outs: each exchange waits ``deploy.round_timeout_s`` at most; the round aggregates
-the uploads that arrived if there are at least ``deploy.min_clients`` of them (default:
-half the robots, at least one; never more than the clients chosen), records the missing
-clients (NaN rows, ``round/missing_clients``, tag ``fedlgr.missing``), and a robot that
-comes back is sent the global tensors with its next training message. A robot that drops
-out while it answers a combined message misses the evaluation of the round before too.
-
-What the server takes: every upload is checked as in one process
-(:mod:`fedlgr.core.server.screen`), its sample count bounded by the roster's ``scenes``
-where it says; an upload that cannot be read (a truncated tensor, a missing record) or
-whose figures are not this run's, not finite or out of range is refused too, and so are a
-robot's scores (that round's row is left out); the console and the tag ``fedlgr.not_taken``
-name the robot.
-
-Checkpoints: what the server holds is checkpointed every ``tracking.checkpoint`` rounds as
-``fedlgr run`` does (:meth:`FlowerRounds.state_dict`); ``fedlgr deploy run CONFIG --resume``
-continues the same MLflow run from the newest one. The robots keep their own state under
-the MLflow run's id, and a robot asked again what it last answered (the server died after
-it answered) sends the same reply again.
-"""
+"""The ServerApp: a fedlgr run whose clients are robots behind a Flower SuperLink. It runs the run's
+life of ``fedlgr run`` (:class:`~fedlgr.shell.run.life.RunLife`) around :class:`FlowerRounds`, which
+speaks :mod:`.wire` messages to the robots and aggregates with the in-process ``ServerSide``."""
 
 from __future__ import annotations
 
@@ -77,9 +40,8 @@ CPU = torch.device("cpu")
 
 
 class FlowerRounds:
-    """A run's rounds (:class:`fedlgr.core.rounds.Rounds`), with the clients on the
-    robots (:class:`~fedlgr.shell.deploy.flower.nodes.Nodes`: which take part, and the
-    exchanges of messages with them)."""
+    """A run's rounds (:class:`fedlgr.core.rounds.Rounds`) with the clients on the robots
+    (:class:`~fedlgr.shell.deploy.flower.nodes.Nodes`)."""
 
     def __init__(self, grid: Grid, config: ExperimentConfig, echo=print):
         check_robots_are_real(config)
@@ -148,10 +110,9 @@ class FlowerRounds:
         return 0
 
     def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
-        """One round: the training of the clients the strategy chose (or the uploads the
-        previous round's exchange brought back), aggregation, and the evaluation of every
-        client - with ``deploy.evaluate=with_next_round`` in the same exchange as the next
-        round's training. ``progress`` is never called (no client trains here)."""
+        """One round: the chosen clients' training (or the uploads the previous exchange brought
+        back), aggregation, and every client's evaluation, with ``with_next_round`` in the next
+        round's training exchange. ``progress`` is never called: no client trains here."""
         if not self.joined:
             self.nodes.wait_for_robots(self.min_clients)
             self.joined = True
@@ -195,9 +156,8 @@ class FlowerRounds:
         )
 
     def refuse(self, round_: int, node: int, client: int | None, what: str, why: str) -> None:
-        """What a robot sent in round ``round_`` is not taken: its ``upload`` (kept for that
-        round's aggregation, which names it) or its ``scores``; a robot whose client is not
-        known (no roster, and its reply unreadable) is named here."""
+        """What a robot sent in round ``round_`` is not taken: its ``upload`` (named by that round's
+        aggregation) or its ``scores``; a robot whose client is unknown is named here."""
         if client is None:
             self.echo(f"round {round_}: refused {self.nodes.name(node)}'s {what}: {why}")
         elif what == "upload":
@@ -220,10 +180,9 @@ class FlowerRounds:
         )
 
     def evaluate(self, plan: RoundPlan, chosen: list[int], trained: dict, down: dict) -> dict:
-        """Every client's figures in round ``plan``: the robots that trained in it and those
-        the strategy did not choose score the new global tensors (a chosen robot that sent
-        nothing is missing); with ``with_next_round`` the next round's chosen robots train
-        in the same exchange."""
+        """Every client's figures in round ``plan``: the robots that trained and those not chosen
+        score the new global tensors (a chosen robot that sent nothing is missing); with
+        ``with_next_round`` the next round's chosen robots train in the same exchange."""
         round_ = plan.round
         evaluate = EvaluateIns(plan, self.server.global_weights)
         following = self.next_plan(round_)
@@ -366,10 +325,9 @@ class FlowerRounds:
     # ------------------------------------------------------------------ checkpoints
 
     def state_dict(self) -> dict:
-        """What the server holds between rounds (the robots keep theirs): the global
-        tensors and the strategy's state, the uploads of the next round already trained
-        (one exchange per round), which robots hold the global tensors, the drop-outs so
-        far; and this process's random generators."""
+        """What the server holds between rounds (the robots keep theirs): the global tensors and
+        strategy state, the next round's uploads already trained, which robots hold the global
+        tensors, the drop-outs so far, and the random generators."""
         pending = None
         if self.pending is not None:
             plan, trained, down, failures = self.pending
@@ -415,9 +373,8 @@ def _upload(state: dict) -> TrainRes:
 
 
 def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
-    """The server's own copy of the test scenes (``federated.server_eval``), read from
-    ``data.path`` on the SuperLink's machine and split as the robots split them (only
-    the shared test set is used: the robots' shards are theirs to check)."""
+    """The server's own copy of the test scenes (``federated.server_eval``), from ``data.path`` on
+    the SuperLink's machine, split as the robots split them (only the shared test set is used)."""
     scenes = load_scenes(config.data)
     split = make_split(scenes.table, config.data)
     tasks = list(config.continual.tasks) or [ALL]

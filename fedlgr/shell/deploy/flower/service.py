@@ -1,20 +1,6 @@
-"""The robot service: one long-lived process per robot that answers its Flower messages.
-
-Flower's SuperNode starts a fresh ClientApp process for every message. fedlgr's
-ClientApp (:mod:`.client_app`) is therefore thin - it imports no torch - and hands each
-message to this service over a Unix socket in the robot's state folder
-(``<state-dir>/robot.sock``, mode 0600). The service imports torch, loads the data and
-builds the client once, keeps them in memory between messages and rounds, and writes
-the private state to disk after every message (:mod:`.robot`). On a 2-core machine
-importing torch, torchvision and lightning costs ~13 CPU seconds, which every message
-would pay again; the service answers a fast-config message in 0.1-3 s (its log says),
-and what remains of an exchange is Flower's own process start and polling (~10-15 s).
-
-The first message starts the service (detached, logging to ``<state-dir>/robot.log``);
-it leaves after ``robot-idle-s`` seconds without a message (node-config, default 900).
-Messages are answered one at a time. The socket carries a JSON header and Flower's own
-protobuf encoding of the message content - nothing is pickled.
-"""
+"""The robot service: one long-lived process per robot that answers its Flower messages over a Unix
+socket (``<state-dir>/robot.sock``, mode 0600). Flower starts a process per message, so the service
+imports torch and loads the data once; it leaves after ``robot-idle-s`` idle seconds."""
 
 from __future__ import annotations
 
@@ -117,8 +103,7 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
     server.listen()
     server.settimeout(idle_s)
     (folder / "robot.pid").write_text(str(os.getpid()))
-    # SIGTERM (a supervisor's stop, a shutdown) leaves through the finally below: no stale
-    # robot.pid or robot.sock.
+    # SIGTERM leaves through the finally below: no stale robot.pid or robot.sock.
     signal.signal(signal.SIGTERM, _leave)
     print(f"robot service {os.getpid()} listening on {path}", flush=True)
     try:

@@ -1,19 +1,6 @@
-"""fedlgr's round messages (:mod:`fedlgr.core.messages`) as Flower ``RecordDict``s.
-
-The tensors of a message travel as one Flower ``Array`` holding their raw bytes
-(``stype`` ``fedlgr.packed``, little-endian, C order, one after another) with an index
-of keys, dtypes and shapes (:func:`put_weights`): a message's tensor payload is exactly
-``numel x element size`` per tensor, so the bytes measured on the wire are what
-``cost/bytes_up`` and ``cost/bytes_down`` report. Numbers travel in ``ConfigRecord``s, by
-name (a figure's key: ``test/rmse``, ``cost/cpu_s``); the run's resolved config goes
-with every message, so a robot needs nothing from the server's
-machine.
-
-With ``deploy.evaluate=with_next_round`` a train message may carry the evaluation of the
-previous round (``evaluate``: that round's plan; ``global``: its new global tensors, which
-the robot scores and then trains on), and its reply the scores (``evaluated``): one
-exchange per round instead of two.
-"""
+"""fedlgr's round messages (:mod:`fedlgr.core.messages`) as Flower ``RecordDict``s: tensors packed
+in one ``Array`` (:func:`put_weights`), so the bytes on the wire are what ``cost/bytes_*`` report;
+numbers by name in ``ConfigRecord``s; the resolved config with every message."""
 
 from __future__ import annotations
 
@@ -43,11 +30,9 @@ MALFORMED = (KeyError, ValueError, TypeError, AttributeError, IndexError, Overfl
 
 
 def put_weights(content: RecordDict, name: str, weights: Weights) -> None:
-    """``weights`` into ``content`` as one Flower ``Array`` (``name``: every tensor's raw
-    bytes, little-endian, C order, one after another) and its index (``name.index``: keys,
-    dtypes, shapes). One array, not one per tensor: Flower moves each ``Array`` of a message
-    as an object of its own, one HTTP request each way - ~260 for a MobileNetV2 root,
-    which cost 10-15 s per exchange (bench/README.md, "Flower rounds")."""
+    """``weights`` into ``content`` as one Flower ``Array`` (``name``: the raw bytes, little-endian,
+    C order, one after another) and its index (``name.index``). One array, not one per tensor:
+    Flower moves each ``Array`` in HTTP requests of its own."""
     keys, dtypes, ndims, dims, parts = [], [], [], [], []
     for key, tensor in weights.items():
         data = tensor.detach().cpu().contiguous().numpy()
@@ -141,9 +126,8 @@ RUN_KEY = re.compile(r"[A-Za-z0-9_-]{1,64}")  # an MLflow run id (32 hex digits)
 
 
 def run_key(content: RecordDict) -> str:
-    """The run the robot keeps its state under ("": the Flower run's). It names a folder
-    on the robot (``<state-dir>/run-<key>``), so anything but a run id is refused: a
-    server must not choose where a robot writes (``../..``, an absolute path)."""
+    """The run the robot keeps its state under ("": the Flower run's). It names a folder on the
+    robot, so anything but a run id is refused: a server must not choose where a robot writes."""
     key = str(content.config_records["plan"].get("run", ""))
     if key and not RUN_KEY.fullmatch(key):
         raise FedlgrError(
