@@ -44,13 +44,9 @@ def duration(seconds: float) -> str:
 
 
 class Progress:
-    """``progress(done, total)`` callback for long work. Use as a context manager.
-
-    On a terminal, a tqdm bar on stderr. Elsewhere (a log file, a batch job, a sweep
-    worker), plain lines on stderr so that the logs of long runs show progress: one each
-    time another tenth is done, at most one every ``every_s / 3`` seconds, and at least one
-    every ``every_s`` seconds while work goes on; nothing for work that ends sooner.
-    Callers may call it from several threads (clients trained side by side)."""
+    """``progress(done, total)`` callback for long work, used as a context manager: a tqdm bar on a
+    terminal, else a line on stderr at each tenth done (at most every ``every_s / 3`` s, at least
+    every ``every_s`` s) so that logs show progress. Safe to call from several threads."""
 
     every_s = 30.0
 
@@ -73,7 +69,7 @@ class Progress:
 
     def _draw(self, done: int, total: int) -> None:
         if self.bar is None:
-            from tqdm.auto import tqdm  # lazy: tqdm (~0.1 s), only on a terminal
+            from tqdm.auto import tqdm  # lazy: tqdm, only on a terminal
 
             self.bar = tqdm(
                 total=total, desc=self.desc, unit=self.unit, leave=False, dynamic_ncols=True

@@ -23,29 +23,19 @@ def available_cores() -> int:
 
 
 def default_threads(processes: int = 1) -> int:
-    """torch threads for each of ``processes`` processes when ``runtime.threads`` is unset:
-    the cores other work leaves idle (:func:`busy_cores`), shared out, at least 1.
-
-    torch's OpenMP teams wait for their slowest thread at every operator, spinning while
-    they wait: on a busy machine a team wider than the idle cores loses a thread to another
-    process at each step and burns CPU in the meantime. The issue that set this default saw
-    a debug round take 43.7 CPU s per client with every core vs 0.1 s with one thread; here
-    (2 cores, load average 3.8, ``conf/debug/fast.yaml`` for 3 rounds, clients one after
-    another) 2 threads took 1.0-6.7 s a round and 0.3-2.9 CPU s per client, 1 thread
-    0.2-0.3 s and under 0.05 CPU s. On an idle machine this is all cores, as before."""
+    """torch threads for each of ``processes`` processes when ``runtime.threads`` is unset: the
+    cores other work leaves idle (:func:`busy_cores`), shared out, at least 1. torch's OpenMP teams
+    spin while waiting for their slowest thread, so on a busy machine a wider team burns CPU."""
     cores = available_cores()
     idle = min(cores, max(1, int(cores - busy_cores() + 0.5)))  # rounded half up
     return max(1, idle // processes)
 
 
 def busy_cores(sample_s: float = 0.25) -> float:
-    """How many of this process's cores other work keeps busy: the lesser of the 1-minute
-    load average (scaled to these cores: a cpuset sees the whole machine's load) and the
-    cores' use over a ``sample_s`` sample (while this process sleeps). Either alone misleads:
-    the load average still holds the last minute of this process's own previous run (a
-    demo's second run, a sweep's next trial) and a start-up's imports, and one sample
-    can catch a passing burst. Busy by both counts is busy."""
-    import psutil  # lazy: psutil (~0.1 s), kept off `fedlgr --help`
+    """How many of this process's cores other work keeps busy: the lesser of the 1-minute load
+    average (scaled to these cores) and their use over a ``sample_s`` sample. Either alone misleads:
+    the load average still holds this process's previous run, a sample can catch a passing burst."""
+    import psutil  # lazy: psutil, kept off `fedlgr --help`
 
     cores = available_cores()
     try:
@@ -59,23 +49,9 @@ def busy_cores(sample_s: float = 0.25) -> float:
 
 
 def tune_allocator() -> bool:
-    """Have glibc keep freed blocks of up to 32 MB for reuse instead of unmapping them.
-
-    Every training and augmentation step allocates and frees tensors of a few MB. glibc
-    serves those with fresh ``mmap``s and hands them back on ``free``, so each step faults
-    its pages in again; on the 2-core VMs this project runs on that made the augmented
-    pipeline swing between 450 and 6600 images/s from run to run (``bench/data.py``), and
-    steady at 4300-5500 with this setting. PyTorch's CPU performance guide recommends
-    jemalloc or tcmalloc for the same reason; ``mallopt`` needs no extra dependency.
-
-    And one arena for every thread: glibc gives each new thread's allocations an arena of
-    64 MB heaps, which a step's 8-25 MB activations overflow and release again, faulting
-    the pages in anew - clients trained side by side in threads (``runtime.concurrency``)
-    fell from 118 to 75 images/s over three rounds with per-thread arenas and held 104-113
-    with one (``bench/train.py``, 2 cores). Tensors are few and large, so the one lock
-    costs little.
-    Returns whether the settings were applied; ``FEDLGR_DEFAULT_MALLOC=1`` opts out.
-    """
+    """Have glibc keep freed blocks of up to 32 MB for reuse and give every thread one arena, so
+    that each step's tensors of a few MB do not fault their pages in anew. Returns whether the
+    settings were applied; ``FEDLGR_DEFAULT_MALLOC=1`` opts out."""
     if os.environ.get("FEDLGR_DEFAULT_MALLOC") == "1" or platform.libc_ver()[0] != "glibc":
         return False
     try:

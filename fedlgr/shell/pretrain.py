@@ -1,12 +1,6 @@
-"""Pretrain a MobileNetV2 root offline, without appropriateness labels.
-
-The paper's scholars start from ImageNet weights; an offline machine has none. This is the
-offline stand-in: a root trained to predict a scene's 27 descriptors and 2 mode flags
-(standardised) from its image - layout understanding, with no appropriateness rating in
-sight. Train it on a dataset that is *not* the one you evaluate on (for the synthetic
-living room: another seed), save it, and start experiments from it with
-``model.weights=FILE``; ``fedlgr pretrain`` does all three.
-"""
+"""Pretrain a MobileNetV2 root offline, without appropriateness labels: the offline stand-in for the
+paper's ImageNet weights, trained to predict a scene's standardised descriptors and mode flags from
+its image, on another dataset than the one evaluated (``model.weights=FILE``)."""
 
 from __future__ import annotations
 
@@ -49,9 +43,9 @@ def pretrain_root(
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
 ) -> PretrainResult:
-    """Train ``MobileNetRoot(width)`` + a linear head on ``scenes`` to predict their
-    standardised features for ``images`` augmented images; save the root's state dict
-    (keys ``root.*``, loadable with ``model.weights``)."""
+    """Train ``MobileNetRoot(width)`` + a linear head to predict ``scenes``' standardised features
+    from ``images`` augmented images; save the root's state dict (keys ``root.*``, loadable with
+    ``model.weights``)."""
     if scenes.images is None:
         raise ValueError("pretraining needs the image modality")
     torch.manual_seed(seed)
@@ -109,11 +103,9 @@ def synthetic_root(
     progress: Callable[[str, str], AbstractContextManager] | None = None,
     echo=print,
 ) -> Path:
-    """A root pretrained on ``scenes`` synthetic scenes of seed ``seed + 1000`` (not the
-    experiments' scenes), made once in ``folder`` and reused afterwards.
-
-    ``progress(desc, unit)``: a context manager giving a ``(done, total)`` callback for each
-    stage (synthesising, decoding, pretraining; e.g. ``fedlgr.shell.console.Progress``)."""
+    """A root pretrained on ``scenes`` synthetic scenes of another seed than the experiments', made
+    once in ``folder`` and reused. ``progress(desc, unit)``: a context manager giving each stage a
+    ``(done, total)`` callback (e.g. :class:`fedlgr.shell.console.Progress`)."""
     folder = Path(folder)
     data = folder / f"synth-seed{seed + PRETRAIN_SEED_OFFSET}-{scenes}"
     path = folder / f"root-w{width:g}-{size}px-{scenes}scenes-{images}img-seed{seed}.pt"

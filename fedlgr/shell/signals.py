@@ -1,12 +1,6 @@
-"""SIGTERM handled like Ctrl-C.
-
-``timeout``, Slurm (at the end of a job's time limit) and ``docker stop`` stop a process
-with SIGTERM, whose default action ends it at once: no ``finally`` or ``except`` runs, so
-an MLflow run stays RUNNING and a sweep's trial waits for its heartbeat to go stale. Inside
-:func:`terminate_as_interrupt`, SIGTERM raises :class:`Terminated` - a
-``KeyboardInterrupt`` - in the main thread instead, so the code that handles Ctrl-C (runs
-ended KILLED, a sweep's trial queued again) handles it too.
-"""
+"""SIGTERM handled like Ctrl-C: its default action ends a process with no ``finally`` run, leaving
+an MLflow run RUNNING; inside :func:`terminate_as_interrupt` it raises :class:`Terminated`, a
+``KeyboardInterrupt``, so the code that handles Ctrl-C handles it too."""
 
 from __future__ import annotations
 
@@ -22,18 +16,16 @@ class Terminated(KeyboardInterrupt):
     """Raised in the main thread by SIGTERM inside :func:`terminate_as_interrupt`."""
 
 
-# Inside ``deferred()`` an interrupt waits for the block's end: a store write cut in half
-# (a KeyboardInterrupt raised inside an MLflow sqlite call) can leave this process's own
-# connection holding the database lock, and the clean-up's writes then wait on it in vain.
+# Inside ``deferred()`` an interrupt waits for the block's end: an MLflow sqlite write cut in half
+# can leave this process holding the database lock that its clean-up then waits on.
 _depth = 0
 _pending: KeyboardInterrupt | None = None
 
 
 @contextlib.contextmanager
 def deferred() -> Iterator[None]:
-    """Ctrl-C / SIGTERM arriving inside the block (under :func:`terminate_as_interrupt`)
-    is raised when the block ends (later ones are ignored: the first one stops the
-    process)."""
+    """Ctrl-C / SIGTERM arriving inside the block (under :func:`terminate_as_interrupt`) is raised
+    when the block ends; later ones are ignored."""
     global _depth, _pending
     if threading.current_thread() is not threading.main_thread():
         yield  # signals reach the main thread only
@@ -57,10 +49,8 @@ def _raise_or_defer(interrupt: KeyboardInterrupt) -> None:
 
 
 def _in_finaliser(frame, depth: int = 8) -> bool:
-    """Whether the handler interrupted a finaliser (``__del__``, a weakref callback run
-    by the garbage collector): Python prints an exception raised there ("Exception
-    ignored in ...") and goes on, so the signal would be lost (a sweep went on for
-    minutes after SIGTERM)."""
+    """Whether the handler interrupted a finaliser (``__del__``, a weakref callback): Python prints
+    an exception raised there and goes on, so the signal would be lost."""
     while frame is not None and depth > 0:
         code = frame.f_code
         if code.co_name == "__del__" or "weakref" in code.co_filename:
@@ -78,16 +68,9 @@ def _again(signum: int) -> None:
 
 @contextlib.contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM raises :class:`Terminated` in the main thread.
-
-    Only the first Ctrl-C, SIGTERM or SIGHUP raises; later ones are ignored while its
-    interrupt unwinds, so a second signal (an impatient second Ctrl-C, Slurm signalling
-    every process of a job, a sweep forwarding SIGTERM to its worker processes) cannot cut
-    the clean-up short - a run's failure record would stop before its MLflow run is ended
-    and leave it RUNNING. SIGKILL still ends the process at once. Both wait for the end of
-    a :func:`deferred` block. The previous handlers are restored on leaving. Outside the
-    main thread (Python runs signal handlers only there) the block runs unchanged.
-    """
+    """Within the block, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread (elsewhere
+    the block runs unchanged). Only the first signal raises, so a second (another Ctrl-C, Slurm
+    signalling every process) cannot cut the clean-up short and leave a run RUNNING."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -105,8 +88,7 @@ def terminate_as_interrupt() -> Iterator[None]:
 
     previous = signal.signal(signal.SIGTERM, on_signal)
     previous_int = signal.signal(signal.SIGINT, on_signal)
-    # SIGHUP (the terminal closed, an ssh session dropped) as SIGTERM, unless it is ignored
-    # (nohup): its default action kills the process at once and leaves the run RUNNING.
+    # SIGHUP (a closed terminal, a dropped ssh session) as SIGTERM, unless ignored (nohup).
     hangup = signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
     previous_hup = signal.signal(signal.SIGHUP, on_signal) if hangup else None
     try:
@@ -119,10 +101,9 @@ def terminate_as_interrupt() -> Iterator[None]:
 
 
 def quiet_exit(code: int = 130) -> None:
-    """From now on Ctrl-C or SIGTERM ends the process at once with ``code``, silently: for a
-    process that is already exiting after an interrupt. Otherwise a second Ctrl-C (or one
-    redelivered by :func:`_again`) lands in an ``atexit`` hook (torch's, MLflow's), and
-    Python prints its ``KeyboardInterrupt`` traceback after fedlgr's last line."""
+    """From now on Ctrl-C or SIGTERM ends the process at once with ``code``, silently: for a process
+    already exiting after an interrupt, where another would print a traceback from an ``atexit``
+    hook."""
 
     def now(signum: int, frame) -> None:
         with contextlib.suppress(Exception):

@@ -1,15 +1,6 @@
-"""The address-space limit (``ulimit -v``, RLIMIT_AS) a command runs under.
-
-A process whose mappings would pass the limit gets no more memory, and a command that
-loads torch fails in ways that are no use to a user: torch's shared objects cannot be
-mapped (``ImportError: ... failed to map segment from shared object``), a C++ static
-initialiser runs out while they load (``std::bad_alloc``: the process aborts, out of
-Python's reach), or an allocation fails later (``DefaultCPUAllocator: can't allocate
-memory``, ``MemoryError``). :func:`torch_guarded` checks, just before the first
-``import torch``, that the limit leaves room for torch's shared objects;
-:func:`out_of_address_space` says an error that ran out under a limit in one line naming
-the limit. Without a limit both do nothing.
-"""
+"""The address-space limit (``ulimit -v``, RLIMIT_AS) a command runs under: too small a one makes
+torch fail in ways of no use to a user (unmappable shared objects, an aborting ``std::bad_alloc``).
+Checked before the first ``import torch``, and such an error said in one line naming the limit."""
 
 from __future__ import annotations
 
@@ -23,9 +14,8 @@ from pathlib import Path
 
 from fedlgr.errors import FedlgrError, exception_chain, first_line
 
-# What the ways of running out say (lower case): the dynamic loader's, the C library's
-# (ENOMEM), torch's CPU allocator's, a C++ allocation's and oneDNN's (its kernels' code and
-# scratch space are mapped when a convolution first runs).
+# What the ways of running out say (lower case): the loader's, the C library's, torch's allocator's,
+# C++'s and oneDNN's (which maps its kernels when a convolution first runs).
 _RAN_OUT = (
     "failed to map segment",
     "cannot allocate memory",
@@ -59,9 +49,8 @@ def too_small(verb: str, why: str) -> str:
 
 
 def out_of_address_space(err: BaseException, verb: str) -> str | None:
-    """The one line for ``err`` when it (or what led to it) ran out of memory under an
-    address-space limit; None otherwise (without a limit too: then it is no limit's
-    fault)."""
+    """The one line for ``err`` when it (or what led to it) ran out of memory under an address-space
+    limit; None otherwise, and without a limit."""
     if address_space_limit() is None:
         return None
     for cause in exception_chain(err):
@@ -75,9 +64,8 @@ def out_of_address_space(err: BaseException, verb: str) -> str | None:
 
 
 def torch_libraries() -> int:
-    """Bytes of torch's shared objects and, for a CUDA build, of the CUDA libraries
-    installed with it (the ``nvidia`` wheels), found without importing it: about what a
-    run maps for torch (its import maps most of them at once)."""
+    """Bytes of torch's shared objects and, for a CUDA build, of the ``nvidia`` wheels' libraries,
+    found without importing torch: about what a run maps for it."""
     spec = importlib.util.find_spec("torch")
     if spec is None or not spec.submodule_search_locations:
         return 0
@@ -96,7 +84,7 @@ def check_room_for_torch(verb: str) -> None:
     limit = address_space_limit()
     if limit is None:
         return
-    import psutil  # lazy: psutil (~0.1 s), kept off `fedlgr --help`
+    import psutil  # lazy: psutil, kept off `fedlgr --help`
 
     used, libraries = psutil.Process().memory_info().vms, torch_libraries()
     if used + libraries > limit:
@@ -131,10 +119,9 @@ class _TorchGuard(importlib.abc.MetaPathFinder):
 
 @contextlib.contextmanager
 def torch_guarded(verb: str) -> Iterator[None]:
-    """Within the block, the first ``import torch`` (wherever a verb does it) first checks
-    that an address-space limit leaves room for it: a limit too small for torch's
-    shared objects makes its import abort the process (a C++ ``std::bad_alloc``) or fail
-    with a traceback. Nothing changes without a limit, or once torch is loaded."""
+    """Within the block, the first ``import torch`` first checks that an address-space limit leaves
+    room for it: too small a limit makes the import abort the process (``std::bad_alloc``). Nothing
+    changes without a limit, or once torch is loaded."""
     if address_space_limit() is None or "torch" in sys.modules:
         yield
         return

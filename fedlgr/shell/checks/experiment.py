@@ -1,6 +1,6 @@
-"""The checks of a config that need this machine or the runtime it goes to: a scholar
-too large for the memory, and faults simulated where the robots are real. The settings'
-own rules are the core's (:mod:`fedlgr.core.settings`)."""
+"""The checks of a config that need this machine or the runtime it goes to: a scholar too large for
+the memory, and faults simulated where the robots are real. The settings' own rules are the core's
+(:mod:`fedlgr.core.settings`)."""
 
 from __future__ import annotations
 

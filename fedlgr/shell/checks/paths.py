@@ -1,8 +1,6 @@
-"""Path checks: what is at a path a user gave - a link that loops or leads nowhere, a
-folder, a device, a pipe or a socket where a file goes, a file where a folder goes - said
-in words before anything opens the path or makes something beside it (pathlib's
-``exists()`` says False for a dangling link, and an error that then says "does not exist"
-or "File exists" names the wrong reason)."""
+"""Path checks: a link that loops or leads nowhere, a folder, device, pipe or socket where a file
+goes, a file where a folder goes, said in words before anything opens the path (pathlib's
+``exists()`` is False for a dangling link, and a later error names the wrong reason)."""
 
 from __future__ import annotations
 
@@ -16,10 +14,8 @@ from fedlgr.errors import DataError
 
 
 def broken_link(path) -> str | None:
-    """Why ``path`` leads nowhere though a symbolic link names it, in words - "a symbolic
-    link that loops" (on the way to it, too) or "a symbolic link to TARGET, which does not
-    exist" - or None. pathlib's ``exists()``/``is_file()`` say False for both, and an
-    error that then says "does not exist" or "cannot make it" names the wrong reason."""
+    """Why ``path`` leads nowhere though a symbolic link names it ("a symbolic link that loops", on
+    the way to it too, or "a symbolic link to TARGET, which does not exist"), else None."""
     try:
         os.stat(path)
     except OSError as err:
@@ -33,10 +29,8 @@ def broken_link(path) -> str | None:
 
 
 def _above(path, links_only: bool = False) -> str | None:
-    """Why the nearest thing above ``path`` that is there cannot hold it: "under DIR, a
-    symbolic link to TARGET, which does not exist" (``mkdir(parents=True)`` said "File
-    exists", or followed it and made TARGET) or, unless ``links_only``, "under FILE, a file,
-    not a folder"; None when it is a folder."""
+    """Why the nearest thing above ``path`` that is there cannot hold it: a dangling symbolic link
+    or, unless ``links_only``, a file; None when it is a folder."""
 
     for parent in Path(path).parents:
         if not os.path.lexists(parent):
@@ -53,9 +47,8 @@ def _above(path, links_only: bool = False) -> str | None:
 
 
 def _mode(path) -> tuple[str | None, int | None]:
-    """``(why, None)`` where ``path`` leads nowhere (:func:`broken_link`) or something above
-    it is in the way (:func:`_above`; ``why`` None when simply nothing is there), else
-    ``(None, its mode)``: what :func:`not_a_file` and :func:`not_a_folder` start from."""
+    """``(why, None)`` where ``path`` leads nowhere or something above it is in the way (``why``
+    None when nothing is there), else ``(None, its mode)``."""
 
     if why := broken_link(path):
         return why, None
@@ -66,11 +59,9 @@ def _mode(path) -> tuple[str | None, int | None]:
 
 
 def not_a_file(path) -> str | None:
-    """Why ``path`` cannot be read or written as a regular file though something is there:
-    a broken link (:func:`broken_link`), "a folder", or "not a regular file (a device, pipe
-    or socket)" - which sqlite or ``open()`` would block on (a FIFO), read as empty
-    (/dev/null) or write beside (``/dev/null-journal``) - or None for a regular file or
-    nothing there."""
+    """Why ``path`` cannot be read or written as a regular file though something is there: a broken
+    link, "a folder", or a device, pipe or socket (which sqlite or ``open()`` would block on or read
+    as empty); None for a regular file or nothing there."""
 
     why, mode = _mode(path)
     if mode is None or stat.S_ISREG(mode):
@@ -79,9 +70,8 @@ def not_a_file(path) -> str | None:
 
 
 def not_a_folder(path) -> str | None:
-    """Why ``path`` cannot be (or be made) a folder: a broken link (:func:`broken_link`;
-    ``mkdir`` said only "File exists", or followed a dangling one and made its target), or a
-    file, device, pipe or socket already there; None for a folder or nothing there."""
+    """Why ``path`` cannot be (or be made) a folder: a broken link (which ``mkdir`` follows or calls
+    "File exists"), or a file, device, pipe or socket; None for a folder or nothing there."""
     why, mode = _mode(path)
     if mode is None or stat.S_ISDIR(mode):
         return why
@@ -100,8 +90,7 @@ def check_data_path(path: Path | str) -> None:
             f"data.path={path} is a file; expected the dataset folder (the one holding "
             f"{CSV_NAME} and images/{hint})"
         )
-    # a link, a FIFO or /dev/null is named as such at once, not as a folder that is not
-    # there or, after the data has loaded, a ratings CSV that is not in it
+    # a link, a FIFO or /dev/null is named as such at once, not as a missing folder or CSV
     if why := not_a_folder(path):
         raise DataError(f"data.path={path}: {why}")
     if not path.exists():

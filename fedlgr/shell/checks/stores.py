@@ -1,14 +1,6 @@
-"""Store checks: is a tracking store or a sweep's storage there and usable, said in one
-line before anything is written to it.
-
-``check_reachable(uri)`` refuses an ``http(s)://`` tracking URI that nothing answers in a
-few seconds, with one line that names it (MLflow's own client would retry for minutes,
-then raise a long stack trace); a database server's URL (``postgresql://...``) is
-connected to first (:func:`check_database`: driver, address, password, database), and
-the messages show its password masked (:func:`fedlgr.shell.tracking.uri.mask_password`);
-an sqlite file is checked to be one (:func:`check_sqlite`, :func:`check_sqlite_usable`).
-Light on purpose (no MLflow import): the CLI calls it before loading torch.
-"""
+"""Store checks: is a tracking store or a sweep's storage there and usable, said in one line before
+anything is written to it (MLflow would retry for minutes, then print a stack trace). Light on
+purpose (no MLflow import): the CLI calls it before loading torch."""
 
 from __future__ import annotations
 
@@ -35,10 +27,9 @@ class TrackingUnreachable(FedlgrError):
 
 
 def check_reachable(uri: str, timeout: float = 5.0) -> None:
-    """Raise :class:`TrackingUnreachable` when ``uri`` is an HTTP(S) address at which
-    nothing answers within ``timeout`` seconds. Any HTTP answer counts as reachable (a
-    proxy's 401 or 404 is for MLflow to report). A local sqlite store must be one fedlgr
-    can write (:func:`check_sqlite`); MLflow 3's plain file store is refused."""
+    """Raise :class:`TrackingUnreachable` when ``uri`` is an HTTP(S) address at which nothing
+    answers within ``timeout`` seconds (any HTTP answer counts). A sqlite store must be one fedlgr
+    can write; a plain file store is refused."""
     memory = in_memory_sqlite(uri)
     if uri.startswith("sqlite:///") and not memory:
         check_sqlite(uri)
@@ -60,7 +51,7 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
         return
     if not uri.startswith(("http://", "https://")):
         return
-    # lazy: urllib.request (0.02 s, a tenth of fedlgr --help), for a server's URI only
+    # lazy: urllib.request, for a server's URI only
     import urllib.error
     import urllib.request
 
@@ -83,10 +74,9 @@ SQLITE_HEADER = b"SQLite format 3\x00"
 
 
 def check_sqlite(uri: str) -> None:
-    """One line, before MLflow meets it, for a sqlite store that is a folder, not an
-    SQLite file, read-only (or immutable), or in a folder that cannot be made or
-    written. (MLflow would retry for minutes, or end in a stack trace.)"""
-    from sqlalchemy.exc import ArgumentError  # lazy: SQLAlchemy (~0.5 s), a sqlite store only
+    """One line, before MLflow meets it, for a sqlite store that is a folder, not an SQLite file,
+    read-only, or in a folder that cannot be made or written."""
+    from sqlalchemy.exc import ArgumentError  # lazy: SQLAlchemy, a sqlite store only
 
     def refuse(why: str) -> None:
         raise TrackingUnreachable(f"tracking store {uri}: {why}")
@@ -100,8 +90,7 @@ def check_sqlite(uri: str) -> None:
 
     if path.is_dir():
         refuse(f"{path} is a folder; name the database file in it, e.g. sqlite:///{path}/mlflow.db")
-    # a new store would replace a link; sqlite would hang on a FIFO and write
-    # /dev/null-journal beside /dev/null
+    # sqlite would replace a link, hang on a FIFO and write /dev/null-journal beside /dev/null
     if why := not_a_file(path):
         refuse(f"{path} is {why}")
     try:
@@ -126,9 +115,8 @@ QUICK_CHECK_BYTES = 256 * 2**20
 
 
 def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
-    """The sqlite store opens and takes a write lock within ``wait`` seconds: a corrupted
-    file, or one that another process keeps locked, is one line (MLflow would retry for
-    minutes, then end in a stack trace)."""
+    """The sqlite store opens and takes a write lock within ``wait`` seconds: a corrupted file, or
+    one another process keeps locked, is one line."""
 
     path = sqlite_file(uri)
     if path is None or not path.is_file():
@@ -138,7 +126,7 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
         try:
             connection.execute("SELECT count(*) FROM sqlite_master").fetchone()
             half_created(connection)
-            if path.stat().st_size < QUICK_CHECK_BYTES:  # ~20 ms per MB: skipped for big ones
+            if path.stat().st_size < QUICK_CHECK_BYTES:  # it reads the whole file
                 problems = connection.execute("PRAGMA quick_check(1)").fetchone()
                 if problems and problems[0] != "ok":
                     found = " ".join(problems[0].split())
@@ -158,11 +146,9 @@ def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
 
 
 def half_created(connection) -> None:
-    """Raise ``sqlite3.DatabaseError`` for an MLflow store whose creation a kill cut short
-    (its tables there, ``alembic_version`` empty, and every later use a ``duplicate column
-    name`` traceback). fedlgr now creates a store under
-    another name and renames it when whole (:func:`fedlgr.shell.tracking.mlflow_run.open_client`);
-    this names the ones left by other tools or earlier versions."""
+    """Raise ``sqlite3.DatabaseError`` for an MLflow store whose creation a kill cut short (tables
+    there, ``alembic_version`` empty): its every use would be a ``duplicate column name``
+    traceback."""
 
     tables = {name for (name,) in connection.execute("SELECT name FROM sqlite_master")}
     if not tables or "experiments" not in tables:
@@ -187,10 +173,8 @@ def check_tracking(uri: str | None, overrides: list[str]) -> None:
 
 
 def check_userinfo(uri: str, what: str, error: type[FedlgrError] = FedlgrError) -> None:
-    """A ``user:password@`` part that holds an unescaped ``@``: URL parsers disagree on
-    where it ends (libpq splits at the first ``@``, SQLAlchemy at the last), so one of them
-    would take the tail of the password for a host name - and print it. One line asking for
-    ``%40``."""
+    """Refuse a ``user:password@`` part holding an unescaped ``@``: libpq splits at the first ``@``,
+    SQLAlchemy at the last, so one would print the password's tail as a host name."""
     _, sep, rest = uri.partition("://")
     authority = rest[: authority_end(rest)].split("/", 1)[0]
     if sep and authority.count("@") > 1:
@@ -212,11 +196,8 @@ CONNECT_TIMEOUT_S = 10  # for a database server to answer
 
 
 def check_database(uri: str, what: str, error: type[FedlgrError] = FedlgrError) -> None:
-    """Connect to the server database ``uri`` (:data:`CONNECT_TIMEOUT_S`) and leave: a URL
-    SQLAlchemy cannot read, an unknown kind or driver, a driver that is not installed, a
-    server that does not answer, a wrong user or password, a missing database are one
-    ``error`` line ``{what} {uri}: {problem}``, the password masked (MLflow would retry
-    for minutes; Optuna and SQLAlchemy end in stack traces)."""
+    """Connect to the server database ``uri`` and leave: an unreadable URL, a missing driver, no
+    answer, a wrong password or a missing database is one ``error`` line, password masked."""
     with database_connection(uri, what, error):
         pass
 
@@ -225,7 +206,7 @@ def check_database(uri: str, what: str, error: type[FedlgrError] = FedlgrError) 
 def database_connection(uri: str, what: str, error: type[FedlgrError]):
     """An open SQLAlchemy connection to ``uri`` (no pool: closed for good at the end);
     failing to open it is one ``error`` line (:func:`database_problem`)."""
-    # lazy: SQLAlchemy (~0.5 s), only for a database server's URL
+    # lazy: SQLAlchemy, only for a database server's URL
     from sqlalchemy import create_engine
     from sqlalchemy.pool import NullPool
 
@@ -239,8 +220,7 @@ def database_connection(uri: str, what: str, error: type[FedlgrError]):
 
         url = make_url(uri)
         backend = url.get_backend_name()
-        # The URI's own connect_timeout, if it names one, is tried as written (a bad value
-        # is one line now, not two minutes of MLflow's retries later)
+        # The URI's own connect_timeout, if any, is tried as written: a bad value fails now
         timed = backend in ("postgresql", "mysql") and "connect_timeout" not in url.query
         args = {"connect_timeout": CONNECT_TIMEOUT_S} if timed else {}
         engine = create_engine(url, poolclass=NullPool, connect_args=args)

@@ -1,16 +1,6 @@
-"""Experiment settings filled from YAML and ``key=value``. The settings themselves (type,
-default, bounds, doc) are declared once in :mod:`fedlgr.core.settings`, the core's input
-type; this package loads them:
-
-- :mod:`.load`: the layers (defaults, a config file and what it ``includes``, found by
-  :mod:`.files`, the command line) merged by OmegaConf into the dataclasses, ``${...}``
-  kept to the policy of :mod:`.interpolation`, OmegaConf's errors made one line by
-  :mod:`.messages`.
-- :mod:`.export`: a config written out (YAML, flat MLflow params) and the settings' names.
-
-The names below are the package's public face: ``from fedlgr.shell.config import
-load_config, ExperimentConfig``.
-"""
+"""Experiment settings filled from YAML and ``key=value``: declared once in
+:mod:`fedlgr.core.settings`, loaded here (:mod:`.load`, :mod:`.files`) and written out
+(:mod:`.export`). Import from here: ``from fedlgr.shell.config import load_config``."""
 
 import importlib
 from typing import Any

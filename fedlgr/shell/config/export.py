@@ -1,8 +1,6 @@
-"""A loaded config written out: as plain values, as YAML (``--print-config``, the run's
-``config.yaml``; without ``tracking.uri``, what a Flower server sends its robots), as flat
-``section.setting`` strings (MLflow params, checkpoints); and the names of the settings
-themselves. What is written out never holds the password of ``tracking.uri``. And which
-settings change a run's numbers: the hash by which a resumed run or a retried trial is found."""
+"""A loaded config written out (plain values, YAML, flat ``section.setting`` strings), the settings'
+names, and the hash of the settings that change a run's numbers. What is written out never holds the
+password of ``tracking.uri``."""
 
 from __future__ import annotations
 
@@ -30,9 +28,8 @@ def to_plain(value: Any) -> Any:
 
 
 def to_yaml(config: ExperimentConfig) -> str:
-    """The resolved config as YAML - what ``--print-config`` shows and the run's
-    ``config.yaml`` artifact - with the password of ``tracking.uri`` masked (a database URI
-    may hold one; the UI shows the artifact to whoever opens the run)."""
+    """The resolved config as YAML (``--print-config``, the run's ``config.yaml``), the password of
+    ``tracking.uri`` masked: the UI shows the artifact to whoever opens the run."""
     plain = to_plain(config)
     if plain["tracking"]["uri"]:
         plain["tracking"]["uri"] = mask_password(str(plain["tracking"]["uri"]))
@@ -40,9 +37,8 @@ def to_yaml(config: ExperimentConfig) -> str:
 
 
 def robot_yaml(config: ExperimentConfig) -> str:
-    """The resolved config as a Flower server sends it to its robots: as :func:`to_yaml`,
-    without ``tracking.uri``. A robot logs nothing, and the store's address (its host,
-    user and database, even with the password masked) is the server's alone."""
+    """The resolved config as a Flower server sends it to its robots: :func:`to_yaml` without
+    ``tracking.uri``, since the store's address is the server's alone."""
     plain = to_plain(config)
     plain["tracking"]["uri"] = None
     return _dump(plain)
@@ -75,8 +71,7 @@ def _leaves(values: dict, prefix: str = ""):
 
 def short_setting(name: str) -> str:
     """A setting without its section, for names of trials and cells: ``train.lr_root`` ->
-    ``lr_root``, ``continual.lgr.replay`` -> ``lgr.replay`` (a method's setting keeps the
-    method's name)."""
+    ``lr_root``, ``continual.lgr.replay`` -> ``lgr.replay``."""
     return name.split(".", 1)[-1]
 
 
@@ -104,16 +99,15 @@ SAFE_KEYS = frozenset(
     }
 )
 
-# Settings a launch may leave to the machine (its cores, its load): a resumed run takes
-# its checkpoint's values for them (``resume.adopted``), so that it computes the
-# same numbers; they are not part of the hash a run is found by.
+# Settings a launch may leave to the machine: a resumed run adopts its checkpoint's values
+# (``resume.adopted``) to compute the same numbers, so they are not hashed.
 MACHINE_CHOSEN = ("runtime.threads", "runtime.concurrency", "runtime.workers")
 
 
 def config_hash(config: ExperimentConfig) -> str:
-    """A hash of every setting that changes the run's numbers (``SAFE_KEYS`` excluded, and
-    the machine-chosen thread settings, which a resume adopts): ``--resume`` without a run
-    id, and a sweep's retried trial, look for an unfinished run with the same one."""
+    """A hash of every setting that changes the run's numbers (not ``SAFE_KEYS`` nor
+    ``MACHINE_CHOSEN``): ``--resume`` without a run id and a sweep's retried trial look for an
+    unfinished run with the same one."""
     skip = SAFE_KEYS | set(MACHINE_CHOSEN)
     items = sorted((k, v) for k, v in flatten(config).items() if k not in skip)
     return hashlib.sha256(repr(items).encode()).hexdigest()[:16]

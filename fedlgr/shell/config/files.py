@@ -1,7 +1,5 @@
-"""Config files: where the shipped ``conf/`` and ``sweeps/`` are, and reading one config
-file, preceded by the files it ``includes``, as layers of settings. A path that is no
-config (a folder, a device, a broken link, a loop of includes, text that is not
-``setting: value`` lines, YAML too deep or too large) is refused in one line naming it."""
+"""Config files: where the shipped ``conf/`` and ``sweeps/`` are, and reading one file, preceded by
+what it ``includes``, as layers of settings; a path that is no config is refused in one line."""
 
 from __future__ import annotations
 
@@ -16,9 +14,8 @@ from fedlgr.shell.config.written import plain
 
 
 def _shipped(folder: str) -> Path:
-    """``conf/`` or ``sweeps/``: the copy a wheel ships inside the package (pyproject's
-    ``force-include``, for ``pip install`` / ``uv tool install``), else the checkout's, next
-    to the package (a clone, an editable install)."""
+    """``conf/`` or ``sweeps/``: the copy a wheel ships inside the package, else the checkout's next
+    to the package."""
     package = Path(__file__).resolve().parents[2]  # fedlgr/
     return package / folder if (package / folder).is_dir() else package.parent / folder
 
@@ -28,14 +25,12 @@ SWEEPS_DIR = _shipped("sweeps")
 
 SETTING_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]{0,99}")
 
-MAX_NESTING = 50  # levels of a config file; fedlgr's own nest 4 at most (at 90 levels of
-# mappings OmegaConf's own recursion gives up)
+MAX_NESTING = 50  # levels of a config file (OmegaConf's recursion gives up at 90)
 
 
 def find_config(name: str | Path) -> Path:
-    """A config file as given, else the shipped one it names relative to ``conf/``
-    (``debug/fast.yaml``, ``conf/debug/fast.yaml`` outside a checkout, ``.yaml`` optional);
-    unchanged when neither exists (loading it then names the missing file)."""
+    """A config file as given, else the shipped one it names under ``conf/`` (``debug/fast.yaml``,
+    ``.yaml`` optional); unchanged when neither exists."""
     path = Path(name)
     if path.is_file() or path.is_absolute():
         return path
@@ -114,10 +109,9 @@ def _includes(node: Any) -> list:
 
 
 def _included(name: Path, including: Path) -> Path:
-    """The file ``includes: [NAME]`` in ``including`` names: NAME.yaml (or NAME if it ends
-    in .yaml/.yml, or NAME itself if only that exists), relative to conf/, else to the
-    including file. A suffix is added, never replaced (``with_suffix`` would look for
-    ``includes: [cfg.fifo]`` as cfg.yaml, and for ``/dev/zero`` as /dev/zero.yaml)."""
+    """The file ``includes: [NAME]`` in ``including`` names: NAME.yaml (or NAME itself), relative to
+    conf/, else to the including file. A suffix is added, never replaced, so ``cfg.fifo`` is not
+    read as cfg.yaml."""
     names = [name] if name.suffix in (".yaml", ".yml") else [name.with_name(f"{name.name}.yaml")]
     names += [name] if name not in names else []
     folders = [Path("/")] if name.is_absolute() else [CONF_DIR, including.parent]
@@ -126,11 +120,8 @@ def _included(name: Path, including: Path) -> Path:
 
 
 def yaml_reason(err: Exception) -> str:
-    """Why OmegaConf's loader refused a YAML file, in one line: ``not valid YAML (...)`` or
-    ``too large: ...``. Its limit on the nodes of one file (10,000, against alias bombs)
-    names aliases and how to raise it, whether or not the file has an alias (a file of
-    200,000 plain keys gets it too); that is said as what it is, with no advice to lift a
-    safety limit."""
+    """Why OmegaConf's loader refused a YAML file, in one line. Its limit on a file's nodes (against
+    alias bombs) is said as what it is, without its advice to lift a safety limit."""
     first = first_line(err)
     found = re.search(r"YAML node expansion exceeds the configured limit of (\d+)", first)
     if found:
@@ -142,10 +133,8 @@ def yaml_reason(err: Exception) -> str:
 
 
 def _check_nesting(path: Path) -> None:
-    """A file nested deeper than MAX_NESTING levels is one line. OmegaConf composes YAML
-    with libyaml's recursive C code, which crashes the process (SIGSEGV, no word) on
-    100,000 nested ``[``; libyaml's event parser keeps its own stack, so the levels are
-    counted from its events first (microseconds for a config)."""
+    """A file nested deeper than MAX_NESTING levels is one line: libyaml's recursive composer
+    crashes the process (SIGSEGV) on very deep nesting, so its event parser counts the levels."""
     # lazy: yaml is imported once a config is loaded, not by fedlgr --help
     import yaml
 

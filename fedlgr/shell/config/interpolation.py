@@ -1,10 +1,6 @@
-"""The ``${...}`` a config file or override may hold (docs/methods.md, "Running
-experiments"): a reference to another setting, or an environment variable whose name
-starts with FEDLGR_ (optionally with a default). Everything else - other variables,
-oc.decode, oc.create, oc.select, oc.dict.*, nested interpolations - is refused in every
-layer before anything is resolved, since a resolver can read or build anything; ``\\${``
-stays a literal ``${``. What is allowed is then resolved once, each failure one line
-naming the setting and its layer."""
+"""The ``${...}`` a config may hold: a reference to another setting, or an environment variable
+FEDLGR_* (optionally with a default). All else is refused in every layer before anything resolves,
+since a resolver can read or build anything; each failure is one line."""
 
 from __future__ import annotations
 

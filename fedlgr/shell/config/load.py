@@ -1,11 +1,6 @@
-"""Loading a config: OmegaConf merges, in order, the defaults (the dataclasses of
-:mod:`.settings`), the files a config ``includes`` (:mod:`.files`), the config file
-itself and the command-line overrides, checks every key and type against the
-dataclasses, and builds them (so each ``__post_init__`` checks its own settings).
-``method=FedRootProx`` is shorthand for ``federated.strategy=prox federated.scope=root``.
-Every ``${...}`` is checked against the policy of :mod:`.interpolation` before anything
-resolves, and each of OmegaConf's errors becomes one line naming the setting and its layer
-(:mod:`.messages`)."""
+"""Loading a config: OmegaConf merges the defaults, the files a config ``includes``, the file itself
+and the command-line overrides, and the settings are built from the result. Every ``${...}`` is
+checked before anything resolves; each error is one line naming the setting and its layer."""
 
 from __future__ import annotations
 
@@ -46,9 +41,8 @@ def load_config(
 
 
 def config_from_data(data: Any, source: str) -> ExperimentConfig:
-    """A config received as data (a robot's copy of the server's resolved config,
-    :func:`~fedlgr.shell.config.export.to_yaml`): settings only, checked by
-    :func:`check_sent_settings`."""
+    """A config received as data (a robot's copy of the server's resolved config): settings only,
+    checked by :func:`check_sent_settings`."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
@@ -85,8 +79,7 @@ def _dotlist(overrides) -> Any:
 
     # RecursionError: a value nested thousands of levels deep ([[[[...]]]])
     unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError, RecursionError)
-    # before OmegaConf reads them: with 'train=5' first it would keep train.lr_root=0.1 and
-    # drop the 5 without a word (in the other order, fail with a Merge error)
+    # before OmegaConf reads them: of a setting set whole and by parts, it drops one silently
     if clash := _clashing(overrides):
         raise ConfigError(f"command line: {clash}")
     try:
@@ -103,9 +96,7 @@ def _dotlist(overrides) -> Any:
 
 def _clashing(overrides) -> str | None:
     """Two overrides that set one setting both whole and by its parts (``data.path=D`` and
-    ``data=[1,2]``), which OmegaConf refuses with "Cannot merge incompatible container
-    types" or "invalid literal for int()", naming neither, or reads with one of them
-    dropped: both, named."""
+    ``data=[1,2]``), both named: OmegaConf refuses them naming neither, or drops one."""
     keys = [override.partition("=")[0] for override in overrides]
     for i, key in enumerate(keys):
         for earlier, other in zip(overrides[:i], keys[:i], strict=True):
@@ -131,10 +122,9 @@ def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> Experiment
 
 
 def _merge(layers: list, with_defaults: bool) -> Any:
-    """``layers`` merged in order, a ``method`` name expanded where it is given; a layer
-    that does not fit is one line naming it and the setting. The defaults are the
-    settings' own (filled in as they are built), merged first only where a ``${...}`` may
-    name one: as an OmegaConf node they take 15 ms to make and 5 ms a merge."""
+    """``layers`` merged in order, a ``method`` name expanded where given; a layer that does not fit
+    is one line naming it and the setting. The defaults are merged first only where a ``${...}`` may
+    name one: as an OmegaConf node they are costly to make and merge."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
@@ -157,9 +147,9 @@ def _merge(layers: list, with_defaults: bool) -> Any:
 
 
 def _check_types(source: str, values: Any, cls: type = ExperimentConfig, at: str = "") -> None:
-    """A layer's values of the wrong type, refused naming the layer (as OmegaConf's typed
-    merge did): a section given one value, a word where a number goes. Bounds and choices
-    are checked once the layers are merged, where a later layer may have set another."""
+    """A layer's values of the wrong type, refused naming the layer: a section given one value, a
+    word where a number goes. Bounds and choices are checked once the layers are merged, where a
+    later layer may have set another."""
     if not isinstance(values, dict):
         return
     fields = cls.__pydantic_fields__
@@ -204,10 +194,8 @@ def _default(cls: type, name: str) -> Any:
 
 
 def _to_object(merged: Any, layers: list, interpolated: dict) -> ExperimentConfig:
-    """The settings, validated as they are built. A value of the wrong shape (an unknown
-    name, a section given one value, a word where a number goes) is said with the layer
-    that wrote it, the earliest written first; one that came from ``${...}`` with what
-    was written."""
+    """The settings, validated as they are built; a value of the wrong shape is said with the layer
+    that wrote it (the earliest first), one from ``${...}`` with what was written."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
     from omegaconf import OmegaConf
 
@@ -270,9 +258,8 @@ def _names(values: Any, prefix: str = "") -> list[str]:
 
 
 def _require_mandatory(layers: list) -> None:
-    """A ``???`` value (e.g. data.path in conf/data/manners.yaml) must be set by a later
-    layer or the command line. (OmegaConf's merge skips ``???``, which would let an earlier
-    default - the synthetic data - stand in silently.)"""
+    """A ``???`` value (e.g. data.path in conf/data/manners.yaml) must be set by a later layer:
+    OmegaConf's merge skips ``???``, which would let an earlier default stand in silently."""
     written = [(source, plain(node)) for source, node in layers]  # nothing resolved
     for i, (source, values) in enumerate(written):
         for key in _missing_keys(values):

@@ -1,6 +1,5 @@
-"""OmegaConf's errors as one line in the config's words: the setting at fault named (an
-unknown one with the closest known names), never OmegaConf's internals ("Merge error: int
-is not a subclass of TrainConfig", ``$VALUE``, a bare ``TypeError``) or a traceback."""
+"""OmegaConf's errors as one line in the config's words: the setting at fault named (an unknown one
+with the closest known names), never OmegaConf's internals or a traceback."""
 
 from __future__ import annotations
 
@@ -20,8 +19,7 @@ def omegaconf_message(err: Exception) -> str:
 
 def container_mismatch(merged: Any, written: dict, prefix: str = "") -> str | None:
     """The setting given a mapping where a list goes, or a list where a section goes: what
-    OmegaConf's merge refuses with a bare ``TypeError`` (``train.betas: {a: 1}`` would be a
-    traceback)."""
+    OmegaConf's merge refuses with a bare ``TypeError``."""
     # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
     from omegaconf import DictConfig, ListConfig, OmegaConf
     from omegaconf.tupleconfig import TupleConfig
@@ -46,10 +44,9 @@ def _short(value: Any) -> str:
 
 
 def unknown_setting(key: str, written: dict) -> str:
-    """``KEY: unknown setting; did you mean NAME?`` - the closest known settings to what was
-    written (the whole dotted name, so ``train.learning_rate`` finds ``train.lr_root``).
-    ``key`` is the first unknown part; a section written under it is matched by its
-    setting when it holds one (``trian: {lr_top: 1}`` is ``trian.lr_top``)."""
+    """``KEY: unknown setting; did you mean NAME?``, matched on the whole dotted name
+    (``train.learning_rate`` finds ``train.lr_root``); a section written under ``key`` is matched by
+    the one setting it holds."""
     dotted = _dotted_key(key, written)
     if dotted is not None:  # `tracking.run_name: x` in a file
         section, _, rest = dotted.partition(".")

@@ -10,9 +10,7 @@ from fedlgr.shell.config.export import _leaves, to_plain
 
 
 def reference() -> str:
-    """Every setting with its type, default, bounds and doc, read from
-    the settings' declarations (``uv run python -m fedlgr.shell.config.reference`` writes it;
-    a test checks that the committed file is current)."""
+    """Every setting with its type, default, bounds and doc, from the settings' declarations."""
     import yaml  # lazy: only this generator writes the reference
 
     defaults = dict(_leaves(to_plain(ExperimentConfig())))

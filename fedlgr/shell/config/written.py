@@ -1,7 +1,5 @@
-"""A config layer's values as written: plain dicts and lists with every ``${...}`` left
-unresolved, and the walks over them that loading needs (the value at a dotted key, every
-string). Checks read these, never resolved values, so that nothing is resolved before it
-is allowed."""
+"""A config layer's values as written (plain dicts and lists, ``${...}`` unresolved) and the walks
+over them: checks read these, never resolved values, so nothing resolves before it is allowed."""
 
 from __future__ import annotations
 
