@@ -1,22 +1,6 @@
-"""Per-round checkpoints of a run: where they live, how they are written and read.
-
-Where: one folder per MLflow run, ``<root>/<run_id>/round-0003.ckpt``, where ``root`` is
-``tracking.checkpoint_dir`` if set, else ``checkpoints/`` next to a local sqlite store
-(``sqlite:///runs/mlflow.db`` -> ``runs/checkpoints/``), else ``checkpoints/`` in the
-working directory (a remote ``mlflow server``). The run's tag ``fedlgr.checkpoints``
-records the folder. Not an MLflow artifact: a checkpoint is rewritten every round and
-must replace its predecessor atomically (an artifact upload can neither be renamed into
-place nor deleted through MLflow's API), and a remote server would receive the full model
-of every client every round.
-
-How: rank 0 writes the whole run's state (every client of every process) to a temporary
-name in the folder itself and renames it into place, so a kill during the write leaves
-the previous checkpoint intact (and the temporary, removed at the next start); it keeps
-the newest ``tracking.keep_checkpoints`` and removes the folder when the run finishes.
-The run's owner holds a lock in the folder (:mod:`fedlgr.shell.run.owner`). Files are read
-with ``weights_only=True``: only tensors and plain Python values, never code (numpy
-arrays are stored as tensors).
-"""
+"""Per-round checkpoints of a run, one folder per MLflow run: where they live, how they are written
+and read. Not MLflow artifacts: a checkpoint replaces its predecessor atomically, which an upload
+cannot; read with ``weights_only=True``, never code."""
 
 from __future__ import annotations
 
@@ -41,11 +25,11 @@ ROOT = "checkpoints"  # the folder of runs' folders, unless tracking.checkpoint_
 
 
 def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
-    """The folder that holds the runs' checkpoint folders (see the module docstring)."""
+    """The folder of the runs' checkpoint folders: ``tracking.checkpoint_dir``, else
+    ``checkpoints/`` beside a local sqlite store, else in the working directory."""
     if config.tracking.checkpoint_dir:
         given = Path(config.tracking.checkpoint_dir).expanduser()
-        # before resolve(), which follows a dangling link (the run would make its target)
-        # and turns a link to a device into a folder that cannot be made ("File exists")
+        # before resolve(): it follows a dangling link, and a link to a device becomes a folder
         if why := not_a_folder(given):
             raise FedlgrError(f"tracking.checkpoint_dir={config.tracking.checkpoint_dir}: {why}")
         return given.resolve()
@@ -68,17 +52,9 @@ INTERRUPTED = "interrupted"  # what rank 0 tells the others when its write was c
 
 
 def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) -> Path | None:
-    """Write ``state`` as round ``round_``'s checkpoint (rank 0; every process must call
-    this: they wait for rank 0's write); keep the newest ``keep``. ``fabric`` None: a
-    process of its own (the Flower ServerApp).
-
-    Not ``Fabric.save``: its atomic write (Lightning's ``_atomic_save``, an fsspec
-    transaction) stages the file in ``$TMPDIR`` and moves it into place, so a kill during
-    the write leaves a file of the checkpoint's size there, and a full disk there fails a
-    run whose checkpoint folder has room. The state is plain tensors and values (no
-    wrapped modules), which ``torch.save`` writes as Fabric would. Ctrl-C or SIGTERM
-    during the write is that interrupt, raised in every process once the temporary is
-    removed - not a failed write (``torch.save`` wraps it in a ``RuntimeError``)."""
+    """Write ``state`` as round ``round_``'s checkpoint (rank 0; every process calls this and
+    waits), keeping the newest ``keep``; ``fabric`` None: a process of its own. Not ``Fabric.save``:
+    it stages the file in ``$TMPDIR``, where a kill leaves it and a full disk fails the run."""
     path = folder / f"round-{round_:04d}.ckpt"
     error, interrupt = "", None
     rank, world = (0, 1) if fabric is None else (fabric.global_rank, fabric.world_size)
@@ -181,10 +157,8 @@ def load(path: Path, required: tuple[str, ...] = ()) -> dict[str, Any]:
 
 
 def remove(folder: Path, ours: bool = False) -> None:
-    """Remove a run's checkpoint folder, and the folder of runs' folders if that is left
-    empty and ``ours`` - fedlgr's own ``checkpoints/``, not a ``tracking.checkpoint_dir``
-    the user made (removing that would leave a link to it leading nowhere): a finished run
-    leaves nothing of its own behind."""
+    """Remove a run's checkpoint folder, and the folder of runs' folders if left empty and ``ours``
+    (fedlgr's own ``checkpoints/``, not a ``tracking.checkpoint_dir`` the user made)."""
     shutil.rmtree(folder, ignore_errors=True)
     if ours and folder.parent.name == ROOT:
         with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile

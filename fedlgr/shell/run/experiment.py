@@ -1,15 +1,5 @@
-"""Run one experiment in our processes: Fabric's set-up and launch, the resume point, the
-runtime settings resolved once, the data, the in-process
-:class:`~fedlgr.core.in_process.Orchestrator`, and the run's life around its rounds
-(:class:`~fedlgr.shell.run.life.RunLife`: tracking, checkpoints, resume, the failure
-record).
-
-``run_experiment(config)`` returns an :class:`ExperimentResult` in the process that
-called it (rank 0). Multi-process runs use Fabric's launchers: ``runtime.launcher=ddp``
-re-runs the current command once per extra process (what ``fedlgr run`` uses; several
-nodes via ``fabric run`` / torchrun, which start the processes themselves), ``ddp_spawn``
-spawns them from Python.
-"""
+"""Run one experiment in our processes: Fabric's set-up and launch, the resume point, the runtime
+settings resolved once, the data, the in-process orchestrator and the run's life around them."""
 
 from __future__ import annotations
 
@@ -51,8 +41,7 @@ def make_fabric(config: ExperimentConfig):
         )
     strategy = "auto"
     if rt.world_size > 1:
-        # Models are never wrapped in DDP (clients train independently); buffers must
-        # not be broadcast between processes either.
+        # no DDP wrapping (clients train independently), and no buffers broadcast either
         timeout = datetime.timedelta(seconds=rt.timeout_s)
         strategy = (
             DDPStrategy(start_method="spawn", broadcast_buffers=False, timeout=timeout)
@@ -79,17 +68,9 @@ def run_experiment(
     resume: str | bool | None = None,
     show_runs: bool = True,
 ) -> ExperimentResult | None:
-    """Run ``config`` end to end; the result in rank 0, ``None`` in other processes.
-
-    ``resume``: a run id, or True for the latest unfinished run of this config, to
-    continue from its last checkpoint inside the same MLflow run. ``on_start(run_id)``
-    (rank 0) is called once the MLflow run exists. ``on_round(round, metrics)`` (rank 0,
-    after each round is logged and checkpointed; a resumed run first calls it again for
-    the rounds it restored) may raise to stop the run, e.g. a sweep's
-    pruner: the run is then ended KILLED if the exception has ``mlflow_status =
-    "KILLED"``, FAILED otherwise, keeping what was logged. ``show_runs``: print at the
-    end where to see the run in MLflow's UI. The caller has checked that the tracking store
-    is reachable (before torch loads: ``fedlgr run``, ``demo``, a sweep's parent run)."""
+    """Run ``config`` end to end; the result in rank 0, ``None`` in other processes. ``resume``: a
+    run id, or True for this config's latest unfinished run; ``on_round(round, metrics)`` may raise
+    to stop the run. The caller has checked that the tracking store is reachable."""
     echo = echo or functools.partial(print, flush=True)  # progress must reach logs at once
     fabric = make_fabric(config)
     hooks = Hooks(echo, on_round, on_start, show_runs)
@@ -99,10 +80,8 @@ def run_experiment(
 
 
 def _launch(fabric, config: ExperimentConfig, *args):
-    """``fabric.launch(_main, ...)``. While the processes join (torch's rendezvous, which
-    blocks in C++ where Python's signal handlers never run) SIGTERM and Ctrl-C keep their
-    default action, ending the process at once: no MLflow run exists yet. A process that
-    waits ``runtime.timeout_s`` for the others in vain is one line."""
+    """``fabric.launch(_main, ...)``, SIGTERM and Ctrl-C ending the process at once while the
+    processes join: torch's rendezvous blocks in C++, where Python's signal handlers never run."""
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     for number in handlers:
         signal.signal(number, signal.SIG_DFL)
@@ -146,9 +125,8 @@ def _launch(fabric, config: ExperimentConfig, *args):
 def _main(
     fabric, config: ExperimentConfig, parent_run_id, tags, hooks: Hooks, resume=None
 ) -> ExperimentResult | None:
-    """One process's run: the resume point (a resumed run takes its own machine-chosen
-    settings), the runtime settings resolved once, the data, the in-process runtime and
-    the run's life around it."""
+    """One process's run: the resume point, the runtime settings resolved once, the data, the
+    in-process runtime and the run's life around it."""
     start = time.perf_counter()
     left = left_to_machine(config)
     resumed = resume_point(fabric, config, resume, left)
@@ -186,9 +164,8 @@ def _main(
 
 
 def _task_clients(split: FederatedSplit) -> tuple[str, str] | None:
-    """Where some client holds no training scenes of a task (plain FL trains on all of a
-    client's scenes at once, so small shards are legal): the header's line and the tag
-    ``fedlgr.task_clients`` saying how many clients hold each task. None where all do."""
+    """Where some client holds no training scenes of a task (legal in plain FL): the header's line
+    and the tag ``fedlgr.task_clients`` saying how many clients hold each; None where all do."""
     held, n = task_clients(split), len(split.clients)
     if min(held.values()) == n:
         return None
@@ -200,11 +177,8 @@ def _task_clients(split: FederatedSplit) -> tuple[str, str] | None:
 
 
 def _resolve(fabric, config: ExperimentConfig, adopted: dict) -> tuple[Resolved, int | None]:
-    """How this process's clients train, decided once: the settings given, else a resumed
-    run's own (``adopted``), else the machine's - its torch threads on CPU (set here: the
-    results depend on the count, the order of floating-point sums) and, for the clients it
-    holds, their concurrency. Also the process's share of the cores where the default
-    chose the threads (None where set)."""
+    """How this process's clients train, decided once: as given, else as the resumed run did, else
+    as the machine allows (torch threads: results depend on their count); and its core share."""
     rt = config.runtime
     threads, share = adopted.get("threads", rt.threads), None
     if fabric.device.type == "cpu":

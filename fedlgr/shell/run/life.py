@@ -1,19 +1,6 @@
-"""A run's life around a runtime's rounds: :class:`RunLife`.
-
-A runtime (:class:`fedlgr.core.rounds.Rounds`: the in-process orchestrator, the Flower
-server's rounds) runs rounds and holds their state; everything else a run does is here,
-in one object: it walks the schedule (:func:`fedlgr.core.schedule.schedule`) and shows
-each round's line, opens the run's MLflow run (a new one, or the resumed run's) and logs
-each round's metrics with the FCL forgetting figures, tags the clients that dropped out
-(``fedlgr.missing``), checkpoints every ``tracking.checkpoint`` rounds and after the last
-one (the runtime's ``state_dict``, written by rank 0), restores a resumed run (its
-``load_state_dict`` and the rounds so far), owns the checkpoint folder while the run goes
-on and removes it once the run has finished, and at the end saves results.csv, the curves
-and the cost summary and ends the run FINISHED. A run that raises - a round's error,
-Ctrl-C or SIGTERM, a hook that stops it (a sweep's pruner) - keeps what it had (its
-summary so far in its description) and is ended FAILED, or KILLED. In rank 0 it says on
-the console what the run does, and tells the caller's :class:`Hooks`.
-"""
+"""A run's life around a runtime's rounds, :class:`RunLife`: the schedule, the MLflow run,
+checkpoints and resume, the results at the end and the failure record, in one place for every
+runtime (in-process, Flower)."""
 
 from __future__ import annotations
 
@@ -54,9 +41,7 @@ class Hooks:
     """What the caller of a run hears of it (rank 0)."""
 
     echo: Callable[[str], object]  # a console line (``print``)
-    # after each round is logged and checkpointed (a resumed run first repeats the rounds
-    # it restored); raising stops the run: KILLED if the exception has ``mlflow_status =
-    # "KILLED"`` (a sweep's pruner), FAILED otherwise
+    # after each round is logged and checkpointed (restored ones again); raising stops the run
     on_round: Callable[[int, Metrics], object] | None = None
     on_start: Callable[[str], object] | None = None  # the MLflow run's id, once it exists
     show_runs: bool = True  # say at the end where to see the run in MLflow's UI
@@ -85,10 +70,8 @@ class Resumed:
 
 
 class RunLife:
-    """One run's life: :meth:`run` a runtime's rounds. ``start``: when the run's work began
-    (``perf_counter``; default: now); ``what``: the header's account of the runtime;
-    ``notes``: further lines of the header (e.g. how many clients hold each task);
-    ``fabric``: the processes that checkpoint together (None: this process alone)."""
+    """One run's life: :meth:`run` a runtime's rounds. ``start``: its ``perf_counter`` start;
+    ``what``, ``notes``: the header's account; ``fabric``: who checkpoints together."""
 
     def __init__(
         self,
@@ -129,10 +112,8 @@ class RunLife:
     # ------------------------------------------------------------------ the rounds
 
     def run(self, rounds: Rounds) -> ExperimentResult | None:
-        """Run the rounds of the schedule that the run has not done yet (a resumed run
-        has done some) on ``rounds``. Each round is recorded, checkpointed when due, shows
-        its line and is told to the caller's ``on_round``. Whatever raises ends the run
-        (:meth:`recording`) and goes on. The result in rank 0, else None."""
+        """Run on ``rounds`` the rounds of the schedule the run has not done yet: each is recorded,
+        checkpointed when due, shown and told to ``on_round``; the result in rank 0."""
         steps = schedule(self.config)
         tasks = list(self.config.continual.tasks)
         if self.resumed is not None:
@@ -161,10 +142,8 @@ class RunLife:
 
     @contextlib.contextmanager
     def recording(self, steps: Schedule) -> Iterator[ExperimentResult]:
-        """The run around the rounds of ``steps``: restores a resumed run's rounds, opens
-        the MLflow run and says what the run does; the result (its rounds so far) goes to
-        the loop. At the end, the artifacts and FINISHED; on an exception the failure
-        record. Checkpoints left behind are removed once they are of no use."""
+        """The run around the rounds of ``steps``: restores a resumed run, opens the MLflow run,
+        says what it does; at its end the artifacts and FINISHED, else the failure record."""
         self.total = len(steps)
         replayed = self._restore(steps)
         self._open()
@@ -247,9 +226,7 @@ class RunLife:
                 tracker.client.set_tag(tracker.run_id, "fedlgr.checkpoints", str(self.folder))
             if self.hooks.on_start is not None:
                 self.hooks.on_start(str(tracker.run_id))
-        # A run killed after a checkpoint but before ``on_round`` saw that round (e.g. a
-        # sweep's report to Optuna) would lose it: the restored rounds are shown again (a
-        # sweep ignores the repeats).
+        # told again: a kill between a checkpoint and ``on_round`` would lose that round
         for round_, metrics in replayed:
             self.tell(round_, metrics)
 
@@ -317,10 +294,8 @@ class RunLife:
         return bool(self.every) and (round_ % self.every == 0 or round_ == self.total)
 
     def checkpoint(self, rounds: Rounds) -> Path | None:
-        """Checkpoint the run after its last round: the runtime's state (every process
-        takes part; rank 0 writes it with the rounds so far), the newest
-        ``tracking.keep_checkpoints`` kept. A resumed run's checkpoints in a folder no
-        longer its own are removed."""
+        """Checkpoint the run after its last round (every process takes part, rank 0 writes),
+        keeping the newest ``tracking.keep_checkpoints``; a resumed run's stale folder goes."""
         result = self.result
         state = rounds.state_dict()
         whole: dict[str, Any] = {}
@@ -360,11 +335,9 @@ class RunLife:
         return result
 
     def _record_failure(self, tracker: Tracker, err: BaseException) -> None:
-        """Keep what the run had (results.csv, curves, its summary so far) and end it KILLED
-        or FAILED. Every step may fail on its own (a diverged run's NaNs, a store gone away):
-        the run is still ended, and the original error is what the user sees. The summary
-        goes to the run's description, not to ``mean/*`` metrics: a run resumed later logs
-        those once, at its end, and MLflow cannot take a logged point back."""
+        """Keep what the run had (results.csv, curves, its summary so far) and end it KILLED or
+        FAILED, whatever step fails: the user sees the original error. No ``mean/*`` metrics: a
+        resumed run logs those at its end, and MLflow cannot take a point back."""
         result = self.result
         name = run_name(tracker.config)
         killed = isinstance(err, KeyboardInterrupt) or getattr(err, "mlflow_status", "") == "KILLED"
@@ -398,9 +371,8 @@ class RunLife:
 def checkpoint_state(
     config: ExperimentConfig, result: ExperimentResult, state: dict, elapsed: float
 ) -> dict[str, Any]:
-    """A run's checkpoint after its last round: the runtime's ``state`` (its server,
-    clients and random generators), every round's rows, the resolved config, the MLflow
-    run id, the time spent and the data's digest (a resume on other data is refused)."""
+    """A run's checkpoint after its last round: the runtime's ``state``, every round's rows, the
+    resolved config, the MLflow run id, the time spent and the data's digest."""
     return {
         "format": ckpt.FORMAT,
         "fedlgr": __version__,
@@ -414,9 +386,7 @@ def checkpoint_state(
     }
 
 
-# A RoundLog in a checkpoint: its fields by name, lists for tuples and string keys for
-# the per-client maps (as checkpoints have always held them); older checkpoints lack the
-# newer fields, which take their defaults.
+# a RoundLog in a checkpoint: lists for tuples, string keys by client; fields it lacks default
 _BY_CLIENT = ("refused", "faults", "names")
 
 
@@ -445,9 +415,8 @@ def round_log(state: dict[str, Any]) -> RoundLog:
 def _local_training(
     label: str, clients: int, config: ExperimentConfig, shown: bool
 ) -> Iterator[EpochProgress]:
-    """A round's progress bar: it counts each local epoch of each of this process's
-    ``clients`` (plugins may run more or fewer epochs than planned, and a strategy may
-    choose fewer clients: it never overflows)."""
+    """A round's progress bar over each local epoch of this process's ``clients``; capped, as
+    plugins may run other epoch counts and a strategy may choose fewer clients."""
     epochs = config.train.epochs
     plan = f"{_count(clients, 'client')} x {_count(epochs, 'epoch')}"
     shown = shown and clients > 0
@@ -477,9 +446,8 @@ def _count(n: int, noun: str) -> str:
 
 
 def _line(log: RoundLog) -> str:
-    """One round's line: every score's mean over the clients (a score that is not a
-    number, a diverged run's, shows as such; a round no client scored says so) and the
-    CPU per client."""
+    """One round's line: every score's mean over the clients (a diverged run's NaN shows as such; a
+    round no client scored says so) and the CPU per client."""
     figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
     shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
     if all(v is None for _, v in figures):  # federated.eval_every, or every scorer missing

@@ -1,21 +1,6 @@
-"""One live process per run: the run's owner holds an exclusive lock on its checkpoint
-folder for the run's life.
-
-A run that checkpoints (or is resumed) has one owner: the process that created it, or the
-one that resumed it. The owner holds a ``filelock.FileLock`` (``flock`` underneath) on
-``<folder>/owner.lock`` from before its first round (before a resume reads the
-checkpoint) until the run has ended; the file names its host and pid. The kernel drops
-the lock when the process dies, however it dies (SIGKILL included), so a lock that is
-held always means a live owner: a second ``--resume`` - at the same moment, or of a run
-whose process is stopped (Ctrl-Z, a suspended VM) and whose heartbeat went stale - is
-refused in one line that names the owner. Heartbeats stay what they are for: telling a
-dead run from a live one on another machine
-(:func:`fedlgr.shell.tracking.mlflow_run.dead_reason`).
-
-``flock`` holds across processes on one machine and on the network file systems that
-support it (NFSv4, Lustre, CephFS); a checkpoint folder a resumed run reads must be one
-every node of the run can reach anyway.
-"""
+"""One live process per run: its owner holds an exclusive ``flock`` on ``owner.lock`` in its
+checkpoint folder for the run's life, which the kernel drops however the owner dies, so a second
+``--resume`` of a live run is refused."""
 
 from __future__ import annotations
 
@@ -57,9 +42,8 @@ def check_folder(folder: Path) -> None:
 
 
 def claim(folder: Path, run_id: str) -> None:
-    """Become ``run_id``'s owner (``folder``: its checkpoint folder, created if needed), or
-    raise :class:`RunOwned` naming the live owner. Claiming a folder this process already
-    holds does nothing."""
+    """Become ``run_id``'s owner (``folder``: its checkpoint folder, created if needed), or raise
+    :class:`RunOwned` naming the live owner; nothing if this process holds it already."""
     path = folder / NAME
     if path in _held:
         return
@@ -67,14 +51,12 @@ def claim(folder: Path, run_id: str) -> None:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise FedlgrError(f"run {run_id}: {unusable(folder, err)}") from None
-    # The process's own, not a thread's; no soft marker where flock is missing (it would
-    # outlive a killed owner); the owner's host and pid written once the lock is held.
+    # the process's lock, not a thread's; no soft marker where flock is missing: it outlives a kill
     lock = FileLock(
         path, blocking=False, thread_local=False, fallback_to_soft=False, on_acquired=_sign
     )
     try:
-        # A planted link is not a way to make the owner write elsewhere: filelock opens
-        # the file O_NOFOLLOW, but does not promise to, so the link is refused here too.
+        # a planted link refused here too: filelock opens it O_NOFOLLOW but does not promise to
         if path.is_symlink():
             raise OSError(errno.ELOOP, os.strerror(errno.ELOOP))
         lock.acquire()

@@ -24,10 +24,7 @@ class ExperimentResult:
     data_digest: str = ""  # of the data the run trained on (recorded in its checkpoints)
     seconds: float = 0.0
     after_tasks: list[dict[str, float]] = field(default_factory=list)  # FCL: per finished task
-    # What recording cost, in this process's rounds (a resumed run's restored rounds have
-    # none), one entry per round: the round's MLflow logging (its metrics and tags), and
-    # its checkpoint (0.0 where none was due); then the end's results.csv, curves, summary
-    # metrics and description. Kept here, not logged: they measure the store, not the method.
+    # what recording cost (each round's logging and checkpoint, then the end's): kept, not logged
     tracking_seconds: list[float] = field(default_factory=list)
     checkpoint_seconds: list[float] = field(default_factory=list)
     results_seconds: float = 0.0
@@ -49,10 +46,8 @@ class ExperimentResult:
         return out
 
     def cost_means(self) -> dict[str, float]:
-        """Per client per round, averaged over clients and rounds (Tables III/IV):
-        ``mean/cost/cpu_s``, ``mean/cost/wall_s``, ``mean/cost/bytes_up``, ... (GPU ones
-        only where measured); the server's per round, and the paper's CPU figure
-        (``mean/cost/paper_cpu_s``), where the server measured itself."""
+        """Costs per client per round averaged over clients and rounds (Tables III/IV); the server's
+        and the paper's CPU figure where the server measured itself."""
         out = {}
         for key in COST_KEYS:
             column = np.concatenate([r.column(key) for r in self.rounds]) if self.rounds else []
@@ -65,11 +60,7 @@ class ExperimentResult:
             out["mean/cost/server_wall_s"] = sum(s["cost/server_wall_s"] for s in server) / len(
                 server
             )
-            # The paper's "CPU per client per round" (Tables III/IV): the CPU of the process
-            # that ran the server - its aggregation and, for full-model methods, its
-            # evaluation of the global model - divided by clients x rounds; the clients'
-            # own training was not in it (docs/methods.md, "Table III and IV: what the
-            # paper measured").
+            # the paper's CPU figure: the server process's CPU / (clients x rounds), docs/methods.md
             out["mean/cost/paper_cpu_s"] = cpu / (len(self.rounds[0].table) * len(server))
         return out
 

@@ -1,16 +1,6 @@
-"""Picking a run up again (``fedlgr run --resume``): which run, its newest checkpoint,
-and whether it belongs to this config and data - all before the runtime is built, since
-a resumed run takes its own machine-chosen settings (thread counts).
-
-A checkpoint holds everything the next round depends on, so that a resumed run computes
-bit for bit what the uninterrupted run would have (on CPU, for the same thread count):
-the runtime's state (every client's model, optimiser, plug-in state - CL importance,
-rehearsal memory, FedLGR's generator and labeller, FedDistill's teacher - and
-batch/augmentation generators; the server's global tensors and strategy state; each
-process's global RNG states), the rows of every round so far, the resolved config, the
-MLflow run id (:func:`fedlgr.shell.run.life.checkpoint_state`). Files, their place and
-atomic writing: :mod:`fedlgr.shell.run.checkpoint`.
-"""
+"""Picking a run up again (``fedlgr run --resume``): which run, its newest checkpoint, and whether
+it belongs to this config and data; before the runtime is built, as a resumed run takes its own
+machine-chosen settings."""
 
 from __future__ import annotations
 
@@ -30,10 +20,8 @@ from fedlgr.shell.tracking.mlflow_run import dead_reason, experiment_id, open_cl
 def resume_point(
     fabric, config: ExperimentConfig, resume: str | bool | None, adopt: frozenset[str] = frozenset()
 ) -> Resumed | None:
-    """The run ``resume`` names (its id, or True: the latest unfinished run of this config)
-    and its checkpoint, or None without ``resume``. Rank 0 finds it; every process then
-    reads it (one machine, or a checkpoint folder every node can reach). A refusal is
-    raised in every process. ``fabric`` None: this process alone (the Flower server)."""
+    """The run ``resume`` names (its id, or True: the latest unfinished run of this config) and its
+    checkpoint, or None without ``resume``. Rank 0 finds it, every process reads it."""
     if not resume:
         return None
     if not config.tracking.enabled:
@@ -71,9 +59,8 @@ def left_to_machine(config: ExperimentConfig) -> frozenset[str]:
 
 
 def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tuple[str, Path]:
-    """The run to resume (``resume``: its id, or True for the latest unfinished run of
-    this config) and its newest checkpoint; dead RUNNING runs are marked KILLED, a live
-    one is refused."""
+    """The run to resume (``resume``: its id, or True for the latest unfinished run of this config)
+    and its newest checkpoint; dead RUNNING runs are marked KILLED, a live one is refused."""
     run = _the_run(config, resume, client)
     run_id = run.info.run_id
     run, folder = _where_its_checkpoints_are(run, config, client)
@@ -162,9 +149,8 @@ def remove_leftover(folder: Path, run_id: str) -> str:
 
 
 def checkpoint_folder(run, config: ExperimentConfig) -> Path:
-    """Where ``run`` keeps its checkpoints: where this config puts them (next to the store,
-    or under ``tracking.checkpoint_dir``) if they are there - a store moved or copied with
-    its checkpoints, a folder named on the command line - else the run's tag."""
+    """Where ``run`` keeps its checkpoints: where this config puts them if they are there (a store
+    moved with its checkpoints, a folder named on the command line), else the run's tag."""
     here = ckpt.checkpoint_root(config, tracking_uri(config)) / run.info.run_id
     tagged = run.data.tags.get("fedlgr.checkpoints")
     if not tagged or ckpt.checkpoints(here):
@@ -178,8 +164,7 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
     )
     runs = client.search_runs([experiment], query, order_by=["attributes.start_time DESC"])
     if not runs:
-        # A run of this config that another launch just finished is named: two launches
-        # resuming at once are told which run the other one finished.
+        # named, so that two launches resuming at once are told which run the other finished
         finished = client.search_runs(
             [experiment],
             f"tags.`fedlgr.config_hash` = '{config_hash(config)}'",
@@ -198,9 +183,8 @@ def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
 def load_checkpoint(
     config: ExperimentConfig, run_id: str, path: Path, adopt: frozenset[str] = frozenset()
 ) -> dict[str, Any]:
-    """The checkpoint at ``path`` if it belongs to ``run_id`` and to ``config``; settings
-    in ``adopt`` (this launch left them to the machine) are not compared: the run's own
-    values are taken (:func:`adopted`)."""
+    """The checkpoint at ``path`` if it belongs to ``run_id`` and ``config``; settings in ``adopt``
+    (left to the machine by this launch) are not compared: the run's own are taken."""
     state = ckpt.load(path, ckpt.RUN_KEYS)
     if state["run_id"] != run_id:
         raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")

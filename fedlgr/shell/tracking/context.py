@@ -1,32 +1,5 @@
-"""What an MLflow run says about itself beyond its numbers, so that a person can tell runs
-apart in the UI: its name, MLflow's context tags, its params, its dataset and the
-machine's load while it ran.
-
-* **Name**: ``tracking.run_name``, else the method and setting with the modality
-  (``FedAvg-2c-noaug-image``); a sweep trial's name adds its swept values
-  (``FedLGR-2c-noaug-image lr_root=1e-05 replay=4``).
-* **Context tags**: ``MlflowClient.create_run`` records none; MLflow's own resolver
-  (:func:`mlflow.tracking.context.registry.resolve_tags`, what ``mlflow.start_run`` uses)
-  adds ``mlflow.user``, ``mlflow.source.name`` / ``type`` and ``mlflow.source.git.commit``
-  (of the command's checkout, else of fedlgr's own, see :func:`run_tags`).
-* **Params**: the settings the run uses (:func:`used_settings`: its strategy's and its
-  continual method's own settings, not every registered method's; ``federated.dp.*`` only
-  under DP, ``deploy.*`` only on Flower), without machine-local paths (the data folder,
-  the image cache, the store, the checkpoint folder: they differ from machine to machine
-  and say nothing about the method); pretrained weights by file name. ``config.yaml``
-  keeps every setting.
-* **Dataset**: one ``log_input`` of the scenes table (one row per scene, ratings
-  averaged) with the data folder as its source: name, digest, schema and row count, no
-  data uploaded (none where the folder is not on this machine, e.g. a Flower server).
-* **System metrics**: MLflow's :class:`SystemMetricsMonitor` (CPU, memory, disk,
-  network, NVIDIA/AMD GPU when there is one) attached to the run by id, every
-  ``tracking.system_metrics_s`` seconds; one last sample when the run ends, so even a
-  short run shows some. Sampled from the start but written only once the run's first
-  scores are (:meth:`SystemMetrics.release`): MLflow lists a run's metrics in the order
-  their keys were first written (below), and a sample written before round 1 put
-  ``system/cpu_utilization_percentage`` first. Machine-wide figures, not per client
-  (per-client costs are the ``cost/*`` metrics).
-"""
+"""What an MLflow run says about itself beyond its numbers, so that a person can tell runs apart in
+the UI: its name, context tags, the params it uses, its dataset and the machine's load."""
 
 from __future__ import annotations
 
@@ -48,9 +21,7 @@ from fedlgr.shell.tracking.store import store_lock
 
 # Paths that belong to this machine, not to the experiment.
 LOCAL_PATHS = frozenset({"data.path", "data.cache_dir", "tracking.uri", "tracking.checkpoint_dir"})
-# Not params either: the run's name is its name (as a param, it differs between a sweep's
-# trials and pushes a swept setting out of MLflow's compare plot, which draws the first 3
-# params that differ, sorted by name).
+# nor the run's name: it differs between trials, pushing swept settings out of the compare plot
 NOT_PARAMS = LOCAL_PATHS | {"tracking.run_name"}
 NAMED_WEIGHTS = ("none", "imagenet")
 # Every method's settings section: a run uses its own strategy's and CL method's only.
@@ -67,10 +38,8 @@ def run_name(config: ExperimentConfig) -> str:
 
 
 def trial_config(config: ExperimentConfig, params: Mapping[str, Any]) -> ExperimentConfig:
-    """``config`` named after its method and swept values, short enough for MLflow's runs
-    table: ``FedLGR lr_root=1e-05 lgr.replay=stored`` (a setting without its section,
-    unless two swept settings share that; a swept method by its name alone). The trial
-    runs under its sweep's parent run, which holds what all trials share."""
+    """``config`` named after its method and swept values, short enough for MLflow's runs table:
+    ``FedLGR lr_root=1e-05`` (a setting without its section, unless two swept settings share it)."""
     swept = {k: v for k, v in params.items() if k != "method"}
     last = [short_setting(name) for name in swept]
     shown = " ".join(
@@ -82,10 +51,8 @@ def trial_config(config: ExperimentConfig, params: Mapping[str, Any]) -> Experim
 
 
 def run_tags(tags: Mapping[str, str]) -> dict[str, str]:
-    """``tags`` with MLflow's context tags (source, user, git commit) added. MLflow takes
-    the commit of the checkout that holds the command (``sys.argv[0]``), and none when the
-    command is git-ignored, as ``.venv/bin/fedlgr`` is: then the commit (branch, remote) is
-    that of the checkout fedlgr's own code runs from, if any."""
+    """``tags`` with MLflow's context tags (source, user, git commit) added. MLflow finds no commit
+    for a git-ignored command (``.venv/bin/fedlgr``): then it is that of fedlgr's own checkout."""
     # lazy: mlflow (seconds), only once a run is created
     from mlflow.tracking.context.registry import resolve_tags
     from mlflow.utils import git_utils
@@ -115,12 +82,9 @@ def run_params(config: ExperimentConfig, flower: bool = False) -> dict[str, str]
 
 
 def used_settings(params: Mapping[str, str], flower: bool = False) -> dict[str, str]:
-    """``params`` (a flattened config, as strings) without the settings the run does not
-    use: other strategies' (``federated.prox.*`` on a FedAvg run) and other CL methods'
-    sections (every ``continual.*`` without a task schedule), ``federated.dp.*`` without DP
-    (``federated.dp.clip`` 0), ``deploy.*`` unless ``flower``. MLflow lists ~130 params
-    otherwise, most of them unused. Reads only ``params``, so the reports apply it to runs
-    that logged every setting too (:mod:`fedlgr.shell.report.cells`)."""
+    """``params`` (a flattened config, as strings) without the settings the run does not use: other
+    strategies' and CL methods' sections, ``federated.dp.*`` without DP, ``deploy.*`` unless
+    ``flower``. Reads only ``params``, so reports apply it to runs that logged every setting too."""
     strategy = STRATEGIES.get(params.get("federated.strategy", ""))
     method = CONTINUAL.get(params.get("continual.method", ""))
     fcl = params.get("continual.tasks", "[]") not in ("[]", "()", "")
@@ -141,11 +105,8 @@ def used_settings(params: Mapping[str, str], flower: bool = False) -> dict[str, 
 
 
 def data_digest(config: ExperimentConfig) -> str:
-    """A digest of the data a run trains on: the bytes of ``data.path``'s ratings CSV and,
-    for images, of every file under its ``images/`` folder (names included). "" where the
-    data is not on this machine (a Flower server). Recorded in the run's checkpoints and
-    tag ``fedlgr.data_digest``: ``--resume`` on other data is refused. (MLflow's dataset
-    digest covers the ratings table only, not the images.)"""
+    """A digest of the data a run trains on (its ratings CSV and, for images, every file under
+    ``images/``): ``--resume`` on other data is refused; "" where the data is not here."""
     folder = Path(config.data.path).expanduser().resolve()
     table = folder / CSV_NAME
     if not table.is_file():
@@ -187,16 +148,14 @@ def log_dataset(client, run_id: str, config: ExperimentConfig, name: str) -> Non
         InputTag("mlflow.data.context", "training"),
         InputTag("modality", config.data.modality),
     ]
-    # MLflow's sqlite store looks the dataset up, then inserts it: two runs starting at once
-    # on one store both inserted it, and one died on the UNIQUE constraint. One at a time.
+    # MLflow looks the dataset up, then inserts it: two runs at once would die on UNIQUE
     with store_lock(client.tracking_uri):
         client.log_inputs(run_id, datasets=[DatasetInput(entity, tags=tags)])
 
 
 class FirstLine(logging.Filter):
-    """Keeps a record to one line: its message's first, and its exception's first (the
-    traceback dropped). For MLflow's loggers, which log a failed store write with the
-    SQL statement, its parameters and two stack traces before fedlgr's one-line error."""
+    """Keeps a record to one line: its message's first, and its exception's first (no traceback);
+    for MLflow's loggers, which log a failed store write with its SQL and stack traces."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         text = record.getMessage().strip()
@@ -218,25 +177,15 @@ def one_line_logs(*names: str) -> None:
 
 
 class SystemMetrics:
-    """MLflow's system-metrics monitor on run ``run_id`` (no active run needed): sampled
-    every ``interval`` seconds in a background thread, held until :meth:`release` (a
-    resumed run: from the start); :meth:`stop` joins it and logs a last sample.
-    ``resume``: go on from the run's last system-metrics step.
-
-    Why held: MLflow's stores return a run's latest metrics in the order their keys were
-    first written (sqlite: the ``latest_metrics`` rows in insertion order), and its UI keeps
-    that order: the run page's metrics table within each group, and the compare page's
-    parallel-coordinates plot, which draws ``sharedMetricKeys.slice(0, 1)``, the first
-    key of that list (MLflow 3.17's JavaScript). A sample written before round 1's scores
-    made that ``system/cpu_utilization_percentage``. Held samples keep the time they were
-    taken (MLflow's ``BatchMetricsLogger`` stamps a sample when it is recorded)."""
+    """MLflow's system-metrics monitor on run ``run_id`` (no active run needed), its samples held
+    until :meth:`release`: MLflow's UI lists a run's metrics in the order their keys were first
+    written, and the scores must come first. ``resume``: go on from the last step."""
 
     def __init__(self, run_id: str, uri: str, interval: float, resume: bool = False):
         # lazy: mlflow (seconds), only once a run starts
         from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
 
-        # It announces its start and stop at INFO on every run: not news. A failed write
-        # is logged with the whole SQL statement and its parameters: one line is enough.
+        # its start and stop at INFO on every run are not news; a failed write: one line
         logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
         # (A logger's filter sees only its own records: the monitor module's logger.)
         one_line_logs("mlflow.system_metrics.system_metrics_monitor")
@@ -256,8 +205,8 @@ class SystemMetrics:
         self.released.set()
 
     def stop(self) -> None:
-        """Stop sampling and log what was sampled since the last step (a short run's only
-        one), before the run is ended. Never raises: the run's end matters more."""
+        """Stop sampling and log what was sampled since the last step, before the run is ended.
+        Never raises: the run's end matters more."""
         monitor, self.monitor = self.monitor, None
         if monitor is None:
             return

@@ -1,6 +1,5 @@
-"""The MLflow experiment a run goes into: found, or made by this process or, at the same
-moment, by another one; in a local sqlite store its artifacts lie beside the database, and
-its runs table opens in fedlgr's shared view (:mod:`fedlgr.shell.tracking.views`)."""
+"""The MLflow experiment a run goes into: found, or made (perhaps by two processes at once), with
+its artifacts beside a local sqlite database and fedlgr's shared view of its runs."""
 
 from __future__ import annotations
 
@@ -8,8 +7,7 @@ from pathlib import Path
 
 from fedlgr.shell.tracking.views import TAG, share_view
 
-# MLflow 3's UI shows an experiment of this kind on its runs table ("Model training"),
-# not on its GenAI traces.
+# MLflow 3's UI shows an experiment of this kind on its runs table, not on its GenAI traces.
 KIND = {"mlflow.experimentKind": "custom_model_development"}
 
 
@@ -36,10 +34,8 @@ def experiment_id(client, name: str) -> str:
 
 
 def _share_view(client, experiment_id: str) -> None:
-    """:func:`~fedlgr.shell.tracking.views.share_view`, again if it fails: a process that opened
-    the new experiment at the same moment (a sweep's worker on another machine, through an
-    MLflow server on PostgreSQL) may have written the tag in between, and MLflow's SQL
-    store then inserts a tag that is there (a duplicate key); the second write updates it."""
+    """:func:`~fedlgr.shell.tracking.views.share_view`, again if it fails: another process may have
+    written the tag in between, and MLflow's SQL store then inserts a duplicate key."""
     try:
         share_view(client, experiment_id)
     except Exception:
@@ -47,11 +43,8 @@ def _share_view(client, experiment_id: str) -> None:
 
 
 def artifact_root(uri: str) -> Path | None:
-    """Where the artifacts of a local sqlite store's experiments go: ``mlruns/`` next to
-    its database file. (MLflow's own default is ``./mlruns`` of the working folder at the
-    moment the experiment is created, so a store elsewhere had its artifacts scattered
-    over whatever folders its runs were started from.) None for other stores: a server
-    decides for itself."""
+    """Where a local sqlite store's experiments keep their artifacts: ``mlruns/`` beside its
+    database, not MLflow's ``./mlruns`` of whatever folder a run starts in; else None."""
     if not uri.startswith("sqlite:///"):
         return None
     database = uri.removeprefix("sqlite:///").split("?", 1)[0]
@@ -61,8 +54,7 @@ def artifact_root(uri: str) -> Path | None:
 
 
 def _create_experiment(client, name: str) -> str:
-    """A new experiment; in a local sqlite store its artifacts under
-    :func:`artifact_root` / its id (MLflow's layout, rooted at the database)."""
+    """A new experiment; in a local sqlite store with its artifacts under :func:`artifact_root`."""
     root = artifact_root(client.tracking_uri)
     if root is None:
         return client.create_experiment(name, tags=KIND)
@@ -70,8 +62,6 @@ def _create_experiment(client, name: str) -> str:
     from mlflow.entities import ExperimentTag
     from mlflow.tracking._tracking_service.utils import _get_store
 
-    # The store MLflow builds for this URI with ``root`` as its default artifact root
-    # (what ``mlflow server --default-artifact-root`` does): the experiment's id is only
-    # known once created, and its artifact location is derived from it in that step.
+    # root as the store's default artifact root: the location derives from the id made here
     store = _get_store(client.tracking_uri, str(root))
     return store.create_experiment(name, tags=[ExperimentTag(k, v) for k, v in KIND.items()])

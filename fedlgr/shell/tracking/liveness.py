@@ -1,11 +1,5 @@
-"""Whether a RUNNING run is still alive, and ending those that are not.
-
-A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``, ``fedlgr.pid_started``)
-and a heartbeat (``fedlgr.heartbeat``, seconds since the epoch, refreshed every
-``fedlgr.heartbeat_s``: :class:`fedlgr.shell.tracking.mlflow_run.Tracker`), so that
-``--resume``, ``fedlgr report`` and sweeps tell a run whose process was killed outright
-(SIGKILL, a lost machine) from a live one, and mark it KILLED (:func:`end_dead_runs`).
-"""
+"""Whether a RUNNING run is still alive (its process, its heartbeat tags), and marking the dead ones
+KILLED: a run killed outright (SIGKILL, a lost machine) never ends itself."""
 
 from __future__ import annotations
 
@@ -16,8 +10,8 @@ from pathlib import Path
 
 
 def process_started(pid: int) -> str:
-    """When process ``pid`` started (seconds since the epoch), "" if it cannot be told: with
-    the pid it tells the run's process from a later one that was given the same pid."""
+    """When process ``pid`` started, "" if it cannot be told: with the pid it tells the run's
+    process from a later one that was given the same pid."""
     import psutil  # lazy: psutil (~0.1 s), kept off `fedlgr --help`
 
     try:
@@ -42,11 +36,9 @@ def process_alive(pid: int, started: str = "") -> bool:
 
 
 def dead_reason(run, now: float | None = None) -> str | None:
-    """Why a RUNNING run is dead (its process is gone, or its heartbeat stopped), or None
-    while it may be alive. A run whose process is alive on this machine is never dead,
-    however old its heartbeat (a process stopped by Ctrl-Z, a suspended VM): the
-    heartbeat only judges runs on other machines. Runs without a heartbeat (sweep
-    parents, older fedlgr) are never called dead."""
+    """Why a RUNNING run is dead (its process is gone, or its heartbeat stopped), or None while it
+    may be alive. The heartbeat only judges runs on other machines (a process here may be stopped by
+    Ctrl-Z); runs without one (sweep parents) are never dead."""
     tags = run.data.tags
     if run.info.status != "RUNNING" or "fedlgr.heartbeat" not in tags:
         return None

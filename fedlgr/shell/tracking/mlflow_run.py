@@ -1,32 +1,6 @@
-"""One MLflow run per experiment run (rank 0 only): :class:`Tracker`.
-
-Default store: MLflow 3's sqlite file ``mlflow.db`` in the working directory with
-artifacts under ``mlruns/`` (the plain file store is refused by MLflow 3);
-``$MLFLOW_TRACKING_URI`` or ``tracking.uri`` (``--tracking-uri``) point elsewhere, e.g. at
-an ``mlflow server``. Params are the flattened resolved config; metrics are logged per
-round with ``step=round``; artifacts are the resolved config, the per-round/per-client
-results CSV and a PNG of the headline scores per round; at the end ``mean/cost/*`` (at the
-step of the last round) hold the costs per client per round averaged over clients and
-rounds (what Tables III/IV report). A run that fails is ended FAILED (KILLED on Ctrl-C or
-when a sweep prunes it) after saving what it had, its summary so far in its description
-only: it may be resumed, and the resumed run's ``mean/*`` are then the only ones. What else
-a run records so that runs can be told apart - its name, MLflow's context tags (source, user,
-git commit), params without machine-local paths, the dataset input, system metrics - is in
-:mod:`fedlgr.shell.tracking.context`; an unreachable server is refused within seconds
-(:func:`fedlgr.shell.checks.stores.check_reachable`).
-
-A run records where it lives (tags ``fedlgr.host``, ``fedlgr.pid``) and a heartbeat
-(``fedlgr.heartbeat``, seconds since the epoch, refreshed every ``tracking.heartbeat_s``
-by a background thread and at every round), so that ``--resume``, ``fedlgr report`` and
-sweeps tell a run whose process was killed outright (SIGKILL, a lost machine) from a live
-one, and mark it KILLED (:mod:`fedlgr.shell.tracking.liveness`). ``Tracker.resume``
-reopens a run: status RUNNING again, and nothing logged twice (rounds already logged are
-skipped).
-
-The store itself is opened by :mod:`fedlgr.shell.tracking.store` and the experiment found
-or made by :mod:`fedlgr.shell.tracking.experiments`; the names other modules import from
-here are listed in ``__all__``.
-"""
+"""One MLflow run per experiment run (rank 0 only), :class:`Tracker`: its params, metrics per round
+at ``step=round`` and artifacts, a heartbeat that tells a killed run from a live one, and a resume
+that logs nothing twice (docs/tracking.md)."""
 
 from __future__ import annotations
 
@@ -100,14 +74,7 @@ def _uncut(method):
 
 
 SENTINEL = "round/seconds"  # logged last in each round: the round is wholly logged
-# What a researcher compares runs by, logged first (every score, metrics.HEADLINE, then
-# these costs). MLflow's stores give a run's latest metrics in the order their keys were
-# first written (sqlite: insertion order of its latest_metrics rows); the UI keeps it in the
-# run page's metrics table (model metrics; MLflow 3.17 lists a "System metrics" group above
-# them whatever the order) and the compare page plots the first key
-# (``sharedMetricKeys.slice(0, 1)`` in its JavaScript). The run page's chart tab sorts
-# charts by name in sections by prefix, and draws a line chart for a metric whose latest
-# step is 1 or more (a bar otherwise): every score is logged at step = round.
+# logged right after the scores: MLflow's UI lists a run's metrics in the order first written
 HEADLINE_COSTS = ("cost/cpu_s", "cost/gpu_util", "cost/bytes_up")
 
 
@@ -127,9 +94,8 @@ def is_detail(key: str) -> bool:
 
 
 def headline_first(metrics: dict[str, float], detail: bool = False) -> dict[str, float]:
-    """``metrics`` as MLflow gets them: the headline scores first, then the forgetting of
-    past tasks, the headline costs and the rest; per-client and per-action ones only if
-    ``detail``."""
+    """``metrics`` as MLflow gets them: the headline scores first, then the forgetting of past
+    tasks, the headline costs and the rest; per-client and per-action ones only if ``detail``."""
     kept = {k: v for k, v in metrics.items() if detail or not is_detail(k)}
     first = [k for k in HEADLINE if k in kept]
     first += [k for k in kept if k.startswith("forgetting/")]
@@ -306,9 +272,8 @@ class Tracker:
 
     @_uncut
     def log_summary(self, metrics: dict[str, float], rounds: int) -> None:
-        """Run-level values over the ``rounds`` rounds of a finished run (e.g.
-        ``mean/cost/cpu_s``), at ``step=rounds``; a resumed run that had logged them before
-        it was stopped (at its end, before it was FINISHED) does not log them twice."""
+        """Run-level values of a finished run (e.g. ``mean/cost/cpu_s``) at ``step=rounds``; not
+        twice for a resumed run that had logged them before it was stopped."""
         from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
 
         if self.done or self.partial:  # a resumed run: what did its first life log?
@@ -331,9 +296,8 @@ class Tracker:
 
     @_uncut
     def describe(self, heading: str, summary: str, metrics: dict[str, float] | None = None) -> None:
-        """The run's description (MLflow's note, at the top of its run page, above its
-        metrics table, which lists system metrics first): the headline figures of
-        ``metrics`` by their MLflow keys, then the summary table the console printed."""
+        """The run's description, atop its run page (whose metrics table lists system metrics
+        first): the headline figures of ``metrics``, then the summary table the console printed."""
         from mlflow.utils.mlflow_tags import MLFLOW_RUN_NOTE  # lazy: mlflow (seconds)
 
         shown = [k for k in note_keys() if k in (metrics or {})]

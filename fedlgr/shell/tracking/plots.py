@@ -10,8 +10,7 @@ from fedlgr.core.metrics import column, headline_scores
 
 
 def curves_png(rows: Sequence[dict[str, object]], title: str = "") -> bytes:
-    """Every headline score per round from the per-round/per-client result rows, under
-    ``title`` (the run's name)."""
+    """Every headline score per round from the per-round/per-client result rows, under ``title``."""
     import matplotlib  # lazy: matplotlib (seconds), only when a run's curves are drawn
 
     matplotlib.use("Agg")  # no display: files only

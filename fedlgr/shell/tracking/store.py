@@ -1,20 +1,5 @@
-"""The tracking store as a user meets it: where to look at the runs, the locks that let
-several processes create a store (or a sweep's storage) at once, and opening it.
-
-``open_client(uri)`` is the ``MlflowClient`` every command works with: the store is
-reachable, created whole (a new sqlite file appears only once its schema is complete) and
-migrated under :func:`store_lock`; ``store_errors`` turns a store's failure into one line.
-
-``runs_hint(uri, experiment_id)`` is what ``fedlgr run``, ``demo`` and ``sweep`` print at
-the end: the link that opens the experiment's runs table and, for a local store, the
-``mlflow ui`` command that serves it first.
-
-MLflow 3 opens a browser that has not been there before on its GenAI pages (Traces,
-"Detect Issues"); the runs table is the "Model training" workflow. Its single-page app
-(``mlflow/server/js``) routes ``#/experiments/<id>/runs`` to that table and takes the
-workflow from the ``workflowType`` query parameter before the browser's stored choice,
-so the link below lands on the runs whatever the browser saw before.
-"""
+"""The tracking store as a user meets it: opening it (created whole and migrated under a lock, as
+several processes may open it at once), its errors as one line, and where to look at the runs."""
 
 from __future__ import annotations
 
@@ -37,7 +22,7 @@ from fedlgr.shell.tracking.uri import DATABASES, mask_password, masked_text, sql
 UI_PORT = 5000  # mlflow ui's default
 
 
-# The runs table, in fedlgr's shared view of it (fedlgr.shell.tracking.views).
+# The runs table ("Model training", not MLflow 3's GenAI pages), in fedlgr's shared view of it.
 RUNS_VIEW = (
     "#/experiments/{experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=fedlgr"
 )
@@ -65,8 +50,7 @@ def runs_hint(uri: str, experiment_id: str) -> str:
 
 
 def _absolute_sqlite(uri: str) -> str:
-    """``sqlite:///mlflow.db`` -> ``sqlite:////work/mlflow.db``: the command works from
-    any folder."""
+    """``sqlite:///mlflow.db`` -> ``sqlite:////work/mlflow.db``, so the command works anywhere."""
     path = uri.removeprefix("sqlite:///")
     if uri.startswith("sqlite:///") and path and path != ":memory:":
         return "sqlite:///" + str(Path(path).expanduser().resolve())
@@ -83,18 +67,15 @@ def _mlflow() -> str:
     return f"{sys.executable} -m mlflow"
 
 
-# An advisory lock's key (any 64-bit number): held while a process opens a study or an
-# MLflow store on a PostgreSQL database, as the lock file is beside an sqlite file.
+# the key (any 64-bit number) of the PostgreSQL advisory lock that stands for the lock file
 LOCK_KEY = 0x666564_6C6772  # "fedlgr"
 
 
 @contextlib.contextmanager
 def database_lock(uri: str, what: str = "database"):
-    """Held while a process creates tables, a study or a parent run in the PostgreSQL
-    database ``uri``: an advisory lock of the database (``pg_advisory_lock``), which the
-    server releases when the holder's connection ends - a killed process included. Two
-    processes that create Optuna's or MLflow's tables in a fresh database at once would
-    make one fail (a duplicate key in ``pg_type``). Other databases are not locked."""
+    """Held while a process creates tables, a study or a parent run in the PostgreSQL database
+    ``uri``: two processes creating Optuna's or MLflow's tables at once make one fail (a duplicate
+    key in ``pg_type``). The server releases it when the holder's connection ends."""
     if not uri.lower().startswith(("postgresql:", "postgresql+")):
         yield
         return
@@ -116,12 +97,9 @@ class StoreError(FedlgrError):
 
 @contextlib.contextmanager
 def store_lock(uri: str):
-    """Held while a process opens a local sqlite store: the first use of a fresh store
-    runs MLflow's schema migrations, which two processes must not run at once (one would
-    die on ``duplicate column name``). A ``filelock.FileLock`` beside the file: ``flock``
-    underneath, so the kernel releases it when its holder dies, SIGKILL included. A
-    PostgreSQL database (a store or a sweep's storage shared by several machines) takes an
-    advisory lock of its own (:func:`database_lock`); other stores need no lock."""
+    """Held while a process opens a store: two processes running MLflow's schema migrations at once
+    make one die (``duplicate column name``). ``flock`` beside an sqlite file, which the kernel
+    releases when its holder dies; :func:`database_lock` for PostgreSQL."""
     if not uri.startswith("sqlite:///"):
         with database_lock(uri):
             yield
@@ -136,9 +114,8 @@ def store_lock(uri: str):
 
 
 def open_lock_file(path: Path, what: str) -> int:
-    """The descriptor of the lock file ``path`` beside a store, created if missing (empty,
-    0644). O_NOFOLLOW: a link planted there is refused, not a way to create or truncate a
-    file elsewhere (``flock`` needs no content, so nothing is written)."""
+    """The descriptor of the lock file ``path`` beside a store, created if missing. O_NOFOLLOW: a
+    link planted there is refused, not a way to create or truncate a file elsewhere."""
     try:
         return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     except OSError as err:
@@ -153,8 +130,7 @@ def open_client(uri: str):
     import mlflow  # lazy: mlflow (seconds), only once a command opens its store
 
     check_reachable(uri)
-    # MLflow logs a failed store write (with its SQL and two stack traces) before raising
-    # it; fedlgr's StoreError names the store and the cause in one line: only that is shown.
+    # MLflow logs a failed write with its SQL and stack traces; StoreError says it in one line
     logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
     with store_lock(uri):  # the client's construction creates and migrates the store
         if uri.startswith("sqlite:///"):
@@ -166,10 +142,9 @@ def open_client(uri: str):
 
 
 def create_whole(uri: str) -> None:
-    """Create a new sqlite store under a temporary name beside it and rename it into place
-    once MLflow has made its whole schema: a kill during the creation (seconds) would leave
-    a half-made store that no later run could use. Called under
-    :func:`store_lock`, so a temporary file found is one a kill left behind."""
+    """Create a new sqlite store under a temporary name and rename it into place once MLflow has
+    made its whole schema: a kill meanwhile would leave a half-made store. Under :func:`store_lock`,
+    so a temporary file found is one a kill left behind."""
     import mlflow  # lazy: mlflow (seconds), only once a command opens its store
 
     path = sqlite_file(uri)
@@ -188,12 +163,9 @@ def create_whole(uri: str) -> None:
 
 
 def empty_store() -> Path | None:
-    """A migrated sqlite store with no experiment, made once per MLflow version and copied
-    for every new store: MLflow's migrations take seconds, a copy milliseconds. MLflow puts
-    its Default experiment's artifacts under the creating process's working folder, so the
-    template has none: opening a copy creates it where a fresh store would.
-    ``$FEDLGR_EMPTY_STORE`` names the file (default: in the cache folder); None where it
-    cannot be made there (a new store is then migrated in place)."""
+    """A migrated sqlite store (``$FEDLGR_EMPTY_STORE``, else in the cache folder) copied for every
+    new store, as migrating is slow; None where it cannot be made. No Default experiment: MLflow
+    roots its artifacts in the working folder of the process that creates it."""
     import mlflow  # lazy: mlflow (seconds), only once a command opens its store
 
     default = default_cache_dir() / f"mlflow-{mlflow.__version__}-empty.db"
@@ -216,8 +188,7 @@ def empty_store() -> Path | None:
 
 
 def _cause(err: BaseException) -> str:
-    """The innermost reason, one line (an MLflow error wraps SQLAlchemy's wrapping
-    sqlite's: "database or disk is full")."""
+    """The innermost reason, one line (an MLflow error wraps SQLAlchemy's wrapping sqlite's)."""
     while getattr(err, "orig", None) is not None or err.__cause__ is not None:
         err = getattr(err, "orig", None) or err.__cause__
     return first_line(err, 300)

@@ -1,10 +1,5 @@
-"""Tracking URIs: which store a command was given, and what of a URI may be shown.
-
-``resolve_uri`` is the store a run uses (``tracking.uri``, else ``$MLFLOW_TRACKING_URI``,
-else ``sqlite:///mlflow.db``); ``mask_password`` and ``masked_text`` are what fedlgr prints
-of a database URI (its password as ``***``, in the URI and anywhere in a message). Light on
-purpose: the config and the CLI read it before anything heavy loads.
-"""
+"""Tracking URIs: which store a command was given, and what of a URI may be shown (its passwords as
+``***``). Light on purpose: the config and the CLI read it before anything heavy loads."""
 
 from __future__ import annotations
 
@@ -29,9 +24,8 @@ DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
 
 
 def in_memory_sqlite(uri: str) -> bool:
-    """Whether ``uri`` names an in-memory sqlite database, which keeps nothing once its
-    process ends: ``sqlite://``, ``:memory:``, or SQLite's URI filenames
-    (``file::memory:``, ``mode=memory``)."""
+    """Whether ``uri`` names an in-memory sqlite database (``sqlite://``, ``:memory:``,
+    ``file::memory:``, ``mode=memory``), which keeps nothing once its process ends."""
     if not uri.startswith("sqlite:"):
         return False
     # lazy: sqlalchemy (~1 s); this module is read before anything heavy loads
@@ -52,9 +46,8 @@ def in_memory_sqlite(uri: str) -> bool:
 
 
 def sqlite_file(url: str) -> Path | None:
-    """The file an sqlite URL names (a tracking store, a sweep's storage), its query
-    aside; None for another database or an in-memory one. Raises sqlalchemy's
-    ``ArgumentError`` for a URL it cannot read."""
+    """The file an sqlite URL names, None for another database or an in-memory one; raises
+    sqlalchemy's ``ArgumentError`` for a URL it cannot read."""
     # lazy: sqlalchemy (~1 s); this module is read before anything heavy loads
     from sqlalchemy.engine import make_url
 
@@ -72,21 +65,16 @@ def given_uri(uri: str | None, overrides: list[str]) -> str:
 
 
 def server_database(uri: str) -> bool:
-    """Whether ``uri`` names a database server's database (``postgresql://``,
-    ``postgresql+psycopg://``, ``mysql+pymysql://``, ...) rather than a file or an
-    HTTP server; also a misspelt one (``postgres://``), for :func:`check_database` to name."""
+    """Whether ``uri`` names a database server's database (``postgresql+psycopg://``, ...) rather
+    than a file or an HTTP server; also a misspelt one (``postgres://``)."""
     scheme = uri.partition("://")[0].split("+", 1)[0].lower() if "://" in uri else ""
     return scheme in (*DATABASES[1:], "postgres", "mariadb")
 
 
 def mask_password(uri: str) -> str:
-    """``uri`` with the password of its ``user:password@`` part as ``***`` (also one that
-    holds ``/`` or ``@``, or in a URL no parser reads), and the value of every query
-    parameter named ``...password`` (libpq reads ``password`` and ``sslpassword`` there,
-    also percent-encoded, ``pass%77ord``): what fedlgr prints of a URI. Not SQLAlchemy's
-    ``render_as_string(hide_password=True)``: it shows what follows a password's first
-    ``@`` as the host, masks no query parameter, sorts the query and re-encodes the path
-    (``my%20db`` as ``my db``), and fails on a URL it cannot read."""
+    """``uri`` with the password of its ``user:password@`` part and of every ``...password`` query
+    parameter as ``***``. Not SQLAlchemy's ``render_as_string(hide_password=True)``: it shows what
+    follows a password's ``@`` as the host, masks no query parameter and fails on some URLs."""
     scheme, sep, rest = uri.partition("://")
     if not sep:
         return uri
@@ -116,9 +104,8 @@ def authority_end(rest: str) -> int:
 
 
 def _secrets(uri: str) -> set[str]:
-    """The passwords ``uri`` holds (in its ``user:password@`` part and its query), as
-    written and decoded, and each part of one that holds ``@`` (a parser that splits the
-    URL at its first ``@`` shows the rest as a host name)."""
+    """The passwords ``uri`` holds, as written and decoded, and each ``@``-separated part of one (a
+    parser that splits the URL at its first ``@`` shows the rest as a host name)."""
     _, sep, rest = uri.partition("://")
     if not sep:
         return set()
@@ -132,9 +119,8 @@ def _secrets(uri: str) -> set[str]:
 
 
 def masked_text(text: str, uri: str) -> str:
-    """``text`` without the URI's passwords: the URI as :func:`mask_password` writes it, and
-    each password elsewhere (three characters or more), as written or decoded, and each
-    ``@``-separated part of one."""
+    """``text`` without the URI's passwords: the URI as :func:`mask_password` writes it, and each
+    password of three characters or more elsewhere (see :func:`_secrets`)."""
     text = text.replace(uri, mask_password(uri))
     for form in sorted(_secrets(uri), key=len, reverse=True):
         text = text.replace(form, "***")
@@ -154,8 +140,7 @@ def masked_uris(text: str) -> str:
 
 
 def masked_echo(echo, *uris: str | None):
-    """``echo`` (e.g. ``print``) that writes the passwords of ``uris`` as ``***``: what a
-    command prints of its URIs (the study's storage, the tracking store)."""
+    """``echo`` (e.g. ``print``) that writes the passwords of ``uris`` as ``***``."""
     given = [u for u in uris if u]
 
     def say(*args: object, **kwargs) -> None:

@@ -1,33 +1,5 @@
-"""The view of an experiment's runs that the printed MLflow link opens: the headline figures
-first (docs/tracking.md).
-
-MLflow's runs page can be shared: its "Share" button stores the page's state (columns,
-sorting, charts, expanded parent runs) as the experiment tag
-``mlflow.sharedViewState.<key>``, and ``?viewStateShareKey=<key>`` in the page's address
-loads it. fedlgr writes such a view, :data:`VIEW`, to every experiment it logs to:
-
-- the runs table shows the headline scores (:func:`fedlgr.core.metrics.headline_scores`:
-  ``test/rmse``, ``test/pcc``, ``test/ccc``) and the costs per client per round
-  (``mean/cost/cpu_s``, ``mean/cost/bytes_up``) as columns, with the method and each
-  sweep's swept settings, sorted by the first score (``test/rmse``, best first); a sweep's
-  trials are shown (their parent run expanded);
-- the chart view opens on a "headline" section: per-round curves (line charts, step =
-  round) of every headline score for every run, a scatter of the runs' final first error
-  against their first correlation (``test/rmse`` against ``test/pcc``), and a
-  parallel-coordinates plot of the method and swept settings against the headline scores.
-  Line and scatter charts fit their axes to the values (0.810 and 0.811 are told apart);
-  MLflow's bar charts start at 0 and have no range setting (its BAR card holds a metric
-  key only), so there are none.
-
-The state is the MLflow UI's own format (MLflow 3.17): ``selectedColumns`` as
-``metrics.`key``` / ``params.`key```, chart cards by type, ``columnOrder`` and
-``columnWidths`` (pixels by column id) - the fields its runs page persists
-(``["selectedColumns", "columnOrder", "columnWidths", "runsExpanded", ...,
-"compareRunCharts", "compareRunSections", ...]`` in its JavaScript bundle); a UI that no
-longer reads a field ignores it, and "Exit shared view" gives MLflow's default page.
-What MLflow does not take from a shared view - a run page's charts, its metrics table, the
-compare page - is ordered by what a run logs (:mod:`fedlgr.shell.tracking.mlflow_run`).
-"""
+"""The view of an experiment's runs that the printed MLflow link opens (MLflow's shared view, an
+experiment tag in the MLflow UI's own format): the headline scores first (docs/tracking.md)."""
 
 from __future__ import annotations
 
@@ -39,12 +11,9 @@ from fedlgr.core.metrics import Score, headline_scores
 VIEW = "fedlgr"
 TAG = f"mlflow.sharedViewState.{VIEW}"
 SECTION = "fedlgr-headline"
-# the runs table's metric columns after the headline scores; the table sorts its columns by
-# name and shows about six in a 1400-pixel window
+# the runs table's metric columns after the headline scores
 COST_COLUMNS = ("mean/cost/cpu_s", "mean/cost/bytes_up")
-# The runs table's metric columns are 100 pixels wide unless a view says otherwise: 0.8100731
-# and a header such as mean/cost/bytes_up were cut ("0.81007307..."). Wide enough for 7
-# significant digits and the longest header in the table's font.
+# MLflow's 100-pixel metric columns cut 0.8100731 and mean/cost/bytes_up; 150 fits both
 METRIC_WIDTH = 150
 MAX_PARAMS = 6  # in the parallel-coordinates plot, the runs table's columns too
 MAX_EXPANDED = 40  # the newest sweeps' parent runs (an experiment tag holds 5000 characters)
@@ -100,8 +69,7 @@ def view_state(params: Iterable[str], expanded: Iterable[str]) -> dict:
     metrics = [f"metrics.`{m}`" for m in (*keys, *COST_COLUMNS)]
     return {
         "selectedColumns": metrics + [f"params.`{p}`" for p in params],
-        # ids of the columns whose width is set (MLflow applies widths in this order; a
-        # column it does not list keeps MLflow's place and width)
+        # the columns whose width is set (MLflow applies widths in this order)
         "columnOrder": metrics,
         "columnWidths": dict.fromkeys(metrics, METRIC_WIDTH),
         "orderByKey": f"metrics.`{keys[0]}`",  # best first
@@ -114,9 +82,8 @@ def view_state(params: Iterable[str], expanded: Iterable[str]) -> dict:
 
 
 def share_view(client, experiment_id: str, params: Iterable[str] = (), parent: str = "") -> None:
-    """Write (or widen) the experiment's view: ``method`` and ``params`` as columns and
-    plot axes, ``parent`` (a sweep's parent run) expanded; the tag is written only when the
-    view changes. A view that cannot be read (edited by hand) is replaced."""
+    """Write (or widen) the experiment's view: ``method`` and ``params`` as columns and plot axes,
+    ``parent`` (a sweep's parent run) expanded; a view that cannot be read is replaced."""
     experiment = client.get_experiment(experiment_id)
     try:
         old = json.loads(experiment.tags.get(TAG, "{}"))
