@@ -1,14 +1,5 @@
-"""What a sweep checks before its first trial trains: every trial's config loads, the
-objective is a metric its runs log, the data is there, and a relaunched study's space is
-one its trials' values fit.
-
-A grid of up to :data:`EXHAUSTIVE` points is checked point by point. A larger grid, and a
-TPE space, is checked one parameter at a time: each value of each parameter (a range: its
-two ends) with every other parameter at its first value - for each base config, when the
-space chooses it (``config``). A 400,000-point grid of 60 values then costs about 60
-config loads (~25 ms each), not 400,000; a combination that only fails together fails
-in its trial, with its error in the trial table.
-"""
+"""What a sweep checks before its first trial trains: every trial's config loads, the objective is a
+metric its runs log, the data is there, and a relaunched study's space fits its trials' values."""
 
 from __future__ import annotations
 
@@ -29,7 +20,9 @@ EXHAUSTIVE = 64  # grids up to this size have every point's config built
 
 
 def probe_points(spec: SweepSpec) -> list[dict[str, Any]]:
-    """The trial points whose configs are checked (see the module's docstring)."""
+    """The trial points whose configs are checked: every point of a grid of up to
+    :data:`EXHAUSTIVE`, else each value of each parameter (a range: its ends) with the others at
+    their first, per base config."""
     if spec.sampler == "grid" and spec.n_trials <= EXHAUSTIVE:
         return list(spec.grid_points())
     chooser = next((p for p in spec.params if p.name == CONFIG_KEY), None)
@@ -75,9 +68,8 @@ def _load(spec: SweepSpec, point: dict[str, Any]) -> ExperimentConfig:
 
 
 def tracking_experiment(spec: SweepSpec) -> str:
-    """The MLflow experiment its trials' configs name: what a ``tracking.experiment=NAME``
-    override (the sweep file's or the command line's) sets, resolved and checked as in a
-    trial's config."""
+    """The MLflow experiment its trials' configs name (what a ``tracking.experiment=NAME`` override
+    sets), resolved and checked as in a trial's config."""
     return _load(spec, {p.name: _values(p)[0] for p in spec.params}).tracking.experiment
 
 
@@ -113,12 +105,8 @@ def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) ->
 
 
 def run_metrics(config: ExperimentConfig) -> set[str]:
-    """The metric names a run of ``config`` can end with - the names a sweep's objective
-    reads from :meth:`ExperimentResult.final_metrics`: the last round's figures (the
-    round's columns, :func:`fedlgr.core.metrics.round_keys`, what the method's plugins
-    measure too) as means and per client, the FCL "after task k" figures
-    (:class:`fedlgr.core.forgetting.ForgettingTracker`) and the cost means. Built
-    from the config alone: nothing trains."""
+    """The metric names a run of ``config`` can end with, which a sweep's objective reads from
+    :meth:`ExperimentResult.final_metrics`; built from the config alone: nothing trains."""
     tasks = list(config.continual.tasks)
     names = {"round/seconds", "round/missing_clients", "round/participants"}
     # The server's own cost (in-process runtimes), and its evaluation where it runs one.
@@ -141,9 +129,8 @@ def run_metrics(config: ExperimentConfig) -> set[str]:
 
 
 def check_data_folders(spec: SweepSpec) -> None:
-    """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start
-    rather than fail each of its trials on it. (:func:`~fedlgr.shell.sweep.spec.load_sweep`
-    does not ask this, so that a sweep file can be checked without its data.)"""
+    """Every trial's ``data.path`` must be an existing folder: a sweep refuses to start rather than
+    fail each trial (not in ``load_sweep``: a sweep file is checked without its data)."""
     seen: set[Path] = set()
     for point in _data_points(spec):
         base, overrides = spec.trial_config_args(point)
@@ -163,13 +150,8 @@ def check_data_folders(spec: SweepSpec) -> None:
 
 
 def check_space(study, spec: SweepSpec, where: str) -> None:
-    """Refuse a study whose trials drew a parameter from other values than the sweep's
-    space gives it now (a value added to a grid, choices changed, a range made a range of
-    another kind): Optuna compares each trial's distribution with the study's first one
-    of that name and fails every new trial ("CategoricalDistribution does not support
-    dynamic value space"), and a grid cannot grow inside its study. A range's ends may
-    move (Optuna allows it; a changed sweep file still needs ``--settings-changed``).
-    ``where``: the storage, as the message names it."""
+    """Refuse a study whose trials drew a parameter from other values than the space now gives (a
+    range's ends may move): Optuna fails each new trial whose distribution differs."""
     # lazy: optuna (~1 s), not needed to check a sweep file
     from optuna.distributions import check_distribution_compatibility
 

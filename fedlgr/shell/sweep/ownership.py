@@ -1,11 +1,5 @@
-"""Which process runs which trial, and what becomes of a trial whose process is gone.
-
-A worker claims each trial it runs (:data:`OWNER`: its host, pid and start time) and
-Optuna's heartbeats say which trials are still being run. A trial whose worker died
-(silent for two heartbeats), was killed before it drew its parameters, or was
-interrupted is set FAILED and queued again (:mod:`fedlgr.shell.sweep.storage`) - unless
-its worker is alive on this machine, merely stopped.
-"""
+"""Which process runs which trial (:data:`OWNER`), and what becomes of a trial whose process is
+gone: set FAILED and queued again, unless its worker is alive on this machine, merely stopped."""
 
 from __future__ import annotations
 
@@ -27,9 +21,8 @@ def this_process() -> list:
 
 
 def alive_here(owner) -> bool:
-    """Whether ``owner`` (:data:`OWNER`) is a live process on this machine - the same
-    process, not a later one given its pid (the start time tells them apart); a zombie
-    is not alive (as for a run's process: :func:`~fedlgr.shell.tracking.mlflow_run.dead_reason`)."""
+    """Whether ``owner`` (:data:`OWNER`) is a live process on this machine: the same process, not a
+    later one given its pid (the start time tells them apart), and not a zombie."""
     if not isinstance(owner, list) or len(owner) != 3 or owner[0] != socket.gethostname():
         return False
     return str(owner[1]).isdigit() and process_alive(int(owner[1]), str(owner[2]))
@@ -63,10 +56,8 @@ class TrialOwnership:
         self.held = None
 
     def requeue_held(self) -> None:
-        """Queue this worker's trial again, after an interrupt, so the next launch redoes it
-        (as for a worker that died). Optuna has recorded the trial FAILED - or left it
-        RUNNING, if the interrupt hit its own bookkeeping - and a finished trial takes no
-        new attributes, so what says it was re-queued is the copy's ``retry_history``."""
+        """Queue this worker's trial again after an interrupt, so the next launch redoes it; Optuna
+        has set it FAILED, or left it RUNNING if the interrupt hit its own bookkeeping."""
         if self.held is not None and not fail_and_retry(self.study, self.retry, self.held):
             retry_failed(self.study, self.retry, self.held)
 
@@ -91,12 +82,8 @@ class TrialOwnership:
         return self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
 
     def _keep_live_owners(self) -> None:
-        """A trial whose worker is alive on this machine is never declared dead by its
-        heartbeat: its worker may be stopped (Ctrl-Z, ``kill -STOP``, a suspended VM)
-        with its heartbeat stale, and would then go on with a trial Optuna has failed and
-        re-queued (two workers on one run, and ``ValueError: Cannot tell a FAIL trial``).
-        Its heartbeat is recorded here for it; a dead worker's, or one on another machine,
-        is left to Optuna's heartbeat."""
+        """Record the heartbeat of trials whose worker is alive here but perhaps stopped (Ctrl-Z, a
+        suspended VM), which Optuna would otherwise fail and hand to a second worker."""
         storage = self.study._storage
         for t in self._running():
             if alive_here(t.system_attrs.get(OWNER)):
@@ -111,13 +98,9 @@ class TrialOwnership:
                     )
 
     def _fail_unborn_trials(self) -> None:
-        """A worker killed between creating a trial and drawing its parameters leaves a
-        RUNNING trial with no params and no heartbeat, which Optuna never fails: fail it
-        once it is older than the heartbeat grace period (a live trial draws its
-        parameters within milliseconds) and queue it again. GridSampler has already given
-        it a point (system attr ``grid_id``) and counts a failed trial's point as visited,
-        so without the retry - whose copy keeps ``grid_id`` - that point would come back
-        only by chance."""
+        """Fail and queue again a trial whose worker was killed before drawing its parameters
+        (RUNNING, no params, no heartbeat: Optuna never fails it); the copy keeps GridSampler's
+        ``grid_id``, its point."""
         limit = datetime.now() - timedelta(seconds=2 * self.spec.heartbeat_s + 10)
         for t in self._running():
             if not t.params and t.datetime_start is not None and t.datetime_start < limit:

@@ -20,11 +20,9 @@ PARENT_ATTR = "mlflow_parent_run_id"
 
 
 class ParentRun:
-    """The parent run of a study's trials: created by the study's first worker, found by
-    the others (its id is a study user attribute), set RUNNING again when a sweep resumes.
-
-    ``tracking_uri`` and ``experiment`` say where the trials go: a relaunched study goes on
-    in its parent run's experiment, whatever the sweep now asks (``moved`` says why)."""
+    """The parent run of a study's trials: created by the study's first worker, found by the others,
+    RUNNING again when a sweep resumes. A relaunched study goes on in its parent run's experiment,
+    whatever the sweep now asks (``moved`` says why)."""
 
     def __init__(self, spec: SweepSpec, study, storage: str, tracking_uri: str | None):
         self.spec, self.study, self.storage = spec, study, storage
@@ -51,8 +49,7 @@ class ParentRun:
         except FedlgrError:  # e.g. data.path left to the grid's config choice
             uri = resolve_uri(self.tracking_uri)
         self.tracking_uri = uri
-        # A store another process holds (a sweep stopped in the middle of a write) is one
-        # line, as for fedlgr run.
+        # a store another process holds (a sweep stopped mid-write) is one line, as for fedlgr run
         with store_errors(uri, "open the sweep's store"):
             client = open_client(uri)  # creates (migrates) a fresh sqlite store, locked
             parent = self._existing(client)
@@ -154,10 +151,9 @@ class ParentRun:
         self.client.set_terminated(self.run_id, status)
 
     def finish(self) -> dict[str, Any] | None:
-        """Log the best trial (tags ``best.*``, metric ``best/<metric>``, ``best_trial.json``)
-        and end the parent run FINISHED - FAILED when every trial failed. Every worker
-        that sees the study done may get here, and a finished sweep launched again does:
-        the best trial is logged once (under the storage's lock), not once per process."""
+        """Log the best trial (tags ``best.*``, metric ``best/<metric>``, ``best_trial.json``) and
+        end the parent run FINISHED, or FAILED when every trial failed; under the storage's lock, as
+        every worker that sees the study done may get here."""
         with store_lock(self.storage):
             best = self._log_best()
             self.client.log_dict(self.run_id, trial_table(self.study), "trials.json")

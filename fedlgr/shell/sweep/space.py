@@ -1,7 +1,5 @@
-"""A sweep as the code holds it once its file is read (:mod:`fedlgr.shell.sweep.spec`): the
-settings it searches (:class:`Param`, each as the Optuna distribution its values are drawn
-from) and what it is run with (:class:`SweepSpec`), down to the config file and
-``key=value`` overrides of each trial."""
+"""A sweep as the code holds it once its file is read: the settings it searches (:class:`Param`) and
+what it is run with (:class:`SweepSpec`), down to each trial's config file and overrides."""
 
 from __future__ import annotations
 

@@ -1,30 +1,6 @@
-"""Sweep files: what a sweep varies, over which base config, towards which objective;
-:func:`load_sweep` reads and checks one into a :class:`~fedlgr.shell.sweep.space.SweepSpec`.
-
-A sweep file (``sweeps/NAME.yaml``)::
-
-    description: EWC's lambda, FedAvg and FedRoot (Table II's EWC rows)
-    base: experiment/table2/clients2_noaug.yaml   # under conf/, or a path
-    overrides: [continual.rounds_per_task=5]      # fixed for every trial
-    objective: {metric: test/rmse, direction: minimize}
-    space:
-      method: [FedAvg-EWC, FedRoot-EWC]           # a list: a grid of values
-      continual.ewc.lambda_: [1, 10, 100, 1000]
-
-Each key of ``space`` is a config key (``key=value`` as on the command line); the special
-key ``config`` chooses the base config file itself (for grids over the paper's presets). A
-list is a grid of values; ``{low, high}`` (optionally ``log: true`` or a ``step``) is a
-range and ``{choices: [...]}`` a categorical, both for TPE; each is checked as Optuna would
-take it when the file loads, and every trial's config and the objective with it
-(:mod:`fedlgr.shell.sweep.checks`). ``sampler`` is ``grid`` when every parameter is a list
-(Optuna's ``GridSampler``: every combination once), ``tpe`` otherwise (``TPESampler``;
-``trials`` then says how many). The objective's metric is any metric a run
-logs, read after the last round (``test/rmse`` = the final mean RMSE, after the last task
-for FCL; ``after_task1/test/pcc``, ``mean/cost/cpu_s``, ...). ``pruner`` (``median`` |
-``none``) stops hopeless trials from their per-round values; on by default for TPE, off
-for grids (a grid wants every point measured). ``failures_in_a_row`` (default 3) stops the
-sweep once that many trials in a row have failed (:func:`fedlgr.shell.sweep.trials.failing`).
-"""
+"""Sweep files (``sweeps/NAME.yaml``): what a sweep varies, over which base config, towards which
+objective; :func:`load_sweep` reads and checks one into a
+:class:`~fedlgr.shell.sweep.space.SweepSpec` (docs/sweeps.md)."""
 
 from __future__ import annotations
 
@@ -218,9 +194,8 @@ def _fixed_overrides(raw: dict[str, Any], fail: Fail) -> list[str]:
 
 def _check_overrides(spec: SweepSpec, in_file: int) -> None:
     """Refuse what a trial would drop without a word: a setting given twice in the file's
-    ``overrides:`` (the last would win), or an override - in the file or on the command
-    line - of a setting the space varies (each trial would set its own). The command
-    line's overrides may change the file's: that is their use."""
+    ``overrides:``, or an override of a setting the space varies. The command line's may change the
+    file's: that is their use."""
     swept = {p.name for p in spec.params}
     seen: dict[str, str] = {}
     for k, override in enumerate(spec.overrides):
@@ -243,8 +218,7 @@ def read_sweep_file(path: Path) -> dict[str, Any]:
     """The settings of a sweep file as a dict, ``${...}`` resolved; a file that is not YAML
     (with the line where YAML says), repeats a key or is not a mapping is one ConfigError
     naming the file."""
-    # lazy: omegaconf (~0.5 s) and yaml (0.05 s, a fifth of fedlgr --help), only when a
-    # sweep file is read
+    # lazy: omegaconf and yaml, only when a sweep file is read (kept off fedlgr --help)
     import yaml
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException

@@ -1,11 +1,5 @@
-"""The study's Optuna storage: opening it and re-queueing trials whose worker died or was stopped.
-
-A trial whose worker cannot finish it is set FAILED and a WAITING copy of it is queued by
-Optuna's ``RetryHeartbeatStaleTrialCallback``, which keeps the trial's system attributes -
-so GridSampler hands the copy the same grid point (``grid_id``) - and lists the trials it
-retries in ``retry_history``. Only the worker whose FAIL reached the storage queues the
-copy, so two workers that notice the same dead trial queue it once.
-"""
+"""The study's Optuna storage: opening it, and re-queueing trials whose worker died or was stopped
+(Optuna's retry callback, so that GridSampler hands the copy the same grid point)."""
 
 from __future__ import annotations
 
@@ -37,17 +31,14 @@ DEFAULT_STORAGE = "sqlite:///optuna.db"
 
 
 class RetryStaleTrial:
-    """Optuna's ``RetryHeartbeatStaleTrialCallback`` for a trial whose worker died, which
-    also ends that trial's MLflow run KILLED (its process can no longer do it) - a FINISHED
-    one too: a worker killed between ending the run and telling the study leaves a run the
-    study never counted, and the retry makes the point's result."""
+    """Optuna's ``RetryHeartbeatStaleTrialCallback`` that also ends the dead worker's MLflow run
+    KILLED, a FINISHED one too: its worker died before the study counted it."""
 
     def __init__(self) -> None:
         # lazy: optuna (~1 s), not needed to check a sweep file
         from optuna.storages import RetryHeartbeatStaleTrialCallback
 
-        # The copy keeps the rounds the trial reported: a retry that resumes its run from
-        # a checkpoint reports the later rounds only, and the pruner sees them all.
+        # keeps the reported rounds: a retry resumed from a checkpoint reports only the later ones
         self.retry = RetryHeartbeatStaleTrialCallback(max_retry=3, inherit_intermediate_values=True)
         self.client = None  # set by the Worker once MLflow is open
         self.experiment_id: str | None = None
@@ -80,9 +71,8 @@ def retry_failed(study, retry: RetryStaleTrial, trial_id: int) -> bool:
 
 
 def fail_and_retry(study, retry: RetryStaleTrial, trial_id: int) -> bool:
-    """Set the RUNNING trial ``trial_id`` FAILED and queue a copy of it - only when this
-    call's FAIL reached the storage (another worker, or Optuna itself, may have finished
-    the trial first). True if a copy was queued."""
+    """Set the RUNNING trial ``trial_id`` FAILED and queue a copy, only if this call's FAIL reached
+    the storage (another worker may have finished the trial first); True if queued."""
     # lazy: optuna (~1 s), not needed to check a sweep file
     import optuna
     from optuna.trial import TrialState
@@ -102,17 +92,9 @@ def open_study(
     worker: int = 0,
     settings_changed: bool = False,
 ) -> tuple[Any, RetryStaleTrial]:
-    """Create or load the study (``load_if_exists``) with heartbeats and retry of dead
-    workers' trials; returns the study and its :class:`RetryStaleTrial`.
-
-    The first use of a fresh sqlite file creates Optuna's tables, its schema version and
-    the study; two processes doing that at once make one fail (``table ... already
-    exists``, a UNIQUE constraint on the version or the study name), so it happens under
-    the file lock MLflow's sqlite stores are opened under (``<file>.lock``) - on
-    PostgreSQL, under an advisory lock of the database (workers on several machines;
-    :func:`fedlgr.shell.tracking.store.database_lock`). A storage that cannot hold the study
-    is one :class:`FedlgrError` line naming it, its password masked
-    (:func:`check_storage`)."""
+    """Create or load the study with heartbeats and retry of dead workers' trials, under
+    :func:`store_lock`: two processes creating Optuna's tables at once make one fail. A storage that
+    cannot hold the study is one line (:func:`check_storage`)."""
     path = check_storage(storage)
     with store_lock(storage):
         if path is not None:
@@ -125,14 +107,8 @@ LOCK_WAIT_S = 5.0  # another process's write that takes longer than this is not 
 
 
 def check_storage(storage: str, make: bool = True) -> Path | None:
-    """Refuse, in one line naming it (its password masked), a storage that cannot hold a
-    study, before anything waits on it: not a database URL; an sqlite path that is a
-    folder, a file that is not an sqlite database, a folder that cannot be made or
-    written in, a file another process keeps locked; a database server's driver that is
-    not installed, a server that does not answer, a wrong user or password, a database
-    that does not exist (:func:`fedlgr.shell.checks.stores.check_database`). ``make``:
-    create the sqlite file's folder and lock file (else only look). The sqlite file, for
-    sqlite."""
+    """Refuse in one line (password masked) a storage that cannot hold a study, before anything
+    waits on it; ``make``: create the sqlite file's folder and lock file. Its sqlite file."""
     from sqlalchemy.exc import ArgumentError  # lazy: sqlalchemy (~1 s), for a storage only
 
     def fail(problem: str) -> FedlgrError:
@@ -155,8 +131,7 @@ def check_storage(storage: str, make: bool = True) -> Path | None:
         return None
     if path.is_dir():
         raise fail(f"{path} is a folder, not an sqlite file")
-    # A dangling link would fail after a minute's wait, and a device would get a lock file
-    # made beside it (/dev/null.lock): both are refused at once.
+    # refused at once: a dangling link would fail after a minute, a device get /dev/null.lock
     if why := not_a_file(path):
         raise fail(f"{path} is {why}")
     if not make:
@@ -192,9 +167,8 @@ def _check_header(path: Path, fail) -> None:
 
 
 def _wait_for_writes(path: Path, storage: str) -> None:
-    """Wait up to :data:`LOCK_WAIT_S` for another process's write to the sqlite file to
-    end (a sweep's workers write for milliseconds): one that holds it longer is named,
-    instead of the minute Optuna's connections wait (``timeout: 60``)."""
+    """Wait up to :data:`LOCK_WAIT_S` for another process's write to the sqlite file: one that holds
+    it longer is named, instead of the minute Optuna's connections wait."""
     if not (path.is_file() and path.stat().st_size):
         return
     try:
@@ -215,8 +189,7 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
 
     internal = optuna.exceptions.StorageInternalError
     storage_kinds = internal | SQLAlchemyError | sqlite3.Error
-    # An error raised while Optuna handled a storage error (Optuna 4's _optimize raises an
-    # UnboundLocalError when the database server goes away mid-trial) is that error.
+    # Optuna 4's _optimize raises an UnboundLocalError over a lost server's error: that one counts
     err = next((e for e in exception_chain(err) if isinstance(e, storage_kinds)), None)
     if err is None:
         return None
@@ -290,8 +263,7 @@ def _open_study(
             direction=spec.direction,
             load_if_exists=True,
         )
-        # The space first: a study whose values changed cannot go on even when the
-        # settings changed on purpose (--settings-changed).
+        # the space first: changed values cannot go on even with --settings-changed
         check_space(study, spec, mask_password(storage))
         check_settings(study, spec, storage, settings_changed)
     except Exception as err:
@@ -303,9 +275,8 @@ def _open_study(
 
 
 def _engine_kwargs(storage: str) -> dict[str, Any]:
-    """SQLAlchemy's settings for the storage's engine: sqlite waits up to a minute for
-    another worker's write; a database server is given up on when it does not answer
-    (a lost server would otherwise hang the worker on the network's own timeout)."""
+    """SQLAlchemy's engine settings for the storage: sqlite waits a minute for another worker's
+    write; a silent database server is given up on, not left to the network's timeout."""
     if storage.startswith("sqlite"):
         return {"connect_args": {"timeout": 60}}
     if storage.lower().startswith(("postgresql:", "postgresql+")):
@@ -324,14 +295,8 @@ def sweep_settings(spec: SweepSpec) -> dict[str, Any]:
 
 
 def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = False) -> None:
-    """Record the settings with a new study; refuse to go on with a study that was started
-    with other ones: its finished trials would be taken for trials of these settings (a
-    relaunch with another ``data.path`` would train nothing and report the old table).
-    Settings that change no number (``tracking.*``: where and how runs are recorded - a
-    relaunched study's trials go on in its parent run's experiment; ``data.cache_dir``) and
-    how trials run (threads, workers) are not compared. ``changed_ok``
-    (``fedlgr sweep --settings-changed``): go on, e.g. with a dataset that moved, and
-    record the new settings."""
+    """Record the settings with a new study; refuse one started with other settings, as its trials
+    would count for these. ``changed_ok`` (``--settings-changed``): record the new ones."""
     now = sweep_settings(spec)
     then = study.user_attrs.get(SETTINGS_ATTR)
     if then is None or changed_ok:  # new (or from before studies recorded settings)
@@ -355,10 +320,8 @@ def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = Fals
 
 
 def _as_dict(overrides: list[str]) -> dict[str, str]:
-    """``key=value`` overrides as {key: value}, the last one of a key winning; settings
-    that change no number (``tracking.*``, ``data.cache_dir``) left out, and how trials
-    run (``--workers`` sets the threads per trial: a relaunch with other workers or on
-    another machine goes on with the study)."""
+    """``key=value`` overrides as {key: value}, the last of a key winning, without the settings that
+    change no number (``tracking.*``, ``data.cache_dir``) or how trials run (threads, workers)."""
     pairs = dict(o.split("=", 1) for o in overrides)
     return {
         k: v

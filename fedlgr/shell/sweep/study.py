@@ -1,46 +1,6 @@
-"""Run a sweep as an Optuna study: resumable, parallel, pruned, tracked in MLflow.
-
-The study lives in an Optuna RDB storage (``sqlite:///optuna.db`` in the working directory
-by default; a PostgreSQL/MySQL URL lets several machines share one study). Every worker -
-this process, the ``--workers N`` extra processes it starts, or ``fedlgr sweep`` run again
-elsewhere on the same storage - runs trials one at a time until the study is done:
-
-* every parameter, every trial's config and the objective's metric are checked before
-  the first trial (:mod:`fedlgr.shell.sweep.checks`), and a relaunched study's space
-  against the values its trials drew from (:func:`~fedlgr.shell.sweep.checks.check_space`);
-* a grid is done when every point has finished (complete, pruned or failed); a TPE study
-  when ``trials`` trials have - or when its space has no point left that has not run
-  (a finite space smaller than ``trials``, or a sampler that keeps proposing old points:
-  :func:`fedlgr.shell.sweep.trials.no_new_point`), which it says in one line;
-* a trial that raises is recorded FAILED with its error (user attr ``error``, the
-  end-of-sweep table, tag ``fedlgr.error`` of its MLflow run or ``trial.N.error`` of the
-  parent) and the sweep goes on; a sweep whose every trial failed ends its parent run
-  FAILED (and ``fedlgr sweep`` exits 1), and so does one whose ``failures_in_a_row``
-  trials in a row failed, which stops there (:func:`fedlgr.shell.sweep.trials.failing`:
-  a trial that fails before drawing its point covers none, and the sweep would ask for
-  new ones for ever); Ctrl-C or SIGTERM (:mod:`fedlgr.shell.signals`)
-  re-queues the running trial, so the next launch redoes it, and ends the parent run
-  KILLED;
-* a worker that dies (killed, machine lost) stops sending heartbeats; after two missed
-  heartbeats another worker (or the next launch) marks its trial FAILED and re-queues it
-  (:mod:`fedlgr.shell.sweep.storage`) - also a trial killed before it drew its parameters,
-  which never sent one;
-* the data must be there: a sweep whose ``data.path`` is not a folder does not start;
-* with parallel workers Optuna's GridSampler can hand a point out twice (LIBRARY-NOTES);
-  a trial whose point an earlier trial already covers is skipped (PRUNED, user attr
-  ``duplicate_of``) before it trains.
-
-The console: the ``--workers`` helpers' output comes through this process, each worker's
-lines prefixed ``[wK]``; the table at the end is printed once, by this process, with
-interrupted trials as ``INTERRUPTED`` and why; a relaunched study with nothing left to
-run says so in one line.
-
-MLflow: one parent run per sweep (tag ``fedlgr.kind=sweep``: the study's settings and, at
-the end, the best trial and its params - logged once, by the process that started the
-``--workers``) and one child run per trial - the same run as
-``fedlgr run`` - tagged ``sweep`` and ``trial`` and linked with ``parent_run_id`` (the
-active-run stack is thread-local, so ``nested=True`` is not used).
-"""
+"""Run a sweep as an Optuna study: resumable, parallel (``--workers``, or other machines on one
+database storage), pruned, tracked in MLflow: a parent run, and a child run per trial linked by
+``parent_run_id`` (not ``nested=True``: MLflow's active-run stack is thread-local)."""
 
 from __future__ import annotations
 
@@ -122,8 +82,7 @@ def _announce(worker: Worker, worker_id: int, echo: Callable[..., None]) -> None
     echo(
         f"sweep {spec.name}: {spec.sampler}, {total} trials, {spec.direction} {spec.metric}; "
         f"study {worker.study.study_name!r} in {mask_password(worker.storage)} "
-        # done: the trials that finished, not a grid's total less its open points (which
-        # counts the running ones)
+        # done: the finished trials, not a grid's total less its open points (the running too)
         f"({ran(worker.study)} done, {running} running, {waiting} queued); "
         f"MLflow experiment {worker.experiment!r}, "
         f"parent run {worker.parent_run_id}"
@@ -190,7 +149,6 @@ def _run_with_helpers(worker: Worker, helpers: list[_Helper]) -> bool:
         return worker.run()
     except Terminated:
         # SIGTERM may have reached this process alone (docker stop, timeout): pass it on
-        # (a worker that had it already ignores the second one).
         for helper in helpers:
             helper.process.terminate()
         raise

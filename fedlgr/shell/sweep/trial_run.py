@@ -1,6 +1,5 @@
-"""One trial of a sweep, run: its point drawn, trained as a ``fedlgr run`` child of the
-sweep's parent run, its rounds reported to the pruner, and its value of the objective -
-or why it failed or was cut off, recorded where the trial table and MLflow show it."""
+"""One trial of a sweep, run: its point drawn, trained as a ``fedlgr run`` child of the sweep's
+parent run, its rounds reported to the pruner, its value or why it failed recorded."""
 
 from __future__ import annotations
 
@@ -49,9 +48,8 @@ class TrialRunner:
         self.worker, self.echo = worker, echo
 
     def run(self, trial, deferred: contextlib.ExitStack) -> float:
-        """The trial's value of the objective's metric. ``deferred`` holds an interrupt that
-        came since Optuna's ask() made the trial: it is raised here, once the trial is
-        claimed, so that the trial is recorded interrupted and queued again."""
+        """The trial's value of the objective's metric. An interrupt held by ``deferred`` since
+        ask() is raised here, once the trial is claimed, so that it is recorded and queued again."""
         # lazy: optuna (~1 s), not needed to check a sweep file
         import optuna
 
@@ -134,10 +132,8 @@ class TrialRunner:
         return trial_config(config, params)
 
     def _pruning(self, trial) -> Callable[[int, dict[str, float]], None]:
-        """The run's ``on_round`` hook: each round's value goes to the pruner, which may
-        stop the run (:class:`PrunedRun`). The objective read after the last round
-        (``after_task2/test/rmse``, ``mean/...``) is followed by its per-round
-        ``test/...`` value."""
+        """The run's ``on_round`` hook: each round's value goes to the pruner, which may stop the
+        run (:class:`PrunedRun`); an end-only objective (``mean/...``) by its ``test/...`` value."""
         metric = self.spec.metric
         intermediate = (
             metric
@@ -157,10 +153,8 @@ class TrialRunner:
         return on_round
 
     def _resumable(self, trial, config: ExperimentConfig) -> str | None:
-        """A retried trial's MLflow run, when it left a checkpoint to continue from: the
-        copy carries the failed trial's user attributes (``mlflow_run_id``, set when its
-        run started) and reported rounds, so the retry resumes that run instead of
-        training from round 1."""
+        """A retried trial's MLflow run, when it left a checkpoint: the copy carries the failed
+        trial's ``mlflow_run_id`` and reported rounds, so the retry resumes that run."""
         # lazy: torch (~5 s), loaded by the checkpoint modules
         from fedlgr.shell.run.checkpoint import checkpoints
         from fedlgr.shell.run.resume import checkpoint_folder

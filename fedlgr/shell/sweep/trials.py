@@ -78,11 +78,8 @@ def counts(study, spec: SweepSpec) -> tuple[int, int, int]:
 
 
 def no_new_point(study, spec: SweepSpec) -> str | None:
-    """Why a TPE study can draw no point it has not run yet, or None: every distinct
-    point of its finite space has run (or is running), or the sampler's last
-    :data:`DUPLICATES_IN_A_ROW` draws were all points already run. Without this rule a
-    space with fewer points than ``trials`` is sampled for ever, each draw a skipped
-    duplicate."""
+    """Why a TPE study can draw no new point, or None: every point of its finite space has run, or
+    its last :data:`DUPLICATES_IN_A_ROW` draws were all old points (else it samples for ever)."""
     trials = study.get_trials(deepcopy=False)
     running, _, finished = _split(trials)
     tried = {point_key(spec, t.params) for t in [*finished, *running] if t.params}
@@ -127,12 +124,9 @@ def all_failed(study) -> str | None:
 
 
 def failing(study, spec: SweepSpec, since: int = 0) -> str | None:
-    """Why the sweep stops, or None: the last ``failures_in_a_row`` finished trials
-    numbered ``since`` or later (those of this launch) all failed - a trial that fails
-    before it draws its point (a distribution Optuna refuses, a storage that refuses it)
-    covers no point, and the sweep would otherwise ask for new ones for ever. Interrupted
-    trials and dead workers' ones (queued again) neither count nor break the run of
-    failures; a skipped duplicate is not a trial that ran."""
+    """Why the sweep stops, or None: the last ``failures_in_a_row`` finished trials from ``since``
+    on all failed (interrupted ones aside); a trial that fails before drawing its point covers none,
+    so the sweep would go on for ever."""
     from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
 
     finished = _split(study.get_trials(deepcopy=False))[2]
@@ -201,8 +195,7 @@ def interruption(trial, trials) -> str | None:
 
 
 def trial_table(study) -> list[dict[str, Any]]:
-    """Every trial: number, state, value, params, error / interruption / duplicate / MLflow
-    run."""
+    """Every trial: number, state, value, params, error / interruption / duplicate / MLflow run."""
     rows = []
     trials = study.get_trials(deepcopy=False)
     for t in trials:

@@ -1,11 +1,5 @@
-"""One worker of a sweep: runs the study's trials one at a time until it is done (or
-interrupted), each as a ``fedlgr run`` child of the sweep's MLflow parent run
-(:mod:`fedlgr.shell.sweep.study` says how a sweep runs and recovers).
-
-The worker is the loop; the pieces it turns are the parent run
-(:mod:`~fedlgr.shell.sweep.parent_run`), the ownership of trials and the recovery of dead
-workers' ones (:mod:`~fedlgr.shell.sweep.ownership`) and the run of one trial
-(:mod:`~fedlgr.shell.sweep.trial_run`)."""
+"""One worker of a sweep: runs the study's trials one at a time until it is done (or interrupted),
+each as a ``fedlgr run`` child of the sweep's MLflow parent run."""
 
 from __future__ import annotations
 
@@ -46,12 +40,10 @@ class Worker:
         self.ownership = TrialOwnership(spec, self.study, retry, worker, echo)
         self.runner = TrialRunner(spec, self.study, self.parent, worker, echo)
         self.last_trial: int | None = None
-        # The trials of this launch are numbered from here: failures of an earlier launch
-        # (fixed since) do not stop it.
+        # this launch's trials are numbered from here: an earlier launch's failures do not stop it
         self.since = len(self.study.get_trials(deepcopy=False))
         self.stopped: str | None = None  # why it stopped on failing trials
-        # An interrupt between Optuna's ask() and the objective waits until the trial is
-        # claimed: the trial ask() made would otherwise be left RUNNING, never queued again.
+        # an interrupt between ask() and the objective waits, else ask()'s trial stays RUNNING
         self.unborn = contextlib.ExitStack()
 
     @property
@@ -139,8 +131,7 @@ class Worker:
             except ValueError as err:  # Optuna's "Cannot tell a FAIL trial."
                 if not str(err).startswith("Cannot tell a"):
                     raise
-                # Declared dead by a worker on another machine while this process was
-                # stopped (a suspended VM): that worker has queued it again.
+                # declared dead elsewhere while this process was stopped; queued again there
                 self.echo(
                     f"=== trial {self.last_trial}: another worker declared this one dead while "
                     "it was stopped and queued the trial again; its result here is dropped"
