@@ -1,5 +1,5 @@
 """Shared fixtures (small synthetic datasets written through the real generator, stores,
-servers) and the order modules run in; what else the tests share is in tests/support."""
+servers) and nothing else: what the tests share besides fixtures is in tests/support."""
 
 from __future__ import annotations
 
@@ -13,29 +13,6 @@ import pytest
 
 from tests.support.checkout import REPO, ignored, untracked_files
 from tests.support.ports import free_port, wait_healthy
-
-# The modules that take minutes in the full suite, longest first (seconds each took in
-# `pytest -m 'slow or not slow' -n 2 --durations=0` on the 2-core VM). pytest-xdist gives
-# each worker a whole module (--dist loadfile) in collection order (--no-loadscope-reorder:
-# its default order, by test count, sent these last and left one worker idle for minutes);
-# longest first, the two workers end together. A stale figure costs balance, never a result.
-MODULE_SECONDS = {
-    "test_flower.py": 600,
-    "test_bench.py": 465,
-    "test_resume.py": 450,
-    "test_sweep.py": 310,
-    "test_train.py": 135,
-    "test_postgres.py": 125,
-    "test_flower_secrets.py": 120,
-    "test_signals.py": 110,
-    "test_ownership.py": 105,
-}
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The modules of MODULE_SECONDS first, longest first; the others after, as collected."""
-    items.sort(key=lambda item: -MODULE_SECONDS.get(item.path.name, 0))  # stable: in order
-
 
 # torch, MLflow and fedlgr are imported by the fixtures that use them: pytest-xdist's
 # controller process loads this file too, and runs no test (~16 s of imports saved).
