@@ -11,6 +11,7 @@ before anything is printed or submitted."""
 from __future__ import annotations
 
 import os
+import stat
 
 import mlflow
 import pytest
@@ -79,7 +80,8 @@ def test_a_password_in_an_override_is_refused_before_anything_is_printed_or_subm
     assert proc.returncode == 1, out[-3000:]
     [line] = out.strip().splitlines()
     masked = f"postgresql://{USER}:***@127.0.0.1:{postgres.port}/{DATABASE}"
-    assert line.startswith(f"fedlgr: error: tracking.uri={masked}: a password on the command ")
+    said = f"fedlgr: error: tracking.uri={masked}: a password or token on the command line"
+    assert line.startswith(said)
     assert "~/.pgpass" in line and postgres.password not in line
     assert postgres.password.encode() not in superlink_bytes(federation)
     assert b"tracking.run_name=refused" not in superlink_bytes(federation)  # never submitted
@@ -119,3 +121,12 @@ def test_the_password_stays_on_the_superlinks_machine_and_no_tracking_uri_reache
     assert b"experiment: fedlgr-debug" in received  # the config text of the messages
     assert secret.encode() not in received
     assert b"postgresql" not in received and f":{postgres.port}".encode() not in received
+    # (4) private by mode, whatever the umask: each robot's state (its private top, optimiser
+    # and CL memories), in a folder of its own, and the SuperLink's database; issue 50's fault
+    # sweep found them 0644 in 0755 folders under umask 022
+    robots = [federation.robot_dir(name) for name in ("robot0", "robot1")]
+    states = [p for robot in robots for p in robot.glob("run-*/client-*.ckpt")]
+    assert len(states) >= 2, states
+    assert {stat.S_IMODE(p.parent.stat().st_mode) for p in states} == {0o700}
+    database = list(federation.database.parent.glob(federation.database.name + "*"))
+    assert {stat.S_IMODE(p.stat().st_mode) for p in [*states, *database]} == {0o600}

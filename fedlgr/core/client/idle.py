@@ -25,6 +25,8 @@ import torch
 
 from fedlgr.core.messages import Weights
 
+PRIVATE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW  # a planted link is refused
+
 LIVE_UP_TO = 32  # runtime.idle_clients=auto: whole clients up to this many per process
 
 
@@ -144,9 +146,11 @@ class IdleStates:
             return
         if self.folder is None:
             raise RuntimeError("idle clients spill to disk but no folder was given")
-        self.folder.mkdir(parents=True, exist_ok=True)
+        self.folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         path = self._path(client)
-        torch.save(state, path.with_suffix(".tmp"))
+        # a client's private state: this user's only from the first byte, whatever the umask
+        with open(os.open(path.with_suffix(".tmp"), PRIVATE, 0o600), "wb") as handle:
+            torch.save(state, handle)
         os.replace(path.with_suffix(".tmp"), path)
         self.on_disk.add(client)
 

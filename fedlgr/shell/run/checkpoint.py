@@ -48,6 +48,7 @@ def checkpoints(folder: Path) -> list[Path]:
 
 
 TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
+PRIVATE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW  # a planted link is refused
 INTERRUPTED = "interrupted"  # what rank 0 tells the others when its write was cut off
 
 
@@ -96,10 +97,11 @@ def _io_reason(err: BaseException) -> str:
 def _write_atomically(path: Path, state: Any) -> None:
     """``torch.save`` to a temporary name in ``path``'s own folder, then rename: a kill
     leaves the previous file intact and the temporary where the next start removes it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     try:
-        with open(temporary, "wb") as handle:
+        # every client's model, or a robot's private top: this user's only, whatever the umask
+        with open(os.open(temporary, PRIVATE, 0o600), "wb") as handle:
             torch.save(state, handle)
             handle.flush()
             os.fsync(handle.fileno())

@@ -48,7 +48,7 @@ def claim(folder: Path, run_id: str) -> None:
     if path in _held:
         return
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)  # its checkpoints: private
     except OSError as err:
         raise FedlgrError(f"run {run_id}: {unusable(folder, err)}") from None
     # the process's lock, not a thread's; no soft marker where flock is missing: it outlives a kill

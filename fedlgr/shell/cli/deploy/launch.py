@@ -55,6 +55,9 @@ def exec_flower(cmd: list[str], print_command: bool, insecure: bool = False) -> 
     if print_command:
         return 0
     sys.stderr.flush()
+    # What Flower writes (the SuperLink's link.db, a robot's state) is this user's only,
+    # whatever the umask: files 0600, folders 0700.
+    os.umask(0o077)
     os.execve(cmd[0], cmd, flower_env(Path(cmd[0])))
     return 1  # not reached
 

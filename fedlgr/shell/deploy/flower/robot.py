@@ -161,7 +161,7 @@ def robot(run_id: int | str, node_config: dict, config_yaml: str, slot: int | No
         config = robot_config(node_config, config_yaml)
         check_client(config, client)  # before anything of the run is written
         folder = state_dir(node_config) / f"run-{run_id}"
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)  # the robot's private state
         # What this robot runs; written beside and renamed over, so a link planted at
         # config.yaml is replaced, never written through.
         partial = folder / f".config.yaml.{os.getpid()}"
