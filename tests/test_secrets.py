@@ -340,3 +340,71 @@ def test_the_credentials_folder_is_private_under_any_umask(tmp_path):
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "creds").stat().st_mode) == 0o700
+
+
+# ------------------------------------------------------------- private state, by mode
+
+
+def test_private_state_is_0600_in_0700_folders_under_umask_022(tmp_path):
+    """Issue 50's fault sweep: under umask 022 a robot's ``run-*/client-N.ckpt``, a run's
+    ``round-*.ckpt`` and the idle clients' spill files were 0644 (every client's model, a
+    robot's private top, optimiser and CL memories, readable by any user)."""
+    import torch
+
+    from fedlgr.core.client.idle import IdleStates
+    from fedlgr.shell.run import checkpoint as ckpt
+
+    state = {"model": {"top.w": torch.ones(3)}, "optimizer": {}}
+    old = os.umask(0o022)
+    try:
+        robot = ckpt.write(tmp_path / "robot" / "run-abc" / "client-1.ckpt", {"client": state})
+        run = ckpt.save(None, tmp_path / "checkpoints" / "run1", 1, {"clients": {0: state}}, 2)
+        idle = IdleStates(budget=0, folder=tmp_path / "spill" / ".idle-clients-x")
+        idle.put(3, state, set())
+    finally:
+        os.umask(old)
+    spilled = tmp_path / "spill" / ".idle-clients-x" / "client-3.pt"
+    for path in (robot, run, spilled):
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
+        assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700, path.parent
+    assert torch.equal(idle.get(3)["model"]["top.w"], torch.ones(3))  # and read back
+
+
+def test_a_link_planted_at_a_checkpoints_temporary_name_is_not_written_through(tmp_path):
+    """The temporary a checkpoint is written to first is opened without following a link."""
+    from fedlgr.shell.run import checkpoint as ckpt
+
+    target = tmp_path / "elsewhere.txt"
+    target.write_text("kept")
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / ".client-1.ckpt.tmp").symlink_to(target)
+    with pytest.raises(OSError):
+        ckpt.write(folder / "client-1.ckpt", {"client": {}})
+    assert target.read_text() == "kept" and not (folder / "client-1.ckpt").exists()
+
+
+def test_tokens_in_a_tracking_uri_are_masked_like_passwords(capsys):
+    """Issue 50's fault sweep: ``?access_token=`` and an HTTP URI's bare ``token@`` were
+    printed by ``deploy run --print-command`` and would have travelled as passwords did."""
+    from fedlgr.shell.tracking.uri import mask_password, masked_text, masked_uris
+
+    cases = {
+        "https://ghp_T0ken@mlflow.lab/": "https://***@mlflow.lab/",
+        "http://127.0.0.1:5000/?access_token=T0ken&x=1": "http://127.0.0.1:5000/?access_token=***&x=1",
+        "https://h/?api_key=K3y&client_secret=S3c&run=3": (
+            "https://h/?api_key=***&client_secret=***&run=3"
+        ),
+        "postgresql://me@db/mlflow": "postgresql://me@db/mlflow",  # a user name, no secret
+        "postgresql://me:pw@db/x?sslpassword=q": "postgresql://me:***@db/x?sslpassword=***",
+    }
+    assert {uri: mask_password(uri) for uri in cases} == cases
+    uri = "https://ghp_T0ken@mlflow.lab/"
+    assert (
+        masked_text("no answer from ghp_T0ken@mlflow.lab", uri) == "no answer from ***@mlflow.lab"
+    )
+    assert masked_uris("see https://ghp_T0ken@mlflow.lab/x") == "see https://***@mlflow.lab/x"
+    assert main(["deploy", "run", str(FAST), f"tracking.uri={uri}", "--print-command"]) == 1
+    err = capsys.readouterr().err
+    assert "tracking.uri=https://***@mlflow.lab/: a password or token on the command line" in err
+    assert "T0ken" not in err

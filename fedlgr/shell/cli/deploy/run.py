@@ -83,16 +83,16 @@ def run(
 
 
 def _refuse_passwords(overrides: list[str]) -> None:
-    """Refuse an override that holds a password (``user:password@``, ``password=``): it would be
-    printed, kept in the SuperLink's database and sent to every robot. The ServerApp finds it
-    on the SuperLink's machine instead (docs/deployment.md)."""
+    """Refuse an override that holds a secret (``user:password@``, ``password=``, a token): it
+    would be printed, kept in the SuperLink's database and sent to every robot. The ServerApp
+    finds it on the SuperLink's machine instead (docs/deployment.md)."""
     for override in overrides:
         key, _, value = override.partition("=")
         # also libpq's keyword form, "host=db user=me password=..."
         masked = masked_uris(value)
         if masked != value:
             raise FedlgrError(
-                f"{key}={masked}: a password on the command line would be "
+                f"{key}={masked}: a password or token on the command line would be "
                 "printed, kept in the SuperLink's database and sent to every robot with the "
                 "run's config: leave it out of the URI and keep it on the SuperLink's machine "
                 "(~/.pgpass or $PGPASSWORD of the user who runs fedlgr deploy superlink, or "
