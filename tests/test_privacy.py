@@ -23,6 +23,7 @@ from fedlgr.core.schedule import schedule
 from fedlgr.core.server.side import ServerSide
 from fedlgr.core.strategies.base import participants
 from fedlgr.errors import ConfigError, FedlgrError
+from fedlgr.shell.cli import main
 from fedlgr.shell.config import load_config
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config, results_csv
@@ -337,6 +338,41 @@ def test_a_target_epsilon_cuts_the_schedule_before_the_round_that_would_exceed_i
 def test_settings_dp_cannot_keep_are_refused_in_one_line(overrides, message):
     with pytest.raises(ConfigError, match=message):
         dp_config("federated.dp.clip=1", *overrides)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (  # was: the model ruined (RMSE 8524) while epsilon 1.08 was reported
+            ["federated.dp.clip=1", "federated.fraction=0.25"],
+            "federated.fraction=0.25 with data.clients=2: 0.5 expected clients a round under DP",
+        ),
+        (  # was: "stops after round 0", then an IndexError traceback
+            ["federated.dp.clip=1", "federated.dp.target_epsilon=0.01"],
+            "federated.dp.target_epsilon=0.01: round 1 alone spends epsilon 4.73 ",
+        ),
+        (  # was: dp-accounting's OverflowError
+            ["federated.dp.clip=1", "federated.dp.noise_multiplier=1e300"],
+            "federated.dp.noise_multiplier=1e+300: must be in 0..1000 (beyond it the noise",
+        ),
+        (  # was: ignored without a word
+            ["federated.dp.target_epsilon=3"],
+            "federated.dp.target_epsilon=3 with DP off (federated.dp.clip=0): there is no",
+        ),
+    ],
+    ids=["fewer-than-one-client", "target-fits-no-round", "absurd-noise", "target-without-dp"],
+)
+def test_dp_it_cannot_do_is_one_line_before_training_and_nothing_is_recorded(
+    overrides, message, tmp_path, capsys
+):
+    """Issue 50's fault sweep, DP edge cases. Epsilon 4.73 for round 1: dp-accounting's RDP
+    for one Gaussian of multiplier 1, sampling rate 1, delta 1e-5."""
+    store = tmp_path / "mlflow.db"
+    argv = ["run", "debug/fast.yaml", f"--tracking-uri=sqlite:///{store}", *overrides]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"fedlgr: error: {message}"), err
+    assert not store.exists()  # no run, no store
 
 
 @pytest.mark.slow

@@ -246,7 +246,12 @@ class DPConfig:
         0.0, "the L2 norm each update is clipped to (adaptive: the first one); 0: off", ge=0
     )
     noise_multiplier: Float = setting(
-        1.0, "the noise's standard deviation over the clip norm", ge=0
+        1.0,
+        "the noise's standard deviation over the clip norm",
+        ge=0,
+        le=1000,
+        why="beyond it the noise is a thousand times any clipped update, and dp-accounting's "
+        "arithmetic fails: epsilon 0.0 at 1e6, an overflow at 1e300",
     )
     delta: Float = setting(
         1e-5, "the delta epsilon is reported for (below 1 / clients)", gt=0, lt=1

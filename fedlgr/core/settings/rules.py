@@ -316,6 +316,12 @@ def _privacy_fits(config: Any) -> None:
     centred bits, :func:`fedlgr.core.privacy.update_multiplier`); delta below 1 / clients."""
     dp, federated = config.federated.dp, config.federated
     if not dp.enabled:
+        if dp.target_epsilon > 0:
+            raise ConfigError(
+                f"federated.dp.target_epsilon={dp.target_epsilon:g} with DP off "
+                "(federated.dp.clip=0): there is no privacy budget to stop at; set "
+                "federated.dp.clip, or leave the target out"
+            )
         return
     if _aggregates_a_statistic(federated):
         raise ConfigError(
@@ -325,6 +331,13 @@ def _privacy_fits(config: Any) -> None:
             f"can move it arbitrarily far in L2); {mean_based()}"
         )
     clients = config.data.clients
+    if federated.fraction * clients < 1:
+        raise ConfigError(
+            f"federated.fraction={federated.fraction:g} with data.clients={clients}: "
+            f"{federated.fraction * clients:g} expected clients a round under DP; DP-FedAvg "
+            "divides the noised sum by that fixed count, so below 1 the noise is blown up "
+            "and most rounds average nobody: sample at least one client a round"
+        )
     if dp.delta >= 1 / clients:
         raise ConfigError(
             f"federated.dp.delta={dp.delta:g}: must be below 1 / data.clients = "
@@ -341,6 +354,24 @@ def _privacy_fits(config: Any) -> None:
                 "client moves the count of centred bits by 1/2: Andrew et al. 2021, Th. 1): "
                 "set federated.dp.count_noise"
             )
+    _target_fits_a_round(config)
+
+
+def _target_fits_a_round(config: Any) -> None:
+    """A privacy target that round 1 alone exceeds would stop the run before it trains."""
+    dp = config.federated.dp
+    if not dp.target_epsilon > 0 or dp.noise_multiplier == 0:
+        return
+    from fedlgr.core.privacy import epsilon  # lazy: torch and dp-accounting, for DP targets only
+
+    first = epsilon(dp.noise_multiplier, config.federated.fraction, 1, dp.delta)
+    if first > dp.target_epsilon:
+        raise ConfigError(
+            f"federated.dp.target_epsilon={dp.target_epsilon:g}: round 1 alone spends epsilon "
+            f"{first:.3g} (noise_multiplier={dp.noise_multiplier:g}, "
+            f"fraction={config.federated.fraction:g}, delta={dp.delta:g}), so the run would "
+            "stop before it trains; raise the target or the noise"
+        )
 
 
 def mean_based() -> str:
