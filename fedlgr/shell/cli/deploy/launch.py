@@ -55,11 +55,15 @@ def exec_flower(cmd: list[str], print_command: bool, insecure: bool = False) -> 
     if print_command:
         return 0
     sys.stderr.flush()
-    # What Flower writes (the SuperLink's link.db, a robot's state) is this user's only,
-    # whatever the umask: files 0600, folders 0700.
-    os.umask(0o077)
+    private_files()
     os.execve(cmd[0], cmd, flower_env(Path(cmd[0])))
     return 1  # not reached
+
+
+def private_files() -> None:
+    """What this process and Flower write from now on (the SuperLink's database, a robot's
+    state, log and socket) is this user's only, whatever the umask: files 0600, folders 0700."""
+    os.umask(0o077)
 
 
 def warn_insecure() -> None:

@@ -209,6 +209,7 @@ def _gateway(
     )
     if print_command:
         return 0
+    launch.private_files()
     with terminate_as_interrupt():  # SIGTERM (systemd, docker stop) stops Flower too
         env = launch.flower_env(Path(cmd[0]))
         return gateway.run(cmd, env, host, port, internal, files, executor)
