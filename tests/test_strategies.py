@@ -410,6 +410,54 @@ def test_krum_and_multikrum_choose_the_uploads_closest_to_their_neighbours():
     assert robust("krum", f=1, m=1).combine(two)["w"].tolist() == [5.0, -5.0]  # client 0
 
 
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (  # was: RMSE 16.5 without a word
+            ["method=FedMedian", "federated.faults.byzantine=6"],
+            "federated.faults.byzantine=6 of data.clients=10: federated.strategy=median "
+            "tolerates at most 4 (fewer than half of data.clients)",
+        ),
+        (
+            ["method=FedTrimmedAvg", "federated.faults.byzantine=3"],
+            "federated.faults.byzantine=3 of data.clients=10: federated.strategy=trimmed "
+            "tolerates at most 2 (federated.trimmed.beta=0.2 x data.clients cut at each end)",
+        ),
+        (  # was: Krum with 9 of 10 attackers ran
+            ["method=Krum", "federated.faults.byzantine=9"],
+            "federated.faults.byzantine=9 of data.clients=10: federated.strategy=krum "
+            "tolerates at most 1 (federated.krum.f)",
+        ),
+        (  # was: silently FedAvg
+            ["method=Krum", "federated.krum.m=20"],
+            "federated.krum.m=20 with 10 uploads a round and federated.krum.f=1: Multi-Krum "
+            "averages the m best-scored uploads, at most n - f = 9 (Blanchard et al. 2017)",
+        ),
+        (  # a round of half the clients: 5 uploads
+            ["method=Krum", "federated.krum.f=2", "federated.krum.m=4", "federated.fraction=0.5"],
+            "federated.krum.m=4 with 5 uploads a round and federated.krum.f=2",
+        ),
+    ],
+    ids=["median", "trimmed", "krum", "multikrum-m", "multikrum-partial"],
+)
+def test_a_robust_method_beyond_its_bound_is_refused_naming_it(overrides, message):
+    """Issue 50's fault sweep: robust methods ran beyond their assumption without a word."""
+    from fedlgr.errors import ConfigError
+    from fedlgr.shell.config import load_config
+
+    with pytest.raises(ConfigError) as refused:
+        load_config(None, ["data.clients=10", *overrides])
+    assert str(refused.value).startswith(message), str(refused.value)
+    # at the bound, it runs: 4 of 10 for the median (the issue's label poisoners), 2 for
+    # the trimmed mean's 20 %, f for Krum, m = n - f for Multi-Krum
+    for within in (
+        ["method=FedRootMedian", "federated.faults.byzantine=4"],
+        ["method=FedTrimmedAvg", "federated.faults.byzantine=2"],
+        ["method=Krum", "federated.faults.byzantine=1", "federated.krum.m=9"],
+    ):
+        load_config(None, ["data.clients=10", *within])
+
+
 @pytest.mark.parametrize("scope", ["full", "root"])
 @pytest.mark.parametrize("key", ["median", "trimmed", "krum"])
 def test_a_robust_aggregate_replaces_the_mean_in_the_server_s_round(key, scope):

@@ -169,6 +169,7 @@ def experiment(config: Any) -> None:
     _train_blocks(config)
     _privacy_fits(config)
     _secure_aggregation_fits(config)
+    _robust_within_its_bound(config)
 
 
 def _rounds_in_all(config: Any) -> None:
@@ -385,3 +386,34 @@ def _aggregates_a_statistic(federated) -> bool:
     """Is the strategy's aggregate a statistic of every upload (a median, Krum's choice)
     rather than a mean? Imports the strategy (torch): asked under DP or SecAgg only."""
     return STRATEGIES[federated.strategy].load().needs_uploads
+
+
+def _robust_within_its_bound(config: Any) -> None:
+    """A robust aggregate within what it tolerates: Multi-Krum keeps at most n - f uploads
+    (Blanchard et al. 2017), and simulated attackers stay below the median's half, within
+    the trimmed mean's cut and Krum's ``f``; beyond, the run is no test of the method."""
+    federated, clients = config.federated, config.data.clients
+    strategy, attackers = federated.strategy, federated.faults.byzantine
+    uploads = clients if federated.fraction >= 1 else max(1, round(federated.fraction * clients))
+    krum = federated.krum
+    if strategy == "krum" and krum.m > uploads - krum.f:
+        raise ConfigError(
+            f"federated.krum.m={krum.m} with {uploads} uploads a round and federated.krum.f="
+            f"{krum.f}: Multi-Krum averages the m best-scored uploads, at most n - f = "
+            f"{uploads - krum.f} (Blanchard et al. 2017); more takes attackers' uploads in"
+        )
+    tolerated = {
+        "median": ((clients - 1) // 2, "fewer than half of data.clients"),
+        "trimmed": (
+            int(federated.trimmed.beta * clients),
+            f"federated.trimmed.beta={federated.trimmed.beta:g} x data.clients cut at each end",
+        ),
+        "krum": (krum.f, "federated.krum.f"),
+    }
+    if strategy in tolerated and attackers > tolerated[strategy][0]:
+        most, bound = tolerated[strategy]
+        raise ConfigError(
+            f"federated.faults.byzantine={attackers} of data.clients={clients}: "
+            f"federated.strategy={strategy} tolerates at most {most} ({bound}); beyond its "
+            "bound the run measures no robustness"
+        )
