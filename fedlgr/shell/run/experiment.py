@@ -3,6 +3,7 @@ settings resolved once, the data, the in-process orchestrator and the run's life
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import functools
 import os
@@ -161,6 +162,9 @@ def _main(
         return life.run(orchestrator)
     finally:
         orchestrator.close()
+        if spill is not None and not config.tracking.checkpoint_dir:  # fedlgr's own folder
+            with contextlib.suppress(OSError):  # not empty: checkpoints to resume, other runs
+                spill.rmdir()  # made for the idle clients' files alone: not left behind empty
 
 
 def _task_clients(split: FederatedSplit) -> tuple[str, str] | None:
