@@ -642,3 +642,29 @@ def test_a_report_folder_that_is_a_file_is_one_line(tmp_path, monkeypatch, capsy
     (tmp_path / "reports" / "exp").write_text("")
     assert main(["report", *uri]) == 1
     assert "reports/exp: is a file" in capsys.readouterr().err
+
+
+def test_a_run_with_faults_partial_participation_or_refusals_is_labelled_as_such():
+    """Issue 50's fault sweep: ``fedlgr report`` printed a plain ``FedRootMedian | 1.172`` row
+    for a run with 4 label-poisoning clients of 10; runs with simulated faults or partial
+    participation were not labelled (DP runs were)."""
+
+    def label(params: dict, tags: dict | None = None, metrics: dict | None = None) -> str:
+        tags = {"method": "FedRootMedian", **(tags or {})}
+        return report_runs.RunRecord("r", "0", tags, metrics or {}, params).method
+
+    poisoned = {"data.clients": "10", "federated.faults.byzantine": "4"}
+    poisoned["federated.faults.attack"] = "labels"
+    assert label(poisoned) == "FedRootMedian, 4/10 byzantine (labels)"
+    assert label({"federated.faults.byzantine": "0", "federated.fraction": "1.0"}) == (
+        "FedRootMedian"
+    )
+    dropped = {"federated.faults.dropout": "0.2", "federated.fraction": "0.5"}
+    assert label(dropped) == "FedRootMedian, dropout 0.2, fraction 0.5"
+    refused = {"fedlgr.not_taken": "round 1: robot2 (client 2) (upload: ...)"}
+    assert label({}, refused) == "FedRootMedian, uploads refused"
+    dp = {"federated.dp.noise_multiplier": "1.0", "federated.dp.clip": "0.5"}
+    dp["federated.faults.straggler"] = "0.1"
+    assert label(dp, metrics={"privacy/epsilon": 3.456}) == (
+        "FedRootMedian, DP ε=3.46 (z=1.0, C=0.5), stragglers 0.1"
+    )

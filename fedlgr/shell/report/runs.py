@@ -43,15 +43,39 @@ class RunRecord:
 
     @property
     def method(self) -> str:
-        """The method's name; under client-level DP with the epsilon it spent and its noise
-        and clip norm (``FedAvg, DP ε=2.31 (z=1, C=0.5)``): a row of its own in the tables."""
+        """The method's name with what makes the run no plain one, a row of its own in the
+        tables: client-level DP with the epsilon it spent, its noise and clip norm (``FedAvg,
+        DP ε=2.31 (z=1, C=0.5)``), simulated faults, partial participation and refused
+        uploads (``FedRootMedian, 4/10 byzantine (labels)``)."""
+        label = [self.tags["method"]]
         spent = self.metrics.get("privacy/epsilon")
-        if spent is None:
-            return self.tags["method"]
-        z = self.params.get("federated.dp.noise_multiplier", "?")
-        clip = self.params.get("federated.dp.clip", "?")
-        adaptive = " adaptive" if self.params.get("federated.dp.clipping") == "adaptive" else ""
-        return f"{self.tags['method']}, DP ε={spent:.2f} (z={z}, C={clip}{adaptive})"
+        if spent is not None:
+            z = self.params.get("federated.dp.noise_multiplier", "?")
+            clip = self.params.get("federated.dp.clip", "?")
+            adaptive = " adaptive" if self.params.get("federated.dp.clipping") == "adaptive" else ""
+            label.append(f"DP ε={spent:.2f} (z={z}, C={clip}{adaptive})")
+        return ", ".join(label + self._conditions())
+
+    def _conditions(self) -> list[str]:
+        """What the run simulated or met beyond the method: faults, a fraction, refusals."""
+        p, said = self.params, []
+        if byzantine := int(self._number("federated.faults.byzantine", 0)):
+            attack = p.get("federated.faults.attack", "?")
+            said.append(f"{byzantine}/{p.get('data.clients', '?')} byzantine ({attack})")
+        for key, word in (("dropout", "dropout"), ("straggler", "stragglers")):
+            if self._number(f"federated.faults.{key}", 0) > 0:
+                said.append(f"{word} {p[f'federated.faults.{key}']}")
+        if self._number("federated.fraction", 1) < 1:
+            said.append(f"fraction {p['federated.fraction']}")
+        if self.tags.get("fedlgr.not_taken"):
+            said.append("uploads refused")
+        return said
+
+    def _number(self, key: str, default: float) -> float:
+        try:
+            return float(self.params.get(key, default))
+        except ValueError:  # as logged by hand: not a condition fedlgr can read
+            return default
 
     @property
     def benchmark(self) -> str:
