@@ -357,6 +357,9 @@ def test_private_state_is_0600_in_0700_folders_under_umask_022(tmp_path):
     state = {"model": {"top.w": torch.ones(3)}, "optimizer": {}}
     old = os.umask(0o022)
     try:
+        # a temporary an older fedlgr left 0644 (a kill mid-write) is written 0600
+        (tmp_path / "robot" / "run-abc").mkdir(parents=True, mode=0o700)
+        (tmp_path / "robot" / "run-abc" / ".client-1.ckpt.tmp").write_bytes(b"old")
         robot = ckpt.write(tmp_path / "robot" / "run-abc" / "client-1.ckpt", {"client": state})
         run = ckpt.save(None, tmp_path / "checkpoints" / "run1", 1, {"clients": {0: state}}, 2)
         idle = IdleStates(budget=0, folder=tmp_path / "spill" / ".idle-clients-x")
@@ -395,7 +398,13 @@ def test_tokens_in_a_tracking_uri_are_masked_like_passwords(capsys):
         "https://h/?api_key=K3y&client_secret=S3c&run=3": (
             "https://h/?api_key=***&client_secret=***&run=3"
         ),
+        "https://ghp_T0ken:x-oauth-basic@mlflow.lab/": "https://***@mlflow.lab/",
+        "https://ghp_T0ken:@mlflow.lab/": "https://***@mlflow.lab/",
         "postgresql://me@db/mlflow": "postgresql://me@db/mlflow",  # a user name, no secret
+        # libpq's sslkey and MySQL's ssl_key are file paths, not secrets
+        "postgresql://me@db/x?sslmode=verify-full&sslkey=/k/client.key": (
+            "postgresql://me@db/x?sslmode=verify-full&sslkey=/k/client.key"
+        ),
         "postgresql://me:pw@db/x?sslpassword=q": "postgresql://me:***@db/x?sslpassword=***",
     }
     assert {uri: mask_password(uri) for uri in cases} == cases
@@ -404,7 +413,31 @@ def test_tokens_in_a_tracking_uri_are_masked_like_passwords(capsys):
         masked_text("no answer from ghp_T0ken@mlflow.lab", uri) == "no answer from ***@mlflow.lab"
     )
     assert masked_uris("see https://ghp_T0ken@mlflow.lab/x") == "see https://***@mlflow.lab/x"
+    colon = "https://ghp_T0ken:x-oauth-basic@mlflow.lab/"
+    assert masked_text("no answer (ghp_T0ken)", colon) == "no answer (***)"
     assert main(["deploy", "run", str(FAST), f"tracking.uri={uri}", "--print-command"]) == 1
     err = capsys.readouterr().err
     assert "tracking.uri=https://***@mlflow.lab/: a password or token on the command line" in err
-    assert "T0ken" not in err
+    assert "T0ken" not in err and "$MLFLOW_TRACKING_TOKEN" in err
+
+
+def test_the_superlinks_database_is_0600_before_flower_opens_it(tmp_path):
+    """Every run's config and the fleet's state: made 0600 whatever the umask, and an older
+    database (and its journals, whose mode SQLite copies from it) tightened; the review of
+    issue 50's fix found an existing 0644 database kept 0644, -wal and -shm with it."""
+    from fedlgr.shell.cli.deploy.superlink import _database
+
+    old = os.umask(0o022)
+    try:
+        fresh = tmp_path / "fresh.db"
+        assert _database(fresh, make=False) == ["--database", str(fresh)]
+        assert not fresh.exists()  # --print-command writes nothing
+        _database(fresh)
+        older = tmp_path / "link.db"
+        for path in (older, tmp_path / "link.db-wal", tmp_path / "link.db-shm"):
+            path.write_bytes(b"")
+        _database(older)
+    finally:
+        os.umask(old)
+    made = [fresh, older, tmp_path / "link.db-wal", tmp_path / "link.db-shm"]
+    assert {stat.S_IMODE(p.stat().st_mode) for p in made} == {0o600}

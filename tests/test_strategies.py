@@ -415,18 +415,19 @@ def test_krum_and_multikrum_choose_the_uploads_closest_to_their_neighbours():
     [
         (  # was: RMSE 16.5 without a word
             ["method=FedMedian", "federated.faults.byzantine=6"],
-            "federated.faults.byzantine=6 of data.clients=10: federated.strategy=median "
-            "tolerates at most 4 (fewer than half of data.clients)",
+            "federated.faults.byzantine=6 of data.clients=10, 10 uploads a round: "
+            "federated.strategy=median tolerates at most 4 (fewer than half of them)",
         ),
         (
             ["method=FedTrimmedAvg", "federated.faults.byzantine=3"],
-            "federated.faults.byzantine=3 of data.clients=10: federated.strategy=trimmed "
-            "tolerates at most 2 (federated.trimmed.beta=0.2 x data.clients cut at each end)",
+            "federated.faults.byzantine=3 of data.clients=10, 10 uploads a round: "
+            "federated.strategy=trimmed tolerates at most 2 (federated.trimmed.beta=0.2 of "
+            "them cut at each end)",
         ),
         (  # was: Krum with 9 of 10 attackers ran
             ["method=Krum", "federated.faults.byzantine=9"],
-            "federated.faults.byzantine=9 of data.clients=10: federated.strategy=krum "
-            "tolerates at most 1 (federated.krum.f)",
+            "federated.faults.byzantine=9 of data.clients=10, 10 uploads a round: "
+            "federated.strategy=krum tolerates at most 1 (federated.krum.f)",
         ),
         (  # was: silently FedAvg
             ["method=Krum", "federated.krum.m=20"],
@@ -437,8 +438,13 @@ def test_krum_and_multikrum_choose_the_uploads_closest_to_their_neighbours():
             ["method=Krum", "federated.krum.f=2", "federated.krum.m=4", "federated.fraction=0.5"],
             "federated.krum.m=4 with 5 uploads a round and federated.krum.f=2",
         ),
+        (  # per round, as the strategy aggregates: 3 uploads, floor(0.2 x 3) = 0 cut
+            ["method=FedTrimmedAvg", "federated.fraction=0.3", "federated.faults.byzantine=2"],
+            "federated.faults.byzantine=2 of data.clients=10, 3 uploads a round: "
+            "federated.strategy=trimmed tolerates at most 0",
+        ),
     ],
-    ids=["median", "trimmed", "krum", "multikrum-m", "multikrum-partial"],
+    ids=["median", "trimmed", "krum", "multikrum-m", "multikrum-partial", "trimmed-partial"],
 )
 def test_a_robust_method_beyond_its_bound_is_refused_naming_it(overrides, message):
     """Issue 50's fault sweep: robust methods ran beyond their assumption without a word."""
@@ -454,6 +460,7 @@ def test_a_robust_method_beyond_its_bound_is_refused_naming_it(overrides, messag
         ["method=FedRootMedian", "federated.faults.byzantine=4"],
         ["method=FedTrimmedAvg", "federated.faults.byzantine=2"],
         ["method=Krum", "federated.faults.byzantine=1", "federated.krum.m=9"],
+        ["method=Krum", "federated.fraction=0.1"],  # plain Krum of 1 upload, as before
     ):
         load_config(None, ["data.clients=10", *within])
 

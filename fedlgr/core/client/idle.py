@@ -150,6 +150,7 @@ class IdleStates:
         path = self._path(client)
         # a client's private state: this user's only from the first byte, whatever the umask
         with open(os.open(path.with_suffix(".tmp"), PRIVATE, 0o600), "wb") as handle:
+            os.fchmod(handle.fileno(), 0o600)  # an existing temporary keeps its mode otherwise
             torch.save(state, handle)
         os.replace(path.with_suffix(".tmp"), path)
         self.on_disk.add(client)

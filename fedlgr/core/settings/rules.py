@@ -395,25 +395,26 @@ def _robust_within_its_bound(config: Any) -> None:
     federated, clients = config.federated, config.data.clients
     strategy, attackers = federated.strategy, federated.faults.byzantine
     uploads = clients if federated.fraction >= 1 else max(1, round(federated.fraction * clients))
-    krum = federated.krum
-    if strategy == "krum" and krum.m > uploads - krum.f:
+    krum, a_round = federated.krum, f"{uploads} upload{'s' * (uploads != 1)} a round"
+    if strategy == "krum" and krum.m > 1 and krum.m > uploads - krum.f:
         raise ConfigError(
-            f"federated.krum.m={krum.m} with {uploads} uploads a round and federated.krum.f="
-            f"{krum.f}: Multi-Krum averages the m best-scored uploads, at most n - f = "
+            f"federated.krum.m={krum.m} with {a_round} and federated.krum.f={krum.f}: "
+            f"Multi-Krum averages the m best-scored uploads, at most n - f = "
             f"{uploads - krum.f} (Blanchard et al. 2017); more takes attackers' uploads in"
         )
+    # per round, as the strategies aggregate: every attacker may be drawn into one round
     tolerated = {
-        "median": ((clients - 1) // 2, "fewer than half of data.clients"),
+        "median": ((uploads - 1) // 2, "fewer than half of them"),
         "trimmed": (
-            int(federated.trimmed.beta * clients),
-            f"federated.trimmed.beta={federated.trimmed.beta:g} x data.clients cut at each end",
+            int(federated.trimmed.beta * uploads),
+            f"federated.trimmed.beta={federated.trimmed.beta:g} of them cut at each end",
         ),
         "krum": (krum.f, "federated.krum.f"),
     }
     if strategy in tolerated and attackers > tolerated[strategy][0]:
         most, bound = tolerated[strategy]
         raise ConfigError(
-            f"federated.faults.byzantine={attackers} of data.clients={clients}: "
+            f"federated.faults.byzantine={attackers} of data.clients={clients}, {a_round}: "
             f"federated.strategy={strategy} tolerates at most {most} ({bound}); beyond its "
             "bound the run measures no robustness"
         )

@@ -102,6 +102,7 @@ def _write_atomically(path: Path, state: Any) -> None:
     try:
         # every client's model, or a robot's private top: this user's only, whatever the umask
         with open(os.open(temporary, PRIVATE, 0o600), "wb") as handle:
+            os.fchmod(handle.fileno(), 0o600)  # a temporary an older fedlgr left has its mode
             torch.save(state, handle)
             handle.flush()
             os.fsync(handle.fileno())

@@ -73,34 +73,41 @@ def server_database(uri: str) -> bool:
 
 def mask_password(uri: str) -> str:
     """``uri`` with its secrets as ``***``: the password of its ``user:password@`` part, an HTTP
-    URI's bare ``token@``, and every query parameter named ``...password``, ``...token``,
-    ``...secret`` or ``...key``. Not SQLAlchemy's ``render_as_string(hide_password=True)``: it
-    shows what follows a password's ``@`` as the host, masks no query parameter and fails on some
-    URLs."""
+    URI's token userinfo, and every query parameter named ``...password``, ``...token``,
+    ``...secret``, ``...api_key`` or ``...access_key``. Not SQLAlchemy's
+    ``render_as_string(hide_password=True)``: it shows what follows a password's ``@`` as the
+    host, masks no query parameter and fails on some URLs."""
     scheme, sep, rest = uri.partition("://")
     if not sep:
         return uri
     end = authority_end(rest)
     at = rest.rfind("@", 0, end)
     user, colon, _ = rest[: max(at, 0)].partition(":")
-    if at >= 0 and colon and "/" not in user:
-        rest = f"{user}:***{rest[at:]}"
-    elif at > 0 and _token_userinfo(scheme, rest[:at]):
+    if at > 0 and _token_userinfo(scheme, rest[:at]):
         rest = f"***{rest[at:]}"
+    elif at >= 0 and colon and "/" not in user:
+        rest = f"{user}:***{rest[at:]}"
     return f"{scheme}://" + _QUERY_PARAM.sub(_masked_param, rest)
 
 
 def _token_userinfo(scheme: str, userinfo: str) -> bool:
-    """Whether an HTTP URI's userinfo is a bare token (``https://TOKEN@host``), as servers that
-    take a token in place of a user name read it; a database's ``user@`` is a user name."""
-    return scheme.lower() in ("http", "https") and ":" not in userinfo and "/" not in userinfo
+    """Whether an HTTP URI's userinfo is a token (``https://TOKEN@host``, ``TOKEN:@``,
+    ``TOKEN:x-oauth-basic@``), as servers that take a token for a user name read it; a
+    database's ``user@`` is a user name."""
+    user, _, password = userinfo.partition(":")
+    return (
+        scheme.lower() in ("http", "https")
+        and "/" not in user
+        and password in ("", "x-oauth-basic")
+    )
 
 
 # a query (or fragment) parameter: its separator, name and value
 _QUERY_PARAM = re.compile(r"([?&#;])([^=&#;]*)=([^&#;]*)")
 
 
-SECRET_PARAMS = ("password", "token", "secret", "key")  # access_token, api_key, client_secret
+# access_token, client_secret, api_key; not libpq's sslkey or MySQL's ssl_key: file paths
+SECRET_PARAMS = ("password", "token", "secret", "api_key", "apikey", "access_key")
 
 
 def _secret_param(name: str) -> bool:
@@ -126,7 +133,7 @@ def _secrets(uri: str) -> set[str]:
     at = rest.rfind("@", 0, end)
     found = {rest[:at].partition(":")[2]} if at > 0 else set()
     if at > 0 and _token_userinfo(uri.partition("://")[0], rest[:at]):
-        found.add(rest[:at])
+        found.add(rest[:at].partition(":")[0])
     found |= {m.group(3) for m in _QUERY_PARAM.finditer(rest) if _secret_param(m.group(2))}
     forms = found | {urllib.parse.unquote(f) for f in found}
     forms |= {part for f in forms for part in f.split("@")}

@@ -47,23 +47,21 @@ def flower_env(exe: Path) -> dict[str, str]:
     return env
 
 
-def exec_flower(cmd: list[str], print_command: bool, insecure: bool = False) -> int:
-    """Print ``cmd``, then (unless ``--print-command``) replace this process with it."""
+def exec_flower(
+    cmd: list[str], print_command: bool, insecure: bool = False, private: bool = False
+) -> int:
+    """Print ``cmd``, then (unless ``--print-command``) replace this process with it;
+    ``private``: what it writes is this user's only (a robot: its state, log, socket, cache)."""
     if insecure:
         warn_insecure()
     print(shlex.join(cmd), flush=True)
     if print_command:
         return 0
     sys.stderr.flush()
-    private_files()
+    if private:  # files 0600 and folders 0700, whatever the umask
+        os.umask(0o077)
     os.execve(cmd[0], cmd, flower_env(Path(cmd[0])))
     return 1  # not reached
-
-
-def private_files() -> None:
-    """What this process and Flower write from now on (the SuperLink's database, a robot's
-    state, log and socket) is this user's only, whatever the umask: files 0600, folders 0700."""
-    os.umask(0o077)
 
 
 def warn_insecure() -> None:

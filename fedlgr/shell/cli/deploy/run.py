@@ -95,8 +95,9 @@ def _refuse_passwords(overrides: list[str]) -> None:
                 f"{key}={masked}: a password or token on the command line would be "
                 "printed, kept in the SuperLink's database and sent to every robot with the "
                 "run's config: leave it out of the URI and keep it on the SuperLink's machine "
-                "(~/.pgpass or $PGPASSWORD of the user who runs fedlgr deploy superlink, or "
-                "tracking.uri in CONFIG there; docs/deployment.md)"
+                "(~/.pgpass or $PGPASSWORD of the user who runs fedlgr deploy superlink, "
+                "$MLFLOW_TRACKING_TOKEN for an MLflow server's token, or tracking.uri in "
+                "CONFIG there; docs/deployment.md)"
             )
 
 

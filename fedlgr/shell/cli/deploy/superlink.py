@@ -93,14 +93,15 @@ def superlink(
         )
     tls = None if insecure else _tls_files(certs)
     cmd = [str(exe), *_security(tls), "--disable-runtime-dependency-installation"]
+    make = not print_command  # the database file: made 0600 unless only printing
     if expose_control_api:
         if internal_port is not None:
             raise FedlgrError("--internal-port is the gateway's: drop it or --expose-control-api")
         print(EXPOSED_CONTROL_WARNING, file=sys.stderr, flush=True)
-        cmd += ["--host", host, "--port", str(port), *_database(database)]
+        cmd += ["--host", host, "--port", str(port), *_database(database, make)]
         return launch.exec_flower(cmd, print_command, insecure)
     internal = _internal_port(port, internal_port)
-    cmd += ["--host", "127.0.0.1", "--port", str(internal), *_database(database)]
+    cmd += ["--host", "127.0.0.1", "--port", str(internal), *_database(database, make)]
     executor = None
     if not cold_apps:  # its ServerApps forked from a warm process (flower/executor.py)
         cmd += ["--isolation", "process"]
@@ -154,7 +155,7 @@ def _internal_port(port: int, internal_port: int | None) -> int:
     return internal
 
 
-def _database(database: Path | None) -> list[str]:
+def _database(database: Path | None, make: bool = True) -> list[str]:
     """``--database FILE`` for Flower, its folder checked first: Flower would end in a
     SQLAlchemy traceback ("unable to open database file")."""
     if database is None:
@@ -168,6 +169,13 @@ def _database(database: Path | None) -> list[str]:
         raise FedlgrError(f"--database {path}: no folder {path.parent} (make it first)")
     if not os.access(path.parent, os.W_OK | os.X_OK):
         raise FedlgrError(f"--database {path}: cannot write in {path.parent}")
+    # Every run's config and the fleet's state: 0600 whatever the umask, made so before Flower
+    # opens it (SQLite gives its journal, -wal and -shm files the database file's mode).
+    for file in (path, *(path.with_name(path.name + end) for end in ("-journal", "-wal", "-shm"))):
+        if make and file.exists():
+            file.chmod(0o600)
+    if make:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600))
     return ["--database", str(path)]
 
 
@@ -209,7 +217,6 @@ def _gateway(
     )
     if print_command:
         return 0
-    launch.private_files()
     with terminate_as_interrupt():  # SIGTERM (systemd, docker stop) stops Flower too
         env = launch.flower_env(Path(cmd[0]))
         return gateway.run(cmd, env, host, port, internal, files, executor)

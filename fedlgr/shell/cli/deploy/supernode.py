@@ -144,7 +144,7 @@ def supernode(
     settings = _node_config(args, data)
     cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(port)]
     cmd += _retries(max_retries, max_wait_time)
-    return launch.exec_flower(cmd, print_command, insecure)
+    return launch.exec_flower(cmd, print_command, insecure, private=True)
 
 
 def _check_options(args: SimpleNamespace) -> Path:
