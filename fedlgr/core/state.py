@@ -6,9 +6,11 @@ torch's global generator for code that takes no generator of its own."""
 from __future__ import annotations
 
 import contextlib
+import os
 import random
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,3 +60,17 @@ def seeded_global_rng(seed: int) -> Iterator[None]:
     with _global_rng, torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         yield
+
+
+PRIVATE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW  # a planted link is refused
+
+
+def save_private(state: Any, path: Path, durable: bool = False) -> None:
+    """``torch.save`` to ``path``, this user's only from the first byte whatever the umask (a
+    client's private state, every client's model); ``durable``: on disk before it returns."""
+    with open(os.open(path, PRIVATE, 0o600), "wb") as handle:
+        os.fchmod(handle.fileno(), 0o600)  # a file an older fedlgr left keeps its mode otherwise
+        torch.save(state, handle)
+        if durable:
+            handle.flush()
+            os.fsync(handle.fileno())

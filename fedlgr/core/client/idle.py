@@ -24,8 +24,7 @@ from pathlib import Path
 import torch
 
 from fedlgr.core.messages import Weights
-
-PRIVATE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW  # a planted link is refused
+from fedlgr.core.state import save_private
 
 LIVE_UP_TO = 32  # runtime.idle_clients=auto: whole clients up to this many per process
 
@@ -148,10 +147,7 @@ class IdleStates:
             raise RuntimeError("idle clients spill to disk but no folder was given")
         self.folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         path = self._path(client)
-        # a client's private state: this user's only from the first byte, whatever the umask
-        with open(os.open(path.with_suffix(".tmp"), PRIVATE, 0o600), "wb") as handle:
-            os.fchmod(handle.fileno(), 0o600)  # an existing temporary keeps its mode otherwise
-            torch.save(state, handle)
+        save_private(state, path.with_suffix(".tmp"))
         os.replace(path.with_suffix(".tmp"), path)
         self.on_disk.add(client)
 

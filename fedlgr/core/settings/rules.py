@@ -394,6 +394,7 @@ def _robust_within_its_bound(config: Any) -> None:
     the trimmed mean's cut and Krum's ``f``; beyond, the run is no test of the method."""
     federated, clients = config.federated, config.data.clients
     strategy, attackers = federated.strategy, federated.faults.byzantine
+    # as many as core/strategies/base.participants draws (not imported here: torch)
     uploads = clients if federated.fraction >= 1 else max(1, round(federated.fraction * clients))
     krum, a_round = federated.krum, f"{uploads} upload{'s' * (uploads != 1)} a round"
     if strategy == "krum" and krum.m > 1 and krum.m > uploads - krum.f:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from fedlgr.core.state import save_private
 from fedlgr.errors import FedlgrError, first_line, interrupt_in
 from fedlgr.shell.checks.paths import not_a_folder
 from fedlgr.shell.config import ExperimentConfig
@@ -48,7 +49,6 @@ def checkpoints(folder: Path) -> list[Path]:
 
 
 TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
-PRIVATE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW  # a planted link is refused
 INTERRUPTED = "interrupted"  # what rank 0 tells the others when its write was cut off
 
 
@@ -100,12 +100,7 @@ def _write_atomically(path: Path, state: Any) -> None:
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     try:
-        # every client's model, or a robot's private top: this user's only, whatever the umask
-        with open(os.open(temporary, PRIVATE, 0o600), "wb") as handle:
-            os.fchmod(handle.fileno(), 0o600)  # a temporary an older fedlgr left has its mode
-            torch.save(state, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
+        save_private(state, temporary, durable=True)
         os.replace(temporary, path)
     except BaseException:
         temporary.unlink(missing_ok=True)

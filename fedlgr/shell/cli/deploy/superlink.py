@@ -171,10 +171,10 @@ def _database(database: Path | None, make: bool = True) -> list[str]:
         raise FedlgrError(f"--database {path}: cannot write in {path.parent}")
     # Every run's config and the fleet's state: 0600 whatever the umask, made so before Flower
     # opens it (SQLite gives its journal, -wal and -shm files the database file's mode).
-    for file in (path, *(path.with_name(path.name + end) for end in ("-journal", "-wal", "-shm"))):
-        if make and file.exists():
-            file.chmod(0o600)
     if make:
+        for end in ("", "-journal", "-wal", "-shm"):
+            if (file := path.with_name(path.name + end)).exists():
+                file.chmod(0o600)
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600))
     return ["--database", str(path)]
 
