@@ -12,7 +12,6 @@ import typer
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.deploy.options import Ca, Insecure, address, certificates, no_ca
 from fedlgr.shell.cli.verb import Verb
 from fedlgr.shell.deploy.flower import APP_DIR
 
@@ -36,22 +35,22 @@ def connect(
     superlink: Annotated[
         str, typer.Option(metavar="HOST:PORT", help="the SuperLink's control API")
     ],
-    ca: Ca = None,
+    ca: launch.Ca = None,
     default: Annotated[bool, typer.Option("--default", help="make it flwr's default")] = False,
-    insecure: Insecure = False,
+    insecure: launch.Insecure = False,
 ) -> int:
     """Point the flwr command at a SuperLink: NAME (e.g. robots) becomes [superlink.NAME]
     in $FLWR_HOME/config.toml."""
     if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
         raise FedlgrError(f"connection NAME {name!r}: letters, digits, '_', '-' only")
-    address(superlink)
+    launch.address(superlink)
     entry = {"address": superlink}
     if insecure:
-        no_ca(ca)
+        launch.no_ca(ca)
         launch.warn_insecure()
         entry["insecure"] = True
     else:
-        entry["root-certificates"] = str(certificates(ca))
+        entry["root-certificates"] = str(launch.certificates(ca))
     path, config = launch.flower_config()
     home = path.parent
     links = config.setdefault("superlink", {})

@@ -16,7 +16,6 @@ import typer
 from fedlgr.errors import FedlgrError
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.deploy.options import PrintCommand, absolute
 from fedlgr.shell.cli.verb import Overrides, Verb
 from fedlgr.shell.deploy.flower import APP_DIR
 from fedlgr.shell.tracking.uri import masked_uris
@@ -50,14 +49,14 @@ def run(
             "unfinished run of this config) from its newest checkpoint, in the same MLflow run",
         ),
     ] = None,
-    print_command: PrintCommand = False,
+    print_command: launch.PrintCommand = False,
 ) -> int:
     """Run fedlgr's app on the SuperLink: CONFIG (the config file, as in fedlgr run; made
     absolute) must exist at that path on the SuperLink's machine; key=value overrides as
     in fedlgr run."""
     _refuse_passwords(overrides)  # before anything is printed or submitted
     flwr = launch.flower_command("flwr")
-    path = absolute(config)
+    path = launch.absolute(config)
     run_config = (
         f"config={launch.toml_string(str(path))} "
         f"overrides={launch.toml_string(shlex.join(overrides))}"

@@ -14,7 +14,6 @@ import typer
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.deploy.options import Insecure, PrintCommand, absolute, existing
 from fedlgr.shell.cli.verb import Verb
 from fedlgr.shell.signals import terminate_as_interrupt
 
@@ -75,8 +74,8 @@ def superlink(
             help="keep registered keys and runs in this SQLite file (default: in memory)",
         ),
     ] = None,
-    insecure: Insecure = False,
-    print_command: PrintCommand = False,
+    insecure: launch.Insecure = False,
+    print_command: launch.PrintCommand = False,
 ) -> int:
     """Start flower-superlink on 127.0.0.1:--internal-port (TLS from --certs, SuperNode
     authentication, no installation of dependencies at run time) and serve the robots'
@@ -120,11 +119,11 @@ def _tls_files(certs: Path | None) -> tuple[Path, Path, Path]:
 
     if certs is None:
         raise FedlgrError("--certs DIR is required (fedlgr deploy certs DIR), or --insecure")
-    folder = absolute(certs)  # a FIFO is named as such, not as a folder without ca.pem
+    folder = launch.absolute(certs)  # a FIFO is named as such, not as a folder without ca.pem
     if why := not_a_folder(folder):
         raise FedlgrError(f"--certs {folder}: {why} (made by fedlgr deploy certs DIR)")
     tls = tuple(
-        existing(certs / name, "--certs", "fedlgr deploy certs DIR")
+        launch.existing(certs / name, "--certs", "fedlgr deploy certs DIR")
         for name in ("ca.pem", "server.pem", "server.key")
     )
     check_private_mode(tls[2], "--certs")
@@ -160,7 +159,7 @@ def _database(database: Path | None, make: bool = True) -> list[str]:
     SQLAlchemy traceback ("unable to open database file")."""
     if database is None:
         return []
-    path = absolute(database)
+    path = launch.absolute(database)
     if path.is_dir():
         raise FedlgrError(f"--database {path}: a folder; name the SuperLink's database file")
     if why := not_a_file(path):  # a link that loops, say, which Flower would be given as is

@@ -14,17 +14,6 @@ from fedlgr.errors import ConfigError, FedlgrError
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.deploy.options import (
-    Ca,
-    Insecure,
-    PrintCommand,
-    absolute,
-    address,
-    certificates,
-    existing,
-    no_ca,
-    own_folder,
-)
 from fedlgr.shell.cli.verb import Verb
 from fedlgr.shell.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
 
@@ -102,7 +91,7 @@ ColdApps = Annotated[
 def supernode(
     superlink: Annotated[str, typer.Option(metavar="HOST:PORT", help="the SuperLink's fleet API")],
     data: Annotated[Path, typer.Option(metavar="DIR", help="MANNERS-DB layout")],
-    ca: Ca = None,
+    ca: launch.Ca = None,
     key: Annotated[
         Path | None, typer.Option(metavar="KEY", help="the robot's private node key")
     ] = None,
@@ -127,8 +116,8 @@ def supernode(
     heartbeat_s: HeartbeatS = 30.0,
     cold_apps: ColdApps = False,
     port: Annotated[int, typer.Option(help="its local API")] = SUPERNODE_PORT,
-    insecure: Insecure = False,
-    print_command: PrintCommand = False,
+    insecure: launch.Insecure = False,
+    print_command: launch.PrintCommand = False,
 ) -> int:
     """Replace this process with flower-supernode, connected to the SuperLink over TLS with
     the robot's registered key; the ClientApp reads the robot's data folder."""
@@ -137,26 +126,34 @@ def supernode(
 
     launch.flower_command("flower-supernode")  # Flower is installed here
     data = _check_options(args)
-    cmd = _launcher(args) + _credentials(args)
+    # flower-supernode, its idle poll shortened, its heartbeat as chosen and its ClientApps
+    # forked from a warm process (shell/deploy/flower/supernode.py and executor.py say why)
+    cmd = [sys.executable, "-m", "fedlgr.shell.deploy.flower.supernode", "--poll-s", str(poll_s)]
+    cmd += ["--heartbeat-s", f"{heartbeat_s:g}"]
+    if not cold_apps:
+        cmd += ["--warm-apps", f"127.0.0.1:{port}"]
+    cmd += ["--superlink", superlink, *_credentials(args)]
     # A broken ratings file is found now, in one line, not when the first run's first
     # message reaches the robot (the images are decoded then, at the run's image size).
     read_ratings(data)
     settings = _node_config(args, data)
     cmd += ["--node-config", " ".join(settings), "--host", "127.0.0.1", "--port", str(port)]
-    cmd += _retries(max_retries, max_wait_time)
+    for option, value in (("--max-retries", max_retries), ("--max-wait-time", max_wait_time)):
+        if value is not None:
+            cmd += [option, str(value)]
     return launch.exec_flower(cmd, print_command, insecure, private=True)
 
 
 def _check_options(args: SimpleNamespace) -> Path:
     """The options Flower would take as they are, checked; the absolute ``--data`` folder."""
-    address(args.superlink)
+    launch.address(args.superlink)
     if args.client is not None and args.client < 0:
         raise FedlgrError(f"--client {args.client}: a client index is 0 or more")
     if args.threads is not None and not 1 <= args.threads <= conf.MAX_PER_MACHINE:
         raise FedlgrError(
             f"--threads {args.threads}: 1 to {conf.MAX_PER_MACHINE} (runtime.threads' bound)"
         )
-    data = absolute(args.data)
+    data = launch.absolute(args.data)
     if why := not_a_folder(data):  # a file or a loop there is named, not "no such folder"
         raise FedlgrError(f"--data {data}: {why} (the robot's dataset, MANNERS-DB layout)")
     if not data.is_dir():
@@ -167,23 +164,19 @@ def _check_options(args: SimpleNamespace) -> Path:
     ):
         if not low <= value <= high:  # NaN too
             raise FedlgrError(f"{option} {value}: must be between {low:g} and {high:g} seconds")
+    for option, value in (
+        ("--max-retries", args.max_retries),
+        ("--max-wait-time", args.max_wait_time),
+    ):
+        if value is not None and not value >= 0:  # NaN too
+            raise FedlgrError(f"{option} {value}: must be 0 or more")
     return data
-
-
-def _launcher(args: SimpleNamespace) -> list[str]:
-    """flower-supernode, its idle poll shortened, its heartbeat as chosen and its ClientApps
-    forked from a warm process (shell/deploy/flower/supernode.py and executor.py say why)."""
-    cmd = [sys.executable, "-m", "fedlgr.shell.deploy.flower.supernode"]
-    cmd += ["--poll-s", str(args.poll_s), "--heartbeat-s", f"{args.heartbeat_s:g}"]
-    if not args.cold_apps:
-        cmd += ["--warm-apps", f"127.0.0.1:{args.port}"]
-    return [*cmd, "--superlink", args.superlink]
 
 
 def _credentials(args: SimpleNamespace) -> list[str]:
     """TLS with the deployment's CA and the robot's node key, or ``--insecure``."""
     if args.insecure:
-        no_ca(args.ca)
+        launch.no_ca(args.ca)
         if args.key is not None:
             raise FedlgrError(
                 "--insecure turns TLS off, and SuperNode authentication needs TLS: drop --key "
@@ -192,8 +185,8 @@ def _credentials(args: SimpleNamespace) -> list[str]:
         return ["--insecure"]
     from fedlgr.shell.deploy.credentials import check_node_key  # lazy: cryptography
 
-    cmd = ["--root-certificates", str(certificates(args.ca))]
-    key = existing(args.key, "--key", "fedlgr deploy node-key DIR NAME")
+    cmd = ["--root-certificates", str(launch.certificates(args.ca))]
+    key = launch.existing(args.key, "--key", "fedlgr deploy node-key DIR NAME")
     check_node_key(key)
     return [*cmd, "--auth-supernode-private-key", str(key)]
 
@@ -207,7 +200,7 @@ def _node_config(args: SimpleNamespace, data: Path) -> list[str]:
         settings.append("own-data=true")
     for name, folder in (("state-dir", args.state_dir), ("cache-dir", args.cache_dir)):
         if folder is not None:
-            own = own_folder(folder, f"--{name}", make=not args.print_command)
+            own = launch.own_folder(folder, f"--{name}", make=not args.print_command)
             settings.append(f"{name}={launch.toml_string(str(own))}")
     if args.weights is not None:
         settings.append(f"weights={launch.toml_string(str(_weights(args.weights)))}")
@@ -225,7 +218,7 @@ def _weights(given: Path) -> Path:
     any readable file (a system file, say) would otherwise be taken as the root weights."""
     from fedlgr.core.models.scholar import file_state_dict  # lazy: torch
 
-    weights = absolute(given)
+    weights = launch.absolute(given)
     if why := not_a_file(weights):  # a folder or a loop there is named, not "no such file"
         raise FedlgrError(f"--weights {weights}: {why}")
     if not weights.is_file():
@@ -239,14 +232,3 @@ def _weights(given: Path) -> Path:
         said = str(err).replace(f"model.weights={weights}", f"--weights {weights}")
         raise FedlgrError(said) from None
     return weights
-
-
-def _retries(max_retries: int | None, max_wait_time: float | None) -> list[str]:
-    """``--max-retries`` and ``--max-wait-time`` for Flower, each 0 or more."""
-    cmd = []
-    for option, value in (("--max-retries", max_retries), ("--max-wait-time", max_wait_time)):
-        if value is not None and not value >= 0:  # NaN too
-            raise FedlgrError(f"{option} {value}: must be 0 or more")
-        if value is not None:
-            cmd += [option, str(value)]
-    return cmd
