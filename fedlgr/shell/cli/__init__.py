@@ -1,8 +1,5 @@
-"""The ``fedlgr`` command: one console script with verbs, each a typed function (typer).
-
-A verb imports what is heavy only when it runs, so ``fedlgr --help`` answers without torch; an
-error the user can fix is one line and exit status 1, a command line that does not parse 2.
-"""
+"""The ``fedlgr`` command: one console script with verbs, each a typed function (typer). An
+error the user can fix is one line and exit status 1, a command line that does not parse 2."""
 
 from __future__ import annotations
 
@@ -15,8 +12,9 @@ import re
 import signal
 import sys
 import warnings
+from pathlib import Path
 from types import SimpleNamespace
-from typing import Annotated, NoReturn
+from typing import Annotated
 
 import click
 import typer
@@ -25,9 +23,9 @@ from fedlgr import __version__
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.address_space import out_of_address_space, torch_guarded
 from fedlgr.shell.cli import data, demo, deploy, pretrain, report, run, sweep
-from fedlgr.shell.cli.overrides import check_repeats
 from fedlgr.shell.machine import tune_allocator
 from fedlgr.shell.signals import Terminated, quiet_exit
+from fedlgr.shell.tracking.uri import mask_password
 
 VERBS = (demo, run, report, sweep, pretrain, data, deploy)  # in the order --help lists them
 
@@ -81,19 +79,15 @@ def parse(argv: list[str] | None = None) -> SimpleNamespace:
     except click.exceptions.Exit as done:
         raise SystemExit(done.exit_code) from None
     except click.UsageError as err:
-        _usage_error(err)
+        if err.ctx is not None:
+            print(err.ctx.get_usage(), file=sys.stderr)
+        message = err.format_message()
+        if isinstance(err, click.NoSuchOption):  # argparse's words, as before
+            message = f"unrecognized arguments: {err.option_name}"
+        print(f"fedlgr: error: {message}", file=sys.stderr)
+        raise SystemExit(err.exit_code) from None
     call = functools.partial(ctx.invoke, ctx.command.callback, **params)
     return SimpleNamespace(verb=ctx.command_path.split()[1], run=call, **params)
-
-
-def _usage_error(err: click.UsageError) -> NoReturn:
-    if err.ctx is not None:
-        print(err.ctx.get_usage(), file=sys.stderr)
-    message = err.format_message()
-    if isinstance(err, click.NoSuchOption):  # argparse's words, as before
-        message = f"unrecognized arguments: {err.option_name}"
-    print(f"fedlgr: error: {message}", file=sys.stderr)
-    raise SystemExit(err.exit_code)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -152,21 +146,64 @@ def _interrupted(err: KeyboardInterrupt, exits: bool) -> int:
         file=sys.stderr,
     )
     if exits:
-        _leave_quickly()
+        # Exit fast: the teardown's garbage collections, seconds after a sweep, skip its
+        # objects (gc.freeze), and what it says of objects it did not free (nanobind's leak
+        # report) goes nowhere, so fedlgr's line stays the last.
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        gc.freeze()
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), 2)
     return code
 
 
-def _leave_quickly() -> None:
-    """Exit fast after an interrupt: the teardown's garbage collections, seconds after a sweep,
-    skip its objects (``gc.freeze``), and what it says of objects it did not free (nanobind's
-    leak report) goes nowhere, so fedlgr's line stays the last."""
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    gc.freeze()
-    with contextlib.suppress(OSError):
-        quiet = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(quiet, 2)
+def check_repeats(args: SimpleNamespace) -> None:
+    """Refuse a setting given twice with two values, or ``--tracking-uri`` with another
+    ``tracking.uri=``; one value spelled twice passes. A sweep's workers, given both by the
+    sweep, are not checked."""
+    given: dict[str, tuple[str, object]] = {}
+    for item in getattr(args, "items", None) or getattr(args, "overrides", None) or []:
+        key, is_override, text = item.partition("=")
+        if not is_override:
+            continue
+        key, value = key.strip(), _value(text)
+        if key in given and not _same(key, given[key][1], value):
+            first, second = mask_password(given[key][0]), mask_password(item)
+            raise FedlgrError(
+                f"command line: {first!r} and {second!r} both set {key}; give one of them"
+            )
+        given.setdefault(key, (item, value))
+    uri = getattr(args, "tracking_uri", None)
+    override, value = given.get("tracking.uri", (None, None))
+    worker = getattr(args, "worker_id", 0)
+    if uri and value is not None and not worker and not _same("tracking.uri", uri, value):
+        raise FedlgrError(
+            f"command line: --tracking-uri {mask_password(uri)} and "
+            f"{mask_password(override)!r} name two tracking stores; give one of them"
+        )
+
+
+def _value(text: str) -> object:
+    """An override's value as OmegaConf reads it (``01`` is 1, `` x`` is ``x``)."""
+    from omegaconf import OmegaConf  # lazy: omegaconf, only when a verb runs
+
+    try:
+        return OmegaConf.to_container(OmegaConf.from_dotlist([f"v={text}"]))["v"]
+    except Exception:  # said with its reason when the config is loaded
+        return text
+
+
+def _same(key: str, first: object, second: object) -> bool:
+    """Whether two values of ``key`` are one: equal, or one sqlite file by two paths."""
+    if first == second:
+        return True
+    if key == "tracking.uri" and isinstance(first, str) and isinstance(second, str):
+        paths = [
+            u.removeprefix("sqlite:///") for u in (first, second) if u.startswith("sqlite:///")
+        ]
+        return len(paths) == 2 and Path(paths[0]).resolve() == Path(paths[1]).resolve()
+    return False
 
 
 if __name__ == "__main__":

@@ -1,6 +1,5 @@
-"""What the verb modules share: :class:`Verb`, the command typer makes of a verb's
-function, and the arguments and options of several verbs. Typer and click only, so that
-``fedlgr --help`` stays fast."""
+"""What the verb modules share: :class:`Verb`, the command typer makes of a verb's function,
+and the options of several verbs. Typer and click only, so that ``fedlgr --help`` stays fast."""
 
 from __future__ import annotations
 
@@ -22,21 +21,13 @@ class Verb(typer.core.TyperCommand):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
-        self.params = [_bare_or_valued(p) if p.name == "resume" else p for p in self.params]
+        for i, p in enumerate(self.params):
+            if p.name == "resume":  # bare (True) or with a value
+                opts = {"is_flag": False, "flag_value": True, "type": click.UNPROCESSED}
+                self.params[i] = click.Option(p.opts, metavar=p.metavar, help=p.help, **opts)
 
     def invoke(self, ctx: click.Context) -> click.Context:
         return ctx
-
-
-def _bare_or_valued(option: click.Parameter) -> click.Option:
-    return click.Option(
-        option.opts,
-        is_flag=False,
-        flag_value=True,
-        type=click.UNPROCESSED,
-        metavar=option.metavar,
-        help=option.help,
-    )
 
 
 def parse_crop(text: str) -> tuple[int | None, ...]:
