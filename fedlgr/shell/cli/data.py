@@ -82,28 +82,23 @@ def check(
 ) -> int:
     """Validate FOLDER (a MANNERS-DB-layout folder) and summarise it: its scenes, and
     their split between the clients."""
-    summarise(
-        conf.DataConfig(
-            path=folder,
-            modality=modality,
-            image_size=size,
-            crop=crop,
-            clients=clients,
-            on_bad_image="skip" if skip_bad_images else "error",
-        )
-    )
-    return 0
-
-
-def summarise(config) -> None:
-    """Load the dataset of ``config`` (decoding images at most once), print it and its split."""
     # lazy: torch, PIL and numpy
     from fedlgr.shell.data.dataset import load_split
     from fedlgr.shell.data.summary import describe_scenes, describe_split
 
+    bad = "skip" if skip_bad_images else "error"
+    config = conf.DataConfig(
+        path=folder,
+        modality=modality,
+        image_size=size,
+        crop=crop,
+        clients=clients,
+        on_bad_image=bad,
+    )
     start = time.perf_counter()
-    with Progress("decoding images", unit="img") as bar:
+    with Progress("decoding images", unit="img") as bar:  # each image decoded at most once
         scenes, split = load_split(config, progress=bar)
     print(describe_scenes(scenes))
     print(f"\nloaded in {time.perf_counter() - start:.2f} s\n")
     print(describe_split(split))
+    return 0

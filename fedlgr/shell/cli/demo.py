@@ -1,8 +1,5 @@
-"""``fedlgr demo``: the README's main job on the embedded synthetic data.
-
-FedAvg vs FedRootAvg on a synthetic living room, made if absent; ``--fcl`` shows forgetting
-instead: FedRoot-FT vs FedLGR, circle then arrow, on the descriptors or the images.
-"""
+"""``fedlgr demo``: FedAvg vs FedRootAvg on a synthetic living room, made if absent; ``--fcl``
+shows forgetting instead: FedRoot-FT vs FedLGR, circle then arrow."""
 
 from __future__ import annotations
 
@@ -71,9 +68,7 @@ def demo(
     (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.
     Overrides (key=value) apply to both runs."""
     check_tracking(tracking_uri, overrides)  # before loading torch
-    # lazy: PIL and numpy, torch and Fabric (after the tracking check, which takes a second)
-    from fedlgr.shell.data.synth import synthesize
-    from fedlgr.shell.run.experiment import run_experiment
+    from fedlgr.shell.data.synth import synthesize  # lazy: PIL and numpy, after the check (1 s)
 
     if not (data / "all_data.csv").is_file():
         print(f"no dataset in {data}: synthesising {scenes} scenes (seed {seed})")
@@ -83,70 +78,62 @@ def demo(
     if tracking_uri:
         overrides.append(f"tracking.uri={tracking_uri}")
     if fcl:
-        return _fcl_demo(overrides, data, seed, modality, pretrain_scenes, pretrain_images)
-    results = []
-    for method in METHODS:
-        config = conf.load_config(DEMO_CONFIG, [*overrides, f"method={method}"])
-        print()
-        results.append(run_experiment(config, show_runs=False))
-    rows = []
-    for r in results:
-        last, costs = r.final, r.cost_means()  # costs: per client per round, over all rounds
-        rows.append(
-            [
-                r.config.method_name,
-                *(last.mean(f"test/{s.name}") for s in SCORES),
-                costs["mean/cost/cpu_s"],
-                f"{costs['mean/cost/bytes_up'] / 2**20:.2f} MiB",
-                f"{r.seconds:.0f}",
-            ]
+        base = _fcl_base(overrides, data, seed, modality, pretrain_scenes, pretrain_images)
+        results = _run_each(FCL_CONFIG, FCL_METHODS, [*base, *overrides])
+        print(
+            f"\nForgetting on {data} ({modality}): Task 1 = circle, then Task 2 = arrow "
+            "(mean over clients; forgetting > 0: circle got worse)"
         )
-    print(
-        f"\nFedAvg vs FedRootAvg on {data} after {results[0].config.federated.rounds} rounds "
-        "(test scores: mean over clients; costs: per client per round, mean over the rounds)"
-    )
-    headers = ["method", *(s.label for s in SCORES), "CPU s", "upload", "run s"]
-    print(table(headers, rows))
-    print_runs_hint(results)
-    return 0
-
-
-def _fcl_demo(
-    overrides: list[str], data: Path, seed: int, modality: str, scenes: int, images: int
-) -> int:
-    """``--fcl``: forgetting, on the descriptors or on the images, from a root pretrained
-    on ``images`` augmented images of ``scenes`` other scenes."""
-    # lazy: torch and Fabric
-    from fedlgr.shell.pretrain import synthetic_root
-    from fedlgr.shell.run.experiment import run_experiment
-
-    if modality == "features":
-        base = FEATURES_FCL
+        print(forgetting_table(results))
     else:
-        probe = conf.load_config(FCL_CONFIG, overrides)
-        root = synthetic_root(
-            data.parent / "pretrain",
-            seed=seed,
-            scenes=scenes,
-            width=probe.model.width,
-            images=images,
-            size=probe.data.image_size,
-            cache_dir=probe.data.cache_dir,
-            progress=Progress,  # a bar (or log lines) for each stage
+        results = _run_each(DEMO_CONFIG, METHODS, overrides)
+        rows = []
+        for r in results:
+            costs = r.cost_means()  # per client per round, over all rounds
+            spent = [costs["mean/cost/cpu_s"], f"{costs['mean/cost/bytes_up'] / 2**20:.2f} MiB"]
+            scores = [r.final.mean(f"test/{s.name}") for s in SCORES]
+            rows.append([r.config.method_name, *scores, *spent, f"{r.seconds:.0f}"])
+        print(
+            f"\nFedAvg vs FedRootAvg on {data} after {results[0].config.federated.rounds} rounds "
+            "(test scores: mean over clients; costs: per client per round, mean over the rounds)"
         )
-        base = [f"model.weights={root}"]
-    results = []
-    for method in FCL_METHODS:
-        config = conf.load_config(FCL_CONFIG, [*base, *overrides, f"method={method}"])
-        print()
-        results.append(run_experiment(config, show_runs=False))
-    print(
-        f"\nForgetting on {data} ({modality}): Task 1 = circle, then Task 2 = arrow "
-        "(mean over clients; forgetting > 0: circle got worse)"
-    )
-    print(forgetting_table(results))
+        print(table(["method", *(s.label for s in SCORES), "CPU s", "upload", "run s"], rows))
     print_runs_hint(results)
     return 0
+
+
+def _run_each(path: Path, methods: tuple[str, ...], overrides: list[str]) -> list:
+    from fedlgr.shell.run.experiment import run_experiment  # lazy: torch and Fabric
+
+    results = []
+    for method in methods:
+        config = conf.load_config(path, [*overrides, f"method={method}"])
+        print()
+        results.append(run_experiment(config, show_runs=False))
+    return results
+
+
+def _fcl_base(
+    overrides: list[str], data: Path, seed: int, modality: str, scenes: int, images: int
+) -> list[str]:
+    """``--fcl``'s overrides: the descriptors, or the images from a root pretrained on
+    ``images`` augmented images of ``scenes`` other scenes."""
+    if modality == "features":
+        return FEATURES_FCL
+    from fedlgr.shell.pretrain import synthetic_root  # lazy: torch
+
+    probe = conf.load_config(FCL_CONFIG, overrides)
+    root = synthetic_root(
+        data.parent / "pretrain",
+        seed=seed,
+        scenes=scenes,
+        width=probe.model.width,
+        images=images,
+        size=probe.data.image_size,
+        cache_dir=probe.data.cache_dir,
+        progress=Progress,  # a bar (or log lines) for each stage
+    )
+    return [f"model.weights={root}"]
 
 
 def print_runs_hint(results) -> None:

@@ -101,6 +101,7 @@ def run_or_resume(
             # Share this machine's cores between the workers instead of oversubscribing them.
             overrides.append(f"runtime.threads={max(1, available_cores() // workers)}")
         spec = load_sweep(sweep, overrides)
+        uris = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
         if heartbeat is not None:
             if not 1 <= heartbeat <= MAX_HEARTBEAT_S:
                 raise FedlgrError(f"--heartbeat {heartbeat}: from 1 to {MAX_HEARTBEAT_S} s")
@@ -115,7 +116,9 @@ def run_or_resume(
             worker_id=worker_id,
             settings_changed=settings_changed,
             # A database's password is not printed (a helper worker's lines come through here).
-            echo=masked_echo(print, storage, tracking_uri, *_tracking_uris(overrides)),
+            echo=masked_echo(
+                print, storage, tracking_uri, *uris, os.environ.get("MLFLOW_TRACKING_URI")
+            ),
         )
     if result.failure:  # the table above shows each trial's error
         raise FedlgrError(f"sweep {spec.name}: {result.failure}")
@@ -138,11 +141,6 @@ def _check_workers_and_study(workers: int, study: str | None) -> None:
         raise FedlgrError(f"--study {study!r}: holds a control character")
     if len(study) > MAX_STUDY_NAME:
         raise FedlgrError(f"--study: {len(study)} characters, at most {MAX_STUDY_NAME}")
-
-
-def _tracking_uris(overrides: list[str]) -> list[str]:
-    given = [o.split("=", 1)[1] for o in overrides if o.startswith("tracking.uri=")]
-    return [*given, os.environ.get("MLFLOW_TRACKING_URI", "")]
 
 
 def _not_the_tracking_store(
