@@ -1,8 +1,5 @@
-"""A seeded synthetic living room written in the exact MANNERS-DB layout (docs/data.md).
-
-Written as ``all_data.csv`` and ``images/<stamp>.png``, so every code path is the real dataset's;
-each scene is drawn from streams keyed by its index, so a larger set starts with the same scenes.
-"""
+"""A seeded synthetic living room in the exact MANNERS-DB layout (docs/data.md); each scene is
+drawn from streams keyed by its index, so a larger set starts with the same scenes."""
 
 from __future__ import annotations
 
@@ -159,6 +156,3 @@ def synthesize(
         label_sum / scenes,
         time.perf_counter() - start,
     )
-
-
-__all__ = ["SynthSummary", "SyntheticScene", "generate_scenes", "render", "synthesize"]

@@ -1,8 +1,6 @@
-"""The appropriateness model of the synthetic living room, and its simulated raters.
-
-The circle mode counts who is inside the work radius, the arrow mode who is in the corridor
-ahead: rules different enough that a model learning arrow after circle forgets circle (for FCL).
-"""
+"""The appropriateness model of the synthetic living room, and its simulated raters: the circle
+mode counts who is inside the work radius, the arrow mode who is in the corridor ahead (rules
+different enough that a model learning arrow after circle forgets circle, for FCL)."""
 
 from __future__ import annotations
 

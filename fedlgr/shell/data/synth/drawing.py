@@ -1,7 +1,5 @@
-"""Draw a layout as a top-down living-room picture with Pillow.
-
-The scene is drawn at twice the requested size and box-filtered down, which softens edges.
-"""
+"""Draw a layout as a top-down living-room picture with Pillow: drawn at twice the requested
+size and box-filtered down, which softens edges."""
 
 from __future__ import annotations
 
@@ -38,9 +36,9 @@ class _Canvas:
     def w(self, width: float) -> int:
         return max(1, round(width * self.px))
 
-    def rect(self, box, fill, outline=None, width=0.004):
+    def rect(self, box, fill, outline=None, width=0.004, shape="rectangle"):
         x0, y0, x1, y1 = box
-        self.draw.rectangle(
+        getattr(self.draw, shape)(
             (*self.p(x0, y0), *self.p(x1, y1)),
             fill=fill,
             outline=outline,
@@ -48,17 +46,7 @@ class _Canvas:
         )
 
     def disc(self, x, y, r, fill, outline=None, width=0.004):
-        self.draw.ellipse(
-            (*self.p(x - r, y - r), *self.p(x + r, y + r)),
-            fill=fill,
-            outline=outline,
-            width=self.w(width) if outline else 0,
-        )
-
-    def ring(self, x, y, r, colour, width):
-        self.draw.ellipse(
-            (*self.p(x - r, y - r), *self.p(x + r, y + r)), outline=colour, width=self.w(width)
-        )
+        self.rect((x - r, y - r, x + r, y + r), fill, outline, width, "ellipse")
 
     def line(self, points, colour, width):
         self.draw.line([self.p(x, y) for x, y in points], fill=colour, width=self.w(width))
@@ -76,8 +64,10 @@ class _Canvas:
             pts.append((x + a * c - b * s, y + a * s + b * c))
         self.polygon(pts, fill, outline)
 
-    def result(self, size: int) -> Image.Image:
-        return self.image.reduce(SUPERSAMPLE) if SUPERSAMPLE > 1 else self.image
+
+def _at(x: float, y: float, r: float, angle: float) -> tuple[float, float]:
+    """The point ``r`` away from (x, y) in the direction ``angle``."""
+    return x + r * math.cos(angle), y + r * math.sin(angle)
 
 
 def _floor(cv: _Canvas, layout: Layout) -> None:
@@ -136,7 +126,7 @@ def _speaker(cv: _Canvas, layout: Layout) -> None:
     for r in (0.05, 0.075, 0.1):
         box = (*cv.p(sx - r, sy - r), *cv.p(sx + r, sy + r))
         cv.draw.arc(box, deg - 35, deg + 35, fill=(20, 20, 20), width=cv.w(0.008))
-    nx, ny = sx + 0.13 * math.cos(towards), sy + 0.13 * math.sin(towards)
+    nx, ny = _at(sx, sy, 0.13, towards)
     for dx in (0.0, 0.035):  # two quavers
         cv.disc(nx + dx, ny + 0.02, 0.011, (20, 20, 20))
         cv.line([(nx + dx + 0.009, ny + 0.02), (nx + dx + 0.009, ny - 0.025)], (20, 20, 20), 0.006)
@@ -146,14 +136,13 @@ def _speaker(cv: _Canvas, layout: Layout) -> None:
 def _zone(cv: _Canvas, layout: Layout) -> None:
     x, y = layout.robot_x, layout.robot_y
     if layout.mode == "circle":
-        cv.ring(x, y, layout.zone, ZONE_COLOUR, 0.012)
+        cv.disc(x, y, layout.zone, None, outline=ZONE_COLOUR, width=0.012)
         return
     h = layout.robot_heading
-    ex, ey = x + layout.zone * math.cos(h), y + layout.zone * math.sin(h)
+    ex, ey = _at(x, y, layout.zone, h)
     cv.line([(x, y), (ex, ey)], ZONE_COLOUR, 0.016)
-    tip = (ex + 0.04 * math.cos(h), ey + 0.04 * math.sin(h))
-    left = (ex + 0.035 * math.cos(h + math.pi / 2), ey + 0.035 * math.sin(h + math.pi / 2))
-    right = (ex + 0.035 * math.cos(h - math.pi / 2), ey + 0.035 * math.sin(h - math.pi / 2))
+    tip = _at(ex, ey, 0.04, h)
+    left, right = _at(ex, ey, 0.035, h + math.pi / 2), _at(ex, ey, 0.035, h - math.pi / 2)
     cv.polygon([tip, left, right], ZONE_COLOUR)
 
 
@@ -161,44 +150,29 @@ def _person(cv: _Canvas, person, clothes) -> None:
     k = (0.65 if person.child else 1.0) * AGENT_SCALE
     f = person.facing
     cv.oval(person.x, person.y, 0.026 * k, 0.04 * k, f, clothes, outline=OUTLINE)
-    hx, hy = person.x + 0.01 * k * math.cos(f), person.y + 0.01 * k * math.sin(f)
+    hx, hy = _at(person.x, person.y, 0.01 * k, f)
     cv.disc(hx, hy, 0.017 * k, SKIN, outline=OUTLINE, width=0.003)
-    nose = (hx + 0.024 * k * math.cos(f), hy + 0.024 * k * math.sin(f))
     side = 0.008 * k
-    cv.polygon(
-        [
-            nose,
-            (hx + side * math.cos(f + 1.6), hy + side * math.sin(f + 1.6)),
-            (hx + side * math.cos(f - 1.6), hy + side * math.sin(f - 1.6)),
-        ],
-        OUTLINE,
-    )
+    nose = _at(hx, hy, 0.024 * k, f)
+    cv.polygon([nose, _at(hx, hy, side, f + 1.6), _at(hx, hy, side, f - 1.6)], OUTLINE)
 
 
 def _animal(cv: _Canvas, animal) -> None:
     colour = _ANIMAL_COLOURS[animal.kind]
     k = (1.0 if animal.kind == "dog" else 0.75) * AGENT_SCALE
     f = animal.facing
-    tail = (animal.x - 0.045 * k * math.cos(f), animal.y - 0.045 * k * math.sin(f))
+    tail = _at(animal.x, animal.y, -0.045 * k, f)
     cv.line([(animal.x, animal.y), tail], _darker(colour), 0.007)
     cv.oval(animal.x, animal.y, 0.03 * k, 0.016 * k, f, colour, outline=_darker(colour, 60))
-    cv.disc(
-        animal.x + 0.03 * k * math.cos(f),
-        animal.y + 0.03 * k * math.sin(f),
-        0.013 * k,
-        _darker(colour, 20),
-        outline=_darker(colour, 60),
-        width=0.003,
-    )
+    head = _at(animal.x, animal.y, 0.03 * k, f)
+    cv.disc(*head, 0.013 * k, _darker(colour, 20), outline=_darker(colour, 60), width=0.003)
 
 
 def _robot(cv: _Canvas, layout: Layout) -> None:
     x, y, h = layout.robot_x, layout.robot_y, layout.robot_heading
     cv.disc(x, y, 0.035, ROBOT_COLOUR, outline=OUTLINE, width=0.006)
-    tip = (x + 0.03 * math.cos(h), y + 0.03 * math.sin(h))
-    back_l = (x + 0.018 * math.cos(h + 2.3), y + 0.018 * math.sin(h + 2.3))
-    back_r = (x + 0.018 * math.cos(h - 2.3), y + 0.018 * math.sin(h - 2.3))
-    cv.polygon([tip, back_l, back_r], (30, 30, 30))
+    back_l, back_r = _at(x, y, 0.018, h + 2.3), _at(x, y, 0.018, h - 2.3)
+    cv.polygon([_at(x, y, 0.03, h), back_l, back_r], (30, 30, 30))
 
 
 def render(layout: Layout, size: int = 128) -> Image.Image:
@@ -215,4 +189,4 @@ def render(layout: Layout, size: int = 128) -> Image.Image:
     for person, clothes in zip(layout.people, layout.style.clothes, strict=True):
         _person(cv, person, clothes)
     _robot(cv, layout)
-    return cv.result(size)
+    return cv.image.reduce(SUPERSAMPLE)

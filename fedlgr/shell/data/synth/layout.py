@@ -1,8 +1,5 @@
-"""Random living-room layouts and the 27 MANNERS-DB descriptors computed from them.
-
-A layout lives in the unit square seen from above (y down, as in the image; angles as
-``atan2(dy, dx)``); picture, descriptors and labels all come from it, so they always agree.
-"""
+"""Random living-room layouts in the unit square seen from above (y down, angles as
+``atan2(dy, dx)``), and the 27 MANNERS-DB descriptors computed from them."""
 
 from __future__ import annotations
 
@@ -239,15 +236,8 @@ def _sofa_people(rng: np.random.Generator, sofa, sofa_side: str, taken: list) ->
             if sofa_side in ("top", "bottom")
             else ((x0 + x1) / 2, y0 + t * (y1 - y0))
         )
-        people.append(
-            Person(
-                x,
-                y,
-                into_room + float(rng.normal(0, 0.3)),
-                sitting=True,
-                child=bool(rng.random() < 0.2),
-            )
-        )
+        facing = into_room + float(rng.normal(0, 0.3))
+        people.append(Person(x, y, facing, sitting=True, child=bool(rng.random() < 0.2)))
         taken.append((x, y))
     return people
 
@@ -271,15 +261,8 @@ def _group(
     for k in range(size):
         a = start + 2 * math.pi * k / size + rng.normal(0, 0.2)
         x, y = group.x + radius * math.cos(a), group.y + radius * math.sin(a)
-        members.append(
-            Person(
-                x,
-                y,
-                wrap(a + math.pi + rng.normal(0, 0.2)),
-                in_group=True,
-                child=bool(rng.random() < 0.15),
-            )
-        )
+        facing = wrap(a + math.pi + rng.normal(0, 0.2))
+        members.append(Person(x, y, facing, in_group=True, child=bool(rng.random() < 0.15)))
         taken.append((x, y))
     return group, members
 
@@ -318,13 +301,13 @@ def descriptors(layout: Layout) -> np.ndarray:
     by_distance = sorted(layout.people, key=lambda p: distance(layout, p.x, p.y))
     nearest = (by_distance + [None] * 3)[:3]
 
-    def dist(p):
+    def dist(p):  # a person, a group or an animal
         return 1.0 if p is None else min(distance(layout, p.x, p.y) / DISTANCE_SCALE, 1.0)
 
     def direction(p):
         return 1.0 if p is None else abs(bearing(layout, p.x, p.y)) / math.pi
 
-    def robot_faces(p):
+    def robot_faces(p):  # a person or a group
         return 0.0 if p is None else float(abs(bearing(layout, p.x, p.y)) < FACING_CONE)
 
     def faces_robot(p):
@@ -340,14 +323,13 @@ def descriptors(layout: Layout) -> np.ndarray:
     children = [p for p in layout.people if p.child]
     closest_child = min(children, key=lambda p: distance(layout, p.x, p.y), default=None)
     closest_animal = min(layout.animals, key=lambda a: distance(layout, a.x, a.y), default=None)
-    group_size = sum(p.in_group for p in layout.people)
     values = [
         len(layout.people) / MAX_PEOPLE,
-        group_size / MAX_GROUP,
+        sum(p.in_group for p in layout.people) / MAX_GROUP,
         0.0 if g is None else g.radius / MAX_GROUP_RADIUS,
-        1.0 if g is None else min(distance(layout, g.x, g.y) / DISTANCE_SCALE, 1.0),
+        dist(g),
         0.0 if g is None else float(distance(layout, g.x, g.y) < g.radius),
-        0.0 if g is None else float(abs(bearing(layout, g.x, g.y)) < FACING_CONE),
+        robot_faces(g),
         layout.zone / MAX_ZONE,
         *(dist(p) for p in nearest),
         *(direction(p) for p in nearest),
@@ -357,9 +339,7 @@ def descriptors(layout: Layout) -> np.ndarray:
         len(children) / MAX_CHILDREN,
         dist(closest_child),
         len(layout.animals) / MAX_ANIMALS,
-        1.0
-        if closest_animal is None
-        else min(distance(layout, closest_animal.x, closest_animal.y) / DISTANCE_SCALE, 1.0),
+        dist(closest_animal),
         sum(p.sitting for p in layout.people) / MAX_SOFA,
         float(layout.music),
         (len(layout.people) + len(layout.animals) + 1) / MAX_AGENTS,
