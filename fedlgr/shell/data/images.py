@@ -1,8 +1,5 @@
-"""Match scene images to stamps, decode them once into a uint8 tensor store, cache it.
-
-The store is cached under a key of the source files (name, size, mtime) and the settings, so a
-second load decodes nothing; training never touches a PNG.
-"""
+"""Match scene images to stamps, decode them once into a uint8 tensor store, cached under a key
+of the source files (name, size, mtime) and the settings: training never touches a PNG."""
 
 from __future__ import annotations
 
@@ -80,8 +77,16 @@ def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
     Pillow decodes, as torchvision deprecated its own decoders for TorchCodec, a dependency more."""
     try:
         with Image.open(path) as file:
-            _refuse_oversized(path, file)
-            _refuse_degenerate(path, file, size)
+            width, height = file.size
+            # Pillow only warns up to twice its decompression-bomb limit, and would decode
+            if Image.MAX_IMAGE_PIXELS is not None and width * height > Image.MAX_IMAGE_PIXELS:
+                raise DataError(_oversized(path, f"{width}x{height} = {width * height}"))
+            if min(width, height) < MIN_IMAGE_SIDE:
+                raise DataError(
+                    f"{path}: {width}x{height} pixels, under the {MIN_IMAGE_SIDE} px a side that "
+                    f"a scene needs (images of any size are resized to data.image_size={size}, "
+                    "but one this small is degenerate)"
+                )
             pixels = np.array(file.convert("RGB"))  # a writable copy for torch
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as err:
         # over twice the limit (or once, where warnings are errors): Pillow refuses to open
@@ -91,35 +96,13 @@ def decode(path: Path, size: int, crop: Crop | None) -> torch.Tensor:
         raise DataError(f"{path}: cannot decode image ({first_line(err)})") from err
     image = torch.from_numpy(pixels).permute(2, 0, 1)
     if crop is not None:
-        height, width = image.shape[-2:]
-        left, top, right, bottom = crop
-        left, top = left or 0, top or 0
-        right = width if right is None else right
-        bottom = height if bottom is None else bottom
-        if right > width or bottom > height:
+        left, top, right, bottom = crop  # None: the image's edge
+        if (right or 0) > width or (bottom or 0) > height:
             raise DataError(
                 f"{path}: data.crop={list(crop)} reaches outside the {width}x{height} image"
             )
         image = image[:, top:bottom, left:right]
     return F.resize(image, [size, size], antialias=True).contiguous()
-
-
-def _refuse_oversized(path: Path, file: Image.Image) -> None:
-    """Refuse an image over Pillow's decompression-bomb limit, which Pillow itself only
-    warns about up to twice the limit (and would decode, at any memory cost)."""
-    width, height = file.size
-    if Image.MAX_IMAGE_PIXELS is not None and width * height > Image.MAX_IMAGE_PIXELS:
-        raise DataError(_oversized(path, f"{width}x{height} = {width * height}"))
-
-
-def _refuse_degenerate(path: Path, file: Image.Image, size: int) -> None:
-    width, height = file.size
-    if min(width, height) < MIN_IMAGE_SIDE:
-        raise DataError(
-            f"{path}: {width}x{height} pixels, under the {MIN_IMAGE_SIDE} px a side that a "
-            f"scene needs (images of any size are resized to data.image_size={size}, but one "
-            "this small is degenerate)"
-        )
 
 
 def _oversized(path: Path, pixels: str) -> str:
@@ -134,7 +117,6 @@ class ImageStore:
     stamps: np.ndarray  # (N,) int64, the stamps that have an image
     images: torch.Tensor  # (N, 3, S, S) uint8
     skipped: tuple[str, ...] = ()  # files or stamps left out, with the reason
-    from_cache: bool = False
 
 
 def _cache_key(files: list[Path], size: int, crop: Crop | None, policy: str) -> str:
@@ -206,15 +188,15 @@ def _check_store_fits(n: int, size: int) -> None:
 def _check_cache_dir(cache_dir: Path) -> None:
     """Refuse a cache folder that is, or lies under, a file, a device or a broken link, before
     decoding: after it, the cache could only be skipped with a warning, its decoding lost."""
+    from_env = os.environ.get("FEDLGR_CACHE_DIR")
+    setting = "FEDLGR_CACHE_DIR" if from_env and Path(from_env) == cache_dir else "data.cache_dir"
     if why := broken_link(cache_dir):
-        setting = cache_dir_setting(cache_dir)
         raise ConfigError(
             f"{setting}={cache_dir}: {why} (point {setting} at a folder, or turn the cache "
             "off with data.cache=false)"
         )
     existing = next(p for p in (cache_dir, *cache_dir.parents) if p.exists())
     if not existing.is_dir():
-        setting = cache_dir_setting(cache_dir)
         where = "" if existing == cache_dir else f": {existing}"
         what = "a file" if existing.is_file() else "a device, pipe or socket"
         raise ConfigError(
@@ -242,9 +224,7 @@ def _read_cache(cache_file: Path, wanted: list[int], size: int, n_missing: int):
             stacklevel=3,
         )
         return None
-    return ImageStore(
-        saved["stamps"].numpy(), saved["images"], tuple(saved["skipped"]), from_cache=True
-    )
+    return ImageStore(saved["stamps"].numpy(), saved["images"], tuple(saved["skipped"]))
 
 
 def _describe(value) -> str:
@@ -272,11 +252,8 @@ def _cache_mismatch(saved, wanted: list[int], size: int, n_missing: int) -> str 
     order = [position.get(s, -1) for s in stamps.tolist()]
     if not order or -1 in order or order != sorted(set(order)):
         return "its stamps are not those of the image files"
-    if (
-        not isinstance(skipped, list | tuple)
-        or len(stamps) + len(skipped) != len(wanted) + n_missing
-    ):
-        n_skipped = len(skipped) if isinstance(skipped, list | tuple) else "?"
+    n_skipped = len(skipped) if isinstance(skipped, list | tuple) else "?"
+    if n_skipped == "?" or len(stamps) + n_skipped != len(wanted) + n_missing:
         return (
             f"{len(stamps)} images and {n_skipped} skipped, "
             f"expected {len(wanted) + n_missing} scenes in all"
@@ -285,20 +262,19 @@ def _cache_mismatch(saved, wanted: list[int], size: int, n_missing: int) -> str 
 
 
 def _decode_all(files, stamps, size, crop, on_bad_image, skipped, progress) -> ImageStore:
-    if on_bad_image == "skip":
+    def one(path):
+        try:
+            return decode(path, size, crop)
+        except DataError as err:
+            return err
 
-        def one(path):
-            try:
-                return decode(path, size, crop)
-            except DataError as err:
-                return err
-    else:
-        one = lambda path: decode(path, size, crop)  # noqa: E731
     images, kept = [], []
     # Pillow's decoders and torch's resize release the GIL: threads scale here.
     with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
         for k, (stamp, result) in enumerate(zip(stamps, pool.map(one, files), strict=True)):
             if isinstance(result, DataError):
+                if on_bad_image == "error":
+                    raise result
                 skipped.append(str(result))
                 warnings.warn(f"skipping stamp {stamp}: {result}", stacklevel=3)
             else:
@@ -327,9 +303,3 @@ def _save_atomically(store: ImageStore, cache_file: Path) -> None:
         tmp.unlink(missing_ok=True)
         reason = first_line(err, 200)
         warnings.warn(f"{cache_file}: could not write the image cache ({reason})", stacklevel=3)
-
-
-def cache_dir_setting(cache_dir: Path) -> str:
-    """The name of the setting that chose ``cache_dir``, for error messages."""
-    from_env = os.environ.get("FEDLGR_CACHE_DIR")
-    return "FEDLGR_CACHE_DIR" if from_env and Path(from_env) == cache_dir else "data.cache_dir"
