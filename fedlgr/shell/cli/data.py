@@ -10,15 +10,15 @@ import typer
 
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES
 from fedlgr.shell import config as conf  # its names load when used: pydantic
-from fedlgr.shell.cli.verb import Crop, Verb
+from fedlgr.shell.cli.verb import Crop, Verbs
 from fedlgr.shell.console import Progress, table
 from fedlgr.shell.signals import terminate_as_interrupt
 
-app = typer.Typer(name="data", help="create, inspect and check datasets")
+app = Verbs(name="data", help="create, inspect and check datasets")
 Folder = Annotated[Path, typer.Argument(metavar="FOLDER")]
 
 
-@app.command("synth", cls=Verb, short_help="write a synthetic living room in the MANNERS-DB layout")
+@app.command("synth", short_help="write a synthetic living room in the MANNERS-DB layout")
 def synth(
     out: Annotated[Path, typer.Option(help="folder to write")],
     scenes: Annotated[int, typer.Option(help="scenes to write")] = 1000,
@@ -45,7 +45,7 @@ def synth(
     return 0
 
 
-@app.command("show", cls=Verb, short_help="contact sheet of a few scenes with their labels")
+@app.command("show", short_help="contact sheet of a few scenes with their labels")
 def show(
     folder: Folder,
     out: Annotated[Path, typer.Option(help="the PNG file to write")] = Path("contact_sheet.png"),
@@ -61,7 +61,7 @@ def show(
     return 0
 
 
-@app.command("check", cls=Verb, short_help="validate a dataset folder and summarise it")
+@app.command("check", short_help="validate a dataset folder and summarise it")
 def check(
     folder: Folder,
     modality: Annotated[

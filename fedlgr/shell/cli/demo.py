@@ -11,7 +11,7 @@ import typer
 from fedlgr.core.metrics import SCORES, headline_scores
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.stores import check_tracking
-from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verb
+from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verbs
 from fedlgr.shell.console import Progress, table
 
 DEFAULT_DATA = Path("data/manners-synth")
@@ -28,14 +28,10 @@ FORGETTING_GROUPS = (
     ("arrow", "after_task2/task/arrow", "T2"),
 )
 
-app = typer.Typer()
+app = Verbs()
 
 
-@app.command(
-    "demo",
-    cls=Verb,
-    short_help="the main job: FedAvg vs FedRootAvg on the embedded synthetic data",
-)
+@app.command("demo", short_help="the main job: FedAvg vs FedRootAvg on the embedded synthetic data")
 def demo(
     overrides: Overrides = (),
     data: Annotated[Path, typer.Option(help="dataset folder")] = DEFAULT_DATA,

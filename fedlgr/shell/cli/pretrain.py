@@ -8,16 +8,14 @@ from typing import Annotated
 import typer
 
 from fedlgr.shell import config as conf  # its names load when used: pydantic
-from fedlgr.shell.cli.verb import Crop, Verb
+from fedlgr.shell.cli.verb import Crop, Verbs
 from fedlgr.shell.console import Progress
 
-app = typer.Typer()
+app = Verbs()
 
 
 @app.command(
-    "pretrain",
-    cls=Verb,
-    short_help="pretrain a MobileNetV2 root on scene descriptors (no labels), offline",
+    "pretrain", short_help="pretrain a MobileNetV2 root on scene descriptors (no labels), offline"
 )
 def pretrain(
     data: Annotated[Path, typer.Option(help="a MANNERS-DB-layout folder")],

@@ -10,10 +10,10 @@ import typer
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.paths import check_data_path
 from fedlgr.shell.checks.stores import check_reachable
-from fedlgr.shell.cli.verb import TrackingUri, Verb
+from fedlgr.shell.cli.verb import TrackingUri, Verbs
 from fedlgr.shell.signals import terminate_as_interrupt
 
-app = typer.Typer()
+app = Verbs()
 
 # Plain text, as the help loads no config code; \b keeps click from re-wrapping the listing.
 SETTINGS_EPILOG = """settings, as key=value (each one's default: fedlgr run --print-config):
@@ -61,7 +61,6 @@ def resume_hint(config, run_id: str) -> str:
 
 @app.command(
     "run",
-    cls=Verb,
     short_help="run one experiment from a config and key=value overrides",
     epilog=SETTINGS_EPILOG,
 )

@@ -12,14 +12,14 @@ import typer
 from fedlgr.errors import FedlgrError
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.stores import check_tracking
-from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verb
+from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verbs
 from fedlgr.shell.machine import available_cores
 from fedlgr.shell.signals import terminate_as_interrupt
 from fedlgr.shell.tracking.uri import given_uri, masked_echo, sqlite_file
 
 MAX_STUDY_NAME = 512  # optuna.storages._rdb.models.MAX_INDEXED_STRING_LENGTH
 
-app = typer.Typer()
+app = Verbs()
 
 
 def shipped_sweeps() -> list[tuple[str, str]]:
@@ -47,7 +47,6 @@ def _sweep_epilog() -> str:
 
 @app.command(
     "sweep",
-    cls=Verb,
     short_help="run or resume an Optuna sweep (grid or TPE) of experiments",
     epilog=_sweep_epilog(),
 )

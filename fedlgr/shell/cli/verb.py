@@ -15,9 +15,9 @@ typer.core.HAS_RICH = False
 
 
 class Verb(typer.core.TyperCommand):
-    """A verb's command (``@app.command(NAME, cls=Verb)``): invoking it hands its parsed context
-    back, for :func:`fedlgr.shell.cli.main` to call within its checks. Its ``--resume`` may come
-    without a RUN_ID (True): click's options can leave their value out, typer's cannot."""
+    """A verb's command (``@app.command(NAME)`` of a :class:`Verbs` app): invoking it hands its
+    parsed context back, for :func:`fedlgr.shell.cli.main` to call within its checks. Its
+    ``--resume`` may come without a RUN_ID (True): click's options can leave their value out."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
@@ -28,6 +28,13 @@ class Verb(typer.core.TyperCommand):
 
     def invoke(self, ctx: click.Context) -> click.Context:
         return ctx
+
+
+class Verbs(typer.Typer):
+    """A verb module's typer app: its commands are :class:`Verb`\\ s."""
+
+    def command(self, name: str, **kwargs):
+        return super().command(name, cls=Verb, **kwargs)
 
 
 def parse_crop(text: str) -> tuple[int | None, ...]:

@@ -12,13 +12,13 @@ import typer
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.verb import Verb
+from fedlgr.shell.cli.verb import Verbs
 from fedlgr.shell.deploy.flower import APP_DIR
 
-app = typer.Typer()
+app = Verbs()
 
 
-@app.command("app", cls=Verb, short_help="print the folder of fedlgr's Flower app (for flwr run)")
+@app.command("app", short_help="print the folder of fedlgr's Flower app (for flwr run)")
 def show_app() -> int:
     """Print the folder of fedlgr's Flower app (for flwr run)."""
     print(APP_DIR)
@@ -27,7 +27,6 @@ def show_app() -> int:
 
 @app.command(
     "connect",
-    cls=Verb,
     short_help="point the flwr command at a SuperLink ([superlink.NAME] in $FLWR_HOME/config.toml)",
 )
 def connect(

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from fedlgr.errors import FedlgrError
-from fedlgr.shell.cli.verb import Verb
+from fedlgr.shell.cli.verb import Verbs
 
 if TYPE_CHECKING:
     from fedlgr.shell.deploy.roster import Roster
@@ -21,10 +21,10 @@ if TYPE_CHECKING:
 TAKEN_NAMES = {"roster.yaml", "ca.pem", "ca.key", "server.pem", "server.key"}
 
 
-app = typer.Typer()
+app = Verbs()
 
 
-@app.command("certs", cls=Verb, short_help="write a CA and the SuperLink's TLS certificate")
+@app.command("certs", short_help="write a CA and the SuperLink's TLS certificate")
 def certs(
     folder: Annotated[Path, typer.Argument(metavar="DIR")],
     host: Annotated[
@@ -63,9 +63,7 @@ def certs(
 
 
 @app.command(
-    "node-key",
-    cls=Verb,
-    short_help="write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)",
+    "node-key", short_help="write a robot's SuperNode key pair (DIR/NAME and DIR/NAME.pub)"
 )
 def node_key(
     folder: Annotated[Path, typer.Argument(metavar="DIR")],

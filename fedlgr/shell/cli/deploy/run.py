@@ -16,20 +16,18 @@ import typer
 from fedlgr.errors import FedlgrError
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.verb import Overrides, Verb
+from fedlgr.shell.cli.verb import Overrides, Verbs
 from fedlgr.shell.deploy.flower import APP_DIR
 from fedlgr.shell.tracking.uri import masked_uris
 
 STATUS_WAIT_S = 60  # the log ends as the run does; its status may lag
 
 
-app = typer.Typer()
+app = Verbs()
 
 
 @app.command(
-    "run",
-    cls=Verb,
-    short_help="submit a run with flwr run, stream its log and exit 0 only if it completed",
+    "run", short_help="submit a run with flwr run, stream its log and exit 0 only if it completed"
 )
 def run(
     config: Annotated[str, typer.Argument(metavar="CONFIG")],

@@ -14,7 +14,7 @@ import typer
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.verb import Verb
+from fedlgr.shell.cli.verb import Verbs
 from fedlgr.shell.signals import terminate_as_interrupt
 
 SUPERLINK_PORT = 9092  # ours, for the Fleet, Control and ServerAppIo APIs (Flower's: 8000)
@@ -29,12 +29,10 @@ fedlgr: option (the default: the Fleet API alone there, the Control API on 127.0
 fedlgr: ############################################################################"""
 
 
-app = typer.Typer()
+app = Verbs()
 
 
-@app.command(
-    "superlink", cls=Verb, short_help="start the SuperLink (the server; runs the ServerApp)"
-)
+@app.command("superlink", short_help="start the SuperLink (the server; runs the ServerApp)")
 def superlink(
     certs: Annotated[
         Path | None, typer.Option(metavar="DIR", help="from fedlgr deploy certs")

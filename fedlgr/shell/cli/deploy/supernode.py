@@ -14,80 +14,15 @@ from fedlgr.errors import ConfigError, FedlgrError
 from fedlgr.shell import config as conf  # its names load when used: pydantic
 from fedlgr.shell.checks.paths import not_a_file, not_a_folder
 from fedlgr.shell.cli.deploy import launch
-from fedlgr.shell.cli.verb import Verb
+from fedlgr.shell.cli.verb import Verbs
 from fedlgr.shell.deploy.flower.supernode import HEARTBEAT_RANGE, POLL_RANGE
 
 SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machine
 
-app = typer.Typer()
-
-# The options whose help takes several lines, declared here to keep supernode() short.
-OwnData = Annotated[
-    bool,
-    typer.Option(
-        "--own-data",
-        help="the robot's own data: all of --data is its shard, split into its own train and "
-        "test scenes by data.seed (default: --data holds the whole dataset and the robot "
-        "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
-    ),
-]
-Client = Annotated[
-    int | None,
-    typer.Option(
-        metavar="K",
-        help="the client slot this robot expects; the roster decides, and a run whose roster "
-        "gives its key another slot is refused by the robot (default: whatever the roster "
-        "says)",
-    ),
-]
-Weights = Annotated[
-    Path | None,
-    typer.Option(
-        metavar="FILE",
-        help="this robot's copy of the root weights file, for runs whose model.weights is a "
-        "file (a robot never reads a path the server names)",
-    ),
-]
-IdleS = Annotated[
-    float | None,
-    typer.Option(
-        metavar="S",
-        help="the robot service (which keeps data and models loaded between messages) "
-        "leaves after S seconds without a message (default 900)",
-    ),
-]
-PollS = Annotated[
-    float,
-    typer.Option(
-        metavar="S",
-        help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (Flower's own "
-        "is 3, which every round waited out)",
-    ),
-]
-HeartbeatS = Annotated[
-    float,
-    typer.Option(
-        metavar="S",
-        help="the heartbeat interval this robot declares, 10 to 1800 (the default is "
-        "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
-        "restarted SuperNode, after two intervals",
-    ),
-]
-ColdApps = Annotated[
-    bool,
-    typer.Option(
-        "--cold-apps",
-        help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
-        "default they are forked from a process that has imported them",
-    ),
-]
+app = Verbs()
 
 
-@app.command(
-    "supernode",
-    cls=Verb,
-    short_help="start a robot's SuperNode (runs the ClientApp on its data)",
-)
+@app.command("supernode", short_help="start a robot's SuperNode (runs the ClientApp on its data)")
 def supernode(
     superlink: Annotated[str, typer.Option(metavar="HOST:PORT", help="the SuperLink's fleet API")],
     data: Annotated[Path, typer.Option(metavar="DIR", help="MANNERS-DB layout")],
@@ -95,15 +30,38 @@ def supernode(
     key: Annotated[
         Path | None, typer.Option(metavar="KEY", help="the robot's private node key")
     ] = None,
-    own_data: OwnData = False,
-    client: Client = None,
+    own_data: Annotated[
+        bool,
+        typer.Option(
+            "--own-data",
+            help="the robot's own data: all of --data is its shard, split into its own train and "
+            "test scenes by data.seed (default: --data holds the whole dataset and the robot "
+            "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
+        ),
+    ] = False,
+    client: Annotated[
+        int | None,
+        typer.Option(
+            metavar="K",
+            help="the client slot this robot expects; the roster decides, and a run whose roster "
+            "gives its key another slot is refused by the robot (default: whatever the roster "
+            "says)",
+        ),
+    ] = None,
     state_dir: Annotated[
         Path | None, typer.Option(metavar="DIR", help="private state between runs")
     ] = None,
     cache_dir: Annotated[
         Path | None, typer.Option(metavar="DIR", help="decoded-image cache")
     ] = None,
-    weights: Weights = None,
+    weights: Annotated[
+        Path | None,
+        typer.Option(
+            metavar="FILE",
+            help="this robot's copy of the root weights file, for runs whose model.weights is a "
+            "file (a robot never reads a path the server names)",
+        ),
+    ] = None,
     threads: Annotated[int | None, typer.Option(metavar="N", help="torch threads")] = None,
     max_retries: Annotated[
         int | None, typer.Option(metavar="N", help="give up after N failed connections")
@@ -111,10 +69,39 @@ def supernode(
     max_wait_time: Annotated[
         float | None, typer.Option(metavar="S", help="give up after S seconds of trying")
     ] = None,
-    idle_s: IdleS = None,
-    poll_s: PollS = 0.5,
-    heartbeat_s: HeartbeatS = 30.0,
-    cold_apps: ColdApps = False,
+    idle_s: Annotated[
+        float | None,
+        typer.Option(
+            metavar="S",
+            help="the robot service (which keeps data and models loaded between messages) "
+            "leaves after S seconds without a message (default 900)",
+        ),
+    ] = None,
+    poll_s: Annotated[
+        float,
+        typer.Option(
+            metavar="S",
+            help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (Flower's own "
+            "is 3, which every round waited out)",
+        ),
+    ] = 0.5,
+    heartbeat_s: Annotated[
+        float,
+        typer.Option(
+            metavar="S",
+            help="the heartbeat interval this robot declares, 10 to 1800 (the default is "
+            "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
+            "restarted SuperNode, after two intervals",
+        ),
+    ] = 30.0,
+    cold_apps: Annotated[
+        bool,
+        typer.Option(
+            "--cold-apps",
+            help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
+            "default they are forked from a process that has imported them",
+        ),
+    ] = False,
     port: Annotated[int, typer.Option(help="its local API")] = SUPERNODE_PORT,
     insecure: launch.Insecure = False,
     print_command: launch.PrintCommand = False,
