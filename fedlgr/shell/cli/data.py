@@ -24,7 +24,7 @@ def synth(
     scenes: Annotated[int, typer.Option(help="scenes to write")] = 1000,
     seed: Annotated[int, typer.Option(help="seed of the scenes and ratings")] = 0,
     size: Annotated[int, typer.Option(help="image width and height in pixels")] = 128,
-    force: Annotated[bool, typer.Option("--force", help="overwrite a non-empty folder")] = False,
+    force: Annotated[bool, typer.Option(help="overwrite a non-empty folder")] = False,
 ) -> int:
     """Write a synthetic living room in the MANNERS-DB layout."""
     from fedlgr.shell.data.synth import synthesize  # lazy: PIL and numpy
@@ -73,7 +73,6 @@ def check(
     skip_bad_images: Annotated[
         bool,
         typer.Option(
-            "--skip-bad-images",
             help="skip (with a warning) scenes whose image is missing or corrupt instead of "
             "failing",
         ),

@@ -41,7 +41,6 @@ def demo(
     fcl: Annotated[
         bool,
         typer.Option(
-            "--fcl",
             help="show forgetting instead: FedRoot without a CL method vs FedLGR, circle then "
             "arrow (see --modality)",
         ),

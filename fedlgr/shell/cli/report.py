@@ -71,13 +71,10 @@ def report(
     modality: Annotated[
         Literal["image", "features"] | None, typer.Option(help="only runs of this modality")
     ] = None,
-    no_log: Annotated[
-        bool, typer.Option("--no-log", help="write the files but log nothing")
-    ] = False,
+    no_log: Annotated[bool, typer.Option(help="write the files but log nothing")] = False,
     paper: Annotated[
         bool,
         typer.Option(
-            "--paper",
             help="Tables I and II also give the paper's published values (MANNERS-DB), a row "
             "'METHOD (paper)' under each method's runs",
         ),

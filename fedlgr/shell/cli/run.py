@@ -69,7 +69,6 @@ def run(
     print_config: Annotated[
         bool,
         typer.Option(
-            "--print-config",
             help="print the resolved config (file, includes and overrides) as YAML and exit "
             "without running; settings resolved at start (runtime.threads, "
             "runtime.concurrency, ...) show as given",

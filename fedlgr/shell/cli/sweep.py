@@ -63,7 +63,6 @@ def run_or_resume(
     settings_changed: Annotated[
         bool,
         typer.Option(
-            "--settings-changed",
             help="go on with a study started with other settings (the sweep file or "
             "overrides, e.g. a dataset that moved); its finished trials count as they are. A "
             "space whose values changed needs a new study (--study)",

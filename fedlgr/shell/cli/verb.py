@@ -22,6 +22,8 @@ class Verb(typer.core.TyperCommand):
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         for i, p in enumerate(self.params):
+            if isinstance(p, click.Option) and p.is_bool_flag:
+                p.secondary_opts = []  # a flag is --NAME alone, not --NAME/--no-NAME
             if p.name == "resume":  # bare (True) or with a value
                 opts = {"is_flag": False, "flag_value": True, "type": click.UNPROCESSED}
                 self.params[i] = click.Option(p.opts, metavar=p.metavar, help=p.help, **opts)

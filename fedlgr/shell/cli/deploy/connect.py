@@ -35,7 +35,7 @@ def connect(
         str, typer.Option(metavar="HOST:PORT", help="the SuperLink's control API")
     ],
     ca: launch.Ca = None,
-    default: Annotated[bool, typer.Option("--default", help="make it flwr's default")] = False,
+    default: Annotated[bool, typer.Option(help="make it flwr's default")] = False,
     insecure: launch.Insecure = False,
 ) -> int:
     """Point the flwr command at a SuperLink: NAME (e.g. robots) becomes [superlink.NAME]

@@ -39,7 +39,6 @@ def certs(
     force: Annotated[
         bool,
         typer.Option(
-            "--force",
             help="replace the four files in DIR (a symbolic link there is refused all the same)",
         ),
     ] = False,
@@ -71,7 +70,6 @@ def node_key(
     force: Annotated[
         bool,
         typer.Option(
-            "--force",
             help="replace an existing key pair (a symbolic link there is refused all the same)",
         ),
     ] = False,
@@ -86,7 +84,6 @@ def node_key(
     no_roster: Annotated[
         bool,
         typer.Option(
-            "--no-roster",
             help="do not add the robot to DIR/roster.yaml (its SuperNode then takes part in "
             "no run)",
         ),

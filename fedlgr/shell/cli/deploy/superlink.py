@@ -51,7 +51,6 @@ def superlink(
     expose_control_api: Annotated[
         bool,
         typer.Option(
-            "--expose-control-api",
             help="no gateway: Flower itself on --host/--port with ALL its APIs, so anyone who "
             "reaches the port can register keys and submit runs (firewalled networks only)",
         ),
@@ -59,7 +58,6 @@ def superlink(
     cold_apps: Annotated[
         bool,
         typer.Option(
-            "--cold-apps",
             help="start each ServerApp as Flower does, a new process per run (~10 s of "
             "imports before round 1); by default they are forked from a process that has "
             "imported them",

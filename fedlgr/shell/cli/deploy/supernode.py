@@ -33,7 +33,6 @@ def supernode(
     own_data: Annotated[
         bool,
         typer.Option(
-            "--own-data",
             help="the robot's own data: all of --data is its shard, split into its own train and "
             "test scenes by data.seed (default: --data holds the whole dataset and the robot "
             "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
@@ -97,7 +96,6 @@ def supernode(
     cold_apps: Annotated[
         bool,
         typer.Option(
-            "--cold-apps",
             help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
             "default they are forked from a process that has imported them",
         ),
