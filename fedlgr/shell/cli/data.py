@@ -55,7 +55,7 @@ def show(
 ) -> int:
     """Contact sheet of a few scenes of FOLDER (a MANNERS-DB-layout folder) with their
     labels."""
-    from fedlgr.shell.data.contact_sheet import contact_sheet  # lazy: torch and PIL
+    from fedlgr.shell.data.summary import contact_sheet  # lazy: torch and PIL
 
     print(f"wrote {contact_sheet(folder, out, scenes, seed, crop)}")
     return 0

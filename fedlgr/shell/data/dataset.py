@@ -1,8 +1,5 @@
-"""A dataset folder as per-scene tensors: what every training path reads.
-
-The targets and descriptors come from ``all_data.csv`` (ratings averaged per stamp), the
-images of the image modality from the decode-once image store.
-"""
+"""A dataset folder as per-scene tensors, what every training path reads: the targets and
+descriptors from ``all_data.csv``, the images from the decode-once image store."""
 
 from __future__ import annotations
 
@@ -23,7 +20,8 @@ from fedlgr.shell.data.splits import FederatedSplit, make_split
 def read_table(config: DataConfig) -> SceneTable:
     """The scenes of ``config.path``'s ``all_data.csv``: what a split is made of, read in
     a moment where decoding the images takes minutes."""
-    return read_ratings(_dataset_folder(Path(config.path)))
+    check_data_path(Path(config.path))
+    return read_ratings(Path(config.path))
 
 
 def load_scenes(
@@ -33,12 +31,11 @@ def load_scenes(
 ) -> Scenes:
     """Load ``config.path`` for ``config.modality`` (decoding images at most once);
     ``table``: its :func:`read_table`, where the caller has read it already."""
-    folder = _dataset_folder(Path(config.path))
-    table = read_ratings(folder) if table is None else table
+    table = read_table(config) if table is None else table
     images = None
     if config.modality == "image":
         store = load_image_store(
-            folder / "images",
+            Path(config.path) / "images",
             table.stamps,
             config.image_size,
             config.crop,
@@ -71,9 +68,3 @@ def load_split(
     if len(scenes.table) != len(table):
         split = make_split(scenes.table, config, scheduled)
     return scenes, split
-
-
-def _dataset_folder(path: Path) -> Path:
-    """``path`` itself, refused when it is not a folder (:func:`check_data_path`)."""
-    check_data_path(path)
-    return path
