@@ -1,8 +1,5 @@
-"""Read and validate ``all_data.csv``, and average the ratings of each scene (docs/data.md).
-
-Every problem in a file is collected, each named by row (row r is line r + 1) or stamp and
-column, so that one run shows what needs fixing.
-"""
+"""Read and validate ``all_data.csv`` and average the ratings of each scene (docs/data.md);
+every problem is collected, named by row (line r + 1) or stamp and column, in one error."""
 
 from __future__ import annotations
 
@@ -49,30 +46,28 @@ def _check_header(path: Path, header: list[str]) -> dict[str, int]:
 
 
 def _parse_cell(text: str, column: str, where: str, problems: list[str]) -> float:
+    at, raw = f"{where}, column {column!r}", text.strip()
+    label = column in LABEL_COLUMNS
     try:
         value = float(text)
     except ValueError:
-        if text.strip() == "" and column in LABEL_COLUMNS:
-            problems.append(f"{where}, column {column!r}: NaN label (empty)")
+        if raw == "" and label:
+            problems.append(f"{at}: NaN label (empty)")
         else:
-            problems.append(f"{where}, column {column!r}: non-numeric value {text!r}")
+            problems.append(f"{at}: non-numeric value {text!r}")
         return math.nan
     if math.isnan(value):
-        kind = "NaN label" if column in LABEL_COLUMNS else "NaN value"
-        problems.append(f"{where}, column {column!r}: {kind}")
+        problems.append(f"{at}: NaN label" if label else f"{at}: NaN value")
     elif math.isinf(value):
-        problems.append(f"{where}, column {column!r}: infinite value {text.strip()!r}")
-    elif column in LABEL_COLUMNS and not LIKERT_MIN <= value <= LIKERT_MAX:
-        problems.append(
-            f"{where}, column {column!r}: Likert value {text.strip()} outside "
-            f"{LIKERT_MIN}..{LIKERT_MAX}"
-        )
+        problems.append(f"{at}: infinite value {raw!r}")
+    elif label and not LIKERT_MIN <= value <= LIKERT_MAX:
+        problems.append(f"{at}: Likert value {raw} outside {LIKERT_MIN}..{LIKERT_MAX}")
     elif column in MODE_COLUMNS and value not in (0.0, 1.0):
-        problems.append(f"{where}, column {column!r}: mode flag {text.strip()} is not 0 or 1")
+        problems.append(f"{at}: mode flag {raw} is not 0 or 1")
     elif column in DESCRIPTOR_COLUMNS and abs(value) > DESCRIPTOR_LIMIT:
         problems.append(
-            f"{where}, column {column!r}: value {text.strip()} is beyond +-{DESCRIPTOR_LIMIT:g} "
-            "(descriptors are normalised to 0..1)"
+            f"{at}: value {raw} is beyond +-{DESCRIPTOR_LIMIT:g} (descriptors are normalised "
+            "to 0..1)"
         )
     return value
 

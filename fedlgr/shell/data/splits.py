@@ -1,8 +1,5 @@
-"""Train/test split, client shards and continual-learning tasks (docs/data.md).
-
-All work on positions into the scenes and are deterministic for a seed; the test set is shared
-by every client.
-"""
+"""Train/test split, client shards and continual-learning tasks (docs/data.md), as positions
+into the scenes, deterministic for a seed; the test set is shared by every client."""
 
 from __future__ import annotations
 
