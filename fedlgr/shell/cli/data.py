@@ -25,7 +25,7 @@ def synth(
     seed: Annotated[int, typer.Option(help="seed of the scenes and ratings")] = 0,
     size: Annotated[int, typer.Option(help="image width and height in pixels")] = 128,
     force: Annotated[bool, typer.Option(help="overwrite a non-empty folder")] = False,
-) -> int:
+) -> None:
     """Write a synthetic living room in the MANNERS-DB layout."""
     from fedlgr.shell.data.synth import synthesize  # lazy: PIL and numpy
 
@@ -42,7 +42,6 @@ def synth(
             zip(LABEL_SHORT_NAMES, map(float, s.label_means), strict=True),
         )
     )
-    return 0
 
 
 @app.command("show", short_help="contact sheet of a few scenes with their labels")
@@ -52,13 +51,12 @@ def show(
     scenes: Annotated[int, typer.Option(help="scenes on the sheet")] = 8,
     seed: Annotated[int, typer.Option(help="seed of the choice of scenes")] = 0,
     crop: Crop = None,
-) -> int:
+) -> None:
     """Contact sheet of a few scenes of FOLDER (a MANNERS-DB-layout folder) with their
     labels."""
     from fedlgr.shell.data.summary import contact_sheet  # lazy: torch and PIL
 
     print(f"wrote {contact_sheet(folder, out, scenes, seed, crop)}")
-    return 0
 
 
 @app.command("check", short_help="validate a dataset folder and summarise it")
@@ -78,7 +76,7 @@ def check(
         ),
     ] = False,
     clients: Annotated[int, typer.Option(help="clients of the split shown")] = 2,
-) -> int:
+) -> None:
     """Validate FOLDER (a MANNERS-DB-layout folder) and summarise it: its scenes, and
     their split between the clients."""
     # lazy: torch, PIL and numpy
@@ -100,4 +98,3 @@ def check(
     print(describe_scenes(scenes))
     print(f"\nloaded in {time.perf_counter() - start:.2f} s\n")
     print(describe_split(split))
-    return 0

@@ -58,7 +58,7 @@ def demo(
     pretrain_images: Annotated[
         int, typer.Option(help="--fcl: augmented images the root is pretrained on")
     ] = 16000,
-) -> int:
+) -> None:
     """Synthesise the living room if absent, then train FedAvg and FedRootAvg on it
     (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.
     Overrides (key=value) apply to both runs."""
@@ -94,7 +94,6 @@ def demo(
         )
         print(table(["method", *(s.label for s in SCORES), "CPU s", "upload", "run s"], rows))
     print_runs_hint(results)
-    return 0
 
 
 def _run_each(path: Path, methods: tuple[str, ...], overrides: list[str]) -> list:

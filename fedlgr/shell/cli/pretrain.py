@@ -25,7 +25,7 @@ def pretrain(
     size: Annotated[int, typer.Option(help="image width and height in pixels")] = 128,
     crop: Crop = None,
     seed: Annotated[int, typer.Option(help="seed of the augmentation and the root")] = 0,
-) -> int:
+) -> None:
     """Train a MobileNetV2 root to predict each scene's 27 descriptors and 2 mode flags
     from its image (no appropriateness labels) and save it for model.weights=FILE: an
     offline stand-in for ImageNet weights. Use a dataset other than the one you evaluate
@@ -43,4 +43,3 @@ def pretrain(
         f"{result.first_loss:.3f} -> {result.last_loss:.3f} (standardised). Use it with "
         f"model.weights={result.path} model.width={width:g}"
     )
-    return 0

@@ -79,7 +79,7 @@ def report(
             "'METHOD (paper)' under each method's runs",
         ),
     ] = False,
-) -> int:
+) -> None:
     """Read the finished runs of an experiment (or the trials of a sweep) from MLflow and
     write Tables I-IV (tableN.md/.tex/.csv: FL and FCL results, FL and FCL costs) and PNG
     plots to --out, then log that folder to MLflow (a run named 'report', or the reported
@@ -112,4 +112,3 @@ def report(
         storage=storage,
     )
     print(masked_text(result.summary(), uri))  # a database's password is not printed
-    return 0

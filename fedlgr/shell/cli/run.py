@@ -83,7 +83,7 @@ def run(
             "run: RUN_ID, or (without one) the latest unfinished run of the same config",
         ),
     ] = None,
-) -> int:
+) -> None:
     """Run one federated experiment, tracked in MLflow. CONFIG is a YAML file, a path or a
     name in conf/ (e.g. conf/experiment/table1/clients2_noaug.yaml, debug/fast.yaml;
     without one: the defaults); overrides are key=value, e.g. method=FedRootAvg
@@ -96,7 +96,7 @@ def run(
     config = conf.load_config(None if path is None else conf.find_config(path), overrides)
     if print_config:
         print(conf.to_yaml(config), end="")
-        return 0
+        return
     check_data_path(config.data.path)  # before torch's import (seconds), as is the next check
     if config.tracking.enabled:  # before torch's import: an unreachable URI fails now
         check_reachable(uri(config))
@@ -113,4 +113,3 @@ def run(
             raise
     if result is not None and result.run_id:
         print(f"MLflow run {result.run_id} (experiment {config.tracking.experiment!r})")
-    return 0

@@ -19,10 +19,9 @@ app = Verbs()
 
 
 @app.command("app", short_help="print the folder of fedlgr's Flower app (for flwr run)")
-def show_app() -> int:
+def show_app() -> None:
     """Print the folder of fedlgr's Flower app (for flwr run)."""
     print(APP_DIR)
-    return 0
 
 
 @app.command(
@@ -37,7 +36,7 @@ def connect(
     ca: launch.Ca = None,
     default: Annotated[bool, typer.Option(help="make it flwr's default")] = False,
     insecure: launch.Insecure = False,
-) -> int:
+) -> None:
     """Point the flwr command at a SuperLink: NAME (e.g. robots) becomes [superlink.NAME]
     in $FLWR_HOME/config.toml."""
     if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
@@ -66,4 +65,3 @@ def connect(
             f"the default stays {links['default']!r}: use --federation {name} "
             "(or connect again with --default)"
         )
-    return 0

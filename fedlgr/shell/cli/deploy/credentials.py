@@ -42,7 +42,7 @@ def certs(
             help="replace the four files in DIR (a symbolic link there is refused all the same)",
         ),
     ] = False,
-) -> int:
+) -> None:
     """Write ca.pem, ca.key, server.pem and server.key to DIR. ca.pem goes to every robot
     and to whoever runs flwr; server.pem and server.key stay on the SuperLink's machine;
     keep ca.key offline."""
@@ -58,7 +58,6 @@ def certs(
     print(f"  {paths['ca.pem']}: to every robot and to whoever runs flwr (--ca)")
     print(f"  {paths['server.pem']}, {paths['server.key']}: stay on the SuperLink's machine")
     print(f"  {paths['ca.key']}: keep offline (it signs certificates)")
-    return 0
 
 
 @app.command(
@@ -88,7 +87,7 @@ def node_key(
             "no run)",
         ),
     ] = False,
-) -> int:
+) -> None:
     """Write DIR/NAME (the private key of robot NAME, e.g. robot0: to that robot only) and
     DIR/NAME.pub (registered with flwr supernode register), and add the robot with its
     client slot and public key to the roster DIR/roster.yaml (a Flower run's
@@ -105,7 +104,6 @@ def node_key(
         member = roster.add(name, public.read_text(), client)
         print(f"added {member} to {roster.write()}")
     print(f"register it with the SuperLink: flwr supernode register {shlex.quote(str(public))}")
-    return 0
 
 
 def _check_name(name: str) -> None:

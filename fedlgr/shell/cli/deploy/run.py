@@ -48,7 +48,7 @@ def run(
         ),
     ] = None,
     print_command: launch.PrintCommand = False,
-) -> int:
+) -> None:
     """Run fedlgr's app on the SuperLink: CONFIG (the config file, as in fedlgr run; made
     absolute) must exist at that path on the SuperLink's machine; key=value overrides as
     in fedlgr run."""
@@ -66,7 +66,7 @@ def run(
     _check_connection(federation)  # with --print-command too: the command must work
     print(shlex.join(cmd), flush=True)
     if print_command:
-        return 0
+        return
     _check_config(path, overrides)
     env = {**launch.flower_env(flwr), "PYTHONUNBUFFERED": "1"}
     run_id = _stream(cmd, env, link)
@@ -76,7 +76,6 @@ def run(
         details = masked_uris(" ".join(str(row.get("status-details") or "no details").split()))
         raise FedlgrError(f"Flower run {run_id} ended {row['status']}: {details}")
     print(f"fedlgr: Flower run {run_id} finished:completed")
-    return 0
 
 
 def _refuse_passwords(overrides: list[str]) -> None:
