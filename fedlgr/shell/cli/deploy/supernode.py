@@ -21,6 +21,65 @@ SUPERNODE_PORT = 9094  # the SuperNode's local API; one per SuperNode on a machi
 
 app = Verbs()
 
+# The options whose help takes several lines, declared here to keep supernode() short.
+OwnData = Annotated[
+    bool,
+    typer.Option(
+        help="the robot's own data: all of --data is its shard, split into its own train and "
+        "test scenes by data.seed (default: --data holds the whole dataset and the robot "
+        "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
+    ),
+]
+Client = Annotated[
+    int | None,
+    typer.Option(
+        metavar="K",
+        help="the client slot this robot expects; the roster decides, and a run whose roster "
+        "gives its key another slot is refused by the robot (default: whatever the roster "
+        "says)",
+    ),
+]
+Weights = Annotated[
+    Path | None,
+    typer.Option(
+        metavar="FILE",
+        help="this robot's copy of the root weights file, for runs whose model.weights is a "
+        "file (a robot never reads a path the server names)",
+    ),
+]
+IdleS = Annotated[
+    float | None,
+    typer.Option(
+        metavar="S",
+        help="the robot service (which keeps data and models loaded between messages) "
+        "leaves after S seconds without a message (default 900)",
+    ),
+]
+PollS = Annotated[
+    float,
+    typer.Option(
+        metavar="S",
+        help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (Flower's own "
+        "is 3, which every round waited out)",
+    ),
+]
+HeartbeatS = Annotated[
+    float,
+    typer.Option(
+        metavar="S",
+        help="the heartbeat interval this robot declares, 10 to 1800 (the default is "
+        "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
+        "restarted SuperNode, after two intervals",
+    ),
+]
+ColdApps = Annotated[
+    bool,
+    typer.Option(
+        help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
+        "default they are forked from a process that has imported them",
+    ),
+]
+
 
 @app.command("supernode", short_help="start a robot's SuperNode (runs the ClientApp on its data)")
 def supernode(
@@ -30,37 +89,15 @@ def supernode(
     key: Annotated[
         Path | None, typer.Option(metavar="KEY", help="the robot's private node key")
     ] = None,
-    own_data: Annotated[
-        bool,
-        typer.Option(
-            help="the robot's own data: all of --data is its shard, split into its own train and "
-            "test scenes by data.seed (default: --data holds the whole dataset and the robot "
-            "takes its slot's shard of it, as in fedlgr run - for reproducing a simulation)",
-        ),
-    ] = False,
-    client: Annotated[
-        int | None,
-        typer.Option(
-            metavar="K",
-            help="the client slot this robot expects; the roster decides, and a run whose roster "
-            "gives its key another slot is refused by the robot (default: whatever the roster "
-            "says)",
-        ),
-    ] = None,
+    own_data: OwnData = False,
+    client: Client = None,
     state_dir: Annotated[
         Path | None, typer.Option(metavar="DIR", help="private state between runs")
     ] = None,
     cache_dir: Annotated[
         Path | None, typer.Option(metavar="DIR", help="decoded-image cache")
     ] = None,
-    weights: Annotated[
-        Path | None,
-        typer.Option(
-            metavar="FILE",
-            help="this robot's copy of the root weights file, for runs whose model.weights is a "
-            "file (a robot never reads a path the server names)",
-        ),
-    ] = None,
+    weights: Weights = None,
     threads: Annotated[int | None, typer.Option(metavar="N", help="torch threads")] = None,
     max_retries: Annotated[
         int | None, typer.Option(metavar="N", help="give up after N failed connections")
@@ -68,38 +105,10 @@ def supernode(
     max_wait_time: Annotated[
         float | None, typer.Option(metavar="S", help="give up after S seconds of trying")
     ] = None,
-    idle_s: Annotated[
-        float | None,
-        typer.Option(
-            metavar="S",
-            help="the robot service (which keeps data and models loaded between messages) "
-            "leaves after S seconds without a message (default 900)",
-        ),
-    ] = None,
-    poll_s: Annotated[
-        float,
-        typer.Option(
-            metavar="S",
-            help="how often an idle robot asks the SuperLink for work, 0.05 to 3 (Flower's own "
-            "is 3, which every round waited out)",
-        ),
-    ] = 0.5,
-    heartbeat_s: Annotated[
-        float,
-        typer.Option(
-            metavar="S",
-            help="the heartbeat interval this robot declares, 10 to 1800 (the default is "
-            "Flower's): the SuperLink declares a silent robot lost, and takes back its key from a "
-            "restarted SuperNode, after two intervals",
-        ),
-    ] = 30.0,
-    cold_apps: Annotated[
-        bool,
-        typer.Option(
-            help="start each ClientApp as Flower does, a new process per message (~3 s each); by "
-            "default they are forked from a process that has imported them",
-        ),
-    ] = False,
+    idle_s: IdleS = None,
+    poll_s: PollS = 0.5,
+    heartbeat_s: HeartbeatS = 30.0,
+    cold_apps: ColdApps = False,
     port: Annotated[int, typer.Option(help="its local API")] = SUPERNODE_PORT,
     insecure: launch.Insecure = False,
     print_command: launch.PrintCommand = False,
