@@ -104,14 +104,11 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
         with torch_guarded(args.verb):  # under `ulimit -v`: room for torch, or one line
             return args.run() or 0
-    except FedlgrError as err:
-        print(f"fedlgr: error: {out_of_address_space(err, args.verb) or err}", file=sys.stderr)
-        return 1
-    except (MemoryError, ImportError, OSError, RuntimeError) as err:
+    except (FedlgrError, MemoryError, ImportError, OSError, RuntimeError) as err:
         problem = out_of_address_space(err, args.verb) or _symlink_loop(err)
-        if problem is None:
+        if problem is None and not isinstance(err, FedlgrError):
             raise
-        print(f"fedlgr: error: {problem}", file=sys.stderr)
+        print(f"fedlgr: error: {problem or err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as err:
         return _interrupted(err, exits=argv is None)

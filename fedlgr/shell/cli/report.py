@@ -1,5 +1,4 @@
-"""``fedlgr report [--experiment NAME | --sweep NAME [--study NAME] [--storage URL]]
-[--where KEY=VALUE] [--out DIR] [--tracking-uri URI]``."""
+"""``fedlgr report``: the paper's tables and plots from the runs (or a sweep's trials) in MLflow."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
 """``fedlgr deploy certs | node-key | app | connect | superlink | supernode | run``: fedlgr on
-Flower's Deployment Runtime (docs/deployment.md); each prints the Flower command it runs.
-"""
+Flower's Deployment Runtime (docs/deployment.md); each prints the Flower command it runs."""
 
 from __future__ import annotations
 

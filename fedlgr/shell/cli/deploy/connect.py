@@ -50,12 +50,11 @@ def connect(
     else:
         entry["root-certificates"] = str(launch.certificates(ca))
     path, config = launch.flower_config()
-    home = path.parent
     links = config.setdefault("superlink", {})
     links[name] = entry
     if default or "default" not in links:
         links["default"] = name
-    home.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(".toml.partial")
     partial.write_text(tomli_w.dumps(config))
     partial.replace(path)

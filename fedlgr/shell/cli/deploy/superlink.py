@@ -133,9 +133,7 @@ def _security(tls: tuple[Path, Path, Path] | None) -> list[str]:
     if tls is None:
         return ["--insecure"]
     names = ("--ssl-ca-certfile", "--ssl-certfile", "--ssl-keyfile")
-    flags = []
-    for flag, path in zip(names, tls, strict=True):
-        flags += [flag, str(path)]
+    flags = [text for pair in zip(names, map(str, tls), strict=True) for text in pair]
     return [*flags, "--enable-supernode-auth"]
 
 
