@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from fedlgr.core.data.columns import LABEL_SHORT_NAMES, LIKERT_MAX, LIKERT_MIN
@@ -33,14 +34,9 @@ def describe_scenes(scenes: Scenes) -> str:
         _, _, h, w = scenes.images.shape
         head += f", images {w}x{h}"
     targets = scenes.targets
+    stats = (torch.mean, torch.std, torch.min, torch.max)
     rows = [
-        (
-            name,
-            float(targets[:, j].mean()),
-            float(targets[:, j].std()),
-            float(targets[:, j].min()),
-            float(targets[:, j].max()),
-        )
+        (name, *(float(stat(targets[:, j])) for stat in stats))
         for j, name in enumerate(LABEL_SHORT_NAMES)
     ]
     return head + "\n\n" + table(["action", "mean", "sd", "min", "max"], rows)

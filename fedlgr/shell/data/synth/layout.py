@@ -148,14 +148,10 @@ def _sofa(rng: np.random.Generator) -> tuple[tuple[float, float, float, float], 
     side = str(rng.choice(["top", "bottom", "left", "right"]))
     length, depth = 0.32, 0.11
     start = float(rng.uniform(0.12, 0.88 - length))
-    lo, hi = WALL, 1 - WALL
-    if side == "top":
-        return (start, lo, start + length, lo + depth), side
-    if side == "bottom":
-        return (start, hi - depth, start + length, hi), side
-    if side == "left":
-        return (lo, start, lo + depth, start + length), side
-    return (hi - depth, start, hi, start + length), side
+    lo, hi = (WALL, WALL + depth) if side in ("top", "left") else (1 - WALL - depth, 1 - WALL)
+    if side in ("top", "bottom"):
+        return (start, lo, start + length, hi), side
+    return (lo, start, hi, start + length), side
 
 
 def _inside(rect: tuple[float, float, float, float], x: float, y: float, margin: float) -> bool:
