@@ -212,19 +212,13 @@ def _read_cache(cache_file: Path, wanted: list[int], size: int, n_missing: int):
         saved = torch.load(cache_file, weights_only=True)
     except Exception as err:
         # torch.load raises any of many errors on damage; a damaged cache is rebuilt, never fatal
-        reason = first_line(err)
-        warnings.warn(
-            f"{cache_file}: unreadable image cache, decoding again ({reason})", stacklevel=3
-        )
-        return None
-    problem = _cache_mismatch(saved, wanted, size, n_missing)
-    if problem is not None:
-        warnings.warn(
-            f"{cache_file}: image cache does not match its key ({problem}), decoding again",
-            stacklevel=3,
-        )
-        return None
-    return ImageStore(saved["stamps"].numpy(), saved["images"], tuple(saved["skipped"]))
+        problem = f"unreadable image cache, decoding again ({first_line(err)})"
+    else:
+        if (mismatch := _cache_mismatch(saved, wanted, size, n_missing)) is None:
+            return ImageStore(saved["stamps"].numpy(), saved["images"], tuple(saved["skipped"]))
+        problem = f"image cache does not match its key ({mismatch}), decoding again"
+    warnings.warn(f"{cache_file}: {problem}", stacklevel=3)
+    return None
 
 
 def _describe(value) -> str:
@@ -241,13 +235,9 @@ def _cache_mismatch(saved, wanted: list[int], size: int, n_missing: int) -> str 
     stamps, images, skipped = saved["stamps"], saved["images"], saved["skipped"]
     if not (isinstance(stamps, torch.Tensor) and stamps.dtype == torch.int64 and stamps.ndim == 1):
         return f"stamps {_describe(stamps)}, expected (N,) int64"
-    expected = (len(stamps), 3, size, size)
-    if not (
-        isinstance(images, torch.Tensor)
-        and images.dtype == torch.uint8
-        and tuple(images.shape) == expected
-    ):
-        return f"images {_describe(images)}, expected {expected} uint8"
+    expected = f"{(len(stamps), 3, size, size)} uint8"
+    if _describe(images) != expected:
+        return f"images {_describe(images)}, expected {expected}"
     position = {s: k for k, s in enumerate(wanted)}
     order = [position.get(s, -1) for s in stamps.tolist()]
     if not order or -1 in order or order != sorted(set(order)):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections import Counter
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -35,11 +36,7 @@ def _check_header(path: Path, header: list[str]) -> dict[str, int]:
     names = [h.strip() for h in header]
     problems = [f"missing column {c!r}" for c in ALL_COLUMNS if c not in names]
     problems += [f"unexpected column {c!r}" for c in names if c not in ALL_COLUMNS]
-    problems += [
-        f"column {c!r} appears {names.count(c)} times"
-        for c in dict.fromkeys(names)
-        if names.count(c) > 1
-    ]
+    problems += [f"column {c!r} appears {k} times" for c, k in Counter(names).items() if k > 1]
     if problems:
         raise DataError(join_problems(str(path), problems))
     return {c: names.index(c) for c in ALL_COLUMNS}
