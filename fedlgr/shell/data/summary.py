@@ -115,12 +115,8 @@ def contact_sheet(
         picture = decode(match.files[stamp], TILE - 8, crop).permute(1, 2, 0).numpy()
         sheet.paste(Image.fromarray(picture), (x0 + 4, y0 + 4))
         mode = "circle" if table.circle[i] else "arrow"
-        draw.text(
-            (x0 + 6, y0 + TILE),
-            f"stamp {stamp} - {mode} - {table.n_ratings[i]} raters",
-            fill="black",
-            font=font,
-        )
+        caption = f"stamp {stamp} - {mode} - {table.n_ratings[i]} raters"
+        draw.text((x0 + 6, y0 + TILE), caption, fill="black", font=font)
         for j, (name, value) in enumerate(zip(LABEL_SHORT_NAMES, targets[i], strict=True)):
             y = y0 + TILE + 17 + 15 * j
             draw.text((x0 + 6, y), name, fill="black", font=font)

@@ -177,8 +177,6 @@ def _robot(cv: _Canvas, layout: Layout) -> None:
 
 def render(layout: Layout, size: int = 128) -> Image.Image:
     """A ``size`` x ``size`` RGB picture of the scene."""
-    if layout.style is None:
-        raise ValueError("layout has no style to render")
     cv = _Canvas(size, layout.style.wall)
     _floor(cv, layout)
     _furniture(cv, layout)

@@ -340,6 +340,4 @@ def descriptors(layout: Layout) -> np.ndarray:
         float(layout.music),
         (len(layout.people) + len(layout.animals) + 1) / MAX_AGENTS,
     ]
-    out = np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
-    assert out.shape == (27,)
-    return out
+    return np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
