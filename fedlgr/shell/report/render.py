@@ -1,8 +1,5 @@
-"""A :class:`~fedlgr.shell.report.tables.Table` as Markdown, LaTeX and CSV.
-
-Markdown and LaTeX mark a column's best **bold** and second-best [bracketed], as the paper
-does; the CSV holds the same values unrounded and unmarked.
-"""
+"""A :class:`~fedlgr.shell.report.tables.Table` as Markdown and LaTeX, the best of a column
+**bold** and the second-best [bracketed] as in the paper, and as CSV, unrounded and unmarked."""
 
 from __future__ import annotations
 
@@ -10,7 +7,7 @@ import csv
 import io
 from itertools import groupby
 
-from fedlgr.shell.report.tables import Cell, Column, Table
+from fedlgr.shell.report.tables import Cell, Table
 
 MISSING = "—"
 ARROWS = {True: " ▼", False: " ▲", None: ""}
@@ -21,37 +18,30 @@ TEX_ARROWS = {True: r" $\blacktriangledown$", False: r" $\blacktriangle$", None:
 
 
 def to_markdown(table: Table) -> str:
-    headers = [table.row_header] + [_md_header(c) for c in table.columns]
+    headers = [table.row_header]
+    headers += [" · ".join(c.header) + ARROWS[c.lower_is_better] for c in table.columns]
     lines = [f"## Table {table.number}: {table.caption}", ""]
     for block in table.blocks:
-        lines += [f"**{block.title}**", "", _md_row(headers)]
-        lines.append(_md_row(["---"] + ["---:"] * len(table.columns)))
+        lines += [f"**{block.title}**", "", md_row(headers)]
+        lines.append(md_row(["---"] + ["---:"] * len(table.columns)))
         for label, cells in block.rows:
-            label = _md_escape(label) + ARROWS[table.row_direction]
-            lines.append(_md_row([label] + [_md_cell(c) for c in cells]))
+            label += ARROWS[table.row_direction]
+            lines.append(md_row([label] + [_md_cell(c) for c in cells]))
         lines.append("")
     for note in table.notes:  # separate paragraphs
         lines += [note, ""]
     return "\n".join(lines)
 
 
-def _md_header(column: Column) -> str:
-    return _md_escape(" · ".join(column.header)) + ARROWS[column.lower_is_better]
-
-
 def _md_cell(cell: Cell) -> str:
     if cell.value is None:
         return MISSING
     text = {"best": "**{}**", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
-    return text + _md_escape(cell.detail()) + _reduction(cell, "(▼ {:.1f}%)", "(▲ {:.1f}%)")
+    return text + cell.detail() + _reduction(cell, "(▼ {:.1f}%)", "(▲ {:.1f}%)")
 
 
-def _md_row(cells: list[str]) -> str:
-    return "| " + " | ".join(cells) + " |"
-
-
-def _md_escape(text: str) -> str:
-    return text.replace("|", r"\|")
+def md_row(cells: list[str]) -> str:
+    return "| " + " | ".join(c.replace("|", r"\|") for c in cells) + " |"
 
 
 def _reduction(cell: Cell, down: str, up: str) -> str:
@@ -67,7 +57,7 @@ def to_latex(table: Table) -> str:
     """A ``table*`` with booktabs rules (needs ``\\usepackage{booktabs,amssymb}``)."""
     columns = table.columns
     width = len(columns) + 1
-    spec = "l|" + "|".join("c" * len(list(g)) for _, g in groupby(columns, key=_group))
+    spec = "l|" + "|".join("c" * len(list(g)) for _, g in groupby(columns, key=lambda c: c.group))
     lines = [
         f"% Table {table.number}, written by fedlgr report; needs booktabs and amssymb.",
         r"\begin{table*}[t]",
@@ -101,10 +91,6 @@ def to_latex(table: Table) -> str:
     return "\n".join(lines)
 
 
-def _group(column: Column) -> str:
-    return column.group
-
-
 def _tex_cell(cell: Cell) -> str:
     if cell.value is None:
         return MISSING
@@ -122,22 +108,14 @@ def _tex_note(note: str) -> str:
     return text.replace("▼", r"$\blacktriangledown$").replace("▲", r"$\blacktriangle$")
 
 
-_TEX_SPECIAL = {
-    "\\": r"\textbackslash{}",
-    "&": r"\&",
-    "%": r"\%",
-    "$": r"\$",
-    "#": r"\#",
-    "_": r"\_",
-    "{": r"\{",
-    "}": r"\}",
-    "~": r"\textasciitilde{}",
-    "^": r"\textasciicircum{}",
-}
+_TEX_SPECIAL = str.maketrans(
+    {ch: "\\" + ch for ch in "&%$#_{}"}
+    | {"\\": r"\textbackslash{}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
+)
 
 
 def _tex(text: str) -> str:
-    return "".join(_TEX_SPECIAL.get(ch, ch) for ch in text)
+    return text.translate(_TEX_SPECIAL)
 
 
 # --------------------------------------------------------------------------- CSV
@@ -149,19 +127,23 @@ def to_csv(table: Table) -> str:
         header += [column.key, f"{column.key} std", f"{column.key} n"]
         if column.reduces:
             header.append(f"{column.key} reduction %")
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(header)
+    rows = [header]
     for block in table.blocks:
         for label, cells in block.rows:
             row = [block.title, label]
             for column, cell in zip(table.columns, cells, strict=True):
-                row += [_number(cell.value), _number(cell.std), str(cell.runs)]
+                row += [csv_number(cell.value), csv_number(cell.std), str(cell.runs)]
                 if column.reduces:
-                    row.append(_number(cell.reduction))
-            writer.writerow(row)
+                    row.append(csv_number(cell.reduction))
+            rows.append(row)
+    return csv_text(rows)
+
+
+def csv_text(rows: list[list[str]]) -> str:
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerows(rows)
     return buffer.getvalue()
 
 
-def _number(value: float | None) -> str:
+def csv_number(value: float | None) -> str:
     return "" if value is None else repr(float(value))

@@ -93,11 +93,7 @@ class RunRecord:
     def swept(self) -> dict[str, object]:
         """A sweep trial's swept values (tag ``swept``) but those that choose its table cell
         and the seeds; {} for other runs."""
-        try:
-            params = json.loads(self.tags.get("swept", "{}"))
-        except ValueError:
-            return {}
-        return {k: v for k, v in params.items() if k not in CELL_KEYS}
+        return {k: v for k, v in swept_values(self.tags).items() if k not in CELL_KEYS}
 
     def value(self, metric: str) -> float | None:
         v = self.metrics.get(metric)
@@ -272,6 +268,14 @@ def _one_study(
         f"{chosen.label()}; not reported: {others}. Choose one with --study NAME or "
         "--study PARENT_RUN_ID"
     ]
+
+
+def swept_values(tags: dict[str, str]) -> dict[str, Any]:
+    """A sweep trial's swept values (tag ``swept``); {} for other runs."""
+    try:
+        return json.loads(tags.get("swept", "{}"))
+    except ValueError:
+        return {}
 
 
 def safe_name(name: str) -> str:

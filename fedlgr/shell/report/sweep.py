@@ -1,15 +1,11 @@
-"""A sweep's own report: each trial's swept settings against the objective and the scores.
-
-The study is read from the Optuna storage its parent run's tags name or, where that cannot be
-reached, from the parent run's child runs in MLflow.
-"""
+"""A sweep's own report: each trial's swept settings against the objective and the scores, read
+from the study's Optuna storage (else its parent run's child runs in MLflow), and Optuna's plots."""
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,13 +13,16 @@ from typing import Any
 from fedlgr.core.metrics import headline_scores
 from fedlgr.shell.checks.stores import check_database
 from fedlgr.shell.config import short_setting
-from fedlgr.shell.report.runs import Selection, pages
-from fedlgr.shell.report.sweep_plots import write_study_plots
+from fedlgr.shell.report.plots import pyplot
+from fedlgr.shell.report.render import csv_number, csv_text, md_row
+from fedlgr.shell.report.runs import Selection, pages, swept_values
 from fedlgr.shell.report.tables import Table
 from fedlgr.shell.tracking.uri import mask_password, server_database, sqlite_file
 
 PARENT_ATTR = "mlflow_parent_run_id"  # the study's user attribute naming its parent run
 MLFLOW_STATES = {"FINISHED": "COMPLETE", "KILLED": "PRUNED", "FAILED": "FAIL"}
+# fANOVA fits a random forest to the completed trials: on fewer points it ranks noise.
+MIN_TRIALS_FOR_IMPORTANCE = 6
 
 
 def headline() -> list[tuple[str, str]]:
@@ -120,21 +119,19 @@ def _optuna_row(trial, runs: dict[str, Any]) -> TrialRow | None:
     if "duplicate_of" in trial.user_attrs:
         return None
     run = runs.get(trial.user_attrs.get("mlflow_run_id", ""))
-    metrics = run.data.metrics if run is not None else {}
-    scores = {m: metrics[m] for m, _ in headline() if m in metrics}
+    scores = _scores(run.data.metrics if run is not None else {})
     return TrialRow(trial.number, dict(trial.params), trial.value, scores, trial.state.name)
 
 
 def _mlflow_row(run, metric: str) -> TrialRow:
-    metrics = run.data.metrics
-    try:
-        params = json.loads(run.data.tags.get("swept", "{}"))
-    except ValueError:
-        params = {}
+    metrics, tags = run.data.metrics, run.data.tags
     state = MLFLOW_STATES.get(run.info.status, run.info.status)
     value = metrics.get(metric) if state == "COMPLETE" else None
-    scores = {m: metrics[m] for m, _ in headline() if m in metrics}
-    return TrialRow(int(run.data.tags["trial"]), params, value, scores, state)
+    return TrialRow(int(tags["trial"]), swept_values(tags), value, _scores(metrics), state)
+
+
+def _scores(metrics: dict[str, float]) -> dict[str, float]:
+    return {m: metrics[m] for m, _ in headline() if m in metrics}
 
 
 def _rank(row: TrialRow, direction: str) -> tuple:
@@ -162,9 +159,9 @@ def columns(trials: Trials) -> list[tuple[str, str]]:
 
 def _cells(trials: Trials, row: TrialRow, shown: bool) -> list[str]:
     def number(v: float | None) -> str:
-        if v is None:
-            return "—" if shown else ""
-        return f"{v:.4f}" if shown else repr(float(v))
+        if not shown:
+            return csv_number(v)
+        return "—" if v is None else f"{v:.4f}"
 
     params = [str(row.params[p]) if p in row.params else "" for p in trials.params]
     scores = [number(row.scores.get(m)) for m, _ in headline()]
@@ -173,26 +170,22 @@ def _cells(trials: Trials, row: TrialRow, shown: bool) -> list[str]:
 
 def to_markdown(trials: Trials, sweep: str) -> str:
     """The trials as a Markdown table, best first, the best in bold."""
-    heads = [h.replace("|", r"\|") for _, h in columns(trials)]
+    heads = [h for _, h in columns(trials)]
     lines = [f"## Sweep `{sweep}`: every trial, best first by its objective", ""]
-    lines += ["| " + " | ".join(heads) + " |", "| " + " | ".join(["---:"] * len(heads)) + " |"]
+    lines += [md_row(heads), md_row(["---:"] * len(heads))]
     for k, row in enumerate(trials.rows):
         cells = _cells(trials, row, shown=True)
         if k == 0 and row.value is not None:
             cells = [f"**{c}**" for c in cells]
-        lines.append("| " + " | ".join(c.replace("|", r"\|") for c in cells) + " |")
+        lines.append(md_row(cells))
     lines += ["", f"Read from the {trials.source}; the scores are each trial's MLflow run's."]
     return "\n".join([*lines, *(f"\n{n}" for n in trials.notes), ""])
 
 
 def to_csv(trials: Trials) -> str:
     """The same rows, unrounded; an empty cell where there is no value."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow([key for key, _ in columns(trials)])
-    for row in trials.rows:
-        writer.writerow(_cells(trials, row, shown=False))
-    return buffer.getvalue()
+    header = [key for key, _ in columns(trials)]
+    return csv_text([header, *(_cells(trials, row, shown=False) for row in trials.rows)])
 
 
 # --------------------------------------------------------------------------- the report
@@ -202,7 +195,6 @@ def to_csv(trials: Trials) -> str:
 class SweepViews:
     """What a sweep's report adds to the paper's tables."""
 
-    files: list[str]  # trials.md, trials.csv
     plots: list[str]  # Optuna's PNGs
     trials: int
     source: str
@@ -221,8 +213,54 @@ def write_sweep_views(selection: Selection, out: Path, storage: str | None) -> S
         trials.notes += notes
     (out / "trials.md").write_text(to_markdown(trials, selection.name), encoding="utf-8")
     (out / "trials.csv").write_text(to_csv(trials), encoding="utf-8")
-    files = ["trials.md", "trials.csv"]
-    return SweepViews(files, plots, len(trials.rows), trials.source, trials.notes)
+    return SweepViews(plots, len(trials.rows), trials.source, trials.notes)
+
+
+def write_study_plots(study: Any, metric: str, params: list[str], out: Path) -> tuple[list, list]:
+    """Draw the plots that fit the study into ``out``; returns the files written and the
+    lines that say which were left out and why."""
+    import optuna  # lazy: optuna and matplotlib (seconds), only for a sweep's report
+    from optuna.visualization import matplotlib as views  # lazy: as optuna
+
+    done = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+    if not done:
+        return [], ["Optuna's plots: not drawn, no trial completed."]
+    varied = [p for p in params if len({repr(t.params.get(p)) for t in done}) > 1]
+    plots = {
+        "optuna_history.png": lambda: views.plot_optimization_history(study, target_name=metric),
+        "optuna_slice.png": lambda: views.plot_slice(study, params=params, target_name=metric),
+    }
+    notes = []
+    if len(varied) >= 2 and len(done) >= MIN_TRIALS_FOR_IMPORTANCE:
+        plots["optuna_importances.png"] = lambda: views.plot_param_importances(
+            study, params=varied, target_name=metric
+        )
+    else:
+        notes.append(
+            f"Parameter importances: not drawn; they need 2 or more swept settings that vary "
+            f"and {MIN_TRIALS_FOR_IMPORTANCE} completed trials (this study: {len(varied)} "
+            f"varying, {len(done)} completed)."
+        )
+    if len(varied) >= 2:
+        plots["optuna_contour.png"] = lambda: views.plot_contour(
+            study, params=varied, target_name=metric
+        )
+    else:
+        notes.append("Contour plot: not drawn; it needs 2 or more swept settings that vary.")
+    plt = pyplot()
+    written = []
+    for name, draw in plots.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            drawn = draw()
+        figure = drawn.figure if hasattr(drawn, "figure") else drawn.flat[0].figure
+        if name == "optuna_slice.png":  # long values (1000000) side by side overlap
+            for ax in figure.axes[: len(params)]:
+                ax.tick_params(axis="x", labelrotation=30)
+        figure.savefig(out / name, dpi=110, bbox_inches="tight")
+        plt.close(figure)
+        written.append(name)
+    return written, notes
 
 
 def without_empty(table: Table) -> Table:
