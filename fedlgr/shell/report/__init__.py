@@ -9,11 +9,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fedlgr.core.metrics import headline_scores
 from fedlgr.shell.checks.paths import broken_link
 from fedlgr.shell.report import runs as mlflow_runs
 from fedlgr.shell.report.cells import best_per_cell, check_cells, newest_per_seed
 from fedlgr.shell.report.paper import with_paper
-from fedlgr.shell.report.plots import curve_keys, write_plots
+from fedlgr.shell.report.plots import write_plots
 from fedlgr.shell.report.render import to_csv, to_latex, to_markdown
 from fedlgr.shell.report.runs import ReportError, RunRecord, safe_name
 from fedlgr.shell.report.sweep import SweepViews, without_empty, write_sweep_views
@@ -151,7 +152,8 @@ def make_report(
         for suffix, render in ((".md", to_markdown), (".tex", to_latex), (".csv", to_csv)):
             (out / f"{table.name}{suffix}").write_text(render(table), encoding="utf-8")
         result.tables.append((table.name, table.runs))
-    histories = {m: mlflow_runs.metric_histories(client, records, m) for m in curve_keys()}
+    curves = [f"test/{s.name}" for s in headline_scores()]
+    histories = {m: mlflow_runs.metric_histories(client, records, m) for m in curves}
     result.plots = write_plots(records, histories, out)
     if selection.sweep:
         result.sweep = write_sweep_views(selection, out, storage)

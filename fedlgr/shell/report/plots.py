@@ -6,62 +6,49 @@ A line or bar per method (the mean over its runs), per setting; a plot without d
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from fedlgr.core.metrics import headline_scores
 from fedlgr.shell.report.runs import RunRecord
-from fedlgr.shell.report.tables import BLOCKS, method_order
+from fedlgr.shell.report.tables import method_order, setting_label
 
 Setting = tuple[int, bool]  # (clients, augmentation)
 Series = dict[Setting, dict[str, list[tuple[int, float]]]]  # setting -> method -> points
 Bars = dict[Setting, dict[str, float]]  # setting -> method -> value
 
 
-def setting_label(setting: Setting) -> str:
-    clients, augmented = setting
-    return f"{clients} clients, {dict(BLOCKS)[augmented]}"
-
-
-def curve_keys() -> list[str]:
-    """The metrics drawn per round, whose histories :func:`write_plots` takes."""
-    return [f"test/{s.name}" for s in headline_scores()]
-
-
 def write_plots(
     records: Sequence[RunRecord], histories: dict[str, dict[str, list]], out: Path
 ) -> list[str]:
-    """Every plot that has data; ``histories[metric][run_id]`` = [(round, value), ...].
-    Returns the file names written."""
+    """Every plot that has data; ``histories[metric][run_id]`` = [(round, value), ...] of
+    each headline score ``test/{name}``. Returns the file names written."""
     written = []
     for benchmark in ("FL", "FCL"):
         runs = [r for r in records if r.benchmark == benchmark]
         if not runs:
             continue
-        order = method_order(benchmark, runs)
-        prefix = benchmark.lower()
         curves = {
             f"test {s.label}": mean_curves(runs, histories.get(f"test/{s.name}", {}))
             for s in headline_scores()
         }
-        name = f"{prefix}_curves.png"
-        if curves_plot(out / name, f"{benchmark}: test scores per round", curves, order):
-            written.append(name)
+        plots = {f"{benchmark.lower()}_curves.png": (curves_plot, "test scores per round", curves)}
         if benchmark == "FCL":
             bars = {
-                f"forgetting of Task 1, {s.label}": forgetting_bars(runs, s.name)
+                f"forgetting of Task 1, {s.label}": mean_bars(runs, task1_forgetting, s.name)
                 for s in headline_scores()
             }
-            title = "FCL: forgetting of Task 1 after the last task (positive = forgotten)"
-            if bar_plot(out / "forgetting.png", title, bars, order):
-                written.append("forgetting.png")
+            title = "forgetting of Task 1 after the last task (positive = forgotten)"
+            plots["forgetting.png"] = (bar_plot, title, bars)
         costs = {
-            "CPU s per client per round": mean_bars(runs, "mean/cost/cpu_s"),
-            "GPU % per client per round": mean_bars(runs, "mean/cost/gpu_util"),
+            "CPU s per client per round": mean_bars(runs, RunRecord.value, "mean/cost/cpu_s"),
+            "GPU % per client per round": mean_bars(runs, RunRecord.value, "mean/cost/gpu_util"),
         }
-        name = f"{prefix}_costs.png"
-        if bar_plot(out / name, f"{benchmark}: costs per client per round", costs, order):
-            written.append(name)
+        plots[f"{benchmark.lower()}_costs.png"] = (bar_plot, "costs per client per round", costs)
+        order = method_order(benchmark, runs)
+        for name, (draw, title, panels) in plots.items():
+            if draw(out / name, f"{benchmark}: {title}", panels, order):
+                written.append(name)
     return written
 
 
@@ -81,23 +68,16 @@ def mean_curves(runs: Sequence[RunRecord], history: dict[str, list]) -> Series:
     }
 
 
-def mean_bars(runs: Sequence[RunRecord], metric: str) -> Bars:
+def mean_bars(
+    runs: Sequence[RunRecord], read: Callable[[RunRecord, str], float | None], metric: str
+) -> Bars:
+    """Per setting and method, the mean of ``read(run, metric)`` over the runs that have it."""
     values: dict[Setting, dict[str, list[float]]] = {}
     for r in runs:
-        v = r.value(metric)
+        v = read(r, metric)
         if v is not None:
             values.setdefault((r.clients, r.augmentation), {}).setdefault(r.method, []).append(v)
     return {s: {m: sum(v) / len(v) for m, v in ms.items()} for s, ms in values.items()}
-
-
-def forgetting_bars(runs: Sequence[RunRecord], metric: str) -> Bars:
-    """Task 1's forgetting after the last task of each run that measured it."""
-    bars: dict[Setting, dict[str, list[float]]] = {}
-    for r in runs:
-        value = task1_forgetting(r, metric)
-        if value is not None:
-            bars.setdefault((r.clients, r.augmentation), {}).setdefault(r.method, []).append(value)
-    return {s: {m: sum(v) / len(v) for m, v in ms.items()} for s, ms in bars.items()}
 
 
 def task1_forgetting(run: RunRecord, metric: str) -> float | None:

@@ -1,8 +1,5 @@
-"""The paper's Tables I-IV as data, built from run records (pure: no MLflow, no files).
-
-Tables I/II give each method's scores, the best and second-best marked; Tables III/IV its costs,
-each FedRoot variant beside its full-model counterpart with its reduction in %.
-"""
+"""The paper's Tables I-IV as data, built from run records (pure: no MLflow, no files): each
+method's scores, the best two marked, and its costs, FedRoot's reduction against the full model."""
 
 from __future__ import annotations
 
@@ -23,21 +20,13 @@ BLOCKS = ((False, "W/O augmentation"), (True, "W/ augmentation"))
 # The server process's CPU over clients x rounds: what the paper's Tables III/IV measured
 # (docs/methods.md, "Table III and IV: what the paper measured"); a row only where runs have it.
 PAPER_CPU = "mean/cost/paper_cpu_s"
-
-
-def _cost_rows() -> tuple[tuple[str, str, float, int], ...]:
-    """Row label, run-level metric, scale and decimals of every cost with a report label;
-    the paper's CPU after the CPU."""
-    rows = []
-    for c in METRIC_COSTS:
-        if c.label:
-            rows.append((c.label, f"mean/{c.key}", c.scale, c.decimals))
-        if c.key == "cost/cpu_s":
-            rows.append(("CPU usage, the paper's way (s)", PAPER_CPU, 1.0, 2))
-    return tuple(rows)
-
-
-COSTS = _cost_rows()
+# Row label, run-level metric, scale and decimals of every cost with a report label; the
+# paper's CPU after the CPU.
+COSTS = [(c.label, f"mean/{c.key}", c.scale, c.decimals) for c in METRIC_COSTS if c.label]
+COSTS.insert(
+    [m for _, m, _, _ in COSTS].index("mean/cost/cpu_s") + 1,
+    ("CPU usage, the paper's way (s)", PAPER_CPU, 1.0, 2),
+)
 NUMBERS = {"table1": "I", "table2": "II", "table3": "III", "table4": "IV"}
 
 
@@ -172,6 +161,12 @@ def cost_columns_order(methods: Sequence[str]) -> list[str]:
 # --------------------------------------------------------------------------- cells
 
 
+def setting_label(setting: tuple[int, bool]) -> str:
+    """``2 clients, W/O augmentation``."""
+    clients, augmented = setting
+    return f"{clients} clients, {dict(BLOCKS)[augmented]}"
+
+
 def group_runs(records: Sequence[RunRecord]) -> dict[tuple[str, int, bool], list[RunRecord]]:
     """Runs per cell: (method, clients, augmentation)."""
     cells: dict[tuple[str, int, bool], list[RunRecord]] = {}
@@ -205,11 +200,8 @@ def after_tasks(records: Sequence[RunRecord]) -> list[int]:
 # --------------------------------------------------------------------------- tables
 
 
-def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Table | None:
-    """Table I (``benchmark="FL"``) or Table II (``"FCL"``); None without runs."""
-    runs = [r for r in records if r.benchmark == benchmark]
-    if not runs:
-        return None
+def score_table(runs: Sequence[RunRecord], benchmark: str, source: str) -> Table:
+    """Table I (``benchmark="FL"``) or Table II (``"FCL"``) of the benchmark's ``runs``."""
     fl = benchmark == "FL"
     clients = sorted(set(PAPER_CLIENTS) | {r.clients for r in runs})
     stages = (
@@ -218,10 +210,11 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
     columns, metrics = [], []
     for c in clients:
         for prefix, stage in stages:
-            for name, label, lower in score_columns():
-                metric = f"{prefix}test/{name}"
-                header = (f"{c} clients", *stage, label)
-                columns.append(Column(f"{c}c/{metric}", header, lower, " · ".join(header[:-1])))
+            for s in METRIC_SCORES:  # headed "Loss", "RMSE"
+                metric = f"{prefix}test/{s.name}"
+                header = (f"{c} clients", *stage, s.label[:1].upper() + s.label[1:])
+                group = " · ".join(header[:-1])
+                columns.append(Column(f"{c}c/{metric}", header, not s.higher_is_better, group))
                 metrics.append((c, metric))
     cells = group_runs(runs)
     blocks = []
@@ -238,31 +231,20 @@ def score_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Ta
             for cell, mark in zip(column_cells, marks, strict=True):
                 cell.mark = mark
         blocks.append(Block(title, rows))
-    if fl:
-        name = "table1"
-        caption = (
-            f"Federated Learning results on the test set (final round; {_scores_named()} "
-            "averaged over the 8 actions and the clients)."
-        )
-    else:
-        name = "table2"
-        caption = (
-            "Federated Continual Learning results: 'After Task 1' on the test scenes of Task 1, "
-            "'After Task 2' on the test scenes of both tasks."
-        )
+    caption = (
+        f"Federated Learning results on the test set (final round; {_scores_named()} "
+        "averaged over the 8 actions and the clients)."
+        if fl
+        else "Federated Continual Learning results: 'After Task 1' on the test scenes of "
+        "Task 1, 'After Task 2' on the test scenes of both tasks."
+    )
     notes = [
         "**Bold**: best, [bracketed]: second-best value of a column within a block; "
         "▼ lower is better, ▲ higher is better; — no finished runs.",
-        _runs_note(runs, [c for b in blocks for _, row in b.rows for c in row], source),
+        _runs_note(runs, blocks, source),
     ]
+    name = "table1" if fl else "table2"
     return Table(name, caption, "Method", "augmentation", columns, blocks, len(runs), notes)
-
-
-def score_columns() -> list[tuple[str, str, bool]]:
-    """Name, heading, lower is better: every score (fedlgr.core.metrics.SCORES)."""
-    return [
-        (s.name, s.label[:1].upper() + s.label[1:], not s.higher_is_better) for s in METRIC_SCORES
-    ]
 
 
 def _scores_named() -> str:
@@ -271,11 +253,8 @@ def _scores_named() -> str:
     return ", ".join(names[:-1]) + f" and {names[-1]}"
 
 
-def cost_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Table | None:
-    """Table III (``benchmark="FL"``) or Table IV (``"FCL"``); None without runs."""
-    runs = [r for r in records if r.benchmark == benchmark]
-    if not runs:
-        return None
+def cost_table(runs: Sequence[RunRecord], benchmark: str, source: str) -> Table:
+    """Table III (``benchmark="FL"``) or Table IV (``"FCL"``) of the benchmark's ``runs``."""
     methods = cost_columns_order(method_order(benchmark, runs))
     columns = []
     for m in methods:
@@ -286,7 +265,6 @@ def cost_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Tab
     settings = sorted({(r.clients, r.augmentation) for r in runs})
     blocks = []
     for clients, augmented in settings:
-        title = f"{clients} clients, {dict(BLOCKS)[augmented]}"
         rows = []
         for label, metric, scale, decimals in COSTS:
             row = [
@@ -303,7 +281,7 @@ def cost_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Tab
             if metric == PAPER_CPU and all(c.value is None for c in row):
                 continue  # runs made without the server's own measure
             rows.append((label, row))
-        blocks.append(Block(title, rows))
+        blocks.append(Block(setting_label((clients, augmented)), rows))
     name = "table3" if benchmark == "FL" else "table4"
     kind = "Federated Learning" if benchmark == "FL" else "Federated Continual Learning"
     caption = (
@@ -317,7 +295,7 @@ def cost_table(records: Sequence[RunRecord], benchmark: str, source: str) -> Tab
         "**Bold**: the lower of a full-model / FedRoot pair; (▼ x%) the FedRoot variant's "
         "reduction against its full-model counterpart (▲: an increase); — no runs, or not "
         "measured (GPU usage needs an NVIDIA GPU).",
-        _runs_note(runs, [c for b in blocks for _, row in b.rows for c in row], source),
+        _runs_note(runs, blocks, source),
     ]
     return Table(
         name, caption, "Metric", "setting", columns, blocks, len(runs), notes, row_direction=True
@@ -330,18 +308,18 @@ def build_tables(
     """Tables I-IV, each only if its benchmark (FL or FCL) has runs; ``notes`` (what the
     report says once: the study reported, repeats left out) end each table."""
     tables = [
-        score_table(records, "FL", source),
-        score_table(records, "FCL", source),
-        cost_table(records, "FL", source),
-        cost_table(records, "FCL", source),
+        build(runs, benchmark, source)
+        for build in (score_table, cost_table)
+        for benchmark in ("FL", "FCL")
+        if (runs := [r for r in records if r.benchmark == benchmark])
     ]
     for table in tables:
-        if table is not None:
-            table.notes += notes
-    return [t for t in tables if t is not None]
+        table.notes += notes
+    return tables
 
 
-def _runs_note(runs: Sequence[RunRecord], cells: Sequence[Cell], source: str) -> str:
+def _runs_note(runs: Sequence[RunRecord], blocks: Sequence[Block], source: str) -> str:
+    cells = [c for b in blocks for _, row in b.rows for c in row]
     counts = sorted({c.runs for c in cells if c.value is not None}) or [0]
     low, high = counts[0], counts[-1]
     each = f"{low} to {high} runs" if low != high else f"{low} run" + "s" * (low != 1)
