@@ -21,7 +21,7 @@ from fedlgr.shell.report.sweep import SweepViews, without_empty, write_sweep_vie
 from fedlgr.shell.report.tables import build_tables
 from fedlgr.shell.tracking.uri import mask_password
 
-__all__ = ["ReportError", "ReportResult", "RunRecord", "default_out", "make_report"]
+__all__ = ["ReportError", "ReportResult", "RunRecord", "make_report"]
 
 TITLES = {
     "table1": "FL results",
@@ -70,11 +70,6 @@ class ReportResult:
             where += f"; logged to MLflow run {self.logged_to} under report/"
         lines.append(where)
         return "\n".join(lines)
-
-
-def default_out(name: str) -> Path:
-    """``reports/<experiment or sweep name>``."""
-    return Path("reports") / safe_name(name)
 
 
 def _check_folder(out: Path) -> None:
@@ -133,9 +128,7 @@ def make_report(
         records = best_per_cell(records, selection.objective)
     check_cells(records, selection.source)
     notes = [*selection.notes, *([repeats] if repeats else [])]
-    if out is None:
-        out = selection.folder or default_out(selection.name)
-    out = Path(out)
+    out = Path(out or selection.folder or Path("reports", safe_name(selection.name)))
     _check_folder(out)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -67,25 +67,24 @@ def read_trials(selection: Selection, storage: str | None = None) -> Trials | No
     by_id = {run.info.run_id: run for run in runs}
     url = storage or tags.get("storage", "")
     study, why = _load_study(url, tags.get("study", selection.name), parent_id)
-    if study is not None:
-        rows = [_optuna_row(t, by_id) for t in study.get_trials(deepcopy=False)]
-        rows = [r for r in rows if r is not None]
-        trials = Trials(metric, direction, [], rows, f"Optuna storage {mask_password(url)}", study)
+    if study is not None:  # a grid point another trial already covered is skipped
+        trials = study.get_trials(deepcopy=False)
+        rows = [_optuna_row(t, by_id) for t in trials if "duplicate_of" not in t.user_attrs]
+        source, notes = f"Optuna storage {mask_password(url)}", []
     else:
         rows = [_mlflow_row(run, metric) for run in runs if "trial" in run.data.tags]
-        trials = Trials(metric, direction, [], rows, "MLflow")
-        trials.notes.append(
-            f"The trials are read from MLflow, not from the study's Optuna storage ({why}): "
-            "only trials that started a run, and no Optuna plots."
+        source, notes = (
+            "MLflow",
+            [
+                f"The trials are read from MLflow, not from the study's Optuna storage ({why}): "
+                "only trials that started a run, and no Optuna plots."
+            ],
         )
     space = json.loads(parent.data.params.get("space", "{}") or "{}")
     seen = [k for r in rows for k in r.params]
-    trials.params = [
-        *[k for k in space if k in seen],
-        *dict.fromkeys(k for k in seen if k not in space),
-    ]
-    trials.rows.sort(key=lambda r: _rank(r, direction))
-    return trials
+    params = [*[k for k in space if k in seen], *dict.fromkeys(k for k in seen if k not in space)]
+    rows.sort(key=lambda r: _rank(r, direction))
+    return Trials(metric, direction, params, rows, source, study, notes)
 
 
 def _load_study(url: str, name: str, parent_id: str):
@@ -114,10 +113,7 @@ def _load_study(url: str, name: str, parent_id: str):
     return study, None
 
 
-def _optuna_row(trial, runs: dict[str, Any]) -> TrialRow | None:
-    """A row per trial, but a grid point another trial already covered (skipped)."""
-    if "duplicate_of" in trial.user_attrs:
-        return None
+def _optuna_row(trial, runs: dict[str, Any]) -> TrialRow:
     run = runs.get(trial.user_attrs.get("mlflow_run_id", ""))
     scores = _scores(run.data.metrics if run is not None else {})
     return TrialRow(trial.number, dict(trial.params), trial.value, scores, trial.state.name)
@@ -248,7 +244,6 @@ def write_study_plots(study: Any, metric: str, params: list[str], out: Path) -> 
     else:
         notes.append("Contour plot: not drawn; it needs 2 or more swept settings that vary.")
     plt = pyplot()
-    written = []
     for name, draw in plots.items():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -259,8 +254,7 @@ def write_study_plots(study: Any, metric: str, params: list[str], out: Path) -> 
                 ax.tick_params(axis="x", labelrotation=30)
         figure.savefig(out / name, dpi=110, bbox_inches="tight")
         plt.close(figure)
-        written.append(name)
-    return written, notes
+    return list(plots), notes
 
 
 def without_empty(table: Table) -> Table:

@@ -148,14 +148,8 @@ def full_counterpart(method: str) -> str | None:
 def cost_columns_order(methods: Sequence[str]) -> list[str]:
     """Each full-model method followed by its FedRoot variant, as in Tables III/IV."""
     partner = {full_counterpart(m): m for m in methods if full_counterpart(m) in methods}
-    out: list[str] = []
-    for m in methods:
-        if m in out:
-            continue
-        out.append(m)
-        if m in partner:
-            out.append(partner[m])
-    return out
+    paired = set(partner.values())
+    return [x for m in methods if m not in paired for x in (m, partner.get(m)) if x]
 
 
 # --------------------------------------------------------------------------- cells
