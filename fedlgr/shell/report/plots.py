@@ -116,12 +116,9 @@ def curves_plot(path: Path, title: str, panels: dict[str, Series], order: list[s
     from matplotlib.ticker import MaxNLocator  # lazy: matplotlib, as in pyplot
 
     colors = {m: f"C{i % 10}" for i, m in enumerate(order)}
+    size = (4.5 * len(panels) + 1.8, 3.0 * len(settings))
     fig, axes = plt.subplots(
-        len(settings),
-        len(panels),
-        figsize=(4.5 * len(panels) + 1.8, 3.0 * len(settings)),
-        squeeze=False,
-        constrained_layout=True,
+        len(settings), len(panels), figsize=size, squeeze=False, constrained_layout=True
     )
     lines = {}
     for i, setting in enumerate(settings):
@@ -156,13 +153,8 @@ def bar_plot(path: Path, title: str, panels: dict[str, Bars], order: list[str]) 
         return False
     plt = pyplot()
     methods = [m for m in order if any(m in b for bars in panels.values() for b in bars.values())]
-    fig, axes = plt.subplots(
-        len(panels),
-        1,
-        figsize=(max(6.0, 0.8 * len(methods) + 2), 3.4 * len(panels)),
-        squeeze=False,
-        constrained_layout=True,
-    )
+    size = (max(6.0, 0.8 * len(methods) + 2), 3.4 * len(panels))
+    fig, axes = plt.subplots(len(panels), 1, figsize=size, squeeze=False, constrained_layout=True)
     for ax, (label, bars) in zip(axes[:, 0], panels.items(), strict=True):
         settings = sorted(bars)
         width = 0.8 / len(settings)

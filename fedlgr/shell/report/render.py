@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Callable
 from itertools import groupby
 
 from fedlgr.shell.report.tables import Cell, Table
@@ -12,6 +13,14 @@ from fedlgr.shell.report.tables import Cell, Table
 MISSING = "—"
 ARROWS = {True: " ▼", False: " ▲", None: ""}
 TEX_ARROWS = {True: r" $\blacktriangledown$", False: r" $\blacktriangle$", None: ""}
+# How a cell's best and second-best values and its FedRoot reduction (down, up) are written.
+MD_STYLE = {"best": "**{}**", "second": "[{}]", "down": "(▼ {:.1f}%)", "up": "(▲ {:.1f}%)"}
+TEX_STYLE = {
+    "best": r"\textbf{{{}}}",
+    "second": "[{}]",
+    "down": r"($\blacktriangledown$~{:.1f}\%)",
+    "up": r"($\blacktriangle$~{:.1f}\%)",
+}
 
 
 # --------------------------------------------------------------------------- Markdown
@@ -26,28 +35,25 @@ def to_markdown(table: Table) -> str:
         lines.append(md_row(["---"] + ["---:"] * len(table.columns)))
         for label, cells in block.rows:
             label += ARROWS[table.row_direction]
-            lines.append(md_row([label] + [_md_cell(c) for c in cells]))
+            lines.append(md_row([label] + [_cell(c, MD_STYLE) for c in cells]))
         lines.append("")
     for note in table.notes:  # separate paragraphs
         lines += [note, ""]
     return "\n".join(lines)
 
 
-def _md_cell(cell: Cell) -> str:
-    if cell.value is None:
-        return MISSING
-    text = {"best": "**{}**", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
-    return text + cell.detail() + _reduction(cell, "(▼ {:.1f}%)", "(▲ {:.1f}%)")
-
-
 def md_row(cells: list[str]) -> str:
     return "| " + " | ".join(c.replace("|", r"\|") for c in cells) + " |"
 
 
-def _reduction(cell: Cell, down: str, up: str) -> str:
-    if cell.reduction is None:
-        return ""
-    return " " + (down if cell.reduction >= 0 else up).format(abs(cell.reduction))
+def _cell(cell: Cell, style: dict[str, str], detail: Callable[[str], str] = str) -> str:
+    """The value marked in ``style``, its ``detail`` (± and n) and its FedRoot reduction."""
+    if cell.value is None:
+        return MISSING
+    text = style.get(cell.mark, "{}").format(cell.shown()) + detail(cell.detail())
+    if cell.reduction is not None:
+        text += " " + style["down" if cell.reduction >= 0 else "up"].format(abs(cell.reduction))
+    return text
 
 
 # --------------------------------------------------------------------------- LaTeX
@@ -92,13 +98,7 @@ def to_latex(table: Table) -> str:
 
 
 def _tex_cell(cell: Cell) -> str:
-    if cell.value is None:
-        return MISSING
-    text = {"best": r"\textbf{{{}}}", "second": "[{}]"}.get(cell.mark, "{}").format(cell.shown())
-    text += _tex(cell.detail("\N{PLUS-MINUS SIGN}")).replace("\N{PLUS-MINUS SIGN}", r"$\pm$")
-    return text + _reduction(
-        cell, r"($\blacktriangledown$~{:.1f}\%)", r"($\blacktriangle$~{:.1f}\%)"
-    )
+    return _cell(cell, TEX_STYLE, lambda detail: _tex(detail).replace("±", r"$\pm$"))
 
 
 def _tex_note(note: str) -> str:

@@ -237,19 +237,12 @@ def _one_study(
             client.search_runs, ids, f"tags.`{KIND}` = 'sweep' and tags.sweep = {_quote(sweep)}"
         )
     }
-    groups: dict[str, list[RunRecord]] = {}
+    groups: dict[tuple[str, str | None], list[RunRecord]] = {}  # by study and parent run id
     for r in records:
-        parent = r.tags.get("mlflow.parentRunId", "")
-        key = parent if parent in parents else f"study:{r.tags.get('study', sweep)}"
-        groups.setdefault(key, []).append(r)
-    studies = [
-        Study(
-            parents[key].data.tags.get("study", sweep) if key in parents else key[6:],
-            parents.get(key),
-            runs,
-        )
-        for key, runs in groups.items()
-    ]
+        parent = parents.get(r.tags.get("mlflow.parentRunId", ""))
+        name = (parent.data.tags if parent else r.tags).get("study", sweep)
+        groups.setdefault((name, parent and parent.info.run_id), []).append(r)
+    studies = [Study(name, parents.get(run_id), runs) for (name, run_id), runs in groups.items()]
     studies.sort(key=lambda s: s.started, reverse=True)
     candidates = studies if wanted is None else [s for s in studies if s.matches(wanted)]
     if not candidates:

@@ -52,12 +52,12 @@ class Cell:
     def shown(self) -> str:
         return "" if self.value is None else f"{self.value:.{self.decimals}f}"
 
-    def detail(self, plus_minus: str = "±") -> str:
+    def detail(self) -> str:
         """What follows the number: `` (± 0.012, n=3)`` over several runs, `` (lr_top=0.01)``
         for a sweep's best trial, else nothing."""
         parts = []
         if self.std is not None:
-            parts.append(f"{plus_minus} {self.std:.{self.decimals}f}, n={self.runs}")
+            parts.append(f"± {self.std:.{self.decimals}f}, n={self.runs}")
         if self.won:
             parts.append(self.won)
         return f" ({'; '.join(parts)})" if parts and self.value is not None else ""
