@@ -1,8 +1,5 @@
-"""``fedlgr report``: the paper's Tables I-IV and plots, regenerated from what MLflow holds.
-
-Each table is written as ``tableN.md``, ``.tex`` and ``.csv`` next to the PNGs, and the folder
-logged back to MLflow under ``report/``.
-"""
+"""``fedlgr report``: the paper's Tables I-IV (``tableN.md``/``.tex``/``.csv``) and plots from
+what MLflow holds, the folder logged back to MLflow under ``report/``."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""Which runs a table cell may average: replicates, runs whose settings differ only in seeds.
-
-Repeats of one seed count once (the newest); a cell whose runs differ in other settings is
-refused. A run that logged no params cannot be compared: it is a replicate of its own.
-"""
+"""Which runs a table cell may average: replicates, whose settings differ only in seeds; a seed
+repeated counts once (the newest). A run that logged no params is a replicate of its own."""
 
 from __future__ import annotations
 

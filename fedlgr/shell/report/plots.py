@@ -52,9 +52,6 @@ def write_plots(
     return written
 
 
-# --------------------------------------------------------------------------- data
-
-
 def mean_curves(runs: Sequence[RunRecord], history: dict[str, list]) -> Series:
     """Per setting and method, the mean over runs of each round's value."""
     sums: dict[Setting, dict[str, dict[int, list[float]]]] = {}
@@ -92,9 +89,6 @@ def task1_forgetting(run: RunRecord, metric: str) -> float | None:
     pattern = rf"after_task(\d+)/forgetting/{re.escape(first[0])}/{metric}"
     found = [(int(m.group(1)), key) for key in run.metrics if (m := re.fullmatch(pattern, key))]
     return run.value(max(found)[1]) if found else None
-
-
-# --------------------------------------------------------------------------- drawing
 
 
 def pyplot():

@@ -23,9 +23,6 @@ TEX_STYLE = {
 }
 
 
-# --------------------------------------------------------------------------- Markdown
-
-
 def to_markdown(table: Table) -> str:
     headers = [table.row_header]
     headers += [" · ".join(c.header) + ARROWS[c.lower_is_better] for c in table.columns]
@@ -54,9 +51,6 @@ def _cell(cell: Cell, style: dict[str, str], detail: Callable[[str], str] = str)
     if cell.reduction is not None:
         text += " " + style["down" if cell.reduction >= 0 else "up"].format(abs(cell.reduction))
     return text
-
-
-# --------------------------------------------------------------------------- LaTeX
 
 
 def to_latex(table: Table) -> str:
@@ -116,9 +110,6 @@ _TEX_SPECIAL = str.maketrans(
 
 def _tex(text: str) -> str:
     return text.translate(_TEX_SPECIAL)
-
-
-# --------------------------------------------------------------------------- CSV
 
 
 def to_csv(table: Table) -> str:

@@ -1,8 +1,5 @@
-"""Finished fedlgr runs read back from MLflow, and the report logged back to it.
-
-A report covers one experiment's finished runs, or one study of a sweep (told apart by its
-parent run, which the report is logged to); report runs and sweep parent runs are left out.
-"""
+"""Finished fedlgr runs of an experiment, or of one study of a sweep (told apart by its parent
+run), read back from MLflow, and the report logged back to it (report runs are left out)."""
 
 from __future__ import annotations
 
@@ -47,18 +44,12 @@ class RunRecord:
         tables: client-level DP with the epsilon it spent, its noise and clip norm (``FedAvg,
         DP ε=2.31 (z=1, C=0.5)``), simulated faults, partial participation and refused
         uploads (``FedRootMedian, 4/10 byzantine (labels)``)."""
-        label = [self.tags["method"]]
+        p, said = self.params, [self.tags["method"]]
         spent = self.metrics.get("privacy/epsilon")
         if spent is not None:
-            z = self.params.get("federated.dp.noise_multiplier", "?")
-            clip = self.params.get("federated.dp.clip", "?")
-            adaptive = " adaptive" if self.params.get("federated.dp.clipping") == "adaptive" else ""
-            label.append(f"DP ε={spent:.2f} (z={z}, C={clip}{adaptive})")
-        return ", ".join(label + self._conditions())
-
-    def _conditions(self) -> list[str]:
-        """What the run simulated or met beyond the method: faults, a fraction, refusals."""
-        p, said = self.params, []
+            z = p.get("federated.dp.noise_multiplier", "?")
+            adaptive = " adaptive" if p.get("federated.dp.clipping") == "adaptive" else ""
+            said.append(f"DP ε={spent:.2f} (z={z}, C={p.get('federated.dp.clip', '?')}{adaptive})")
         if byzantine := int(self._number("federated.faults.byzantine", 0)):
             attack = p.get("federated.faults.attack", "?")
             said.append(f"{byzantine}/{p.get('data.clients', '?')} byzantine ({attack})")
@@ -69,7 +60,7 @@ class RunRecord:
             said.append(f"fraction {p['federated.fraction']}")
         if self.tags.get("fedlgr.not_taken"):
             said.append("uploads refused")
-        return said
+        return ", ".join(said)
 
     def _number(self, key: str, default: float) -> float:
         try:

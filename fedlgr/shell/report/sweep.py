@@ -138,9 +138,6 @@ def _rank(row: TrialRow, direction: str) -> tuple:
     return (0, value if direction == "minimize" else -value, row.number)
 
 
-# --------------------------------------------------------------------------- files
-
-
 def columns(trials: Trials) -> list[tuple[str, str]]:
     """(CSV header, Markdown heading) of each column."""
     arrow = "▼" if trials.direction == "minimize" else "▲"
@@ -182,9 +179,6 @@ def to_csv(trials: Trials) -> str:
     """The same rows, unrounded; an empty cell where there is no value."""
     header = [key for key, _ in columns(trials)]
     return csv_text([header, *(_cells(trials, row, shown=False) for row in trials.rows)])
-
-
-# --------------------------------------------------------------------------- the report
 
 
 @dataclass
