@@ -66,13 +66,10 @@ def to_latex(table: Table) -> str:
         rf"\label{{tab:{table.name}}}",
         rf"\begin{{tabular}}{{{spec}}}\toprule",
     ]
-    depth = max(len(c.header) for c in columns)
-    for level in range(depth - 1):
-        spans = [
-            (key, len(list(g))) for key, g in groupby(columns, key=lambda c: c.header[: level + 1])
-        ]
+    for level in range(1, max(len(c.header) for c in columns)):  # the headings above the last
         cells, done = [""], 0
-        for key, n in spans:
+        for key, group in groupby(columns, key=lambda c: c.header[:level]):
+            n = len(list(group))
             done += n
             rule = "|" if done < len(columns) else ""
             cells.append(rf"\multicolumn{{{n}}}{{c{rule}}}{{\textit{{{_tex(key[-1])}}}}}")

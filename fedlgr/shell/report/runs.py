@@ -280,8 +280,7 @@ def metric_histories(client, records: list[RunRecord], metric: str) -> dict[str,
 def log_report(selection: Selection, folder: Path, runs: int) -> str:
     """Log ``folder`` under ``report/``: into the sweep's parent run if there is one, else
     into a new run named ``report`` (tag ``fedlgr.kind=report``). Returns the run id."""
-    client = selection.client
-    parent = selection.parent_run_id
+    client, parent = selection.client, selection.parent_run_id
     if parent is not None:
         client.set_tag(parent, "report.runs", str(runs))
         client.log_artifacts(parent, str(folder), artifact_path="report")

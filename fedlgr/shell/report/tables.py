@@ -55,11 +55,8 @@ class Cell:
     def detail(self) -> str:
         """What follows the number: `` (± 0.012, n=3)`` over several runs, `` (lr_top=0.01)``
         for a sweep's best trial, else nothing."""
-        parts = []
-        if self.std is not None:
-            parts.append(f"± {self.std:.{self.decimals}f}, n={self.runs}")
-        if self.won:
-            parts.append(self.won)
+        std = "" if self.std is None else f"± {self.std:.{self.decimals}f}, n={self.runs}"
+        parts = [p for p in (std, self.won) if p]
         return f" ({'; '.join(parts)})" if parts and self.value is not None else ""
 
 
@@ -250,11 +247,8 @@ def _scores_named() -> str:
 def cost_table(runs: Sequence[RunRecord], benchmark: str, source: str) -> Table:
     """Table III (``benchmark="FL"``) or Table IV (``"FCL"``) of the benchmark's ``runs``."""
     methods = cost_columns_order(method_order(benchmark, runs))
-    columns = []
-    for m in methods:
-        full = full_counterpart(m)
-        reduces = full if full in methods else None
-        columns.append(Column(m, (m,), None, reduces or m, reduces))
+    reduces = {m: full for m in methods if (full := full_counterpart(m)) in methods}
+    columns = [Column(m, (m,), None, reduces.get(m, m), reduces.get(m)) for m in methods]
     cells = group_runs(runs)
     settings = sorted({(r.clients, r.augmentation) for r in runs})
     blocks = []
