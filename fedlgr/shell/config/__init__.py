@@ -25,7 +25,7 @@ _HOMES = {
             "flatten known_settings robot_yaml short_setting to_plain to_yaml"
         ),
         "fedlgr.shell.config.files": "CONF_DIR SETTING_NAME SWEEPS_DIR find_config yaml_reason",
-        "fedlgr.shell.config.interpolation": "check_interpolations",
+        "fedlgr.shell.config.written": "check_interpolations",
         "fedlgr.shell.config.load": "check_sent_settings config_from_data load_config",
     }.items()
     for name in names.split()

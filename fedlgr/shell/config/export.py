@@ -9,6 +9,8 @@ import hashlib
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from fedlgr.core.declare import settings_of
 from fedlgr.core.settings import ExperimentConfig
 from fedlgr.shell.tracking.uri import mask_password
@@ -33,7 +35,7 @@ def to_yaml(config: ExperimentConfig) -> str:
     plain = to_plain(config)
     if plain["tracking"]["uri"]:
         plain["tracking"]["uri"] = mask_password(str(plain["tracking"]["uri"]))
-    return _dump(plain)
+    return yaml.safe_dump(plain, sort_keys=False)
 
 
 def robot_yaml(config: ExperimentConfig) -> str:
@@ -41,13 +43,6 @@ def robot_yaml(config: ExperimentConfig) -> str:
     ``tracking.uri``, since the store's address is the server's alone."""
     plain = to_plain(config)
     plain["tracking"]["uri"] = None
-    return _dump(plain)
-
-
-def _dump(plain: dict) -> str:
-    # lazy: yaml is imported once a config is written out, not by fedlgr --help
-    import yaml
-
     return yaml.safe_dump(plain, sort_keys=False)
 
 

@@ -57,19 +57,15 @@ def read_layers(path: Path, seen: tuple[Path, ...] = ()) -> list[tuple[Any, Any]
 def _config_file(path: Path, seen: tuple[Path, ...]) -> Path:
     """``path`` resolved, once it is known to be a regular file that is not already being
     read; else one line saying what it is instead."""
-    # a broken link, or a path under a FIFO or a file: named for what it is, not "not found"
-    if not path.exists() and (why := not_a_file(path)):
+    # a broken link, a path under a FIFO or a file, a device or a pipe (/dev/stdin, before it
+    # resolves to /proc/PID/fd/pipe:[N]): named for what it is, not "not found"; a read never ends
+    if not path.is_dir() and (why := not_a_file(path)):
         raise ConfigError(f"{path.absolute()}: {why}")
-    if path.exists() and not path.is_file() and not path.is_dir():
-        # /dev/stdin, before it resolves to /proc/PID/fd/pipe:[N], which is no file
-        raise ConfigError(f"{path.absolute()}: not a regular file (a device, pipe or socket)")
     path = path.resolve()
     if path in seen:
         raise ConfigError(f"{path}: includes itself (via {' -> '.join(p.name for p in seen)})")
     if path.is_dir():
         raise ConfigError(f"{path}: a folder, not a config file (name a .yaml file in it)")
-    if path.exists() and not path.is_file():  # /dev/zero or a FIFO: a read never ends
-        raise ConfigError(f"{path}: not a regular file (a device, pipe or socket)")
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     return path
@@ -77,8 +73,7 @@ def _config_file(path: Path, seen: tuple[Path, ...]) -> Path:
 
 def _read_settings(path: Path) -> Any:
     """The settings in the config file ``path``, an OmegaConf mapping of setting names."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
+    from omegaconf import OmegaConf  # lazy: fedlgr --help reads this module without OmegaConf
 
     _check_nesting(path)
     try:
@@ -135,8 +130,7 @@ def yaml_reason(err: Exception) -> str:
 def _check_nesting(path: Path) -> None:
     """A file nested deeper than MAX_NESTING levels is one line: libyaml's recursive composer
     crashes the process (SIGSEGV) on very deep nesting, so its event parser counts the levels."""
-    # lazy: yaml is imported once a config is loaded, not by fedlgr --help
-    import yaml
+    import yaml  # lazy: fedlgr --help reads this module without yaml
 
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
     opened = (yaml.MappingStartEvent, yaml.SequenceStartEvent)

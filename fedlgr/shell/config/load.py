@@ -1,11 +1,17 @@
 """Loading a config: OmegaConf merges the defaults, the files a config ``includes``, the file itself
-and the command-line overrides, and the settings are built from the result. Every ``${...}`` is
-checked before anything resolves; each error is one line naming the setting and its layer."""
+and the command-line overrides, and the settings are built from the result. Each error is one line
+naming the setting and its layer (an unknown one with the closest known names)."""
 
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 from typing import Any
+
+import yaml
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+from omegaconf.tupleconfig import TupleConfig
 
 from fedlgr.core.declare import section_of, type_problem
 from fedlgr.core.methods import CONTINUAL, FCL_METHODS, METHODS, SCOPES, STRATEGIES, method_name
@@ -17,11 +23,9 @@ from fedlgr.core.settings import (
 )
 from fedlgr.errors import ConfigError, first_line
 from fedlgr.shell.checks.experiment import check_machine
-from fedlgr.shell.config.export import to_plain
+from fedlgr.shell.config.export import known_settings, to_plain
 from fedlgr.shell.config.files import read_layers
-from fedlgr.shell.config.interpolation import check_interpolations, resolve
-from fedlgr.shell.config.messages import container_mismatch, omegaconf_message, unknown_setting
-from fedlgr.shell.config.written import lookup, plain, strings
+from fedlgr.shell.config.written import check_interpolations, lookup, plain, strings
 
 
 def load_config(
@@ -43,10 +47,6 @@ def load_config(
 def config_from_data(data: Any, source: str) -> ExperimentConfig:
     """A config received as data (a robot's copy of the server's resolved config): settings only,
     checked by :func:`check_sent_settings`."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     check_sent_settings(data, source)
     try:
         node = OmegaConf.create(data)
@@ -72,11 +72,6 @@ def check_sent_settings(data: Any, source: str) -> None:
 
 def _dotlist(overrides) -> Any:
     """The command-line layer; an override whose value YAML cannot read is one line."""
-    # lazy: omegaconf and yaml are imported once a config is loaded, not by fedlgr --help
-    import yaml
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     # RecursionError: a value nested thousands of levels deep ([[[[...]]]])
     unreadable = (yaml.YAMLError, OmegaConfBaseException, ValueError, RecursionError)
     # before OmegaConf reads them: of a setting set whole and by parts, it drops one silently
@@ -115,20 +110,26 @@ def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> Experiment
     """The dataclasses from ``layers`` (``(source, node)``, merged in order)."""
     _require_mandatory(layers)
     merged = _merge(layers, with_defaults=bool(interpolated))
-    resolve(merged, interpolated)
+    _resolve(merged, interpolated)
     config = _to_object(merged, layers, interpolated)
     check_machine(config)
     return config
+
+
+def _resolve(merged: Any, interpolated: dict[str, tuple[Any, str]]) -> None:
+    """Resolve each ``${...}`` once, so that a reference to nothing, a loop, an unset
+    variable or a value of the wrong type is one line naming the setting and its layer."""
+    for key, (source, value) in interpolated.items():
+        try:
+            OmegaConf.select(merged, key)
+        except OmegaConfBaseException as err:
+            raise ConfigError(f"{source}: {key}={value!r}: {first_line(err)}") from None
 
 
 def _merge(layers: list, with_defaults: bool) -> Any:
     """``layers`` merged in order, a ``method`` name expanded where given; a layer that does not fit
     is one line naming it and the setting. The defaults are merged first only where a ``${...}`` may
     name one: as an OmegaConf node they are costly to make and merge."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
     merged = OmegaConf.create(to_plain(ExperimentConfig()) if with_defaults else {})
     for source, node in layers:
         _check_types(source, plain(node))
@@ -141,7 +142,7 @@ def _merge(layers: list, with_defaults: bool) -> Any:
         except ConfigError as err:
             raise ConfigError(f"{source}: {err}") from err
         except TypeError as err:  # "Cannot merge incompatible container types" (a traceback)
-            written = OmegaConf.to_container(node, resolve=False)
+            written = plain(node)
             raise ConfigError(f"{source}: {container_mismatch(merged, written) or err}") from err
     return merged
 
@@ -196,9 +197,6 @@ def _default(cls: type, name: str) -> Any:
 def _to_object(merged: Any, layers: list, interpolated: dict) -> ExperimentConfig:
     """The settings, validated as they are built; a value of the wrong shape is said with the layer
     that wrote it (the earliest first), one from ``${...}`` with what was written."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
-
     values = _named(OmegaConf.to_container(merged, resolve=True))
     try:
         return ExperimentConfig(**values)
@@ -286,9 +284,6 @@ def _expand_method(node: Any, merged: Any) -> Any:
     """``method=NAME`` -> strategy and scope; a Table II name sets the CL method too, and,
     if no task schedule is set yet, the schedule of every task in ``data.tasks``; an FL
     name clears the schedule and the CL method."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
-
     name = str(node["method"])
     if name in METHODS:
         strategy, scope, _ = METHODS[name]
@@ -313,3 +308,79 @@ def _expand_method(node: Any, merged: Any) -> Any:
         update["continual"]["tasks"] = names
     # Settings given next to the name (in the same file or command line) win over it.
     return OmegaConf.merge(update, node)
+
+
+# --------------------------------------------------------------------------- messages
+
+
+def omegaconf_message(err: Exception) -> str:
+    key = getattr(err, "full_key", None)
+    first = first_line(err)
+    return f"{key}: {first}" if key else first
+
+
+def container_mismatch(merged: Any, written: dict, prefix: str = "") -> str | None:
+    """The setting given a mapping where a list goes, or a list where a section goes: what
+    OmegaConf's merge refuses with a bare ``TypeError``."""
+    for key, value in written.items():
+        name = f"{prefix}{key}"
+        target = OmegaConf.select(merged, name, default=None, throw_on_missing=False)
+        if isinstance(value, dict) and isinstance(target, ListConfig | TupleConfig):
+            return f"{name}: a list goes here, not a mapping ({_short(value)})"
+        if isinstance(value, list) and isinstance(target, DictConfig):
+            return f"{name}: a section of settings goes here, not a list ({_short(value)})"
+        if isinstance(value, dict) and isinstance(target, DictConfig):
+            found = container_mismatch(merged, value, f"{name}.")
+            if found:
+                return found
+    return None
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def unknown_setting(key: str, written: dict) -> str:
+    """``KEY: unknown setting; did you mean NAME?``, matched on the whole dotted name
+    (``train.learning_rate`` finds ``train.lr_root``); a section written under ``key`` is matched by
+    the one setting it holds."""
+    dotted = _dotted_key(key, written)
+    if dotted is not None:  # `tracking.run_name: x` in a file
+        section, _, rest = dotted.partition(".")
+        nest = (
+            f"a dotted name is read on the command line only; in a file, nest it: "
+            f"`{section}:` and below it, indented, `{rest}: ...`"
+        )
+        if key in known_settings():
+            return f"{key}: {nest}"
+        return f"{unknown_setting(key, {})} ({nest})"
+    below = lookup(written, key)
+    if isinstance(below, dict) and len(below) == 1:
+        inner, value = next(iter(below.items()))
+        if not isinstance(value, dict):
+            key = f"{key}.{inner}"
+    close = _closest(key, known_settings())
+    hint = f"; did you mean {' or '.join(close)}?" if close else " (--print-config lists them)"
+    return f"{key}: unknown setting{hint}"
+
+
+def _closest(key: str, known: list[str]) -> list[str]:
+    """The one or two known names closest to ``key`` (a far second is left out)."""
+    close = difflib.get_close_matches(key, known, n=2, cutoff=0.6)
+    ratios = [difflib.SequenceMatcher(a=name, b=key).ratio() for name in close]
+    return [n for n, r in zip(close, ratios, strict=True) if r >= ratios[0] - 0.05]
+
+
+def _dotted_key(key: str, written: Any) -> str | None:
+    """The key holding a dot, as written in a file's values, on the way to dotted ``key``
+    (``tracking.run_name`` for ``{"tracking.run_name": ...}``); None where there is none."""
+    parts = key.split(".")
+    for i in range(len(parts)):
+        if not isinstance(written, dict):
+            return None
+        for j in range(len(parts), i + 1, -1):  # the longest such key first
+            if ".".join(parts[i:j]) in written:
+                return ".".join(parts[i:j])
+        written = written.get(parts[i])
+    return None

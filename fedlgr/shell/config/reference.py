@@ -4,6 +4,8 @@ the committed file is current."""
 
 from __future__ import annotations
 
+import yaml
+
 from fedlgr.core.declare import bounds_of, settings_of, type_name
 from fedlgr.core.settings import ExperimentConfig
 from fedlgr.shell.config.export import _leaves, to_plain
@@ -11,8 +13,6 @@ from fedlgr.shell.config.export import _leaves, to_plain
 
 def reference() -> str:
     """Every setting with its type, default, bounds and doc, from the settings' declarations."""
-    import yaml  # lazy: only this generator writes the reference
-
     defaults = dict(_leaves(to_plain(ExperimentConfig())))
     lines = [
         "# Settings",

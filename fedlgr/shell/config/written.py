@@ -1,16 +1,18 @@
-"""A config layer's values as written (plain dicts and lists, ``${...}`` unresolved) and the walks
-over them: checks read these, never resolved values, so nothing resolves before it is allowed."""
+"""A config layer's values as written (``${...}`` unresolved) and the ``${...}`` they may hold:
+another setting or a FEDLGR_* variable, checked in every layer before anything resolves."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from typing import Any
+
+from fedlgr.errors import ConfigError
 
 
 def plain(node: Any) -> Any:
     """A layer's values as written: dicts and lists, ``${...}`` left unresolved."""
-    # lazy: omegaconf is imported once a config is loaded, not by fedlgr --help
-    from omegaconf import OmegaConf
+    from omegaconf import OmegaConf  # lazy: fedlgr --help reads this module without OmegaConf
 
     return OmegaConf.to_container(node, resolve=False)
 
@@ -37,3 +39,28 @@ def strings(values: Any, key: str = "", keys: bool = False) -> Iterator[tuple[st
             yield from strings(value, f"{key}[{i}]", keys)
     elif isinstance(values, str):
         yield key, values
+
+
+_REFERENCE = r"\.*[A-Za-z_][\w-]*(?:\.[\w-]+|\[\d+\])*"
+_FEDLGR_ENV = r"oc\.env:FEDLGR_\w+(?:,[\w ./:@+-]*)?"
+_ALLOWED = rf"\$\{{(?:{_REFERENCE}|{_FEDLGR_ENV})\}}"
+_POLICY = (
+    "a config's ${...} may name another setting (${data.clients}) or an environment "
+    "variable FEDLGR_* (${oc.env:FEDLGR_DATA}), nothing else (docs/methods.md, "
+    "'Running experiments')"
+)
+
+
+def check_interpolations(source: Any, node: Any) -> dict[str, tuple[Any, str]]:
+    """``{key: (source, value)}`` for every value holding ``${...}`` in one layer, each
+    checked against ``_ALLOWED`` before anything is resolved (a resolver can read or build
+    anything)."""
+    found = {}
+    for key, value in strings(plain(node)):
+        for start in (m.start() for m in re.finditer(r"\$\{", value)):
+            escapes = len(value[:start]) - len(value[:start].rstrip("\\"))
+            if escapes % 2 == 0 and not re.match(_ALLOWED, value[start:]):
+                raise ConfigError(f"{source}: {key}={value!r}: {_POLICY}")
+        if "${" in value:
+            found[key] = (source, value)
+    return found
