@@ -29,7 +29,8 @@ from fedlgr.shell.data.synth import synthesize
 from fedlgr.shell.report.runs import select_runs
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.resume import find_checkpoint
-from fedlgr.shell.tracking.mlflow_run import SENTINEL, dead_reason, end_dead_runs
+from fedlgr.shell.tracking.liveness import dead_reason, end_dead_runs
+from fedlgr.shell.tracking.mlflow_run import SENTINEL
 from fedlgr.shell.tracking.store import StoreError
 from tests.support.ports import free_port
 from tests.support.processes import Child, child_env, metric_steps, only_run, run_args

@@ -14,7 +14,8 @@ from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run import owner
 from fedlgr.shell.run.life import Resumed
 from fedlgr.shell.tracking.context import data_digest
-from fedlgr.shell.tracking.mlflow_run import dead_reason, experiment_id, open_client, tracking_uri
+from fedlgr.shell.tracking.liveness import dead_reason
+from fedlgr.shell.tracking.mlflow_run import experiment_id, open_client, tracking_uri
 
 
 def resume_point(

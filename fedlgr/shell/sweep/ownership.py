@@ -10,7 +10,7 @@ from datetime import datetime, timedelta
 
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.storage import RetryStaleTrial, fail_and_retry, retry_failed
-from fedlgr.shell.tracking.mlflow_run import process_alive, process_started
+from fedlgr.shell.tracking.liveness import process_alive, process_started
 
 #: A trial's system attribute naming the process that runs it: [host, pid, start time].
 OWNER = "fedlgr_owner"

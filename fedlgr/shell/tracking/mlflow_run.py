@@ -1,6 +1,5 @@
-"""One MLflow run per experiment run (rank 0 only), :class:`Tracker`: its params, metrics per round
-at ``step=round`` and artifacts, a heartbeat that tells a killed run from a live one, and a resume
-that logs nothing twice (docs/tracking.md)."""
+"""One MLflow run per experiment run (rank 0 only), :class:`Tracker`: params, metrics at
+``step=round``, artifacts, a heartbeat, and a resume that logs nothing twice (docs/tracking.md)."""
 
 from __future__ import annotations
 
@@ -26,29 +25,10 @@ from fedlgr.shell.config.export import config_hash
 from fedlgr.shell.signals import deferred
 from fedlgr.shell.tracking import context
 from fedlgr.shell.tracking.experiments import experiment_id
-from fedlgr.shell.tracking.liveness import (
-    dead_reason,
-    end_dead_runs,
-    process_alive,
-    process_started,
-)
+from fedlgr.shell.tracking.liveness import process_started
 from fedlgr.shell.tracking.store import open_client, store_errors, store_lock
 from fedlgr.shell.tracking.uri import resolve_uri
 from fedlgr.shell.tracking.views import COST_COLUMNS
-
-__all__ = [
-    "SENTINEL",
-    "Tracker",
-    "dead_reason",
-    "end_dead_runs",
-    "experiment_id",
-    "headline_first",
-    "open_client",
-    "process_alive",
-    "process_started",
-    "store_errors",
-    "tracking_uri",
-]
 
 
 def tracking_uri(config: ExperimentConfig) -> str:
@@ -233,37 +213,31 @@ class Tracker:
     def log_round(self, round_: int, metrics: dict[str, float]) -> None:
         """Log a round's metrics at ``step=round``, the sentinel last; a round a resumed run
         had already logged is skipped (its values are the same: the run is deterministic)."""
-        from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
-
         if round_ in self.done:
             return
         metrics = headline_first(metrics, self.config.tracking.detail_metrics)
-        now = int(time.time() * 1000)
         keys = [k for k in metrics if k != SENTINEL] + ([SENTINEL] if SENTINEL in metrics else [])
         if round_ == self.partial and len(keys) > 1000:  # cut between two batches?
             keys = [k for k in keys if not self._logged_at(k, round_)]
-        items = [Metric(k, float(metrics[k]), now, round_) for k in keys]
-        for i in range(0, len(items), 1000):  # the REST API takes 1000 metrics per batch
-            self.client.log_batch(self.run_id, metrics=items[i : i + 1000])
-        self._release_system_metrics()
+        self._log_metrics({k: metrics[k] for k in keys}, round_)
         self.heartbeat()
 
     @_uncut
     def log_initial(self, metrics: dict[str, float]) -> None:
         """Figures of the model before round 1 (``federated.server_eval``), at ``step=0``;
         once (a resumed run that had logged them does not again)."""
+        if not any(self._logged_at(k, 0) for k in metrics):
+            self._log_metrics(metrics, 0)
+
+    def _log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """``metrics`` at ``step``, in order; then system metrics may follow (see
+        :class:`~fedlgr.shell.tracking.context.SystemMetrics`)."""
         from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
 
-        if any(self._logged_at(k, 0) for k in metrics):
-            return
         now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
-        self.client.log_batch(self.run_id, metrics=items)
-        self._release_system_metrics()
-
-    def _release_system_metrics(self) -> None:
-        """The run's first scores are written: system metrics may follow (see
-        :class:`~fedlgr.shell.tracking.context.SystemMetrics`)."""
+        items = [Metric(k, float(v), now, step) for k, v in metrics.items()]
+        for i in range(0, len(items), 1000):  # the REST API takes 1000 metrics per batch
+            self.client.log_batch(self.run_id, metrics=items[i : i + 1000])
         if self.system_metrics is not None:
             self.system_metrics.release()
 
@@ -274,14 +248,9 @@ class Tracker:
     def log_summary(self, metrics: dict[str, float], rounds: int) -> None:
         """Run-level values of a finished run (e.g. ``mean/cost/cpu_s``) at ``step=rounds``; not
         twice for a resumed run that had logged them before it was stopped."""
-        from mlflow.entities import Metric  # lazy: mlflow (seconds), only once a run starts
-
         if self.done or self.partial:  # a resumed run: what did its first life log?
             metrics = {k: v for k, v in metrics.items() if not self._logged_at(k, rounds)}
-        now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, rounds) for k, v in metrics.items()]
-        if items:
-            self.client.log_batch(self.run_id, metrics=items)
+        self._log_metrics(metrics, rounds)
 
     @_uncut
     def save_results(self, rows: Sequence[dict[str, object]], curves_png: bytes | None) -> None:
