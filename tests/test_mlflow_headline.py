@@ -13,8 +13,8 @@ from fedlgr.shell.config import flatten, load_config
 from fedlgr.shell.report.cells import check_cells, settings
 from fedlgr.shell.report.runs import ReportError, RunRecord
 from fedlgr.shell.tracking.context import NOT_PARAMS, run_params
+from fedlgr.shell.tracking.experiments import view_state
 from fedlgr.shell.tracking.mlflow_run import Tracker
-from fedlgr.shell.tracking.views import view_state
 from tests.support.chromium import CHROMIUM, rendered
 from tests.support.runs import FAST, fast_config
 

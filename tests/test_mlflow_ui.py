@@ -247,8 +247,8 @@ def test_a_local_store_hint_gives_the_ui_command_and_the_runs_link(tmp_path, mon
 def test_the_shared_view_gathers_every_sweeps_settings_and_trials(tmp_path):
     import mlflow
 
+    from fedlgr.shell.tracking.experiments import TAG, share_view
     from fedlgr.shell.tracking.mlflow_run import experiment_id
-    from fedlgr.shell.tracking.views import TAG, share_view
 
     client = mlflow.MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
     eid = experiment_id(client, "views")

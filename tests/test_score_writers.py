@@ -29,9 +29,9 @@ from fedlgr.shell.config import load_config
 from fedlgr.shell.report import make_report
 from fedlgr.shell.run.result import ExperimentResult
 from fedlgr.shell.sweep import load_sweep
+from fedlgr.shell.tracking.experiments import view_state
 from fedlgr.shell.tracking.mlflow_run import note_keys
 from fedlgr.shell.tracking.plots import curves_png
-from fedlgr.shell.tracking.views import view_state
 from tests.support.figures import drawn_figures
 from tests.support.runs import FAST
 

@@ -11,10 +11,10 @@ from fedlgr.shell.config import load_config
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.trials import all_failed, describe_param, one_line, trial_table
 from fedlgr.shell.tracking.context import run_tags
+from fedlgr.shell.tracking.experiments import share_view
 from fedlgr.shell.tracking.mlflow_run import experiment_id, open_client, store_errors, tracking_uri
 from fedlgr.shell.tracking.store import store_lock
 from fedlgr.shell.tracking.uri import mask_password, resolve_uri
-from fedlgr.shell.tracking.views import share_view
 
 PARENT_ATTR = "mlflow_parent_run_id"
 

@@ -24,11 +24,10 @@ from fedlgr.shell.config import ExperimentConfig, to_yaml
 from fedlgr.shell.config.export import config_hash
 from fedlgr.shell.signals import deferred
 from fedlgr.shell.tracking import context
-from fedlgr.shell.tracking.experiments import experiment_id
+from fedlgr.shell.tracking.experiments import COST_COLUMNS, experiment_id
 from fedlgr.shell.tracking.liveness import process_started
 from fedlgr.shell.tracking.store import open_client, store_errors, store_lock
 from fedlgr.shell.tracking.uri import resolve_uri
-from fedlgr.shell.tracking.views import COST_COLUMNS
 
 
 def tracking_uri(config: ExperimentConfig) -> str:
