@@ -1,6 +1,5 @@
-"""The address-space limit (``ulimit -v``, RLIMIT_AS) a command runs under: too small a one makes
-torch fail in ways of no use to a user (unmappable shared objects, an aborting ``std::bad_alloc``).
-Checked before the first ``import torch``, and such an error said in one line naming the limit."""
+"""The address-space limit (``ulimit -v``) a command runs under, checked before the first
+``import torch``: too small a one makes torch fail obscurely (``std::bad_alloc``)."""
 
 from __future__ import annotations
 

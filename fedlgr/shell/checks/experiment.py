@@ -1,6 +1,5 @@
-"""The checks of a config that need this machine or the runtime it goes to: a scholar too large for
-the memory, and faults simulated where the robots are real. The settings' own rules are the core's
-(:mod:`fedlgr.core.settings`)."""
+"""Checks of a config that need this machine or its runtime: a scholar too large for the memory,
+faults simulated where the robots are real (the settings' own rules are the core's)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""Path checks: a link that loops or leads nowhere, a folder, device, pipe or socket where a file
-goes, a file where a folder goes, said in words before anything opens the path (pathlib's
-``exists()`` is False for a dangling link, and a later error names the wrong reason)."""
+"""What is at a path a user gave, said before anything opens it (pathlib's ``exists()`` is False for
+a dangling link): a link that loops or leads nowhere, a file or a folder where the other goes."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""Store checks: is a tracking store or a sweep's storage there and usable, said in one line before
-anything is written to it (MLflow would retry for minutes, then print a stack trace). Light on
-purpose (no MLflow import): the CLI calls it before loading torch."""
+"""Is a tracking store or a sweep's storage there and usable: one line before anything is written
+(MLflow would retry for minutes). Light on purpose (no MLflow import): read before torch loads."""
 
 from __future__ import annotations
 
@@ -207,17 +206,12 @@ def database_connection(uri: str, what: str, error: type[FedlgrError]):
     """An open SQLAlchemy connection to ``uri`` (no pool: closed for good at the end);
     failing to open it is one ``error`` line (:func:`database_problem`)."""
     # lazy: SQLAlchemy, only for a database server's URL
-    from sqlalchemy import create_engine
+    from sqlalchemy import create_engine, make_url
     from sqlalchemy.pool import NullPool
-
-    def fail(problem: str) -> FedlgrError:
-        return error(f"{what} {mask_password(uri)}: {masked_text(problem, uri)}")
 
     check_userinfo(uri, what, error)
     engine = None
     try:
-        from sqlalchemy.engine import make_url  # lazy: SQLAlchemy, a server's URL only
-
         url = make_url(uri)
         backend = url.get_backend_name()
         # The URI's own connect_timeout, if any, is tried as written: a bad value fails now
@@ -228,7 +222,8 @@ def database_connection(uri: str, what: str, error: type[FedlgrError]):
     except Exception as err:
         if engine is not None:
             engine.dispose()
-        raise fail(database_problem(uri, err)) from None
+        problem = masked_text(database_problem(uri, err), uri)
+        raise error(f"{what} {mask_password(uri)}: {problem}") from None
     try:
         yield connection
     finally:

@@ -1,6 +1,5 @@
-"""Experiment settings filled from YAML and ``key=value``: declared once in
-:mod:`fedlgr.core.settings`, loaded here (:mod:`.load`, :mod:`.files`) and written out
-(:mod:`.export`). Import from here: ``from fedlgr.shell.config import load_config``."""
+"""Experiment settings (declared in :mod:`fedlgr.core.settings`) loaded from YAML and ``key=value``
+and written out; import from here: ``from fedlgr.shell.config import load_config``."""
 
 import importlib
 from typing import Any

@@ -1,6 +1,5 @@
-"""A loaded config written out (plain values, YAML, flat ``section.setting`` strings), the settings'
-names, and the hash of the settings that change a run's numbers. What is written out never holds the
-password of ``tracking.uri``."""
+"""A loaded config written out (plain values, YAML, flat names) and the hash of the settings that
+change a run's numbers; what is written out never holds the password of ``tracking.uri``."""
 
 from __future__ import annotations
 

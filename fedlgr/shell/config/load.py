@@ -1,6 +1,5 @@
-"""Loading a config: OmegaConf merges the defaults, the files a config ``includes``, the file itself
-and the command-line overrides, and the settings are built from the result. Each error is one line
-naming the setting and its layer (an unknown one with the closest known names)."""
+"""Loading a config: the defaults, the files it ``includes``, the file and the overrides merged by
+OmegaConf, then built; each error is one line naming the setting and its layer."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""docs/settings.md, generated from the settings' declarations (:mod:`fedlgr.core.settings`):
-``uv run python -m fedlgr.shell.config.reference > docs/settings.md``; a test checks that
-the committed file is current."""
+"""docs/settings.md from the settings' declarations, ``uv run python -m
+fedlgr.shell.config.reference > docs/settings.md``; a test checks that it is current."""
 
 from __future__ import annotations
 

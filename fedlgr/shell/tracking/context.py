@@ -168,14 +168,6 @@ class FirstLine(logging.Filter):
         return True
 
 
-def one_line_logs(*names: str) -> None:
-    """:class:`FirstLine` on each named logger (once)."""
-    for name in names:
-        log = logging.getLogger(name)
-        if not any(isinstance(f, FirstLine) for f in log.filters):
-            log.addFilter(FirstLine())
-
-
 class SystemMetrics:
     """MLflow's system-metrics monitor on run ``run_id`` (no active run needed), its samples held
     until :meth:`release`: MLflow's UI lists a run's metrics in the order their keys were first
@@ -188,7 +180,9 @@ class SystemMetrics:
         # its start and stop at INFO on every run are not news; a failed write: one line
         logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)
         # (A logger's filter sees only its own records: the monitor module's logger.)
-        one_line_logs("mlflow.system_metrics.system_metrics_monitor")
+        log = logging.getLogger("mlflow.system_metrics.system_metrics_monitor")
+        if not any(isinstance(f, FirstLine) for f in log.filters):
+            log.addFilter(FirstLine())
         self.monitor = SystemMetricsMonitor(
             run_id, sampling_interval=interval, resume_logging=resume, tracking_uri=uri
         )

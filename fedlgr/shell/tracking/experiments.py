@@ -1,6 +1,5 @@
-"""The MLflow experiment a run goes into: found, or made (perhaps by two processes at once), with
-its artifacts beside a local sqlite database and the shared view of its runs that the printed link
-opens (MLflow UI's own format, the headline scores first: docs/tracking.md)."""
+"""The MLflow experiment a run goes into, found or made (perhaps by two processes at once), and the
+shared view of its runs that the printed link opens (headline scores first: docs/tracking.md)."""
 
 from __future__ import annotations
 

@@ -80,8 +80,7 @@ def mask_password(uri: str) -> str:
     scheme, sep, rest = uri.partition("://")
     if not sep:
         return uri
-    end = authority_end(rest)
-    at = rest.rfind("@", 0, end)
+    at = rest.rfind("@", 0, authority_end(rest))
     user, colon, _ = rest[: max(at, 0)].partition(":")
     if at > 0 and _token_userinfo(scheme, rest[:at]):
         rest = f"***{rest[at:]}"
@@ -104,8 +103,6 @@ def _token_userinfo(scheme: str, userinfo: str) -> bool:
 
 # a query (or fragment) parameter: its separator, name and value
 _QUERY_PARAM = re.compile(r"([?&#;])([^=&#;]*)=([^&#;]*)")
-
-
 # access_token, client_secret, api_key; not libpq's sslkey or MySQL's ssl_key: file paths
 SECRET_PARAMS = ("password", "token", "secret", "api_key", "apikey", "access_key")
 
@@ -126,13 +123,12 @@ def authority_end(rest: str) -> int:
 def _secrets(uri: str) -> set[str]:
     """The passwords ``uri`` holds, as written and decoded, and each ``@``-separated part of one (a
     parser that splits the URL at its first ``@`` shows the rest as a host name)."""
-    _, sep, rest = uri.partition("://")
+    scheme, sep, rest = uri.partition("://")
     if not sep:
         return set()
-    end = authority_end(rest)
-    at = rest.rfind("@", 0, end)
+    at = rest.rfind("@", 0, authority_end(rest))
     found = {rest[:at].partition(":")[2]} if at > 0 else set()
-    if at > 0 and _token_userinfo(uri.partition("://")[0], rest[:at]):
+    if at > 0 and _token_userinfo(scheme, rest[:at]):
         found.add(rest[:at].partition(":")[0])
     found |= {m.group(3) for m in _QUERY_PARAM.finditer(rest) if _secret_param(m.group(2))}
     forms = found | {urllib.parse.unquote(f) for f in found}
