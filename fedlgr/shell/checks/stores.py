@@ -12,7 +12,6 @@ from fedlgr.errors import FedlgrError, first_line
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.tracking.uri import (
     authority_end,
-    given_uri,
     in_memory_sqlite,
     mask_password,
     masked_text,
@@ -163,12 +162,6 @@ def half_created(connection) -> None:
             f"half-created (its schema has no version: a process was killed while MLflow "
             f"created it; {hint})"
         )
-
-
-def check_tracking(uri: str | None, overrides: list[str]) -> None:
-    """:func:`check_reachable` on the URI a command was given: ``--tracking-uri``, else
-    its last ``tracking.uri=`` override, else ``$MLFLOW_TRACKING_URI``."""
-    check_reachable(given_uri(uri, overrides))
 
 
 def check_userinfo(uri: str, what: str, error: type[FedlgrError] = FedlgrError) -> None:

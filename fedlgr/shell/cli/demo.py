@@ -10,9 +10,10 @@ import typer
 
 from fedlgr.core.metrics import SCORES, headline_scores
 from fedlgr.shell import config as conf  # its names load when used: pydantic
-from fedlgr.shell.checks.stores import check_tracking
+from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verbs
 from fedlgr.shell.console import Progress, table
+from fedlgr.shell.tracking.uri import given_uri
 
 DEFAULT_DATA = Path("data/manners-synth")
 DEMO_CONFIG = conf.CONF_DIR / "experiment" / "demo.yaml"
@@ -62,7 +63,7 @@ def demo(
     """Synthesise the living room if absent, then train FedAvg and FedRootAvg on it
     (conf/experiment/demo.yaml), tracked in MLflow, and print a comparison table.
     Overrides (key=value) apply to both runs."""
-    check_tracking(tracking_uri, overrides)  # before loading torch
+    check_reachable(given_uri(tracking_uri, overrides))  # before loading torch
     from fedlgr.shell.data.synth import synthesize  # lazy: PIL and numpy, after the check (1 s)
 
     if not (data / "all_data.csv").is_file():

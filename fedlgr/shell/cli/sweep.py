@@ -11,7 +11,7 @@ import typer
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell import config as conf  # its names load when used: pydantic
-from fedlgr.shell.checks.stores import check_tracking
+from fedlgr.shell.checks.stores import check_reachable
 from fedlgr.shell.cli.verb import Overrides, TrackingUri, Verbs
 from fedlgr.shell.machine import available_cores
 from fedlgr.shell.signals import terminate_as_interrupt
@@ -92,7 +92,7 @@ def run_or_resume(
     with terminate_as_interrupt():  # SIGTERM (timeout, Slurm, docker stop) is a Ctrl-C
         overrides = list(overrides)
         _check_workers_and_study(workers, study)
-        check_tracking(tracking_uri, overrides)  # before loading Optuna and MLflow
+        check_reachable(given_uri(tracking_uri, overrides))  # before loading Optuna and MLflow
         optuna_file = check_storage(storage, make=False)  # before the configs load torch
         _not_the_tracking_store(optuna_file, storage, tracking_uri, overrides)
         if workers > 1 and not any(o.startswith("runtime.threads=") for o in overrides):

@@ -72,7 +72,6 @@ def _config_file(path: Path, seen: tuple[Path, ...]) -> Path:
 
 
 def _read_settings(path: Path) -> Any:
-    """The settings in the config file ``path``, an OmegaConf mapping of setting names."""
     from omegaconf import OmegaConf  # lazy: fedlgr --help reads this module without OmegaConf
 
     _check_nesting(path)

@@ -106,7 +106,6 @@ def _clashing(overrides) -> str | None:
 
 
 def _build(layers: list, interpolated: dict[str, tuple[Any, str]]) -> ExperimentConfig:
-    """The dataclasses from ``layers`` (``(source, node)``, merged in order)."""
     _require_mandatory(layers)
     merged = _merge(layers, with_defaults=bool(interpolated))
     _resolve(merged, interpolated)
@@ -228,7 +227,7 @@ def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
             (i, at, source, values)
             for i, (source, values) in enumerate(written)
             for at, name in enumerate(_names(values))
-            if _names_it(name, key)
+            if name == key or name.startswith(f"{key}.") or key.startswith(f"{name}.")
         ]
         if not writers:
             found.append((len(written), 0, refused.problem))
@@ -240,12 +239,6 @@ def _said_with_layer(shapes: list, layers: list, interpolated: dict) -> str:
             problem = unknown_setting(key, values)
         found.append((i, at, f"{source}: {problem}"))
     return min(found, key=lambda f: (f[0], f[1]))[2]
-
-
-def _names_it(name: str, key: str) -> bool:
-    """Does the written setting ``name`` set dotted ``key``, a setting under it or the
-    section holding it?"""
-    return name == key or name.startswith(f"{key}.") or key.startswith(f"{name}.")
 
 
 def _names(values: Any, prefix: str = "") -> list[str]:
