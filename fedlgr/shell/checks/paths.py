@@ -30,7 +30,6 @@ def broken_link(path) -> str | None:
 def _above(path, links_only: bool = False) -> str | None:
     """Why the nearest thing above ``path`` that is there cannot hold it: a dangling symbolic link
     or, unless ``links_only``, a file; None when it is a folder."""
-
     for parent in Path(path).parents:
         if not os.path.lexists(parent):
             continue
@@ -48,20 +47,16 @@ def _above(path, links_only: bool = False) -> str | None:
 def _mode(path) -> tuple[str | None, int | None]:
     """``(why, None)`` where ``path`` leads nowhere or something above it is in the way (``why``
     None when nothing is there), else ``(None, its mode)``."""
-
-    if why := broken_link(path):
-        return why, None
     try:
         return None, os.stat(path).st_mode
     except OSError:
-        return _above(path), None
+        return broken_link(path) or _above(path), None
 
 
 def not_a_file(path) -> str | None:
     """Why ``path`` cannot be read or written as a regular file though something is there: a broken
     link, "a folder", or a device, pipe or socket (which sqlite or ``open()`` would block on or read
     as empty); None for a regular file or nothing there."""
-
     why, mode = _mode(path)
     if mode is None or stat.S_ISREG(mode):
         return why

@@ -28,8 +28,7 @@ def check_reachable(uri: str, timeout: float = 5.0) -> None:
     """Raise :class:`TrackingUnreachable` when ``uri`` is an HTTP(S) address at which nothing
     answers within ``timeout`` seconds (any HTTP answer counts). A sqlite store must be one fedlgr
     can write; a plain file store is refused."""
-    memory = in_memory_sqlite(uri)
-    if uri.startswith("sqlite:///") and not memory:
+    if uri.startswith("sqlite:///") and not in_memory_sqlite(uri):
         check_sqlite(uri)
         return
     if uri.startswith("sqlite:"):  # sqlite:// or sqlite:///:memory: - no file
@@ -115,7 +114,6 @@ QUICK_CHECK_BYTES = 256 * 2**20
 def check_sqlite_usable(uri: str, wait: float = 30.0) -> None:
     """The sqlite store opens and takes a write lock within ``wait`` seconds: a corrupted file, or
     one another process keeps locked, is one line."""
-
     path = sqlite_file(uri)
     if path is None or not path.is_file():
         return
@@ -147,7 +145,6 @@ def half_created(connection) -> None:
     """Raise ``sqlite3.DatabaseError`` for an MLflow store whose creation a kill cut short (tables
     there, ``alembic_version`` empty): its every use would be a ``duplicate column name``
     traceback."""
-
     tables = {name for (name,) in connection.execute("SELECT name FROM sqlite_master")}
     if not tables or "experiments" not in tables:
         return  # an empty file, or not MLflow's (refused as such elsewhere)
