@@ -60,7 +60,8 @@ def _create_experiment(client, name: str) -> str:
     root = artifact_root(client.tracking_uri)
     if root is None:
         return client.create_experiment(name, tags=KIND)
-    from mlflow.entities import ExperimentTag  # lazy: mlflow (seconds), only when one is made
+    # lazy: mlflow (seconds), only when an experiment is made
+    from mlflow.entities import ExperimentTag
     from mlflow.tracking._tracking_service.utils import _get_store
 
     # root as the store's default artifact root: the location derives from the id made here
