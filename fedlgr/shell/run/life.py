@@ -55,19 +55,6 @@ class Resumed:
     state: dict[str, Any]  # the checkpoint
     folder: Path | None = None  # the checkpoint folder it was resumed from (this process owns it)
 
-    @property
-    def elapsed(self) -> float:
-        return self.state["elapsed"]
-
-    @property
-    def digest(self) -> str:
-        """Of the data it trains on ("" in checkpoints of older fedlgr)."""
-        return self.state.get("data_digest", "")
-
-    def rounds(self) -> list[RoundLog]:
-        """The checkpoint's rounds (``missing``: robots that dropped out)."""
-        return [round_log(r) for r in self.state["rows"]]
-
 
 class RunLife:
     """One run's life: :meth:`run` a runtime's rounds. ``start``: its ``perf_counter`` start;
@@ -92,7 +79,9 @@ class RunLife:
         self.notes = list(notes)
         self.resumed = resumed
         self.start = time.perf_counter() if start is None else start
-        self.elapsed = resumed.elapsed if resumed is not None else 0.0  # before this launch
+        self.elapsed = (
+            resumed.state["elapsed"] if resumed is not None else 0.0
+        )  # before this launch
         self.result = ExperimentResult(config)
         self.forgetting = ForgettingTracker(list(config.continual.tasks))
         self.tracker: Tracker | None = None  # rank 0, tracking.enabled
@@ -119,8 +108,8 @@ class RunLife:
         if self.resumed is not None:
             rounds.load_state_dict(self.resumed.state)
         with self.recording(steps):
-            eta = Eta(len(steps) - len(self.result.rounds))
-            for plan in steps.after(len(self.result.rounds)):
+            first, began = len(self.result.rounds), time.perf_counter()
+            for plan in steps.after(first):
                 label = f"round {plan.round}/{len(steps)}"
                 label += f" (task {tasks[plan.task]})" if tasks else ""
                 shown = self.rank0 and self.config.runtime.progress
@@ -128,11 +117,15 @@ class RunLife:
                     log = rounds.run_round(plan, progress)
                 metrics = self.record(plan, log)
                 saving, spent = time.perf_counter(), 0.0
-                if self.checkpoint_due(plan.round):
-                    self.checkpoint(rounds)
+                if self.every and (plan.round % self.every == 0 or plan.round == self.total):
+                    self.checkpoint(rounds)  # every tracking.checkpoint rounds, and after the last
                     spent = time.perf_counter() - saving
                 self.result.checkpoint_seconds.append(spent)
-                self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta.step()}){_missing(log)}")
+                eta = _eta(began, plan.round - first, len(steps) - plan.round)
+                missing = (
+                    f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
+                )
+                self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta}){missing}")
                 for client, why in sorted(log.refused.items()):
                     self.say(f"{label}: refused {log.who(client)}'s {why}")
                 self.tell(plan.round, metrics)  # the caller's on_round: raising stops the run
@@ -145,10 +138,10 @@ class RunLife:
         """The run around the rounds of ``steps``: restores a resumed run, opens the MLflow run,
         says what it does; at its end the artifacts and FINISHED, else the failure record."""
         self.total = len(steps)
-        replayed = self._restore(steps)
-        self._open()
-        self._announce(steps)
-        try:  # from here on the MLflow run exists: whatever happens, it is ended
+        try:  # once the MLflow run exists, whatever happens, it is ended
+            replayed = self._restore(steps)
+            self._open()
+            self._announce(steps)
             self._start(replayed)
             yield self.result
             self._finish()
@@ -161,17 +154,11 @@ class RunLife:
 
     def _restore(self, steps: Schedule) -> list[tuple[int, Metrics]]:
         """A resumed run's rounds and after-task figures; each restored round's metrics."""
-        replayed: list[tuple[int, Metrics]] = []
         if self.resumed is None:
-            return replayed
-        self.result.rounds = self.resumed.rounds()
-        for log, plan in zip(self.result.rounds, steps, strict=False):
-            metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
-            if plan.last_of_task:  # the "after task" figures, as they were computed then
-                metrics.update(self.forgetting.end_of_task(log, plan.task))
-            replayed.append((log.round, metrics))
-        self.result.after_tasks = self.forgetting.after
-        return replayed
+            return []
+        self.result.rounds = [round_log(r) for r in self.resumed.state["rows"]]
+        done = zip(self.result.rounds, steps, strict=False)
+        return [(r.round, self._metrics(p, r)) for r, p in done]  # as computed then
 
     def _open(self) -> None:
         """The MLflow run (rank 0, tracking.enabled); where its checkpoints go."""
@@ -180,18 +167,12 @@ class RunLife:
             return
         run_id = resumed.run_id if resumed is not None else None
         if config.tracking.checkpoint:  # before the MLflow run exists
-            try:
-                owner.check_folder(ckpt.checkpoint_root(config, tracking_uri(config)))
-            except BaseException:
-                owner.release(resumed.folder if resumed is not None else None)
-                raise
-        digest = (resumed.digest if resumed is not None else "") or data_digest(config)
-        try:
-            tracker = Tracker(config, self.tags, self.parent_run_id, run_id=run_id, digest=digest)
-        except BaseException:
-            owner.release(self.old)
-            raise
-        self.tracker = tracker
+            owner.check_folder(ckpt.checkpoint_root(config, tracking_uri(config)))
+        saved = resumed.state.get("data_digest", "") if resumed is not None else ""  # "": older
+        digest = saved or data_digest(config)
+        self.tracker = tracker = Tracker(
+            config, self.tags, self.parent_run_id, run_id=run_id, digest=digest
+        )
         self.folder = ckpt.checkpoint_root(config, tracking_uri(config)) / str(tracker.run_id)
         self.result.run_id, self.result.data_digest = tracker.run_id, digest
 
@@ -209,8 +190,7 @@ class RunLife:
         )
         for note in self.notes:
             self.say(note)
-        dp = config.federated.dp
-        if dp.enabled:
+        if config.federated.dp.enabled:
             self.say(_privacy(config, steps))
         if self.resumed is not None:
             done = len(self.result.rounds)
@@ -267,10 +247,7 @@ class RunLife:
         """The round ``plan`` has run: its log joins the result; its metrics (forgetting
         and after-task figures too) are logged to MLflow, and returned."""
         self.result.rounds.append(log)
-        metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
-        if plan.last_of_task:
-            metrics.update(self.forgetting.end_of_task(log, plan.task))
-            self.result.after_tasks = self.forgetting.after
+        metrics = self._metrics(plan, log)
         tracker = self.tracker
         logging = time.perf_counter()
         if tracker is not None:
@@ -289,9 +266,14 @@ class RunLife:
         self.result.tracking_seconds.append(time.perf_counter() - logging)
         return metrics
 
-    def checkpoint_due(self, round_: int) -> bool:
-        """Every ``tracking.checkpoint`` rounds, and after the last one."""
-        return bool(self.every) and (round_ % self.every == 0 or round_ == self.total)
+    def _metrics(self, plan, log: RoundLog) -> Metrics:
+        """A round's metrics, its forgetting and, after a task's last round, the after-task
+        figures."""
+        metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
+        if plan.last_of_task:
+            metrics.update(self.forgetting.end_of_task(log, plan.task))
+            self.result.after_tasks = self.forgetting.after
+        return metrics
 
     def checkpoint(self, rounds: Rounds) -> Path | None:
         """Checkpoint the run after its last round (every process takes part, rank 0 writes),
@@ -328,10 +310,9 @@ class RunLife:
         self.say(f"\n{run_name(self.config)} after {self.total} rounds ({result.seconds:.0f} s):")
         self.say(result.summary())
         tracker = self.tracker
-        if tracker is not None and self.hooks.show_runs:
-            hint = runs_hint(tracker.uri, tracker.experiment_id)
-            if hint:
-                self.say(hint)
+        hint = runs_hint(tracker.uri, tracker.experiment_id) if tracker is not None else ""
+        if hint and self.hooks.show_runs:
+            self.say(hint)
         return result
 
     def _record_failure(self, tracker: Tracker, err: BaseException) -> None:
@@ -346,26 +327,21 @@ class RunLife:
             f"{name}: {'KILLED' if killed else 'FAILED'} after {len(result.rounds)} of "
             f"{self.total} rounds ({spent:.0f} s)"
         )
-        steps = [
-            ("results.csv", lambda: tracker.save_results(result.rows(), None)),
-            ("curves.png", lambda: tracker.save_results([], curves_png(result.rows(), name))),
-            (
-                "summary",
-                lambda: tracker.describe(heading, result.summary(), result.final_metrics()),
+        steps = {
+            "record results.csv": lambda: tracker.save_results(result.rows(), None),
+            "record curves.png": lambda: tracker.save_results([], curves_png(result.rows(), name)),
+            "record summary": lambda: tracker.describe(
+                heading, result.summary(), result.final_metrics()
             ),
-        ]
-        if result.rounds:
-            for what, action in steps:
-                try:
-                    action()
-                except Exception as problem:  # reported; never raised over err
-                    reason = first_line(problem, 200)
-                    self.say(f"(while failing: could not record {what}: {reason})")
-        try:
-            tracker.fail(interrupted=killed)
-        except Exception as problem:
-            reason = first_line(problem, 200)
-            self.say(f"(while failing: could not end MLflow run {tracker.run_id}: {reason})")
+        }
+        if not result.rounds:
+            steps = {}
+        steps[f"end MLflow run {tracker.run_id}"] = lambda: tracker.fail(interrupted=killed)
+        for what, action in steps.items():
+            try:
+                action()
+            except Exception as problem:  # reported; never raised over err
+                self.say(f"(while failing: could not {what}: {first_line(problem, 200)})")
 
 
 def checkpoint_state(
@@ -425,20 +401,10 @@ def _local_training(
         yield lambda client, epoch: bar(min(next(done), total), total)
 
 
-class Eta:
+def _eta(began: float, done: int, left: int) -> str:
     """``, ETA 4 min`` after each round but the last: the rounds still to run times the
     mean wall time of this process's rounds so far (logging and checkpoints included)."""
-
-    def __init__(self, rounds: int):
-        self.rounds, self.done, self.start = rounds, 0, time.perf_counter()
-
-    def step(self) -> str:
-        self.done += 1
-        left = self.rounds - self.done
-        if left <= 0:
-            return ""
-        mean = (time.perf_counter() - self.start) / self.done
-        return f", ETA {duration(mean * left)}"
+    return f", ETA {duration((time.perf_counter() - began) / done * left)}" if left > 0 else ""
 
 
 def _count(n: int, noun: str) -> str:
@@ -474,7 +440,3 @@ def _privacy(config: ExperimentConfig, steps: Schedule) -> str:
         else:
             line += f"all {len(steps)} rounds fit (epsilon {spent:.2f})"
     return line
-
-
-def _missing(log: RoundLog) -> str:
-    return f"  missing: client {', '.join(map(str, log.missing))}" if log.missing else ""
