@@ -55,13 +55,11 @@ class ExperimentResult:
                 out[f"mean/{key}"] = float(np.nanmean(column))
         server = [r.server for r in self.rounds if "cost/server_cpu_s" in r.server]
         if server and len(server) == len(self.rounds):
-            cpu = sum(s["cost/server_cpu_s"] for s in server)
-            out["mean/cost/server_cpu_s"] = cpu / len(server)
-            out["mean/cost/server_wall_s"] = sum(s["cost/server_wall_s"] for s in server) / len(
-                server
-            )
+            cpu, n = sum(s["cost/server_cpu_s"] for s in server), len(server)
+            out["mean/cost/server_cpu_s"] = cpu / n
+            out["mean/cost/server_wall_s"] = sum(s["cost/server_wall_s"] for s in server) / n
             # the paper's CPU figure: the server process's CPU / (clients x rounds), docs/methods.md
-            out["mean/cost/paper_cpu_s"] = cpu / (len(self.rounds[0].table) * len(server))
+            out["mean/cost/paper_cpu_s"] = cpu / (len(self.rounds[0].table) * n)
         return out
 
     def summary(self) -> str:
@@ -143,42 +141,34 @@ class ExperimentResult:
             "drift_past": "past scenes (true)",
             "drift_past_residual": "past, after the map",
         }
-        present = [n for n in names if self.rounds and f"lgr/{n}" in self.rounds[0].keys]
-        # Columns nothing was measured in (no compensation: no residuals) are left out.
-        present = [
-            n for n in present if any(log.mean(f"lgr/{n}") is not None for log in self.rounds)
-        ]
-        rows = []
-        for log in self.rounds:
-            values = [log.mean(f"lgr/{n}") for n in present]
-            if any(v is not None for v in values):
-                rows.append(
-                    [f"round {log.round} ({log.task})", *("-" if v is None else v for v in values)]
-                )
-        if not rows:
-            return ""
-        headers = ["", *(names[n] for n in present)]
-        return "latent drift since the task's start (FD, 0 = none):\n" + table(headers, rows)
+        title = "latent drift since the task's start (FD, 0 = none)"
+        # columns nothing was measured in (no compensation: no residuals) are left out
+        return self._lgr_table(title, names, "round {round} ({task})", measured_only=True)
 
     def replay_fidelity(self) -> str:
         """FedLGR: the replay's fidelity at each task end, mean over clients (docs/fedlgr.md)."""
         names = {"fd_latent": "FD latents", "recon_mse": "recon MSE (held-out)"}
         names |= {"fd_labels": "FD labeller outputs", "vae_epochs": "VAE epochs kept"}
+        title = "replay fidelity (0 = the real latents)"
+        return self._lgr_table(title, names, "end of {task} (round {round})")
+
+    def _lgr_table(
+        self, title: str, names: dict[str, str], label: str, measured_only: bool = False
+    ) -> str:
+        """``title`` and a row per round that measured any of the ``lgr/`` figures ``names``."""
         present = [n for n in names if self.rounds and f"lgr/{n}" in self.rounds[0].keys]
+        if measured_only:
+            present = [
+                n for n in present if any(r.mean(f"lgr/{n}") is not None for r in self.rounds)
+            ]
         rows = []
         for log in self.rounds:
             values = [log.mean(f"lgr/{n}") for n in present]
             if any(v is not None for v in values):
-                rows.append(
-                    [
-                        f"end of {log.task} (round {log.round})",
-                        *("-" if v is None else v for v in values),
-                    ]
-                )
-        if not rows:
-            return ""
+                row = label.format(round=log.round, task=log.task)
+                rows.append([row, *("-" if v is None else v for v in values)])
         headers = ["", *(names[n] for n in present)]
-        return "replay fidelity (0 = the real latents):\n" + table(headers, rows)
+        return f"{title}:\n{table(headers, rows)}" if rows else ""
 
     def task_summary(self) -> str:
         """After each task: scores on all tasks seen so far, and each past task's forgetting
