@@ -18,7 +18,6 @@ from fedlgr.core.state import save_private
 from fedlgr.errors import FedlgrError, first_line, interrupt_in
 from fedlgr.shell.checks.paths import not_a_folder
 from fedlgr.shell.config import ExperimentConfig
-from fedlgr.shell.config.export import SAFE_KEYS
 
 FORMAT = 2  # 2: a round's rows name their columns (keys) and participants
 PATTERN = re.compile(r"round-(\d+)\.ckpt")
@@ -162,21 +161,6 @@ def remove(folder: Path, ours: bool = False) -> None:
         with contextlib.suppress(OSError):  # not empty, or another run made it meanwhile
             folder.parent.rmdir()
 
-
-# --------------------------------------------------------------------------- the config
-
-
-def differences(saved: dict[str, str], now: dict[str, str]) -> list[str]:
-    """``key (checkpoint A, now B)`` for every setting that differs, safe keys aside."""
-    keys = sorted((saved.keys() | now.keys()) - SAFE_KEYS)
-    return [
-        f"{k} (checkpoint {saved.get(k, 'unset')}, now {now.get(k, 'unset')})"
-        for k in keys
-        if saved.get(k) != now.get(k)
-    ]
-
-
-# --------------------------------------------------------------------------- encoding
 
 _ARRAY = "__ndarray__"
 

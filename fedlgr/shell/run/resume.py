@@ -9,7 +9,7 @@ from typing import Any
 
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.config import ExperimentConfig, flatten
-from fedlgr.shell.config.export import MACHINE_CHOSEN, config_hash
+from fedlgr.shell.config.export import MACHINE_CHOSEN, SAFE_KEYS, config_hash
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run import owner
 from fedlgr.shell.run.life import Resumed
@@ -56,15 +56,18 @@ def left_to_machine(config: ExperimentConfig) -> frozenset[str]:
     return frozenset(k for k in MACHINE_CHOSEN if left[k] is None)
 
 
-# --------------------------------------------------------------------------- which run
-
-
 def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tuple[str, Path]:
     """The run to resume (``resume``: its id, or True for the latest unfinished run of this config)
     and its newest checkpoint; dead RUNNING runs are marked KILLED, a live one is refused."""
     run = _the_run(config, resume, client)
-    run_id = run.info.run_id
-    run, folder = _where_its_checkpoints_are(run, config, client)
+    run_id, folder = run.info.run_id, checkpoint_folder(run, config)
+    for _ in range(3):  # a resume under way elsewhere may move the run's checkpoints meanwhile
+        if folder.is_dir():
+            break
+        run = client.get_run(run_id)
+        if (moved := checkpoint_folder(run, config)) == folder:
+            break
+        folder = moved
     if run.info.status == "FINISHED":
         raise FedlgrError(
             f"--resume: run {run_id} has finished; there is nothing to resume"
@@ -79,8 +82,21 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
             "checkpoint, or tracking.checkpoint=0); start it over without --resume"
         )
     owner.claim(folder, run_id)  # from here on no other process can resume it too
-    try:
-        _end_if_dead(client.get_run(run_id), client)  # now that we own it: its owner has ended
+    try:  # now that we own it, its owner has ended: a RUNNING run is dead, and marked KILLED
+        run = client.get_run(run_id)
+        if run.info.status == "FINISHED":
+            raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
+        if run.info.status == "RUNNING":
+            reason = dead_reason(run)
+            if reason is None:
+                tags = run.data.tags
+                raise FedlgrError(
+                    f"--resume: run {run_id} is still running (process "
+                    f"{tags.get('fedlgr.pid')} on {tags.get('fedlgr.host')}); stop it first, "
+                    "or wait until it ends"
+                )
+            client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
+            client.set_terminated(run_id, "KILLED")
         found = ckpt.checkpoints(folder)
         if not found:
             raise FedlgrError(f"--resume: run {run_id}'s checkpoints in {folder} are gone")
@@ -88,50 +104,6 @@ def find_checkpoint(config: ExperimentConfig, resume: str | bool, client) -> tup
         owner.release(folder)
         raise
     return run_id, found[-1]
-
-
-def _the_run(config: ExperimentConfig, resume: str | bool, client):
-    """The MLflow run ``resume`` names: its id, or True for the latest unfinished run."""
-    if resume is True:
-        return _latest_unfinished(config, client, experiment_id(client, config.tracking.experiment))
-    try:
-        return client.get_run(str(resume))
-    except Exception:
-        uri = tracking_uri(config)
-        raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
-
-
-def _where_its_checkpoints_are(run, config: ExperimentConfig, client) -> tuple[Any, Path]:
-    """The run as it is now and its checkpoint folder: a resume under way elsewhere may
-    move the run's checkpoints meanwhile."""
-    folder = checkpoint_folder(run, config)
-    for _ in range(3):
-        if folder.is_dir():
-            break
-        run = client.get_run(run.info.run_id)
-        if (moved := checkpoint_folder(run, config)) == folder:
-            break
-        folder = moved
-    return run, folder
-
-
-def _end_if_dead(run, client) -> None:
-    """Refuse a finished run or a live one; mark a dead RUNNING run KILLED."""
-    run_id = run.info.run_id
-    if run.info.status == "FINISHED":
-        raise FedlgrError(f"--resume: run {run_id} has finished; there is nothing to resume")
-    if run.info.status != "RUNNING":
-        return
-    reason = dead_reason(run)
-    if reason is None:
-        tags = run.data.tags
-        raise FedlgrError(
-            f"--resume: run {run_id} is still running (process "
-            f"{tags.get('fedlgr.pid')} on {tags.get('fedlgr.host')}); stop it first, "
-            "or wait until it ends"
-        )
-    client.set_tag(run_id, "fedlgr.ended", f"marked KILLED: {reason}")
-    client.set_terminated(run_id, "KILLED")
 
 
 def remove_leftover(folder: Path, run_id: str) -> str:
@@ -159,19 +131,22 @@ def checkpoint_folder(run, config: ExperimentConfig) -> Path:
     return Path(tagged)
 
 
-def _latest_unfinished(config: ExperimentConfig, client, experiment: str):
-    query = (
-        f"tags.`fedlgr.config_hash` = '{config_hash(config)}' and attributes.status != 'FINISHED'"
-    )
-    runs = client.search_runs([experiment], query, order_by=["attributes.start_time DESC"])
+def _the_run(config: ExperimentConfig, resume: str | bool, client):
+    """The MLflow run ``resume`` names: its id, or True for the latest unfinished run."""
+    if resume is not True:
+        try:
+            return client.get_run(str(resume))
+        except Exception:
+            uri = tracking_uri(config)
+            raise FedlgrError(f"--resume {resume}: no such run in the MLflow store {uri}") from None
+    experiment = experiment_id(client, config.tracking.experiment)
+    ours = f"tags.`fedlgr.config_hash` = '{config_hash(config)}'"
+    newest_first = ["attributes.start_time DESC"]
+    query = f"{ours} and attributes.status != 'FINISHED'"
+    runs = client.search_runs([experiment], query, order_by=newest_first)
     if not runs:
         # named, so that two launches resuming at once are told which run the other finished
-        finished = client.search_runs(
-            [experiment],
-            f"tags.`fedlgr.config_hash` = '{config_hash(config)}'",
-            order_by=["attributes.start_time DESC"],
-            max_results=1,
-        )
+        finished = client.search_runs([experiment], ours, order_by=newest_first, max_results=1)
         newest = f" (run {finished[0].info.run_id} has finished)" if finished else ""
         raise FedlgrError(
             f"--resume: no unfinished run of this config in MLflow experiment "
@@ -190,7 +165,12 @@ def load_checkpoint(
     if state["run_id"] != run_id:
         raise FedlgrError(f"{path}: a checkpoint of run {state['run_id']}, not of run {run_id}")
     saved = {k: v for k, v in state["config"].items() if k not in adopt}
-    changed = ckpt.differences(saved, {k: v for k, v in flatten(config).items() if k not in adopt})
+    current = {k: v for k, v in flatten(config).items() if k not in adopt}
+    changed = [  # every setting that differs, safe keys aside
+        f"{k} (checkpoint {saved.get(k, 'unset')}, now {current.get(k, 'unset')})"
+        for k in sorted((saved.keys() | current.keys()) - SAFE_KEYS)
+        if saved.get(k) != current.get(k)
+    ]
     if changed:
         more = f"; and {len(changed) - 5} more" if len(changed) > 5 else ""
         shown = "; ".join(changed[:5]) + more
@@ -212,11 +192,7 @@ def adopted(resumed: Resumed | None, keys: frozenset[str]) -> dict[str, Any]:
     """A resumed run's own values of the machine-chosen settings ``keys`` (its
     checkpoint's flattened config), by name: ``{"threads": 2, "concurrency": ...}``."""
     saved = resumed.state["config"] if resumed is not None else {}
-    found: dict[str, Any] = {}
-    for key in keys:
-        value = saved.get(key)
-        if value is None or value == "None":
-            continue
-        name = key.removeprefix("runtime.")
-        found[name] = int(value) if name in ("threads", "workers") else value
-    return found
+    found = {
+        k.removeprefix("runtime."): saved[k] for k in keys if saved.get(k) not in (None, "None")
+    }
+    return {k: int(v) if k in ("threads", "workers") else v for k, v in found.items()}
