@@ -40,14 +40,6 @@ def deferred() -> Iterator[None]:
             raise interrupt
 
 
-def _raise_or_defer(interrupt: KeyboardInterrupt) -> None:
-    global _pending
-    if _depth > 0 and _pending is None:
-        _pending = interrupt
-        return
-    raise interrupt
-
-
 def _in_finaliser(frame, depth: int = 8) -> bool:
     """Whether the handler interrupted a finaliser (``__del__``, a weakref callback): Python prints
     an exception raised there and goes on, so the signal would be lost."""
@@ -57,13 +49,6 @@ def _in_finaliser(frame, depth: int = 8) -> bool:
             return True
         frame, depth = frame.f_back, depth - 1
     return False
-
-
-def _again(signum: int) -> None:
-    """Deliver ``signum`` to this process again in a moment, outside the finaliser."""
-    timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
-    timer.daemon = True
-    timer.start()
 
 
 @contextlib.contextmanager
@@ -77,27 +62,32 @@ def terminate_as_interrupt() -> Iterator[None]:
     received: list[int] = []
 
     def on_signal(signum: int, frame) -> None:
-        if _in_finaliser(frame):
-            _again(signum)  # raised here, it would be printed and dropped
+        global _pending
+        if _in_finaliser(frame):  # raised here, it would be printed and dropped: again, later
+            timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+            timer.daemon = True
+            timer.start()
             return
         if received:
             return  # the first one's interrupt is unwinding
         received.append(signum)
         name = signal.Signals(signum).name
-        _raise_or_defer(KeyboardInterrupt() if signum == signal.SIGINT else Terminated(name))
+        interrupt = KeyboardInterrupt() if signum == signal.SIGINT else Terminated(name)
+        if _depth > 0 and _pending is None:
+            _pending = interrupt  # raised when ``deferred()`` ends
+            return
+        raise interrupt
 
-    previous = signal.signal(signal.SIGTERM, on_signal)
-    previous_int = signal.signal(signal.SIGINT, on_signal)
+    numbers = [signal.SIGTERM, signal.SIGINT]
     # SIGHUP (a closed terminal, a dropped ssh session) as SIGTERM, unless ignored (nohup).
-    hangup = signal.getsignal(signal.SIGHUP) == signal.SIG_DFL
-    previous_hup = signal.signal(signal.SIGHUP, on_signal) if hangup else None
+    if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL:
+        numbers.append(signal.SIGHUP)
+    previous = {number: signal.signal(number, on_signal) for number in numbers}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
-        signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
-        if hangup:
-            signal.signal(signal.SIGHUP, previous_hup or signal.SIG_DFL)
+        for number, handler in previous.items():
+            signal.signal(number, signal.SIG_DFL if handler is None else handler)
 
 
 def quiet_exit(code: int = 130) -> None:

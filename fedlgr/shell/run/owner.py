@@ -82,17 +82,10 @@ def _sign(fd: int) -> None:
 def _owner(path: Path) -> list[str]:
     """The host and pid the owner wrote in its lock file (none if it cannot be read)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        with open(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), errors="replace") as f:
+            return f.read(200).split()
     except OSError:
         return []
-    try:
-        return os.pread(fd, 200, 0).decode(errors="replace").split()
-    finally:
-        os.close(fd)
-
-
-def holds(folder: Path) -> bool:
-    return folder / NAME in _held
 
 
 def release(folder: Path | None) -> None:
@@ -102,8 +95,3 @@ def release(folder: Path | None) -> None:
     lock = _held.pop(folder / NAME, None)
     if lock is not None:
         lock.release()
-
-
-def release_all() -> None:
-    for path in list(_held):
-        release(path.parent)
