@@ -62,19 +62,16 @@ class Progress:
         if not self.enabled:
             return
         with self._lock:
-            if self.terminal:
-                self._draw(done, total)
-            else:
+            if not self.terminal:
                 self._log(done, total)
+                return
+            if self.bar is None:
+                from tqdm.auto import tqdm  # lazy: tqdm, only on a terminal
 
-    def _draw(self, done: int, total: int) -> None:
-        if self.bar is None:
-            from tqdm.auto import tqdm  # lazy: tqdm, only on a terminal
-
-            self.bar = tqdm(
-                total=total, desc=self.desc, unit=self.unit, leave=False, dynamic_ncols=True
-            )
-        self.bar.update(done - self.bar.n)
+                self.bar = tqdm(
+                    total=total, desc=self.desc, unit=self.unit, leave=False, dynamic_ncols=True
+                )
+            self.bar.update(done - self.bar.n)
 
     def _log(self, done: int, total: int) -> None:
         now = time.monotonic()

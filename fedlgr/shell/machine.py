@@ -71,6 +71,5 @@ def tune_allocator() -> bool:
 def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:
     """Threads per process: the setting, else this machine's idle cores over its processes
     (:func:`default_threads`: all cores would oversubscribe a busy one)."""
-    if config.runtime.threads is not None:
-        return config.runtime.threads
-    return default_threads(local_world_size)
+    threads = config.runtime.threads
+    return default_threads(local_world_size) if threads is None else threads

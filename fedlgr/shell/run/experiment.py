@@ -44,11 +44,8 @@ def make_fabric(config: ExperimentConfig):
     if rt.world_size > 1:
         # no DDP wrapping (clients train independently), and no buffers broadcast either
         timeout = datetime.timedelta(seconds=rt.timeout_s)
-        strategy = (
-            DDPStrategy(start_method="spawn", broadcast_buffers=False, timeout=timeout)
-            if rt.launcher == "ddp_spawn"
-            else DDPStrategy(broadcast_buffers=False, timeout=timeout)
-        )
+        start = "spawn" if rt.launcher == "ddp_spawn" else "popen"
+        strategy = DDPStrategy(start_method=start, broadcast_buffers=False, timeout=timeout)
     return Fabric(
         accelerator=accelerator,
         devices=rt.devices,
@@ -83,9 +80,7 @@ def run_experiment(
 def _launch(fabric, config: ExperimentConfig, *args):
     """``fabric.launch(_main, ...)``, SIGTERM and Ctrl-C ending the process at once while the
     processes join: torch's rendezvous blocks in C++, where Python's signal handlers never run."""
-    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
-    for number in handlers:
-        signal.signal(number, signal.SIG_DFL)
+    handlers = {s: signal.signal(s, signal.SIG_DFL) for s in (signal.SIGTERM, signal.SIGINT)}
 
     started: list[bool] = []
 
@@ -98,9 +93,17 @@ def _launch(fabric, config: ExperimentConfig, *args):
     rt = config.runtime
     try:
         return fabric.launch(joined, config, *args)
-    except (DistStoreError, DistNetworkError) as err:  # the latter: a process that joins
-        if started:  # mid-run: a peer is gone
-            raise FedlgrError(_peer_message(fabric, err)) from None
+    except RuntimeError as err:  # torch's DistError too
+        # DistNetworkError: a process that joins; mid-run, either says that a peer is gone
+        joining = isinstance(err, DistStoreError | DistNetworkError)
+        if not (joining or isinstance(err, DistBackendError) or _peer_lost(err)):
+            raise
+        if started or not joining:
+            raise FedlgrError(
+                f"another process of this {fabric.world_size}-process run ended during an "
+                f"exchange ({first_line(err, 200)}); its own output says why (killed, or an "
+                "error); the run is ended FAILED and --resume continues it from its last checkpoint"
+            ) from None
         where = f"{os.environ.get('MASTER_ADDR', '127.0.0.1')}:{os.environ.get('MASTER_PORT', '?')}"
         way_out = (
             "start the other nodes' processes (same command, their NODE_RANK) or check "
@@ -113,10 +116,6 @@ def _launch(fabric, config: ExperimentConfig, *args):
             f"joined within runtime.timeout_s={rt.timeout_s:g} s at {where} "
             f"({first_line(err, 200)}); {way_out}"
         ) from None
-    except RuntimeError as err:  # after DistStoreError, one of its kind
-        if not (isinstance(err, DistBackendError) or _peer_lost(err)):
-            raise
-        raise FedlgrError(_peer_message(fabric, err)) from None
     finally:
         for number, handler in handlers.items():
             if signal.getsignal(number) is signal.SIG_DFL:
@@ -138,9 +137,8 @@ def _main(
     with Progress("decoding images", "img", show) as bar:  # only when not cached yet
         # split before decoding: a split the schedule cannot train is refused in a moment
         scenes, split = load_split(config.data, config.continual.tasks, progress=bar)
-    spill = None  # idle clients' states beyond runtime.idle_memory_mb: by the checkpoints
-    if config.tracking.enabled:
-        spill = checkpoint_root(config, tracking_uri(config))
+    # idle clients' states beyond runtime.idle_memory_mb: by the checkpoints
+    spill = checkpoint_root(config, tracking_uri(config)) if config.tracking.enabled else None
     orchestrator = Orchestrator(fabric, config, scenes, split, spill, resolved)
     processes = f", {fabric.world_size} processes" if fabric.world_size > 1 else ""
     held = _task_clients(split)
@@ -208,14 +206,6 @@ def _threads_text(config: ExperimentConfig, share: int | None) -> str:
     if rt.concurrency == "threads" and rt.workers > 1:
         text += f", {rt.workers} clients side by side"
     return text
-
-
-def _peer_message(fabric, err: BaseException) -> str:
-    return (
-        f"another process of this {fabric.world_size}-process run ended during an exchange "
-        f"({first_line(err, 200)}); its own output says why (killed, or an error); the run is "
-        "ended FAILED and --resume continues it from its last checkpoint"
-    )
 
 
 def _peer_lost(err: BaseException) -> bool:
