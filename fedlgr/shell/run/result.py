@@ -71,29 +71,17 @@ class ExperimentResult:
         # Over the rounds a client took part in (a robot that dropped out has NaN rows).
         per_round = {c.key: np.stack([r.column(c.key) for r in self.rounds]) for c in costs}
         clients = len(last.table)
+        # a figure measured in no round (a client not scored) shows as "-"
+        shown = [_dash] * len(scores)
+        shown += [_human_bytes if c.key.startswith("cost/bytes") else _dash for c in costs]
         rows = [
-            [
-                f"client {c}",
-                *(float(last.column(n)[c]) for n in scores),
-                *(_nanmean(per_round[cost.key][:, c]) for cost in costs),
-            ]
-            for c in range(clients if clients <= SHOWN_CLIENTS else 0)
+            [f"client {i}", *(float(last.column(n)[i]) for n in scores)]
+            + [_nanmean(per_round[c.key][:, i]) for c in costs]
+            for i in range(clients if clients <= SHOWN_CLIENTS else 0)
         ]
-        rows.append(
-            [
-                "mean",
-                *(last.mean(n) for n in scores),
-                *(_nanmean(per_round[cost.key]) for cost in costs),
-            ]
-        )
-        for row in rows:  # a figure measured in no round (a client not scored) shows as "-"
-            for i in range(1, 1 + len(scores)):
-                row[i] = "-" if row[i] is None or math.isnan(row[i]) else row[i]
-            for i, cost in enumerate(costs, start=1 + len(scores)):
-                if cost.key.startswith("cost/bytes"):
-                    row[i] = _human_bytes(row[i])
-                elif math.isnan(row[i]):
-                    row[i] = "-"
+        rows.append(["mean", *(last.mean(n) for n in scores)])
+        rows[-1] += [_nanmean(per_round[c.key]) for c in costs]
+        rows = [[row[0], *(f(v) for f, v in zip(shown, row[1:], strict=True))] for row in rows]
         headers = ["client", *(s.label for s in SCORES), *(c.summary for c in costs)]
         text = table(headers, rows) + self._scored_note()
         if self.after_tasks:
@@ -201,6 +189,10 @@ def _nanmean(values) -> float:
     present = np.asarray(values, dtype=float)
     present = present[~np.isnan(present)]
     return float(present.mean()) if present.size else math.nan
+
+
+def _dash(value: float | None) -> object:
+    return "-" if value is None or math.isnan(value) else value
 
 
 def _human_bytes(n: float | None) -> str:
