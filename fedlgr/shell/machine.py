@@ -10,9 +10,11 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from fedlgr.shell.config import ExperimentConfig
 
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
-_MMAP_THRESHOLD = 32 * 1024 * 1024  # glibc's largest allowed value on 64-bit
-_TRIM_THRESHOLD = 512 * 1024 * 1024
+_MALLOPT = {  # mallopt(3)'s option: value
+    -3: 32 * 1024 * 1024,  # M_MMAP_THRESHOLD: glibc's largest allowed value on 64-bit
+    -1: 512 * 1024 * 1024,  # M_TRIM_THRESHOLD
+    -8: 1,  # M_ARENA_MAX
+}
 
 
 def available_cores() -> int:
@@ -58,14 +60,7 @@ def tune_allocator() -> bool:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:
         return False
-    return all(
-        libc.mallopt(option, value)
-        for option, value in (
-            (_M_MMAP_THRESHOLD, _MMAP_THRESHOLD),
-            (_M_TRIM_THRESHOLD, _TRIM_THRESHOLD),
-            (_M_ARENA_MAX, 1),
-        )
-    )
+    return all(libc.mallopt(option, value) for option, value in _MALLOPT.items())
 
 
 def torch_threads(config: ExperimentConfig, local_world_size: int) -> int:

@@ -1,6 +1,5 @@
-"""Per-round checkpoints of a run, one folder per MLflow run: where they live, how they are written
-and read. Not MLflow artifacts: a checkpoint replaces its predecessor atomically, which an upload
-cannot; read with ``weights_only=True``, never code."""
+"""Per-round checkpoints of a run, one folder per MLflow run, not artifacts (a checkpoint replaces
+its predecessor atomically, which an upload cannot); read with ``weights_only=True``, never code."""
 
 from __future__ import annotations
 
@@ -41,13 +40,10 @@ def checkpoint_root(config: ExperimentConfig, tracking_uri: str) -> Path:
 def checkpoints(folder: Path) -> list[Path]:
     """The complete checkpoints in ``folder``, oldest round first (temporary files of an
     interrupted write are not checkpoints)."""
-    if not folder.is_dir():
-        return []
-    found = [(int(m.group(1)), p) for p in folder.iterdir() if (m := PATTERN.fullmatch(p.name))]
+    found = [(int(m.group(1)), p) for p in folder.glob("*") if (m := PATTERN.fullmatch(p.name))]
     return [p for _, p in sorted(found)]
 
 
-TEMPORARY = re.compile(r"\.round-\d+\.ckpt\.tmp")
 INTERRUPTED = "interrupted"  # what rank 0 tells the others when its write was cut off
 
 
@@ -62,11 +58,10 @@ def save(fabric, folder: Path, round_: int, state: dict[str, Any], keep: int) ->
         try:
             _write_atomically(path, encode(state))
         except (OSError, RuntimeError) as err:  # torch.save wraps a failed write in the latter
-            error = f"cannot write checkpoint {path}: {_io_reason(err)}"
             # and a Ctrl-C or SIGTERM in the middle of its writes too: that is no I/O error
             interrupt = interrupt_in(err)
-            if interrupt is not None:
-                error = INTERRUPTED
+            error = f"cannot write checkpoint {path}: {_io_reason(err)}"
+            error = INTERRUPTED if interrupt is not None else error
     if world > 1:
         error = fabric.broadcast(error, src=0)
     if error == INTERRUPTED:  # every process stops as rank 0 does
@@ -108,9 +103,7 @@ def _write_atomically(path: Path, state: Any) -> None:
 
 def remove_temporaries(folder: Path) -> list[Path]:
     """Remove what interrupted writes left in ``folder``; the files removed."""
-    if not folder.is_dir():
-        return []
-    stale = [p for p in folder.iterdir() if TEMPORARY.fullmatch(p.name)]
+    stale = list(folder.glob(".round-*.ckpt.tmp"))
     for path in stale:
         path.unlink(missing_ok=True)
     return stale
