@@ -1,6 +1,5 @@
-"""Pretrain a MobileNetV2 root offline, without appropriateness labels: the offline stand-in for the
-paper's ImageNet weights, trained to predict a scene's standardised descriptors and mode flags from
-its image, on another dataset than the one evaluated (``model.weights=FILE``)."""
+"""Pretrain a MobileNetV2 root offline to predict a scene's standardised descriptors and mode flags
+from its image, on other data: the stand-in for the paper's ImageNet weights (``model.weights``)."""
 
 from __future__ import annotations
 

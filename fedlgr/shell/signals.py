@@ -1,6 +1,5 @@
-"""SIGTERM handled like Ctrl-C: its default action ends a process with no ``finally`` run, leaving
-an MLflow run RUNNING; inside :func:`terminate_as_interrupt` it raises :class:`Terminated`, a
-``KeyboardInterrupt``, so the code that handles Ctrl-C handles it too."""
+"""SIGTERM handled like Ctrl-C (its default action skips every ``finally``, leaving an MLflow run
+RUNNING): :func:`terminate_as_interrupt` raises :class:`Terminated` instead, a KeyboardInterrupt."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""A run's life around a runtime's rounds, :class:`RunLife`: the schedule, the MLflow run,
-checkpoints and resume, the results at the end and the failure record, in one place for every
-runtime (in-process, Flower)."""
+"""A run's life around a runtime's rounds (:class:`RunLife`): the MLflow run, checkpoints and
+resume, the results and the failure record, the same for every runtime (in-process, Flower)."""
 
 from __future__ import annotations
 
@@ -76,17 +75,14 @@ class RunLife:
         self.config, self.hooks, self.fabric = config, hooks, fabric
         self.rank0 = fabric is None or fabric.global_rank == 0
         self.tags, self.parent_run_id, self.what = tags, parent_run_id, what
-        self.notes = list(notes)
-        self.resumed = resumed
+        self.notes, self.resumed = list(notes), resumed
         self.start = time.perf_counter() if start is None else start
-        self.elapsed = (
-            resumed.state["elapsed"] if resumed is not None else 0.0
-        )  # before this launch
+        self.elapsed = resumed.state["elapsed"] if resumed else 0.0  # before this launch
         self.result = ExperimentResult(config)
         self.forgetting = ForgettingTracker(list(config.continual.tasks))
         self.tracker: Tracker | None = None  # rank 0, tracking.enabled
         self.folder: Path | None = None  # the run's checkpoint folder (with the tracker)
-        self.old = resumed.folder if resumed is not None else None  # where its checkpoints were
+        self.old = resumed.folder if resumed else None  # where its checkpoints were
         # every process checkpoints (rank 0 writes): every ``every`` rounds, 0: never
         self.every = config.tracking.checkpoint if config.tracking.enabled else 0
         self.total = 0  # rounds in the schedule
@@ -267,8 +263,7 @@ class RunLife:
         return metrics
 
     def _metrics(self, plan, log: RoundLog) -> Metrics:
-        """A round's metrics, its forgetting and, after a task's last round, the after-task
-        figures."""
+        """A round's metrics and forgetting; at a task's end, the after-task figures too."""
         metrics = {**log.metrics(), **self.forgetting.forgetting(log)}
         if plan.last_of_task:
             metrics.update(self.forgetting.end_of_task(log, plan.task))
@@ -280,10 +275,8 @@ class RunLife:
         keeping the newest ``tracking.keep_checkpoints``; a resumed run's stale folder goes."""
         result = self.result
         state = rounds.state_dict()
-        whole: dict[str, Any] = {}
-        if self.rank0:
-            spent = self.elapsed + time.perf_counter() - self.start
-            whole = checkpoint_state(self.config, result, state, spent)
+        spent = self.elapsed + time.perf_counter() - self.start
+        whole = checkpoint_state(self.config, result, state, spent) if self.rank0 else {}
         folder = self.folder if self.folder is not None else Path(".")  # rank 0's is used
         keep = self.config.tracking.keep_checkpoints
         path = ckpt.save(self.fabric, folder, result.rounds[-1].round, whole, keep)

@@ -1,6 +1,5 @@
-"""One live process per run: its owner holds an exclusive ``flock`` on ``owner.lock`` in its
-checkpoint folder for the run's life, which the kernel drops however the owner dies, so a second
-``--resume`` of a live run is refused."""
+"""One live process per run: its owner holds a ``flock`` on ``owner.lock`` in its checkpoint folder,
+which the kernel drops however it dies, so a second ``--resume`` of a live run is refused."""
 
 from __future__ import annotations
 

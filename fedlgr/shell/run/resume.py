@@ -1,6 +1,5 @@
 """Picking a run up again (``fedlgr run --resume``): which run, its newest checkpoint, and whether
-it belongs to this config and data; before the runtime is built, as a resumed run takes its own
-machine-chosen settings."""
+it belongs to this config and data; before the runtime is built (it adopts the run's settings)."""
 
 from __future__ import annotations
 
