@@ -3,6 +3,7 @@ on a terminal, log lines elsewhere)."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
@@ -43,7 +44,7 @@ def duration(seconds: float) -> str:
     return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60:02d} min"
 
 
-class Progress:
+class Progress(contextlib.AbstractContextManager):
     """``progress(done, total)`` callback for long work, used as a context manager: a tqdm bar on a
     terminal, else a line on stderr at each tenth done (at most every ``every_s / 3`` s, at least
     every ``every_s`` s) so that logs show progress. Safe to call from several threads."""
@@ -88,9 +89,6 @@ class Progress:
             file=sys.stderr,
             flush=True,
         )
-
-    def __enter__(self) -> Progress:
-        return self
 
     def __exit__(self, *exc) -> None:
         if self.bar is not None:
