@@ -184,8 +184,7 @@ class ExperimentResult:
 
 
 def _nanmean(values) -> float:
-    """The mean of the values that are not NaN (NaN when there are none, without numpy's
-    warning)."""
+    """The mean of the values that are not NaN; NaN, without numpy's warning, if none are."""
     present = np.asarray(values, dtype=float)
     present = present[~np.isnan(present)]
     return float(present.mean()) if present.size else math.nan
