@@ -135,7 +135,10 @@ class RunLife:
         says what it does; at its end the artifacts and FINISHED, else the failure record."""
         self.total = len(steps)
         try:  # once the MLflow run exists, whatever happens, it is ended
-            replayed = self._restore(steps)
+            if self.resumed is not None:  # its rounds, their metrics as computed then
+                self.result.rounds = [round_log(r) for r in self.resumed.state["rows"]]
+            done = zip(self.result.rounds, steps, strict=False)
+            replayed = [(r.round, self._metrics(p, r)) for r, p in done]
             self._open()
             self._announce(steps)
             self._start(replayed)
@@ -147,14 +150,6 @@ class RunLife:
             raise
         finally:
             self._clean_up()
-
-    def _restore(self, steps: Schedule) -> list[tuple[int, Metrics]]:
-        """A resumed run's rounds and after-task figures; each restored round's metrics."""
-        if self.resumed is None:
-            return []
-        self.result.rounds = [round_log(r) for r in self.resumed.state["rows"]]
-        done = zip(self.result.rounds, steps, strict=False)
-        return [(r.round, self._metrics(p, r)) for r, p in done]  # as computed then
 
     def _open(self) -> None:
         """The MLflow run (rank 0, tracking.enabled); where its checkpoints go."""
