@@ -34,6 +34,12 @@ class Param:
     def is_grid(self) -> bool:
         return bool(self.values) and not self.categorical
 
+    @property
+    def whole(self) -> bool:
+        """A range of whole numbers: whole ends and step (Optuna's IntDistribution)."""
+        whole_step = self.step is None or float(self.step).is_integer()
+        return isinstance(self.low, int) and isinstance(self.high, int) and whole_step
+
     def distribution(self):
         """Optuna's distribution for this parameter."""
         # lazy: optuna (~1 s); a grid's sweep file is read and checked without it
@@ -45,36 +51,26 @@ class Param:
 
         if self.values:
             return CategoricalDistribution(list(self.values))
-        integer_step = self.step is None or float(self.step).is_integer()
-        if isinstance(self.low, int) and isinstance(self.high, int) and integer_step:
+        if self.whole:
             return IntDistribution(self.low, self.high, log=self.log, step=int(self.step or 1))
         return FloatDistribution(float(self.low), float(self.high), log=self.log, step=self.step)
 
     def suggest(self, trial) -> Any:
         """Draw this parameter for an Optuna trial (grid points come from GridSampler)."""
-        # lazy: optuna (~1 s); a grid's sweep file is read and checked without it
-        from optuna.distributions import CategoricalDistribution, IntDistribution
-
         d = self.distribution()
-        if isinstance(d, CategoricalDistribution):
+        if self.values:
             return trial.suggest_categorical(self.name, d.choices)
-        if isinstance(d, IntDistribution):
-            return trial.suggest_int(self.name, d.low, d.high, step=d.step, log=d.log)
-        return trial.suggest_float(self.name, d.low, d.high, step=d.step, log=d.log)
+        suggest = trial.suggest_int if self.whole else trial.suggest_float
+        return suggest(self.name, d.low, d.high, step=d.step, log=d.log)
 
     def size(self) -> int | None:
         """How many distinct values the parameter can take; None for a continuous range."""
-        # lazy: optuna (~1 s); a grid's sweep file is read and checked without it
-        from optuna.distributions import CategoricalDistribution, IntDistribution
-
-        d = self.distribution()
-        if isinstance(d, CategoricalDistribution):
-            return len(d.choices)
-        if isinstance(d, IntDistribution):
+        if self.values:
+            return len(self.values)
+        d = self.distribution()  # Optuna has fitted high to the step
+        if self.whole:
             return (d.high - d.low) // d.step + 1
-        if d.step is None:
-            return None
-        return round((d.high - d.low) / d.step) + 1  # Optuna has fitted high to the step
+        return None if d.step is None else round((d.high - d.low) / d.step) + 1
 
 
 @dataclass(frozen=True)

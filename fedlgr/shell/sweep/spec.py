@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -21,23 +21,14 @@ SAMPLERS = ("grid", "tpe")
 PRUNERS = ("median", "none")
 MAX_HEARTBEAT_S = 86400  # a day: longer, and a dead worker's trial waits days to retry
 MAX_GRID_POINTS = 1_000_000  # GridSampler lists every point (a tuple each) up front
-FAILURES_IN_A_ROW = 3  # a sweep stops once this many trials in a row have failed
-#: The settings a sweep file may have at its top level.
+#: The whole-number settings of a sweep file and their least values (defaults: SweepSpec's).
+WHOLE_NUMBERS = {"prune_warmup_rounds": 0, "seed": None, "heartbeat_s": 1, "failures_in_a_row": 1}
+#: The settings a sweep file may have at its top level: SweepSpec's, with ``objective`` for its
+#: metric and direction and ``space`` for its params.
 KNOWN = (
-    "name",
-    "description",
-    "base",
-    "overrides",
+    *(f.name for f in fields(SweepSpec) if f.name not in ("path", "params", "metric", "direction")),
     "objective",
     "space",
-    "sampler",
-    "trials",
-    "pruner",
-    "prune_warmup_rounds",
-    "seed",
-    "experiment",
-    "heartbeat_s",
-    "failures_in_a_row",
 )
 
 #: ``fail(key, message)``: the ConfigError naming the sweep file and its setting ``key``.
@@ -76,30 +67,32 @@ def load_sweep(
     _check_top_level(raw, path, fail)
     params = _space(raw, fail)
     sampler = _sampler(raw, params, fail)
-    trials = _trials(raw, sampler, fail)
-    metric, direction = _objective(raw, fail)
-    pruner = _pruner(raw, sampler, fail)
-    base = raw.get("base")
-    base_path = resolve_config(base, path) if base else None
-    fixed = _fixed_overrides(raw, fail)
+    trials = raw.get("trials")  # how many a TPE sweep runs (a grid runs each of its points)
+    if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
+        raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
+    objective = _objective(raw, fail)
+    # median by default for TPE; none for a grid, which wants every point measured
+    pruner = raw.get("pruner", "median" if sampler == "tpe" else "none")
+    if pruner not in PRUNERS:
+        raise fail("pruner", f"{pruner!r}; choose one of {', '.join(PRUNERS)}")
+    base = resolve_config(raw["base"], path) if raw.get("base") else None
+    fixed = raw.get("overrides") or []  # the key=value settings every trial gets
+    if not isinstance(fixed, list) or not all(isinstance(o, str) and "=" in o for o in fixed):
+        raise fail("overrides", "expected a list of key=value strings")
     name = str(raw.get("name") or path.stem)
     spec = SweepSpec(
         name=name,
         path=path.resolve(),
-        base=base_path,
+        base=base,
         params=params,
-        metric=metric,
-        direction=direction,
+        **objective,
         sampler=sampler,
         trials=trials,
         pruner=pruner,
-        prune_warmup_rounds=_integer(raw, "prune_warmup_rounds", 2, 0, fail),
-        seed=_integer(raw, "seed", 0, None, fail),
         overrides=(*fixed, *overrides),
         experiment=str(raw.get("experiment") or f"sweep-{name}"),
         description=str(raw.get("description", "")),
-        heartbeat_s=_integer(raw, "heartbeat_s", 30, 1, fail),
-        failures_in_a_row=_integer(raw, "failures_in_a_row", FAILURES_IN_A_ROW, 1, fail),
+        **{key: _integer(raw, key, least, fail) for key, least in WHOLE_NUMBERS.items()},
     )
     if spec.heartbeat_s > MAX_HEARTBEAT_S:
         raise fail("heartbeat_s", f"{spec.heartbeat_s} is above {MAX_HEARTBEAT_S} (one day)")
@@ -154,15 +147,7 @@ def _sampler(raw: dict[str, Any], params: tuple[Param, ...], fail: Fail) -> str:
     return sampler
 
 
-def _trials(raw: dict[str, Any], sampler: str, fail: Fail) -> int | None:
-    """How many trials a TPE sweep runs (a grid runs each of its points)."""
-    trials = raw.get("trials")
-    if sampler == "tpe" and (not isinstance(trials, int) or trials < 1):
-        raise fail("trials", "a TPE sweep needs trials: N (N >= 1)")
-    return trials
-
-
-def _objective(raw: dict[str, Any], fail: Fail) -> tuple[str, str]:
+def _objective(raw: dict[str, Any], fail: Fail) -> dict[str, str]:
     """The objective's metric and direction."""
     objective = raw.get("objective") or {}
     if not isinstance(objective, dict) or not isinstance(objective.get("metric", ""), str):
@@ -173,23 +158,7 @@ def _objective(raw: dict[str, Any], fail: Fail) -> tuple[str, str]:
     direction = objective.get("direction", "minimize")
     if direction not in DIRECTIONS:
         raise fail("objective.direction", f"{direction!r}; choose minimize or maximize")
-    return objective.get("metric", "test/rmse"), direction
-
-
-def _pruner(raw: dict[str, Any], sampler: str, fail: Fail) -> str:
-    """``median`` by default for TPE; none for a grid, which wants every point measured."""
-    pruner = raw.get("pruner", "median" if sampler == "tpe" else "none")
-    if pruner not in PRUNERS:
-        raise fail("pruner", f"{pruner!r}; choose one of {', '.join(PRUNERS)}")
-    return pruner
-
-
-def _fixed_overrides(raw: dict[str, Any], fail: Fail) -> list[str]:
-    """The file's ``overrides:``, the ``key=value`` settings every trial gets."""
-    fixed = raw.get("overrides") or []
-    if not isinstance(fixed, list) or not all(isinstance(o, str) and "=" in o for o in fixed):
-        raise fail("overrides", "expected a list of key=value strings")
-    return fixed
+    return {"metric": objective.get("metric", SweepSpec.metric), "direction": direction}
 
 
 def _check_overrides(spec: SweepSpec, in_file: int) -> None:
@@ -265,8 +234,8 @@ def _yaml_problem(err) -> str:
     return f"{where}: not valid YAML: {problem}"
 
 
-def _integer(raw: dict[str, Any], key: str, default: int, minimum: int | None, fail: Fail) -> int:
-    value = raw.get(key, default)
+def _integer(raw: dict[str, Any], key: str, minimum: int | None, fail: Fail) -> int:
+    value = raw.get(key, getattr(SweepSpec, key))
     if isinstance(value, bool) or not isinstance(value, int):
         raise fail(key, f"expected a whole number, not {value!r}")
     if minimum is not None and value < minimum:

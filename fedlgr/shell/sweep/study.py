@@ -65,7 +65,7 @@ def run_sweep(
     done = _run_with_helpers(worker, helpers)
     if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
         return SweepResult(worker.study, worker.parent_run_id, done)
-    best = worker.finish_parent() if done or worker.stopped else None
+    best = worker.parent.finish() if done or worker.stopped else None
     if worker.stopped:  # its best so far and trials.json are logged; it did not finish
         worker.parent.end("FAILED")
     echo("\n" + summary(worker.study, spec, best))
@@ -98,7 +98,7 @@ def _nothing_left(worker: Worker, worker_id: int, echo: Callable[..., None]) -> 
     and says so in one line."""
     if worker_id > 0:
         return SweepResult(worker.study, worker.parent_run_id, True)
-    best = worker.finish_parent()
+    best = worker.parent.finish()
     echo(nothing_left(worker.study, worker.spec, best))
     return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
 

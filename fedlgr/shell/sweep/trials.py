@@ -19,14 +19,9 @@ def one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
-def same_point(a: dict[str, Any], b: dict[str, Any]) -> bool:
-    """Whether two trials' params are the same grid point."""
-    return a.keys() == b.keys() and all(a[k] == b[k] for k in a)
-
-
 def point_key(spec: SweepSpec, params: dict[str, Any]) -> tuple | None:
-    """A trial's params as a tuple in the space's order - equal points, equal keys, as
-    :func:`same_point` has it - or None when they are not a point of this space."""
+    """A trial's params as a tuple in the space's order (equal points, equal keys), or None when
+    they are not a point of this space."""
     if params.keys() != {p.name for p in spec.params}:
         return None
     return tuple(params[p.name] for p in spec.params)
@@ -35,17 +30,15 @@ def point_key(spec: SweepSpec, params: dict[str, Any]) -> tuple | None:
 def _split(trials):
     """(running, waiting, finished) trials; finished leaves out skipped duplicates and the
     failed trials that were queued again (their copy stands for them)."""
-    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
-
     retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
-    running = [t for t in trials if t.state == TrialState.RUNNING]
-    waiting = [t for t in trials if t.state == TrialState.WAITING]
+    running = [t for t in trials if t.state.name == "RUNNING"]
+    waiting = [t for t in trials if t.state.name == "WAITING"]
     finished = [
         t
         for t in trials
         if t.state.is_finished()
         and "duplicate_of" not in t.user_attrs
-        and not (t.state == TrialState.FAIL and t.number in retried)
+        and not (t.state.name == "FAIL" and t.number in retried)
     ]
     return running, waiting, finished
 
@@ -99,24 +92,24 @@ def no_new_point(study, spec: SweepSpec) -> str | None:
     return f"the sampler's last {streak} draws were all points already run ({space})"
 
 
+def stopped_early(study, spec: SweepSpec) -> str | None:
+    """Why a TPE study ends before its ``trials`` (no new point is left), or None."""
+    why = no_new_point(study, spec) if spec.sampler != "grid" else None
+    return why if why and ran(study) < spec.n_trials else None
+
+
 def nothing_left(study, spec: SweepSpec, best: dict[str, Any] | None) -> str:
     """The one line a relaunched study with nothing left to run says."""
-    done = ran(study)
-    why = no_new_point(study, spec) if spec.sampler != "grid" else None
-    if why and done < spec.n_trials:
-        what = f"{done} of {spec.n_trials} trials ran ({why})"
-    else:
-        what = f"all {done} trials are done"
+    done, why = ran(study), stopped_early(study, spec)
+    what = f"{done} of {spec.n_trials} trials ran ({why})" if why else f"all {done} trials are done"
     found = f" (best: trial {best['trial']}, {spec.metric} {best['value']:.4f})" if best else ""
     return f"study {study.study_name!r}: {what}; nothing left to run{found}"
 
 
 def all_failed(study) -> str | None:
     """When every trial that ran failed: how many, and the first one's error."""
-    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
-
     finished = _split(study.get_trials(deepcopy=False))[2]
-    if not finished or any(t.state != TrialState.FAIL for t in finished):
+    if not finished or any(t.state.name != "FAIL" for t in finished):
         return None
     first = finished[0]
     error = first.user_attrs.get("error", "no error recorded")
@@ -127,12 +120,10 @@ def failing(study, spec: SweepSpec, since: int = 0) -> str | None:
     """Why the sweep stops, or None: the last ``failures_in_a_row`` finished trials from ``since``
     on all failed (interrupted ones aside); a trial that fails before drawing its point covers none,
     so the sweep would go on for ever."""
-    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
-
     finished = _split(study.get_trials(deepcopy=False))[2]
     streak = []
     for t in sorted((t for t in finished if t.number >= since), key=lambda t: -t.number):
-        if t.state != TrialState.FAIL:
+        if t.state.name != "FAIL":
             break
         if not t.user_attrs.get("interrupted"):
             streak.append(t)
@@ -154,13 +145,10 @@ def ran(study) -> int:
 def duplicate_of(study, number: int, params: dict[str, Any]) -> int | None:
     """An earlier trial that covers the same grid point (running or finished without
     failing), if any: GridSampler can hand a point out twice to parallel workers."""
-    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
-
     for t in study.get_trials(deepcopy=False):
         if t.number >= number or "duplicate_of" in t.user_attrs:
             continue
-        alive = t.state in (TrialState.RUNNING, TrialState.COMPLETE, TrialState.PRUNED)
-        if alive and same_point(t.params, params):
+        if t.state.name in ("RUNNING", "COMPLETE", "PRUNED") and t.params == params:
             return t.number
     return None
 
@@ -175,9 +163,7 @@ def interruption(trial, trials) -> str | None:
     """Why a FAILED trial was cut off rather than failing on its own, or None: Ctrl-C or
     SIGTERM (user attr ``interrupted``, set by its worker), or a worker that died (killed,
     machine lost: no error recorded and a copy queued); with the copy that re-runs it."""
-    from optuna.trial import TrialState  # lazy: optuna (~1 s), not needed to check a sweep file
-
-    if trial.state != TrialState.FAIL or trial.user_attrs.get("error"):
+    if trial.state.name != "FAIL" or trial.user_attrs.get("error"):
         return None
     # A copy's history lists the trials it stands for, its own original last.
     copies = (t for t in trials if t.system_attrs.get("retry_history", [])[-1:] == [trial.number])

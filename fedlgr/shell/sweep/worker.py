@@ -7,7 +7,6 @@ import contextlib
 import time
 import warnings
 from collections.abc import Callable
-from typing import Any
 
 from fedlgr.errors import interrupt_in
 from fedlgr.shell.signals import deferred
@@ -16,7 +15,7 @@ from fedlgr.shell.sweep.parent_run import ParentRun
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.storage import DEFAULT_STORAGE, open_study, storage_error
 from fedlgr.shell.sweep.trial_run import TrialRunner
-from fedlgr.shell.sweep.trials import counts, failing, no_new_point, ran
+from fedlgr.shell.sweep.trials import counts, failing, ran, stopped_early
 
 
 class Worker:
@@ -62,52 +61,44 @@ class Worker:
         import optuna
 
         optuna.logging.set_verbosity(optuna.logging.ERROR)  # we print one line per trial
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            try:
-                return self._run()
-            except KeyboardInterrupt:  # Ctrl-C, or SIGTERM under fedlgr.shell.signals
-                self._requeue_interrupted()
-                raise
-            except Exception as err:  # the study's storage failed (full, locked, damaged)
-                interrupt = interrupt_in(err)
-                if interrupt is not None:
-                    self._requeue_interrupted()
-                    raise interrupt from None
-                problem = storage_error(self.storage, err)
-                if problem is None:
-                    raise
-                with contextlib.suppress(Exception):  # MLflow's store is another one
-                    self.parent.end("FAILED")
-                raise problem from err
+        with self._guarded(self._requeue_interrupted, failed="FAILED"):
+            return self._run()
 
     def left_to_run(self) -> bool:
         """Whether the study has a trial left to start, running or queued - once the
         trials of dead or interrupted workers are queued again."""
+        # no trial of ours yet: on an interrupt the parent run ends KILLED
+        with self._guarded(lambda: self.parent.end("KILLED")):
+            self.ownership.recover()
+            return counts(self.study, self.spec) != (0, 0, 0)
+
+    @contextlib.contextmanager
+    def _guarded(self, interrupted: Callable[[], None], failed: str | None = None):
+        """Optuna's heartbeats without their "experimental" warning; ``interrupted()`` on Ctrl-C or
+        SIGTERM (also behind Optuna's own error); a failure of the study's storage (full, locked,
+        damaged) as one line, the parent run ended ``failed``."""
         # lazy: optuna (~1 s), not needed to check a sweep file
         import optuna
 
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-                self.ownership.recover()
-            return counts(self.study, self.spec) != (0, 0, 0)
-        except KeyboardInterrupt:  # no trial of ours yet: the parent run ends KILLED
-            self.parent.end("KILLED")
-            raise
-        except Exception as err:  # the study's storage failed (full, locked, damaged)
-            interrupt = interrupt_in(err)
-            if interrupt is not None:
-                self.parent.end("KILLED")
-                raise interrupt from None
-            problem = storage_error(self.storage, err)
-            if problem is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            try:
+                yield
+            except KeyboardInterrupt:  # Ctrl-C, or SIGTERM under fedlgr.shell.signals
+                interrupted()
                 raise
-            raise problem from err
-
-    def finish_parent(self) -> dict[str, Any] | None:
-        """Log the best trial on the parent run and end it (:meth:`ParentRun.finish`)."""
-        return self.parent.finish()
+            except Exception as err:
+                interrupt = interrupt_in(err)
+                if interrupt is not None:
+                    interrupted()
+                    raise interrupt from None
+                problem = storage_error(self.storage, err)
+                if problem is None:
+                    raise
+                if failed:
+                    with contextlib.suppress(Exception):  # MLflow's store is another one
+                        self.parent.end(failed)
+                raise problem from err
 
     def _run(self) -> bool:
         spec = self.spec
@@ -119,7 +110,9 @@ class Worker:
             todo, running, waiting = counts(self.study, spec)
             if todo == 0 and waiting == 0:
                 if running == 0:
-                    self._say_why_stopped()
+                    if why := stopped_early(self.study, spec):
+                        done = f"{ran(self.study)} of {spec.n_trials} trials"
+                        self.echo(f"sweep {spec.name}: stopped after {done}: {why}")
                     return True
                 # Another worker is still busy: wait, in case it dies and its trial returns.
                 time.sleep(min(5.0, spec.heartbeat_s / 2))
@@ -157,14 +150,6 @@ class Worker:
             self.ownership.requeue_held()
         finally:
             self.parent.end("KILLED")
-
-    def _say_why_stopped(self) -> None:
-        """A TPE study that ends before ``trials`` because no new point is left says so."""
-        spec = self.spec
-        done = ran(self.study)
-        why = no_new_point(self.study, spec) if spec.sampler != "grid" else None
-        if why and done < spec.n_trials:
-            self.echo(f"sweep {spec.name}: stopped after {done} of {spec.n_trials} trials: {why}")
 
     def _report_last(self, seconds: float) -> None:
         if self.last_trial is None:
