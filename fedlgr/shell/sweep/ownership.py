@@ -10,14 +10,11 @@ from datetime import datetime, timedelta
 
 from fedlgr.shell.sweep.space import SweepSpec
 from fedlgr.shell.sweep.storage import RetryStaleTrial, fail_and_retry, retry_failed
+from fedlgr.shell.sweep.trials import retried
 from fedlgr.shell.tracking.liveness import process_alive, process_started
 
 #: A trial's system attribute naming the process that runs it: [host, pid, start time].
 OWNER = "fedlgr_owner"
-
-
-def this_process() -> list:
-    return [socket.gethostname(), os.getpid(), process_started(os.getpid())]
 
 
 def alive_here(owner) -> bool:
@@ -48,12 +45,10 @@ class TrialOwnership:
         """Make ``trial`` this worker's: its worker number, its owner, and a new try."""
         self.held = trial._trial_id
         trial.set_user_attr("worker", self.worker)
-        self.study._storage.set_trial_system_attr(trial._trial_id, OWNER, this_process())
+        me = [socket.gethostname(), os.getpid(), process_started(os.getpid())]
+        self.study._storage.set_trial_system_attr(trial._trial_id, OWNER, me)
         if trial.user_attrs.get("interrupted"):  # a re-queued copy: this run is a new try
             trial.set_user_attr("interrupted", False)
-
-    def release(self) -> None:
-        self.held = None
 
     def requeue_held(self) -> None:
         """Queue this worker's trial again after an interrupt, so the next launch redoes it; Optuna
@@ -109,12 +104,9 @@ class TrialOwnership:
     def _retry_interrupted_trials(self) -> None:
         """Queue any interrupted trial whose worker could not queue it (a second Ctrl-C
         during the first one's clean-up): its point would otherwise count as done."""
-        # lazy: optuna (~1 s), not needed to check a sweep file
-        from optuna.trial import TrialState
-
         trials = self.study.get_trials(deepcopy=False)
-        retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+        again = retried(trials)
         for t in trials:
-            interrupted = t.state == TrialState.FAIL and t.user_attrs.get("interrupted")
-            if interrupted and t.number not in retried:
+            interrupted = t.state.name == "FAIL" and t.user_attrs.get("interrupted")
+            if interrupted and t.number not in again:
                 retry_failed(self.study, self.retry, t._trial_id)

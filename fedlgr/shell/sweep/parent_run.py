@@ -138,14 +138,6 @@ class ParentRun:
         }
         self.client.log_batch(run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
 
-    def tag_error(self, trial_number: int, trial_run_id: str | None, error: str) -> None:
-        """A trial's error as the tag ``fedlgr.error`` of its MLflow run - or, for a trial
-        that failed before its run began, as the tag ``trial.N.error`` of this run."""
-        if trial_run_id:
-            self.client.set_tag(trial_run_id, "fedlgr.error", error)
-        else:
-            self.client.set_tag(self.run_id, f"trial.{trial_number}.error", error)
-
     def end(self, status: str) -> None:
         """End the parent run with ``status`` (KILLED, FAILED)."""
         self.client.set_terminated(self.run_id, status)

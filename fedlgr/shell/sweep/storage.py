@@ -12,12 +12,13 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from fedlgr.errors import FedlgrError, exception_chain
+from fedlgr.errors import FedlgrError, exception_chain, first_line
 from fedlgr.shell.checks.paths import not_a_file
 from fedlgr.shell.checks.stores import CONNECT_TIMEOUT_S, check_database
 from fedlgr.shell.config.export import MACHINE_CHOSEN, SAFE_KEYS
 from fedlgr.shell.sweep.checks import check_space
 from fedlgr.shell.sweep.space import SweepSpec
+from fedlgr.shell.sweep.trials import retried
 from fedlgr.shell.tracking.store import StoreError, open_lock_file, store_lock
 from fedlgr.shell.tracking.uri import (
     in_memory_sqlite,
@@ -56,15 +57,11 @@ class RetryStaleTrial:
                 self.client.set_terminated(run.info.run_id, "KILLED")
 
 
-def retried(study, number: int) -> bool:
-    """Whether a copy of trial ``number`` has been queued (in any state since)."""
-    return any(number in t.system_attrs.get("retry_history", []) for t in study.get_trials(False))
-
-
 def retry_failed(study, retry: RetryStaleTrial, trial_id: int) -> bool:
-    """Queue a copy of the FAILED trial ``trial_id`` unless one exists; True if queued."""
+    """Queue a copy of the FAILED trial ``trial_id`` unless one exists (in any state since); True
+    if queued."""
     trial = copy.deepcopy(study._storage.get_trial(trial_id))
-    if trial.state.name != "FAIL" or retried(study, trial.number):
+    if trial.state.name != "FAIL" or trial.number in retried(study.get_trials(deepcopy=False)):
         return False
     retry(study, trial)
     return True
@@ -195,7 +192,7 @@ def storage_error(storage: str, err: BaseException) -> FedlgrError | None:
         return None
     cause = err.__cause__ if isinstance(err, internal) else err
     cause = getattr(cause, "orig", None) or cause  # SQLAlchemy wraps the driver's error
-    text = masked_text((str(cause).strip().splitlines() or [type(cause).__name__])[0], storage)
+    text = masked_text(first_line(cause), storage)
     known = {
         "database is locked": "the sqlite file is locked by another process (one that "
         "holds it for long: another program, or a sweep stopped with Ctrl-Z?)",
@@ -239,7 +236,7 @@ def _open_study(
     except Exception as err:
         problem = storage_error(storage, err)
         if problem is None:
-            text = masked_text((str(err).strip().splitlines() or [type(err).__name__])[0], storage)
+            text = masked_text(first_line(err), storage)
             problem = FedlgrError(
                 f"--storage {mask_password(storage)}: cannot open the study storage: {text}"
             )

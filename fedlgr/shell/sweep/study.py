@@ -103,19 +103,11 @@ def _nothing_left(worker: Worker, worker_id: int, echo: Callable[..., None]) -> 
     return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
 
 
-@dataclass
-class _Helper:
-    """A ``--workers`` helper process and the thread that relays its output."""
-
-    process: subprocess.Popen
-    relay: threading.Thread
-
-
 def _start_helper(
     worker: Worker, k: int, cli_overrides: list[str] | None, echo: Callable[..., None]
-) -> _Helper:
-    """Worker ``k``: ``fedlgr sweep`` on the same study, store and experiment; its output
-    comes through this process, each line prefixed with its worker."""
+) -> tuple[subprocess.Popen, threading.Thread]:
+    """Worker ``k``: ``fedlgr sweep`` on the same study, store and experiment, and the thread that
+    relays its output, each line prefixed with its worker."""
     command = [
         sys.executable,
         "-m",
@@ -140,26 +132,28 @@ def _start_helper(
         errors="replace",
         env={**os.environ, "PYTHONUNBUFFERED": "1"},  # lines as they come, not in blocks
     )
-    return _Helper(process, relay(process, f"[w{k}] ", echo))
+    return process, relay(process, f"[w{k}] ", echo)
 
 
-def _run_with_helpers(worker: Worker, helpers: list[_Helper]) -> bool:
+def _run_with_helpers(
+    worker: Worker, helpers: list[tuple[subprocess.Popen, threading.Thread]]
+) -> bool:
     """Run this process's worker; then wait for the helpers, and their last lines."""
     try:
         return worker.run()
     except Terminated:
         # SIGTERM may have reached this process alone (docker stop, timeout): pass it on
-        for helper in helpers:
-            helper.process.terminate()
+        for process, _ in helpers:
+            process.terminate()
         raise
     finally:
-        for helper in helpers:
+        for process, _ in helpers:
             try:
-                helper.process.wait()
+                process.wait()
             except KeyboardInterrupt:
-                helper.process.terminate()
-        for helper in helpers:
-            helper.relay.join(timeout=5)  # its last lines, before the table
+                process.terminate()
+        for _, thread in helpers:
+            thread.join(timeout=5)  # its last lines, before the table
 
 
 def serialised(echo: Callable[..., None]) -> Callable[..., None]:

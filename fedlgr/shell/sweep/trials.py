@@ -27,10 +27,15 @@ def point_key(spec: SweepSpec, params: dict[str, Any]) -> tuple | None:
     return tuple(params[p.name] for p in spec.params)
 
 
+def retried(trials) -> set[int]:
+    """The numbers of the trials of which a copy has been queued."""
+    return {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+
+
 def _split(trials):
     """(running, waiting, finished) trials; finished leaves out skipped duplicates and the
     failed trials that were queued again (their copy stands for them)."""
-    retried = {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+    again = retried(trials)
     running = [t for t in trials if t.state.name == "RUNNING"]
     waiting = [t for t in trials if t.state.name == "WAITING"]
     finished = [
@@ -38,7 +43,7 @@ def _split(trials):
         for t in trials
         if t.state.is_finished()
         and "duplicate_of" not in t.user_attrs
-        and not (t.state.name == "FAIL" and t.number in retried)
+        and not (t.state.name == "FAIL" and t.number in again)
     ]
     return running, waiting, finished
 
