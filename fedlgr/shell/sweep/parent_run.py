@@ -155,10 +155,7 @@ class ParentRun:
     def _log_best(self) -> dict[str, Any] | None:
         """The best trial, logged on the parent run unless it already is; None when no
         trial completed."""
-        # lazy: optuna (~1 s), not needed to check a sweep file
-        from optuna.trial import TrialState
-
-        if not any(t.state == TrialState.COMPLETE for t in self.study.get_trials(deepcopy=False)):
+        if not any(t.state.name == "COMPLETE" for t in self.study.get_trials(deepcopy=False)):
             return None
         trial = self.study.best_trial
         best = {

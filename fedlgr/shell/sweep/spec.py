@@ -1,6 +1,5 @@
-"""Sweep files (``sweeps/NAME.yaml``): what a sweep varies, over which base config, towards which
-objective; :func:`load_sweep` reads and checks one into a
-:class:`~fedlgr.shell.sweep.space.SweepSpec` (docs/sweeps.md)."""
+"""Sweep files (``sweeps/NAME.yaml``, docs/sweeps.md): what a sweep varies, over which base config,
+towards which objective; :func:`load_sweep` reads and checks one into a ``SweepSpec``."""
 
 from __future__ import annotations
 
@@ -260,14 +259,9 @@ def _param(name: str, value: Any, fail: Fail) -> Param:
         return Param(name, values=_values(value, key, "grid", fail))
     if not isinstance(value, dict):
         raise fail(key, f"expected a list (grid) or {{low, high}} / {{choices}}, not {value!r}")
-    if "choices" in value:
-        return _choices(name, value, key, fail)
-    return _range(name, value, key, fail)
-
-
-def _choices(name: str, value: dict, key: str, fail: Fail) -> Param:
-    """``{choices: [...]}``: categorical values."""
-    extra = sorted(set(value) - {"choices"})
+    if "choices" not in value:
+        return _range(name, value, key, fail)
+    extra = sorted(set(value) - {"choices"})  # {choices: [...]}: categorical values
     if extra:
         raise fail(key, f"unknown setting(s) {extra} next to choices (a list of values)")
     choices = value["choices"]

@@ -284,17 +284,12 @@ def _engine_kwargs(storage: str) -> dict[str, Any]:
 SETTINGS_ATTR = "fedlgr.settings"
 
 
-def sweep_settings(spec: SweepSpec) -> dict[str, Any]:
-    """What a study's trials were run with: the sweep file (its SHA-256) and every
-    ``key=value`` override (the file's and the command line's, in order)."""
-    digest = hashlib.sha256(spec.path.read_bytes()).hexdigest() if spec.path else ""
-    return {"file": str(spec.path or ""), "sha256": digest, "overrides": list(spec.overrides)}
-
-
 def check_settings(study, spec: SweepSpec, storage: str, changed_ok: bool = False) -> None:
-    """Record the settings with a new study; refuse one started with other settings, as its trials
-    would count for these. ``changed_ok`` (``--settings-changed``): record the new ones."""
-    now = sweep_settings(spec)
+    """Record the settings with a new study - the sweep file (its SHA-256) and every ``key=value``
+    override, the file's and the command line's, in order; refuse one started with other settings,
+    as its trials would count for these. ``changed_ok`` (``--settings-changed``): record the new."""
+    digest = hashlib.sha256(spec.path.read_bytes()).hexdigest() if spec.path else ""
+    now = {"file": str(spec.path or ""), "sha256": digest, "overrides": list(spec.overrides)}
     then = study.user_attrs.get(SETTINGS_ATTR)
     if then is None or changed_ok:  # new (or from before studies recorded settings)
         study.set_user_attr(SETTINGS_ATTR, now)

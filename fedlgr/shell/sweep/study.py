@@ -1,6 +1,5 @@
 """Run a sweep as an Optuna study: resumable, parallel (``--workers``, or other machines on one
-database storage), pruned, tracked in MLflow: a parent run, and a child run per trial linked by
-``parent_run_id`` (not ``nested=True``: MLflow's active-run stack is thread-local)."""
+database storage), pruned, tracked in MLflow as a parent run with a child run per trial."""
 
 from __future__ import annotations
 
@@ -59,8 +58,11 @@ def run_sweep(
         settings_changed=settings_changed,
     )
     _announce(worker, worker_id, echo)
-    if not worker.left_to_run():
-        return _nothing_left(worker, worker_id, echo)
+    if not worker.left_to_run():  # a relaunched study: the first process ends its parent run
+        if worker_id > 0:
+            return SweepResult(worker.study, worker.parent_run_id, True)
+        echo(nothing_left(worker.study, spec, worker.parent.finish()))
+        return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
     helpers = [_start_helper(worker, k, cli_overrides, echo) for k in range(1, workers)]
     done = _run_with_helpers(worker, helpers)
     if worker_id > 0:  # a --workers helper: the process that started it ends the parent run
@@ -93,37 +95,15 @@ def _announce(worker: Worker, worker_id: int, echo: Callable[..., None]) -> None
         echo(f"sweep {spec.name}: its space has {size} distinct points: it stops once each has run")
 
 
-def _nothing_left(worker: Worker, worker_id: int, echo: Callable[..., None]) -> SweepResult:
-    """A relaunched study with nothing left to run: the first process ends its parent run
-    and says so in one line."""
-    if worker_id > 0:
-        return SweepResult(worker.study, worker.parent_run_id, True)
-    best = worker.parent.finish()
-    echo(nothing_left(worker.study, worker.spec, best))
-    return SweepResult(worker.study, worker.parent_run_id, True, all_failed(worker.study))
-
-
 def _start_helper(
     worker: Worker, k: int, cli_overrides: list[str] | None, echo: Callable[..., None]
 ) -> tuple[subprocess.Popen, threading.Thread]:
     """Worker ``k``: ``fedlgr sweep`` on the same study, store and experiment, and the thread that
     relays its output, each line prefixed with its worker."""
-    command = [
-        sys.executable,
-        "-m",
-        "fedlgr",
-        "sweep",
-        str(worker.spec.path),
-        *(cli_overrides or []),
-        "--storage",
-        worker.storage,
-        "--study",
-        worker.study.study_name,
-        "--tracking-uri",
-        worker.parent.tracking_uri,
-        "--worker-id",
-        str(k),
-    ]
+    command = [sys.executable, "-m", "fedlgr", "sweep", str(worker.spec.path)]
+    command += [*(cli_overrides or []), "--storage", worker.storage]
+    command += ["--study", worker.study.study_name]
+    command += ["--tracking-uri", worker.parent.tracking_uri, "--worker-id", str(k)]
     process = subprocess.Popen(
         command,
         stdout=subprocess.PIPE,

@@ -22,8 +22,8 @@ from fedlgr.shell.tracking.context import trial_config
 
 
 class PrunedRun(Exception):
-    """Raised from a run's ``on_round`` hook when the pruner stops a trial; the run ends
-    KILLED (see :func:`fedlgr.shell.run.experiment.run_experiment`)."""
+    """A trial pruned: raised from a run's ``on_round`` hook when the pruner stops it, the run ends
+    KILLED (see :func:`fedlgr.shell.run.experiment.run_experiment`), or for a point already run."""
 
     mlflow_status = "KILLED"
 
@@ -166,8 +166,8 @@ class Worker:
         try:
             self.unborn.close()
             return self._train(trial)
-        except optuna.TrialPruned:
-            raise
+        except PrunedRun as err:
+            raise optuna.TrialPruned(str(err)) from None
         except KeyboardInterrupt as err:  # the table shows the trial interrupted, and why
             trial.set_user_attr("interrupted", interrupt_reason(err))
             raise
@@ -210,36 +210,31 @@ class Worker:
 
     def _train(self, trial) -> float:
         """Draw the trial's point and run it; its value of the objective's metric."""
-        import optuna  # lazy: optuna (~1 s), not needed to check a sweep file
-
         from fedlgr.shell.run.experiment import run_experiment  # lazy: torch, lightning (~10 s)
 
         spec = self.spec
         params = self._draw(trial)
-        try:
-            # tracked where the sweep's trials go, named after its point
-            base, overrides = spec.trial_config_args(params)
-            config = load_config(base, [*overrides, *self.parent.tracking_overrides()])
-            config = trial_config(config, params)
-            tags = {
-                "sweep": spec.name,
-                "study": self.study.study_name,
-                "trial": str(trial.number),
-                "fedlgr.kind": "trial",
-                "swept": json.dumps(params),  # what the report shows the best trial won with
-            }
-            result = run_experiment(
-                config,
-                parent_run_id=self.parent.run_id,
-                tags=tags,
-                echo=self.echo,
-                on_round=self._pruning(trial),
-                on_start=lambda run_id: trial.set_user_attr("mlflow_run_id", run_id),
-                resume=self._resumable(trial, config),
-                show_runs=False,  # the sweep shows them at its end
-            )
-        except PrunedRun as err:
-            raise optuna.TrialPruned(str(err)) from None
+        # tracked where the sweep's trials go, named after its point
+        base, overrides = spec.trial_config_args(params)
+        config = load_config(base, [*overrides, *self.parent.tracking_overrides()])
+        config = trial_config(config, params)
+        tags = {
+            "sweep": spec.name,
+            "study": self.study.study_name,
+            "trial": str(trial.number),
+            "fedlgr.kind": "trial",
+            "swept": json.dumps(params),  # what the report shows the best trial won with
+        }
+        result = run_experiment(
+            config,
+            parent_run_id=self.parent.run_id,  # not nested=True: MLflow's run stack is per thread
+            tags=tags,
+            echo=self.echo,
+            on_round=self._pruning(trial),
+            on_start=lambda run_id: trial.set_user_attr("mlflow_run_id", run_id),
+            resume=self._resumable(trial, config),
+            show_runs=False,  # the sweep shows them at its end
+        )
         trial.set_user_attr("mlflow_run_id", result.run_id)
         final = result.final_metrics()
         if spec.metric not in final:
@@ -251,14 +246,11 @@ class Worker:
 
     def _draw(self, trial) -> dict:
         """The trial's point; a point an earlier trial covers is skipped (pruned)."""
-        # lazy: optuna (~1 s), not needed to check a sweep file
-        import optuna
-
         params = {p.name: p.suggest(trial) for p in self.spec.params}
         twin = duplicate_of(self.study, trial.number, params)
         if twin is not None:
             trial.set_user_attr("duplicate_of", twin)
-            raise optuna.TrialPruned(f"the same point as trial {twin}")
+            raise PrunedRun(f"the same point as trial {twin}")
         shown = " ".join(f"{k}={v}" for k, v in params.items())
         self.echo(f"\n=== {self.spec.name} trial {trial.number} (worker {self.number}): {shown}")
         return params
