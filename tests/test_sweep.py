@@ -401,7 +401,7 @@ def test_a_stopped_workers_trial_is_left_to_it_while_it_lives(tmp_path, synth_di
     import threading
 
     from fedlgr.shell.sweep.ownership import OWNER
-    from fedlgr.shell.tracking.mlflow_run import process_started
+    from fedlgr.shell.tracking.liveness import process_started
 
     path = write_sweep(tmp_path, synth_dir, cache_dir, name="stopped")
     path.write_text(path.read_text() + "heartbeat_s: 1\n")
