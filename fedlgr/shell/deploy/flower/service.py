@@ -1,32 +1,74 @@
-"""The robot service: one long-lived process per robot that answers its Flower messages over a Unix
-socket (``<state-dir>/robot.sock``, mode 0600). Flower starts a process per message, so the service
-imports torch and loads the data once; it leaves after ``robot-idle-s`` idle seconds."""
+"""The robot service: one long-lived process per robot (Flower starts one per message) that loads
+torch and the data once and answers over a Unix socket (mode 0600): a JSON header and Flower's
+protobuf encoding of the content, nothing pickled. It leaves after ``robot-idle-s`` idle seconds."""
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import os
 import signal
 import socket
+import struct
 import subprocess
 import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
 
 from filelock import FileLock
 
-from fedlgr.shell.deploy.flower.link import (
-    _receive,
-    _send,
-    decode,
-    encode,
-    socket_path,
-    state_dir,
-)
-
 DEFAULT_IDLE_S = 900.0
 START_TIMEOUT_S = 300.0  # the service's first start imports torch and loads the data
+DEFAULT_STATE_DIR = Path.home() / ".fedlgr" / "node-state"
+
+
+def state_dir(node_config: dict) -> Path:
+    return Path(str(node_config.get("state-dir", DEFAULT_STATE_DIR))).expanduser().absolute()
+
+
+def socket_path(folder: Path) -> Path:
+    """``folder/robot.sock``, or a short path under the temp folder when that is longer
+    than a Unix socket address may be."""
+    path = folder / "robot.sock"
+    if len(str(path)) < 100:
+        return path
+    digest = hashlib.sha256(str(folder).encode()).hexdigest()[:16]
+    return Path(tempfile.gettempdir()) / f"fedlgr-robot-{digest}.sock"
+
+
+def _send(conn: socket.socket, header: dict, payload: bytes) -> None:
+    head = json.dumps(header).encode()
+    conn.sendall(struct.pack("!IQ", len(head), len(payload)) + head + payload)
+
+
+def _receive(conn: socket.socket) -> tuple[dict, bytes]:
+    with conn.makefile("rb") as stream:
+        head_size, payload_size = struct.unpack("!IQ", _exactly(stream, struct.calcsize("!IQ")))
+        return json.loads(_exactly(stream, head_size)), _exactly(stream, payload_size)
+
+
+def _exactly(stream, n: int) -> bytes:
+    data = stream.read(n)
+    if len(data) < n:
+        raise ConnectionError("the robot service closed the connection")
+    return data
+
+
+def encode(content) -> bytes:
+    from flwr.common.serde import recorddict_to_proto  # lazy: flwr and protobuf, slow to import
+
+    return recorddict_to_proto(content).SerializeToString()
+
+
+def decode(data: bytes):
+    # lazy: flwr and protobuf, slow to import
+    from flwr.common.serde import recorddict_from_proto
+    from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
+
+    return recorddict_from_proto(ProtoRecordDict.FromString(data))
 
 
 # ---------------------------------------------------------------------- ClientApp side

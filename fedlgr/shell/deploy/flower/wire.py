@@ -74,10 +74,19 @@ def payload_bytes(content: RecordDict) -> int:
     return sum(len(a.data) for record in content.array_records.values() for a in record.values())
 
 
-def _plan_record(plan: RoundPlan, config_yaml: str | None = None) -> ConfigRecord:
+def train_payload_bytes(content: RecordDict) -> int:
+    """Bytes of the strategy's payload a train message carries (0: none)."""
+    return sum(len(a.data) for a in content.array_records.get("payload", {}).values())
+
+
+def _plan_record(
+    plan: RoundPlan, config_yaml: str | None = None, client: int | None = None
+) -> ConfigRecord:
     record = dataclasses.asdict(plan)
     if config_yaml is not None:
         record["config"] = config_yaml
+    if client is not None:
+        record["client"] = int(client)
     return ConfigRecord(record)
 
 
@@ -87,25 +96,9 @@ def _round_plan(p: ConfigRecord) -> RoundPlan:
     )
 
 
-def _plan(content: RecordDict) -> tuple[RoundPlan, str]:
-    p = content.config_records["plan"]
-    return _round_plan(p), str(p["config"])
-
-
 def _figures(record: ConfigRecord) -> Figures:
     """Figures by key (scores, costs, plugins' figures), each a number."""
     return {str(k): float(v) for k, v in record.items()}
-
-
-def train_payload_bytes(content: RecordDict) -> int:
-    """Bytes of the strategy's payload a train message carries (0: none)."""
-    record = content.array_records.get("payload")
-    return sum(len(a.data) for a in record.values()) if record is not None else 0
-
-
-def _put_payload(content: RecordDict, payload: Weights) -> None:
-    if payload:
-        put_weights(content, "payload", payload)
 
 
 def _payload(content: RecordDict) -> Weights:
@@ -144,12 +137,6 @@ def stamp_run(content: RecordDict, run: str) -> RecordDict:
     return content
 
 
-def _with_slot(content: RecordDict, client: int | None) -> RecordDict:
-    if client is not None:
-        content.config_records["plan"]["client"] = int(client)
-    return content
-
-
 def encode_train_ins(
     ins: TrainIns,
     config_yaml: str,
@@ -159,8 +146,9 @@ def encode_train_ins(
     """The round's training; with ``evaluate``, first the previous round's evaluation of
     its global tensors (which the robot then trains on: ``ins.weights`` must be None);
     ``client``: the robot's slot."""
-    content = _with_slot(RecordDict({"plan": _plan_record(ins.plan, config_yaml)}), client)
-    _put_payload(content, ins.payload)
+    content = RecordDict({"plan": _plan_record(ins.plan, config_yaml, client)})
+    if ins.payload:
+        put_weights(content, "payload", ins.payload)
     if evaluate is not None:
         if ins.weights is not None:
             raise ValueError("a train message with an evaluation carries one set of tensors")
@@ -172,20 +160,21 @@ def encode_train_ins(
 
 
 def decode_train_ins(content: RecordDict) -> tuple[TrainIns, EvaluateIns | None, str]:
-    plan, config_yaml = _plan(content)
+    plan = content.config_records["plan"]
     weights = get_weights(content, "global") if "global" in content else None
-    payload = _payload(content)
-    if "evaluate" in content:
-        evaluate = EvaluateIns(_round_plan(content.config_records["evaluate"]), weights)
-        return TrainIns(plan, None, payload), evaluate, config_yaml
-    return TrainIns(plan, weights, payload), None, config_yaml
+    ins = TrainIns(_round_plan(plan), weights, _payload(content))
+    if "evaluate" not in content:
+        return ins, None, str(plan["config"])
+    evaluate = EvaluateIns(_round_plan(content.config_records["evaluate"]), weights)
+    return dataclasses.replace(ins, weights=None), evaluate, str(plan["config"])
 
 
 def encode_train_res(res: TrainRes, evaluated: EvaluateRes | None = None) -> RecordDict:
     report = ConfigRecord({"client": res.client, "n_samples": res.n_samples})
     content = RecordDict({"report": report, "figures": ConfigRecord(dict(res.figures))})
     put_weights(content, "shared", res.weights)
-    _put_payload(content, res.payload)
+    if res.payload:
+        put_weights(content, "payload", res.payload)
     put_evaluated(content, evaluated)
     return content
 
@@ -193,8 +182,8 @@ def encode_train_res(res: TrainRes, evaluated: EvaluateRes | None = None) -> Rec
 def put_evaluated(content: RecordDict, evaluated: EvaluateRes | None) -> None:
     """The previous round's scores, where a train reply carries them."""
     if evaluated is not None:
-        for name, record in _evaluate_records(evaluated).items():
-            content[f"evaluated.{name}"] = record
+        for name, record in encode_evaluate_res(evaluated, "evaluated.").items():
+            content[name] = record
 
 
 def decode_train_res(content: RecordDict, device: torch.device | str = "cpu") -> TrainRes:
@@ -212,9 +201,7 @@ def decode_train_res(content: RecordDict, device: torch.device | str = "cpu") ->
 
 def decode_evaluated(content: RecordDict) -> EvaluateRes | None:
     """The previous round's scores a train reply carries (None: it carries none)."""
-    if "evaluated.report" not in content:
-        return None
-    return _evaluate_res(content, "evaluated.")
+    return decode_evaluate_res(content, "evaluated.") if "evaluated.report" in content else None
 
 
 # ---------------------------------------------------------------------- evaluate
@@ -223,32 +210,26 @@ def decode_evaluated(content: RecordDict) -> EvaluateRes | None:
 def encode_evaluate_ins(
     ins: EvaluateIns, config_yaml: str, client: int | None = None
 ) -> RecordDict:
-    content = RecordDict({"plan": _plan_record(ins.plan, config_yaml)})
+    content = RecordDict({"plan": _plan_record(ins.plan, config_yaml, client)})
     put_weights(content, "global", ins.weights)
-    return _with_slot(content, client)
+    return content
 
 
 def decode_evaluate_ins(content: RecordDict) -> tuple[EvaluateIns, str]:
-    plan, config_yaml = _plan(content)
-    return EvaluateIns(plan, get_weights(content, "global")), config_yaml
+    plan = content.config_records["plan"]
+    return EvaluateIns(_round_plan(plan), get_weights(content, "global")), str(plan["config"])
 
 
-def _evaluate_records(res: EvaluateRes) -> dict[str, ConfigRecord]:
-    return {
-        "report": ConfigRecord({"client": res.client}),
-        "figures": ConfigRecord(dict(res.figures)),
-    }
+def encode_evaluate_res(res: EvaluateRes, prefix: str = "") -> RecordDict:
+    return RecordDict(
+        {
+            f"{prefix}report": ConfigRecord({"client": res.client}),
+            f"{prefix}figures": ConfigRecord(dict(res.figures)),
+        }
+    )
 
 
-def _evaluate_res(content: RecordDict, prefix: str = "") -> EvaluateRes:
+def decode_evaluate_res(content: RecordDict, prefix: str = "") -> EvaluateRes:
     records = content.config_records
     client = int(records[f"{prefix}report"]["client"])
     return EvaluateRes(client, _figures(records[f"{prefix}figures"]))
-
-
-def encode_evaluate_res(res: EvaluateRes) -> RecordDict:
-    return RecordDict(dict(_evaluate_records(res)))
-
-
-def decode_evaluate_res(content: RecordDict) -> EvaluateRes:
-    return _evaluate_res(content)
