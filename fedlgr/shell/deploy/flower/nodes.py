@@ -1,6 +1,5 @@
-"""The robots of a run as the ServerApp sees them. A node seen first is admitted if the roster lists
-its authenticated key (in the roster's slot; without a roster, any node), else refused and never
-sent a message; an exchange waits ``deploy.round_timeout_s`` at most for the replies."""
+"""The robots of a run as the ServerApp sees them: a node is admitted if the roster lists its key
+(in the roster's slot; without a roster any node), else refused and never sent a message."""
 
 from __future__ import annotations
 
@@ -78,10 +77,8 @@ class Nodes:
     def wait_for_robots(self, min_clients: int) -> None:
         """Until every client's robot has joined, or ``deploy.join_timeout_s``; fewer than
         ``min_clients`` by then is an error."""
-        want, deadline = (
-            self.config.data.clients,
-            time.monotonic() + self.config.deploy.join_timeout_s,
-        )
+        want = self.config.data.clients
+        deadline = time.monotonic() + self.config.deploy.join_timeout_s
         nodes: list[int] = []
         while time.monotonic() < deadline:
             nodes = self.online()
@@ -122,7 +119,7 @@ class Nodes:
             for node, content in contents.items()
         ]
         started = time.monotonic()
-        replies = self._send_and_receive(messages)
+        replies = push_and_pull(self.grid, messages, self.config.deploy.round_timeout_s)
         seconds = time.monotonic() - started
         # An error reply may come from the SuperLink itself (a robot gone offline): the
         # robot is the one the message was sent to.
@@ -148,15 +145,10 @@ class Nodes:
         )
         return out
 
-    def _send_and_receive(self, messages: list[Message]) -> list[Message]:
-        """The replies to ``messages`` that arrive within ``deploy.round_timeout_s``:
-        ``Grid.send_and_receive``'s push and pull, polled every ``POLL_S`` instead of its 3 s."""
-        return push_and_pull(self.grid, messages, self.config.deploy.round_timeout_s)
-
 
 def push_and_pull(grid, messages: list[Message], timeout: float) -> list[Message]:
-    """Push ``messages`` and pull their replies every ``POLL_S`` until all are in or
-    ``timeout`` seconds have passed; the replies that came."""
+    """``Grid.send_and_receive``, polled every ``POLL_S`` instead of its 3 s: the replies to
+    ``messages`` that came within ``timeout`` seconds."""
     pending = {i for i in grid.push_messages(messages) if i}
     replies: list[Message] = []
     deadline = time.monotonic() + timeout

@@ -129,16 +129,11 @@ class SecureAggregation:
         """The chosen robots' training, summed by SecAgg+: their figures by client (``client ->
         (node, TrainRes without tensors, masked bytes)``) and each node's bytes down."""
         rounds = self.rounds
-        contents, down = {}, {}
-        for node in rounds.nodes.online():
-            slot = rounds.nodes.slots[node]
-            if slot is not None and slot not in chosen:
-                continue
-            ins = self.server.train_ins(plan, slot, holds_global=False)  # the update's origin
-            content = wire.encode_train_ins(ins, rounds.config_yaml, client=slot)
+        contents = rounds.train_messages(plan, chosen)  # all with the update's origin
+        for content in contents.values():
             content[masked.RECORD] = ConfigRecord(self.record())
-            contents[node] = wire.stamp_run(content, rounds.run_id or "")
-            down[node] = wire.payload_bytes(content)
+            wire.stamp_run(content, rounds.run_id or "")
+        down = {node: wire.payload_bytes(content) for node, content in contents.items()}
         if len(contents) < 2:
             raise FedlgrError(
                 f"round {plan.round}: {len(contents)} chosen robot online; deploy.secagg "

@@ -1,10 +1,8 @@
-"""The ServerApp: a fedlgr run whose clients are robots behind a Flower SuperLink. It runs the run's
-life of ``fedlgr run`` (:class:`~fedlgr.shell.run.life.RunLife`) around :class:`FlowerRounds`, which
-speaks :mod:`.wire` messages to the robots and aggregates with the in-process ``ServerSide``."""
+"""The ServerApp: ``fedlgr run``'s run life (:class:`~fedlgr.shell.run.life.RunLife`) around
+:class:`FlowerRounds`, whose clients are robots behind a SuperLink, spoken to in :mod:`.wire`."""
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import shlex
 import time
@@ -104,10 +102,7 @@ class FlowerRounds:
 
     # ------------------------------------------------------------------ rounds
 
-    @property
-    def local_clients(self) -> int:
-        """No client trains in this process: they are on the robots."""
-        return 0
+    local_clients = 0  # no client trains in this process: they are on the robots
 
     def run_round(self, plan: RoundPlan, progress: EpochProgress | None = None) -> RoundLog:
         """One round: the chosen clients' training (or the uploads the previous exchange brought
@@ -285,19 +280,22 @@ class FlowerRounds:
     def train(self, plan: RoundPlan, chosen: list[int]):
         """A training exchange of its own (round 1, ``deploy.evaluate=separate``) with the
         robots of the ``chosen`` clients: the uploads by client, and each node's bytes down."""
-        down: dict[int, int] = {}
-        contents = {}
-        for node in self.nodes.online():
-            slot = self.nodes.slots[node]
-            if slot is not None and slot not in chosen:
-                continue
-            ins = self.server.train_ins(plan, slot, holds_global=node in self.holders)
-            contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
-            down[node] = wire.payload_bytes(contents[node])
+        contents = self.train_messages(plan, chosen, self.holders)
         trained: dict[int, tuple[int, TrainRes, int]] = {}  # client -> (node, upload, bytes)
         for node, reply in self.nodes.exchange("train", contents, plan.round, self.run_id).items():
             self.keep_upload(trained, node, reply, plan.round)
-        return trained, down
+        return trained, {node: wire.payload_bytes(c) for node, c in contents.items()}
+
+    def train_messages(self, plan: RoundPlan, chosen: list[int], holders=frozenset()) -> dict:
+        """The round's train message to each online robot of the ``chosen`` clients (``holders``:
+        the nodes that hold the current global tensors, which are not sent to them)."""
+        contents = {}
+        for node in self.nodes.online():
+            slot = self.nodes.slots[node]
+            if slot is None or slot in chosen:
+                ins = self.server.train_ins(plan, slot, holds_global=node in holders)
+                contents[node] = wire.encode_train_ins(ins, self.config_yaml, client=slot)
+        return contents
 
     def keep_upload(self, trained: dict, node: int, reply: Message, round_: int) -> None:
         slot = self.nodes.slots.get(node)
@@ -331,7 +329,8 @@ class FlowerRounds:
         pending = None
         if self.pending is not None:
             plan, trained, down, failures = self.pending
-            uploads = {c: [n, _upload_state(res), b] for c, (n, res, b) in trained.items()}
+            # an upload's fields by name (shallow: the tensors as they are)
+            uploads = {c: [n, dict(vars(res)), b] for c, (n, res, b) in trained.items()}
             pending = {
                 "plan": [plan.round, plan.task, plan.first_of_task, plan.last_of_task],
                 "uploads": uploads,
@@ -356,20 +355,11 @@ class FlowerRounds:
         pending = held["pending"]
         if pending is not None:
             trained = {
-                int(c): (n, _upload(res), b) for c, (n, res, b) in pending["uploads"].items()
+                int(c): (n, TrainRes(**res), b) for c, (n, res, b) in pending["uploads"].items()
             }
             plan = RoundPlan(*pending["plan"])
             self.pending = (plan, trained, dict(pending["down"]), dict(pending["failures"]))
         set_rng_states(state["rng"][0])
-
-
-def _upload_state(res: TrainRes) -> dict:
-    """An upload in a checkpoint: its fields by name (shallow: the tensors as they are)."""
-    return {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
-
-
-def _upload(state: dict) -> TrainRes:
-    return TrainRes(**state)
 
 
 def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
