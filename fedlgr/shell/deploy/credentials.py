@@ -109,13 +109,6 @@ MAX_DAYS = 3650  # ten years: longer outlives any key and overflows no date
 _LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
 
 
-def check_validity(days: int) -> None:
-    if not 1 <= days <= MAX_DAYS:
-        raise FedlgrError(
-            f"--days {days}: certificates must be valid for 1 to {MAX_DAYS} days (ten years)"
-        )
-
-
 def is_host(host: str, wildcard: bool = False) -> bool:
     """An IP address, or a DNS name of letters, digits and hyphens (with ``wildcard``, a
     leading ``*.`` allowed), at most 253 long."""
@@ -132,16 +125,6 @@ def is_host(host: str, wildcard: bool = False) -> bool:
         and all(_LABEL.fullmatch(p) for p in labels)
         and not labels[-1].isdigit()  # a mistyped address (999.1.1.1), not a name
     )
-
-
-def check_host(host: str) -> None:
-    """A host name or address a TLS client can match (:func:`is_host`, wildcards too)."""
-    if not is_host(host, wildcard=True):
-        raise FedlgrError(
-            f"--host {host!r}: not an IP address or a DNS name (letters, digits, hyphens and "
-            "dots, no trailing dot, labels of at most 63, at most 253 in all; a leading *. "
-            "for a wildcard); robots could never match it"
-        )
 
 
 def check_node_key(path: Path, option: str = "--key") -> None:
@@ -193,9 +176,17 @@ def make_certificates(
 ) -> dict[str, Path]:
     """``ca.pem``, ``ca.key``, ``server.pem``, ``server.key`` in ``folder`` for ``hosts``
     (``force``: replace those files; a symbolic link is refused all the same)."""
-    check_validity(days)
-    for host in hosts:
-        check_host(host)
+    if not 1 <= days <= MAX_DAYS:
+        raise FedlgrError(
+            f"--days {days}: certificates must be valid for 1 to {MAX_DAYS} days (ten years)"
+        )
+    for host in hosts:  # a host name or address a TLS client can match (wildcards too)
+        if not is_host(host, wildcard=True):
+            raise FedlgrError(
+                f"--host {host!r}: not an IP address or a DNS name (letters, digits, hyphens and "
+                "dots, no trailing dot, labels of at most 63, at most 253 in all; a leading *. "
+                "for a wildcard); robots could never match it"
+            )
     paths = {name: folder / name for name in ("ca.pem", "ca.key", "server.pem", "server.key")}
     check_free(
         paths.values(), force, "new certificates lock out every robot holding the old ca.pem"

@@ -1,6 +1,5 @@
-"""The federation's roster (``roster.yaml``, named by ``deploy.roster``): which robot (name, client
-slot) holds which public key, and optionally the most scenes it may claim. The ServerApp sends work
-only to authenticated nodes it lists, each in its slot: a node never chooses its own."""
+"""The federation's roster (``deploy.roster``): which robot (name, client slot) holds which public
+key, and the most scenes it may claim; the ServerApp sends work only to its nodes, in its slots."""
 
 from __future__ import annotations
 
@@ -55,7 +54,6 @@ class Member:
 class Roster:
     def __init__(self, members: list[Member], path: Path | None = None):
         self.members, self.path = list(members), path
-        self._by_key = {key_der(m.key): m for m in self.members}
 
     @classmethod
     def read(cls, path: Path | str) -> Roster:
@@ -112,7 +110,6 @@ class Roster:
             raise FedlgrError(f"--client {client}: {taken} holds that slot in {self.path}")
         member = Member(name, client, key.strip(), old.scenes if old is not None else None)
         self.members = sorted([*others, member], key=lambda m: m.client)
-        self._by_key = {key_der(m.key): m for m in self.members}
         return member
 
     def member(self, public_key: bytes | str) -> Member | None:
@@ -120,24 +117,15 @@ class Roster:
         if not public_key:
             return None
         try:
-            return self._by_key.get(key_der(public_key))
+            der = key_der(public_key)
         except (ValueError, TypeError, UnsupportedAlgorithm):
             return None
+        return next((m for m in self.members if key_der(m.key) == der), None)
 
     @property
     def capacity(self) -> dict[int, int]:
         """client -> the most training scenes its robot holds, where the roster says."""
         return {m.client: m.scenes for m in self.members if m.scenes is not None}
-
-    def check_slots(self, clients: int) -> None:
-        """Every client of the run has a robot."""
-        held = {m.client for m in self.members}
-        missing = [c for c in range(clients) if c not in held]
-        if missing:
-            raise FedlgrError(
-                f"roster {self.path}: no robot for client {', '.join(map(str, missing))} of "
-                f"data.clients={clients} (fedlgr deploy node-key DIR NAME --client K adds one)"
-            )
 
 
 def _member(path: Path, index: int, entry) -> Member:
@@ -162,18 +150,16 @@ def _member(path: Path, index: int, entry) -> Member:
 
 
 def _check_unique(path: Path, members: list[Member]) -> None:
-    for what, value in (("name", lambda m: m.name), ("client", lambda m: m.client)):
+    for clash, value in (
+        ("share a name", lambda m: m.name),
+        ("share a client", lambda m: m.client),
+        ("hold the same key", lambda m: key_der(m.key)),
+    ):
         seen: dict = {}
         for m in members:
             if value(m) in seen:
-                raise FedlgrError(f"roster {path}: {seen[value(m)]} and {m} share a {what}")
+                raise FedlgrError(f"roster {path}: {seen[value(m)]} and {m} {clash}")
             seen[value(m)] = m
-    keys: dict[bytes, Member] = {}
-    for m in members:
-        der = key_der(m.key)
-        if der in keys:
-            raise FedlgrError(f"roster {path}: {keys[der]} and {m} hold the same key")
-        keys[der] = m
 
 
 def _lowest_free(members: list[Member]) -> int:
@@ -193,6 +179,11 @@ def roster_of(config) -> Roster | None:
         )
     if path == "none":
         return None
-    roster = Roster.read(path)
-    roster.check_slots(config.data.clients)
+    roster, clients = Roster.read(path), config.data.clients
+    held = {m.client for m in roster.members}
+    if missing := [c for c in range(clients) if c not in held]:  # every client has a robot
+        raise FedlgrError(
+            f"roster {roster.path}: no robot for client {', '.join(map(str, missing))} of "
+            f"data.clients={clients} (fedlgr deploy node-key DIR NAME --client K adds one)"
+        )
     return roster
