@@ -1,6 +1,5 @@
-"""fedlgr on Flower's Deployment Runtime: a SuperLink running the ServerApp (:mod:`.server_app`),
-one SuperNode per robot running the ClientApp (:mod:`.client_app`), and ``flwr run`` of the app in
-``APP_DIR``. docs/deployment.md has the commands."""
+"""fedlgr on Flower's Deployment Runtime: the ServerApp (:mod:`.server_app`) on a SuperLink, the
+ClientApp (:mod:`.client_app`) on each robot's SuperNode; docs/deployment.md has the commands."""
 
 from pathlib import Path
 

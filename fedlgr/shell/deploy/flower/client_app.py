@@ -1,6 +1,5 @@
-"""The ClientApp, which Flower's SuperNode starts on a robot for each message: thin (no torch), it
-hands the message to the robot's long-lived service (:mod:`.service`) and returns its reply. In a
-SecAgg+ round Flower's ``secaggplus_mod`` masks the reply (:mod:`.masked`) before it leaves."""
+"""The ClientApp a robot's SuperNode starts for each message: thin (no torch), it hands the message
+to the robot service (:mod:`.service`); in a SecAgg+ round ``secaggplus_mod`` masks the reply."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""A robot's client between Flower messages: :func:`handle` answers each with
-:class:`~fedlgr.core.client.side.ClientSide` in the robot service. The server's config is read as
-data, its paths the robot's own; the private state never leaves, and is saved after each message."""
+"""A robot's client in the robot service: :func:`handle` answers each message with ``ClientSide``.
+The server's config is read as data, its paths the robot's own; the private state stays on disk."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""``flower-supernode`` with shorter waits (``fedlgr deploy supernode`` execs it): flwr sleeps a
-fixed 3 s when no message waits and 0.5 s between looks for the ClientApp's reply, with no option,
-so :class:`_Clock` replaces its ``time``; ``--heartbeat-s`` sets the interval it declares."""
+"""``flower-supernode`` with shorter waits (``fedlgr deploy supernode`` execs it): flwr sleeps 3 s
+when idle and 0.5 s between looks for a reply, with no option, so :class:`_Clock` replaces time."""
 
 from __future__ import annotations
 
