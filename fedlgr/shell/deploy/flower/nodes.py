@@ -57,7 +57,10 @@ class Nodes:
                 continue
             member = self.roster.member(bytes(info.public_key))
             if member is None:
-                key = _fingerprint(bytes(info.public_key))
+                try:
+                    key = fingerprint(bytes(info.public_key))
+                except (ValueError, TypeError, UnsupportedAlgorithm):
+                    key = "(none: no SuperNode authentication)"
                 self.refuse(node, f"its key {key} is not on the roster {self.roster.path}")
             elif member.client >= self.config.data.clients:
                 self.refuse(node, f"{member}: the run has data.clients={self.config.data.clients}")
@@ -159,10 +162,3 @@ def push_and_pull(grid, messages: list[Message], timeout: float) -> list[Message
         if pending:
             time.sleep(POLL_S)
     return replies
-
-
-def _fingerprint(public_key: bytes) -> str:
-    try:
-        return fingerprint(public_key)
-    except (ValueError, TypeError, UnsupportedAlgorithm):
-        return "(none: no SuperNode authentication)"

@@ -66,7 +66,13 @@ class Robot:
         self.digest = data_digest(config)  # of --data: its state is of this data only
         if self.path.is_file():
             state = ckpt.load(self.path)
-            check_same_data(state.get("data_digest", ""), self.digest, config, self.path)
+            # its private state goes on only on the data it was trained on (as --resume checks)
+            if (saved := state.get("data_digest", "")) and saved != self.digest:
+                raise FedlgrError(
+                    f"the data in --data {config.data.path} is not the data this robot's private "
+                    f"state {self.path} was trained on (dataset digest {self.digest}, the state's "
+                    f"{saved}): start the robot on its own data again, or start a new run"
+                )
             self.side.load_state_dict(to_device({client: state["client"]}, fabric.device))
             self.ended = state["ended"]
             self.trained = state.get("trained", -1)
@@ -120,17 +126,6 @@ class Robot:
         if ins.plan.last_of_task:
             self.ended = ins.plan.task
         return res
-
-
-def check_same_data(saved: str, now: str, config: ExperimentConfig, path: Path) -> None:
-    """A robot's private state goes on only on the data it was trained on (as ``--resume``
-    checks a run's): a robot restarted on other data says so and answers nothing."""
-    if saved and saved != now:
-        raise FedlgrError(
-            f"the data in --data {config.data.path} is not the data this robot's private "
-            f"state {path} was trained on (dataset digest {now}, the state's {saved}): "
-            "start the robot on its own data again, or start a new run"
-        )
 
 
 def check_client(config: ExperimentConfig, client: int) -> None:

@@ -116,22 +116,19 @@ class SecureAggregation:
         self.summed: tuple[np.ndarray, int] | None = None
         self.figures: dict[str, float] = {}
 
-    def record(self) -> dict:
-        """The SecAgg settings a train message carries (:data:`masked.RECORD`)."""
-        privacy = self.server.privacy
-        return {
-            "clip": 0.0 if privacy is None else float(privacy.bound),
-            "max_samples": int(self.settings.max_samples),
-            "clipping_range": float(self.settings.clipping_range),
-        }
-
     def train(self, plan: RoundPlan, chosen: list[int]) -> tuple[dict, dict]:
         """The chosen robots' training, summed by SecAgg+: their figures by client (``client ->
         (node, TrainRes without tensors, masked bytes)``) and each node's bytes down."""
         rounds = self.rounds
+        privacy = self.server.privacy
+        record = {  # the SecAgg settings a train message carries
+            "clip": 0.0 if privacy is None else float(privacy.bound),
+            "max_samples": int(self.settings.max_samples),
+            "clipping_range": float(self.settings.clipping_range),
+        }
         contents = rounds.train_messages(plan, chosen)  # all with the update's origin
         for content in contents.values():
-            content[masked.RECORD] = ConfigRecord(self.record())
+            content[masked.RECORD] = ConfigRecord(record)
             wire.stamp_run(content, rounds.run_id or "")
         down = {node: wire.payload_bytes(content) for node, content in contents.items()}
         if len(contents) < 2:

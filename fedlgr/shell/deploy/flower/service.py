@@ -158,8 +158,6 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
             with conn:
                 try:
                     _answer(conn, handle)
-                except _Probe:  # start() checking that the service listens
-                    pass
                 except OSError as err:  # the ClientApp went away (its SuperNode was killed)
                     print(f"could not answer: {err}", flush=True)
     except _Stopped:
@@ -168,10 +166,6 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
         server.close()
         path.unlink(missing_ok=True)
         (folder / "robot.pid").unlink(missing_ok=True)
-
-
-class _Probe(Exception):
-    """A connection closed before it sent a byte: a check that the service listens."""
 
 
 class _Stopped(Exception):
@@ -184,9 +178,8 @@ def _leave(signum, frame) -> None:
 
 def _answer(conn: socket.socket, handle) -> None:
     conn.settimeout(None)
-    first = conn.recv(1, socket.MSG_PEEK)
-    if not first:
-        raise _Probe
+    if not conn.recv(1, socket.MSG_PEEK):  # closed before a byte: start() checking we listen
+        return
     header, payload = _receive(conn)
     print(f"run {header['run_id']}: {header['kind']} received", flush=True)
     started = time.perf_counter()
