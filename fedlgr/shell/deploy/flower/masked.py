@@ -12,8 +12,9 @@ import torch
 from flwr.app import ConfigRecord, RecordDict
 from flwr.common import Code, FitRes, Status, ndarrays_to_parameters
 
-from fedlgr.core.messages import EvaluateRes, TrainRes, Weights
+from fedlgr.core.messages import EvaluateRes, TrainIns, TrainRes, Weights
 from fedlgr.core.privacy import UNCLIPPED, centred_bit, clip
+from fedlgr.errors import FedlgrError
 from fedlgr.shell.deploy.flower import wire
 
 WEIGHT = "secagg/weight"  # the robot's n / max_samples (1 under DP)
@@ -77,16 +78,24 @@ def error_bound(secagg, robots: int, total: float, dp: bool) -> float:
 
 
 def encode_secure_res(
-    res: TrainRes, start: Weights, settings: Mapping, evaluated: EvaluateRes | None = None
-) -> tuple[RecordDict, int]:
-    """A robot's SecAgg+ train reply before ``secaggplus_mod`` masks it: its vector as a legacy
-    ``FitRes`` (weight 1) and, in the clear, its client, its figures but :data:`HIDDEN` and the
-    previous round's scores; also how many values ``clipping_range`` clips."""
-    vector, outside = robot_vector(res, start, settings)
+    res: TrainRes, ins: TrainIns, settings: Mapping, evaluated: EvaluateRes | None = None
+) -> RecordDict:
+    """A robot's SecAgg+ train reply before ``secaggplus_mod`` masks it: its update from the global
+    tensors sent with ``ins`` (always, in such a round) as a legacy ``FitRes`` (weight 1) and, in
+    the clear, its client, its figures but :data:`HIDDEN` and the previous round's scores."""
+    if ins.weights is None:
+        raise FedlgrError("a SecAgg+ train message without the global tensors: refused")
+    vector, outside = robot_vector(res, ins.weights, settings)
+    if outside:
+        print(
+            f"round {ins.plan.round}: {outside} values outside deploy.secagg.clipping_range="
+            f"{float(settings['clipping_range']):g} are clipped by SecAgg+",
+            flush=True,
+        )
     fit = FitRes(Status(Code.OK, ""), ndarrays_to_parameters([vector]), 1, {})
     content = compat.fitres_to_recorddict(fit, keep_input=False)
     content["report"] = ConfigRecord({"client": res.client})
     clear = {k: v for k, v in res.figures.items() if k not in HIDDEN}
     content["figures"] = ConfigRecord(clear)
     wire.put_evaluated(content, evaluated)
-    return content, outside
+    return content

@@ -238,21 +238,6 @@ def _malformed(kind: str):
         ) from None
 
 
-def secure_reply(res, ins, settings, evaluated):
-    """A SecAgg+ round's reply (:mod:`.masked`): the update from the global tensors the
-    server sent with the message (it always sends them in such a round)."""
-    if ins.weights is None:
-        raise FedlgrError("a SecAgg+ train message without the global tensors: refused")
-    content, outside = masked.encode_secure_res(res, ins.weights, settings, evaluated)
-    if outside:
-        print(
-            f"round {ins.plan.round}: {outside} values outside deploy.secagg.clipping_range="
-            f"{float(settings['clipping_range']):g} are clipped by SecAgg+",
-            flush=True,
-        )
-    return content
-
-
 def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
     """The reply (Flower's encoding) to a ``train`` or ``evaluate`` message's content; the robot's
     state is kept under the server's run (its MLflow run: a resume is a new Flower run)."""
@@ -271,7 +256,7 @@ def handle(kind: str, run_id: int, node_config: dict, content) -> bytes:
             evaluated = None if evaluate is None else client.evaluate(evaluate)  # last round's
             if secure is None:
                 return wire.encode_train_res(client.train(ins), evaluated)
-            return secure_reply(client.train(ins), ins, secure, evaluated)
+            return masked.encode_secure_res(client.train(ins), ins, secure, evaluated)
 
         return client.answer(identity, work)
     if kind == "evaluate":
