@@ -94,8 +94,7 @@ class FleetGateway:
 
     async def __call__(self, scope, receive, send) -> None:
         assert scope["type"] == "http", scope["type"]  # served with lifespan and websockets off
-        request = Request(scope, receive)
-        response = await self._answer(request)
+        response = await self._answer(Request(scope, receive))
         await response(scope, receive, send)
 
     async def _answer(self, request: Request) -> Response:

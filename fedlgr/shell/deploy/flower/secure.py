@@ -59,10 +59,8 @@ class Exchanges:
             if reply.has_error():
                 reason = " ".join(str(reply.error.reason).split())
                 self.failures[reply.metadata.src_node_id] = f"{stage}: {reason[:300]}"
-        late = {m.metadata.dst_node_id for m in messages} - {
-            r.metadata.src_node_id for r in replies
-        }
-        for node in late:
+        answered = {r.metadata.src_node_id for r in replies}
+        for node in {m.metadata.dst_node_id for m in messages} - answered:
             self.failures.setdefault(node, f"{stage}: no reply")
         if stage == Stage.COLLECT_MASKED_VECTORS:
             self.collected = {r.metadata.src_node_id: r for r in replies if not r.has_error()}

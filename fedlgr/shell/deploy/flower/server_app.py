@@ -372,17 +372,12 @@ def server_evaluation(config: ExperimentConfig) -> ServerEvaluation:
     return ServerEvaluation(config, eval_set(scenes, split, tasks, CPU, channels_last))
 
 
-def config_of(context: Context) -> ExperimentConfig:
-    """The run's fedlgr config from ``flwr run --run-config 'config="..." overrides="..."'``."""
-    path = str(context.run_config.get("config", "")) or None
-    overrides = shlex.split(str(context.run_config.get("overrides", "")))
-    return load_config(path, overrides)
-
-
 @app.main()
 def main(grid: Grid, context: Context) -> None:
     echo = functools.partial(print, flush=True)
-    config = config_of(context)
+    # the run's config from ``flwr run --run-config 'config="..." overrides="..."'``
+    path = str(context.run_config.get("config", "")) or None
+    config = load_config(path, shlex.split(str(context.run_config.get("overrides", ""))))
     rounds = FlowerRounds(grid, config, echo)
     resume = str(context.run_config.get("resume", ""))  # fedlgr deploy run --resume [RUN_ID]
     resumed = resume_point(None, config, True if resume == "latest" else resume)
