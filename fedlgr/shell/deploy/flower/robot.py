@@ -20,7 +20,7 @@ from fedlgr.shell.config import ExperimentConfig, check_sent_settings, config_fr
 from fedlgr.shell.data.dataset import load_scenes
 from fedlgr.shell.data.splits import make_split
 from fedlgr.shell.deploy.flower import masked, wire
-from fedlgr.shell.deploy.flower.service import encode, state_dir
+from fedlgr.shell.deploy.flower.link import encode, state_dir
 from fedlgr.shell.machine import torch_threads
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import make_fabric

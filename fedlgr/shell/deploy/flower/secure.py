@@ -23,8 +23,8 @@ from fedlgr.core.messages import TrainRes
 from fedlgr.core.privacy import UNCLIPPED
 from fedlgr.errors import FedlgrError
 from fedlgr.shell.deploy.flower import masked, wire
+from fedlgr.shell.deploy.flower.link import encode
 from fedlgr.shell.deploy.flower.nodes import push_and_pull
-from fedlgr.shell.deploy.flower.service import encode
 
 if TYPE_CHECKING:
     from flwr.serverapp import Grid

@@ -20,13 +20,10 @@ from pathlib import Path
 
 from filelock import FileLock
 
+from fedlgr.shell.deploy.flower.link import decode, encode, state_dir
+
 DEFAULT_IDLE_S = 900.0
 START_TIMEOUT_S = 300.0  # the service's first start imports torch and loads the data
-DEFAULT_STATE_DIR = Path.home() / ".fedlgr" / "node-state"
-
-
-def state_dir(node_config: dict) -> Path:
-    return Path(str(node_config.get("state-dir", DEFAULT_STATE_DIR))).expanduser().absolute()
 
 
 def socket_path(folder: Path) -> Path:
@@ -55,20 +52,6 @@ def _exactly(stream, n: int) -> bytes:
     if len(data) < n:
         raise ConnectionError("the robot service closed the connection")
     return data
-
-
-def encode(content) -> bytes:
-    from flwr.common.serde import recorddict_to_proto  # lazy: flwr and protobuf, slow to import
-
-    return recorddict_to_proto(content).SerializeToString()
-
-
-def decode(data: bytes):
-    # lazy: flwr and protobuf, slow to import
-    from flwr.common.serde import recorddict_from_proto
-    from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
-
-    return recorddict_from_proto(ProtoRecordDict.FromString(data))
 
 
 # ---------------------------------------------------------------------- ClientApp side
