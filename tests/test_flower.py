@@ -285,9 +285,10 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
 ):
     """robot2 (client 2) is on the roster (at most 100 scenes) and trains honestly, but
     alters every upload it sends: NaN (round 1), x 1e6 (round 2), a tensor cut short
-    (round 3), a sample count of 10^12 (round 4), client 0's (round 5), and with round 2's
-    upload it reports its
-    round-1 scores as NaN. Each is refused and robot2 named, in the console, MLflow and
+    (round 3), a sample count of 10^12 (round 4), client 0's (round 5); with round 2's
+    upload it reports its round-1 scores as NaN, with round 3's its round-2 scores as RMSE
+    0.01 and PCC 0.99 - which the server, scoring the same whole model, refuses (issue 50).
+    Each is refused and robot2 named, in the console, MLflow and
     results.csv (a robot whose upload is not its own cannot be scored in that round); the run
     completes with robots 0 and 1, and the global model - the server's own scores of it
     each round, and every robot's - is the one-process run's whose client 2 sends x 1e6
@@ -298,7 +299,7 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
         dataclasses.replace(m, scenes=100) if m.name == "robot2" else m for m in roster.members
     ]
     roster.write()
-    plan = "nan,scale+scores,truncate,count,client"
+    plan = "nan,scale+scores,truncate+liar,count,client"
     env = {"PYTHONPATH": str(BYZANTINE), "FEDLGR_BYZANTINE": plan}
     assert start_until_online(federation, "robot2", synth_dir, env=env)
     method = ["method=FedAvg", "federated.server_eval=on", "data.clients=3"]
@@ -320,13 +321,20 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     assert f"round 5/5: {who} upload: it claims to be client 0's" in out
     [first] = [line for line in out.splitlines() if line.startswith(f"round 1/5: {who}")]
     assert "; scores: " in first and "= nan is not finite" in first, first  # one line each
+    [second] = [line for line in out.splitlines() if line.startswith(f"round 2/5: {who}")]
+    assert "; scores: test/" in second, second
+    assert (
+        "scores: test/loss = 0.01 where the server's own evaluation of the same model gives "
+        in second
+    )
     client = mlflow.MlflowClient(store)
     run_id = flower.info.run_id
     assert flower.info.status == "FINISHED"
     assert history(client, run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4, 5)]
     assert flower.data.tags["fedlgr.not_taken"].startswith("round 1: robot2 (client 2) (upload: ")
-    # its round-1 scores refused, its round-3 and round-5 uploads not its own
-    assert history(client, run_id, "round/missing_clients") == [(1, 1.0), (3, 1.0), (5, 1.0)]
+    # its round-1 and round-2 scores refused, its round-3 and round-5 uploads not its own
+    missing = [(1, 1.0), (2, 1.0), (3, 1.0), (5, 1.0)]  # its round-2 scores: lies
+    assert history(client, run_id, "round/missing_clients") == missing
     faults = {(r["round"], r["client"]): r["fault"] for r in results_csv(client, run_id)}
     first = faults[("1", "2")]
     assert first.startswith("refused upload: ") and "; scores: " in first, first
@@ -354,8 +362,8 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     for key in [*keys, "test/client2/rmse", "test/client2/pcc"]:
         ours = history(client, run_id, key)
         theirs = [p for p in history(client, local.run_id, key) if p[0] > 0]
-        if "client2" in key:  # not scored in rounds 1, 3 and 5
-            theirs = [p for p in theirs if p[0] not in (1, 3, 5)]
+        if "client2" in key:  # not scored in rounds 1, 2, 3 and 5
+            theirs = [p for p in theirs if p[0] not in (1, 2, 3, 5)]
         ours = [p for p in ours if p[0] > 0]
         assert [s for s, _ in ours] == [s for s, _ in theirs] and ours, (key, ours, theirs)
         for (_, a), (_, b) in zip(ours, theirs, strict=True):

@@ -3,13 +3,16 @@
 "After Task k" is measured at the end of task k's last round, on the test scenes of all
 tasks seen so far (the paper: after Task 1 on circle, after Task 2 on circle + arrow), and
 on each task's scenes. The forgetting of a past task j, at any later point, is per client
-its score now minus its score just after task j was learnt, averaged over clients, with a
+its score now minus its score just after task j was learnt, over the clients as their
+scores' headline is (``RoundLog.over_clients``: the mean, simulated attackers apart), with a
 sign that makes positive mean forgotten: a score where lower is better (loss, RMSE) now -
 then, one where higher is better (PCC) then - now. Every score of
 :data:`fedlgr.core.metrics.SCORES` is followed.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -38,7 +41,8 @@ class ForgettingTracker:
                 continue
             for m in METRICS:
                 now = log.column(f"task/{task}/{m}")
-                out[f"forgetting/{task}/{m}"] = float(np.mean(_sign(m) * (now - then[m])))
+                value = log.over_clients(_sign(m) * (now - then[m]))  # the scores' headline
+                out[f"forgetting/{task}/{m}"] = math.nan if value is None else value
         return out
 
     def end_of_task(self, log: RoundLog, k: int) -> dict[str, float]:

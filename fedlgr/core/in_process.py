@@ -143,7 +143,13 @@ class Orchestrator:
         table = self.collective.all_reduce_sum(table).cpu().numpy()
         seconds = time.perf_counter() - start
         return self.server.round_log(
-            plan, table, seconds, participants=chosen, served=served, faults=faults
+            plan,
+            table,
+            seconds,
+            participants=chosen,
+            served=served,
+            faults=faults,
+            byzantine=self.faults.byzantine,
         )
 
     # ------------------------------------------------------------------ state

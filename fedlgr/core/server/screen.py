@@ -15,7 +15,9 @@ What a client reports - its training figures with its upload, its scores - is ch
 where the client is not in the server's process (the Flower runtime): each figure must
 have its column in the round's record and be a finite number in its range - a score's
 bounds (errors not below 0, correlations in [-1, 1]; :class:`~fedlgr.core.metrics.Score`),
-a cost not below 0 (:func:`figures_refusal`).
+a cost not below 0 (:func:`figures_refusal`). Where the server scores the very model a
+client scores - the whole model shared (FedAvg's scope), ``federated.server_eval`` on - its
+scores must be the server's own (:func:`claim_refusal`).
 """
 
 from __future__ import annotations
@@ -166,4 +168,26 @@ def figures_refusal(figures: Mapping, keys: Collection[str]) -> str | None:
             if not low - SLACK * abs(low) <= value <= high + SLACK * abs(high):
                 shown = f"below {low:g}" if high == math.inf else f"out of [{low:g}, {high:g}]"
                 return f"{key} = {value:.4g} is {shown}"
+    return None
+
+
+# A robot's score of the global model may differ from the server's own evaluation of it by
+# float rounding (another CPU's kernels: ~1e-7 measured), never by this much, relative to
+# max(1, |score|).
+CLAIM_TOLERANCE = 1e-4
+
+
+def claim_refusal(figures: Mapping, served: Mapping) -> str | None:
+    """Why a client's scores of the global model disagree with the server's own evaluation of
+    the same model on the same scenes (``served``: its ``server/test/*``, ``server/task/*``),
+    or None; only where the client's model is the global one (the whole model shared)."""
+    for key, value in figures.items():
+        own = served.get(f"server/{key}")
+        if own is None or not str(key).startswith(("test/", "task/")):
+            continue
+        if abs(float(value) - own) > CLAIM_TOLERANCE * max(1.0, abs(own)):
+            return (
+                f"{key} = {float(value):.4g} where the server's own evaluation of the same "
+                f"model gives {own:.4g}"
+            )
     return None

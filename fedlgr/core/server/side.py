@@ -57,10 +57,14 @@ ALONE = Collective()
 
 
 class ServerSide:
-    """``noise_from_os``: client-level DP's noise comes from the operating system (a real
-    deployment), not from the run's seed (:mod:`fedlgr.core.privacy`)."""
+    """``robots``: the clients are robots (a real deployment): client-level DP's noise comes
+    from the operating system, not from the run's seed (:mod:`fedlgr.core.privacy`), and
+    as the server cannot tell an honest robot's scores from a liar's, their headline is the
+    strategy's robust statistic (``Strategy.scores_statistic``: a median for FedMedian); in
+    one process every score is fedlgr's own, the simulated attackers' kept apart, and the
+    headline is the others' mean."""
 
-    def __init__(self, config: ExperimentConfig, noise_from_os: bool = False):
+    def __init__(self, config: ExperimentConfig, robots: bool = False):
         cfg = config
         self.config = config
         self.tasks = list(cfg.continual.tasks) or [ALL]
@@ -78,7 +82,8 @@ class ServerSide:
         self.refused: dict[int, str] = {}
         # federated.dp: clipped updates, noise on their sum, the accountant's epsilon
         dp = cfg.federated.dp.enabled
-        self.privacy = Privacy(cfg, noise_from_os) if dp else None
+        self.privacy = Privacy(cfg, robots) if dp else None
+        self.statistic = self.strategy.scores_statistic if robots else "mean"
 
     def to(self, device: torch.device) -> ServerSide:
         self.global_weights = {k: v.to(device) for k, v in self.global_weights.items()}
@@ -266,12 +271,14 @@ class ServerSide:
         faults: Mapping[int, str] | None = None,
         names: Mapping[int, str] | None = None,
         bad_scores: Mapping[int, str] | None = None,
+        byzantine: Iterable[int] = (),
     ) -> RoundLog:
         """The round's record; ``participants`` (the clients that trained) is kept where the
         strategy chose fewer than all. ``served``: the server's figures and the initial
         model's scores (:func:`~fedlgr.core.server.evaluate.serve_round`), to which the
         counts of the simulated ``faults`` (client -> what) are added; ``names``: client ->
-        its robot; ``bad_scores``: the clients whose scores were refused, client -> why."""
+        its robot; ``bad_scores``: the clients whose scores were refused, client -> why;
+        ``byzantine``: the simulated attackers, whose scores are kept apart."""
         clients = self.config.data.clients
         chosen = None if participants is None or len(participants) == clients else participants
         refused, self.refused = self.refused, {}
@@ -292,6 +299,8 @@ class ServerSide:
             refused=refused,
             faults=faults,
             names=dict(names or {}),
+            statistic=self.statistic,
+            byzantine=tuple(sorted(byzantine)),
         )
 
     # ------------------------------------------------------------------ checkpoints

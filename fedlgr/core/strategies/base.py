@@ -93,6 +93,11 @@ class Strategy:
     # upload of the round and call ``combine``.
     needs_uploads = False
 
+    # The headline of robots' scores (fedlgr.core.records.headline), which the server cannot
+    # check: a robust strategy's statistic, that as many liars as it withstands cannot move
+    # far, and the mean for the others.
+    scores_statistic = "mean"
+
     def combine(self, uploads: list[tuple[int, Weights]]) -> Weights:
         """The aggregate of the round's uploads, ``(n_samples, tensors)`` in client order,
         as float64 tensors (called where ``needs_uploads``; FedAvg's sample-weighted mean

@@ -33,6 +33,7 @@ def krum_scores(vectors: torch.Tensor, f: int) -> torch.Tensor:
 
 class Krum(Strategy):
     needs_uploads = True
+    scores_statistic = "median"  # Krum's f < n/2 - 1 attackers cannot move it far
 
     def combine(self, uploads: list[tuple[int, Weights]]) -> Weights:
         keys = list(uploads[0][1])

@@ -16,6 +16,7 @@ from fedlgr.core.strategies.base import Strategy
 
 class FedMedian(Strategy):
     needs_uploads = True
+    scores_statistic = "median"
 
     def combine(self, uploads: list[tuple[int, Weights]]) -> Weights:
         n = len(uploads)

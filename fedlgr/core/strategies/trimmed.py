@@ -17,6 +17,10 @@ from fedlgr.core.strategies.base import Strategy
 class FedTrimmedAvg(Strategy):
     needs_uploads = True
 
+    @property
+    def scores_statistic(self) -> str:
+        return f"trimmed {self.settings.beta:g}"  # the uploads' cut, on the scores
+
     def combine(self, uploads: list[tuple[int, Weights]]) -> Weights:
         cut = int(self.settings.beta * len(uploads))
         return {k: middle(stacked(uploads, k), cut) for k in uploads[0][1]}

@@ -88,6 +88,7 @@ class RunLife:
         self.total = 0  # rounds in the schedule
         self.missed: list[str] = []  # "round 2: client 1" (fedlgr.missing)
         self.refused: list[str] = []  # "round 2: client 1 (why)" (fedlgr.not_taken)
+        self.outliers: list[str] = []  # "round 2: client 1: RMSE 0.010 (median 0.674)"
 
     def say(self, text: str) -> None:
         """A console line (rank 0)."""
@@ -124,6 +125,8 @@ class RunLife:
                 self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta}){missing}")
                 for client, why in sorted(log.refused.items()):
                     self.say(f"{label}: refused {log.who(client)}'s {why}")
+                for client, what in log.outliers().items():
+                    self.say(f"{label}: outlier {log.who(client)}: {what}")
                 self.tell(plan.round, metrics)  # the caller's on_round: raising stops the run
         return self.summary()
 
@@ -254,6 +257,12 @@ class RunLife:
                 ]
                 refused = "; ".join(self.refused)
                 tracker.client.set_tag(tracker.run_id, "fedlgr.not_taken", refused[-5000:])
+            if outliers := log.outliers():  # scores far from the others' median
+                self.outliers += [
+                    f"round {plan.round}: {log.who(c)}: {w}" for c, w in outliers.items()
+                ]
+                said = "; ".join(self.outliers)
+                tracker.client.set_tag(tracker.run_id, "fedlgr.outliers", said[-5000:])
         self.result.tracking_seconds.append(time.perf_counter() - logging)
         return metrics
 
@@ -400,12 +409,18 @@ def _count(n: int, noun: str) -> str:
 
 
 def _line(log: RoundLog) -> str:
-    """One round's line: every score's mean over the clients (a diverged run's NaN shows as such; a
-    round no client scored says so) and the CPU per client."""
+    """One round's line: every score's headline over the clients (a diverged run's NaN shows as
+    such; a round no client scored says so; a statistic that is not the mean is named), the
+    simulated attackers' scores apart, and the CPU per client."""
     figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
     shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
     if all(v is None for _, v in figures):  # federated.eval_every, or every scorer missing
         shown = "not scored"
+    elif log.statistic != "mean":  # robots' scores: the robust strategy's statistic
+        shown = f"{shown} ({log.statistic})"
+    apart = [(s.label, log.apart(f"test/{s.name}")) for s in SCORES if s.headline]
+    if any(v is not None for _, v in apart):  # simulated attackers: not in the headline
+        shown += "  byzantine " + " ".join(f"{n} {v:.3f}" for n, v in apart if v is not None)
     cpu = log.mean("cost/cpu_s")
     shown += f"  CPU {'-' if cpu is None else f'{cpu:.1f}'} s/client"
     spent = log.server.get("privacy/epsilon")  # client-level DP: the budget spent so far

@@ -79,7 +79,7 @@ class ExperimentResult:
             + [_nanmean(per_round[c.key][:, i]) for c in costs]
             for i in range(clients if clients <= SHOWN_CLIENTS else 0)
         ]
-        rows.append(["mean", *(last.mean(n) for n in scores)])
+        rows.append([last.statistic, *(last.mean(n) for n in scores)])
         rows[-1] += [_nanmean(per_round[c.key]) for c in costs]
         rows = [[row[0], *(f(v) for f, v in zip(shown, row[1:], strict=True))] for row in rows]
         headers = ["client", *(s.label for s in SCORES), *(c.summary for c in costs)]
@@ -104,6 +104,27 @@ class ExperimentResult:
             notes.append(
                 f"test scores: the mean over the {scored} clients scored in the last round "
                 f"(federated.evaluate={evaluate})"
+            )
+        left_out = int((~last.counted).sum())
+        if last.byzantine:
+            apart = ", ".join(
+                f"{s.label} {v:.3f}"
+                for s in headline_scores()
+                if (v := last.apart(f"test/{s.name}")) is not None
+            )
+            named = ", ".join(map(str, last.byzantine))
+            notes.append(
+                f"{last.statistic}: of the clients that count, not the {len(last.byzantine)} "
+                f"simulated attackers (client {named}{': ' + apart if apart else ''})"
+            )
+        if left_out > len(last.byzantine):
+            notes.append(
+                f"{last.statistic}: without the clients whose upload the last round refused"
+            )
+        if last.statistic != "mean":
+            notes.append(
+                f"{last.statistic}: robots' scores, which the server cannot check, by "
+                f"{self.config.federated.strategy}'s robust statistic (docs/deployment.md)"
             )
         return "".join(f"\n{n}" for n in notes)
 

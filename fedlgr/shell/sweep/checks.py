@@ -108,7 +108,8 @@ def run_metrics(config: ExperimentConfig) -> set[str]:
     """The metric names a run of ``config`` can end with, which a sweep's objective reads from
     :meth:`ExperimentResult.final_metrics`; built from the config alone: nothing trains."""
     tasks = list(config.continual.tasks)
-    names = {"round/seconds", "round/missing_clients", "round/participants"}
+    names = {"round/seconds", "round/missing_clients", "round/participants", "round/outliers"}
+    names.update(f"spread/test/{s.name}" for s in headline_scores())  # RoundLog.metrics
     # The server's own cost (in-process runtimes), and its evaluation where it runs one.
     server = ("cost/server_cpu_s", "cost/server_wall_s")
     names.update([*server, *(f"mean/{k}" for k in server), "mean/cost/paper_cpu_s"])
@@ -116,8 +117,11 @@ def run_metrics(config: ExperimentConfig) -> set[str]:
         names.update(f"server/test/{m}" for m in SCORE_NAMES)
         names.update(f"server/task/{t}/{m}" for t in tasks for m in SCORE_NAMES)
     plugins = plugin_metrics(config.federated.strategy, config.continual.method)
+    attackers = config.federated.faults.byzantine > 0  # their scores apart: byzantine/...
     for key in round_keys(tasks, plugins):
         names.add(key)
+        if attackers and key.startswith(("test/", "task/")):
+            names.add(f"byzantine/{key}")
         names.update(client_key(key, c) for c in range(config.data.clients))
     for k in range(len(tasks)):
         prefix = f"after_task{k + 1}"

@@ -6,6 +6,8 @@ robot does, then alters its n-th train reply as the n-th word says:
 - ``truncate``: the packed tensor bytes cut short by 8 bytes;
 - ``count``: a sample count of 10^12;
 - ``scores``: the previous round's scores that the reply carries NaN;
+- ``liar`` (issue 50): those scores too good to be true - every error 0.01, every
+  correlation 0.99 - yet each in its range;
 - words joined by ``+`` do each (``count+scores``);
 - ``honest``: nothing altered.
 - (fault sweep 37) ``figkey``: a training figure that is not the run's; ``strfig``: a
@@ -76,6 +78,14 @@ def alter(robot_module) -> None:
         if "scores" in how and evaluated is not None:
             nan = {k: float("nan") for k in evaluated.figures}
             evaluated = dataclasses.replace(evaluated, figures=nan)
+        if "liar" in how and evaluated is not None:
+            good = {
+                k: (0.99 if k.split("/")[-1] in ("pcc", "ccc") else 0.01)
+                if k.startswith(("test/", "task/"))
+                else v
+                for k, v in evaluated.figures.items()
+            }
+            evaluated = dataclasses.replace(evaluated, figures=good)
         content = honest(res, evaluated)
         if "truncate" in how:
             array = content.array_records["shared"]["tensors"]

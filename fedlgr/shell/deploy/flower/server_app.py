@@ -17,7 +17,7 @@ from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress
 from fedlgr.core.schedule import ALL, schedule
 from fedlgr.core.server.evaluate import ServerEvaluation, serve_round
-from fedlgr.core.server.screen import figures_refusal
+from fedlgr.core.server.screen import claim_refusal, figures_refusal
 from fedlgr.core.server.side import ServerSide
 from fedlgr.core.state import rng_states, set_rng_states, to_device
 from fedlgr.errors import FedlgrError, first_line
@@ -54,7 +54,7 @@ class FlowerRounds:
         # refused on receipt: round -> client -> why (uploads: aggregation's; scores: the record's)
         self.unread: dict[int, dict[int, str]] = {}
         self.bad_scores: dict[int, str] = {}
-        self.server = ServerSide(config, noise_from_os=True)  # DP noise: not from the seed
+        self.server = ServerSide(config, robots=True)
         if config.federated.fraction < 1 and roster is None:
             raise FedlgrError(
                 f"federated.fraction={config.federated.fraction:g} on robots needs a roster "
@@ -75,6 +75,15 @@ class FlowerRounds:
         # federated.server_eval: the server scores the global model on its own copy of the
         # test scenes (data.path on the SuperLink's machine).
         self.server_eval = server_evaluation(config) if config.federated.server_evaluates else None
+        # where a robot scores the very model the server does (every tensor of values shared;
+        # BatchNorm's step counter is not, and does not change a score), the server's scores
+        # are the check of its claim
+        self.served: dict[str, float] = {}
+        self.checks_claims = self.server_eval is not None and all(
+            k in self.server.keys
+            for k, v in self.server_eval.model.state_dict().items()
+            if v.is_floating_point()
+        )
         self.config_yaml = robot_yaml(config)
         self.holders: set[int] = set()  # nodes that hold the current global tensors
         self.min_clients = config.deploy.min_clients or quorum(config.data.clients)
@@ -134,6 +143,7 @@ class FlowerRounds:
             return self.secure.figures
 
         served = serve_round(self.server, self.server_eval, plan, aggregate)
+        self.served = served[0]
         self.bad_scores = {}
         rows = self.evaluate(plan, chosen, trained, down)
         missing = tuple(c for c in range(self.config.data.clients) if c not in rows)
@@ -207,7 +217,10 @@ class FlowerRounds:
                 claim = f"they claim to be client {res.client}'s"
                 self.refuse(round_, node, self.nodes.slots.get(node), "scores", claim)
                 continue
-            if (why := figures_refusal(res.figures, self.server.round_keys)) is not None:
+            why = figures_refusal(res.figures, self.server.round_keys)
+            if why is None and self.checks_claims:
+                why = claim_refusal(res.figures, self.served)
+            if why is not None:
                 self.refuse(round_, node, res.client, "scores", why)
                 continue
             self.holders.add(node)
