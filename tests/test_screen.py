@@ -13,9 +13,9 @@ import mlflow
 import pytest
 import torch
 
-from fedlgr.core.messages import TrainRes
+from fedlgr.core.messages import RoundPlan, TrainRes
 from fedlgr.core.server.aggregate import weighted_mean
-from fedlgr.core.server.screen import figures_refusal, oversized
+from fedlgr.core.server.screen import capped_counts, figures_refusal, oversized
 from fedlgr.core.server.side import ServerSide
 from fedlgr.shell.config import load_config
 from fedlgr.shell.run.experiment import run_experiment
@@ -416,3 +416,42 @@ def test_two_uploads_for_one_client_are_both_refused_and_an_unknown_client_too()
         9: "upload: no client 9 in data.clients=5",
     }
     assert finite(side.global_weights)
+
+
+def test_sample_counts_are_capped_at_k_times_the_others_median_by_hand():
+    """Issue 50: without a roster's scenes a robot claiming 10x its samples weighed 10/12.
+    Counts (100, 120, 1000), cap 3: client 2's others' median is 110 -> capped at 330;
+    client 1's is 550 (1650 > 120): not capped. Two clients: each is the other's yardstick;
+    one: nothing to compare; cap 0: none."""
+    assert capped_counts({0: 100, 1: 120, 2: 1000}, 3.0) == {2: 330}
+    assert capped_counts({0: 100, 1: 1000}, 3.0) == {1: 300}
+    assert capped_counts({0: 100}, 3.0) == {} and capped_counts({0: 1, 1: 99}, 0) == {}
+
+
+def test_a_capped_count_weighs_its_cap_and_is_reported_but_a_rostered_bound_is_kept():
+    """Three uploads of 10, 10 and 1000 samples, nothing bounding client 2: it weighs 30
+    (the global tensors are the mean weighted 10, 10, 30) and the round's record names it;
+    with client 2 bounded (its 1000 scenes, a roster's ``scenes``) it keeps its 1000; under
+    federated.count_cap=0 too."""
+    side = server(clients=3)
+    uploads = [honest(side, 0, 10), honest(side, 1, 10), honest(side, 2, 1000)]
+    key = first_float(side)
+
+    def mean(weights):
+        total = sum(weights)
+        return (
+            sum(w * r.weights[key].double() for w, r in zip(weights, uploads, strict=True)) / total
+        )
+
+    side.aggregate(uploads)
+    assert torch.allclose(side.global_weights[key].double(), mean([10, 10, 30]), atol=1e-6)
+    log = side.round_log(RoundPlan(1, 0), side.table({}), 1.0)
+    assert log.capped == {
+        2: "sample count 1000 capped at 30 (3 x the round's others' median; no roster "
+        "scenes bound it)"
+    }
+    assert log.metrics()["faults/capped"] == 1.0
+    assert log.rows()[2]["fault"] == log.capped[2]
+    for bounded in (server(clients=3), server("federated.count_cap=0", clients=3)):
+        bounded.aggregate(uploads, capacity={2: 1000})
+        assert torch.allclose(bounded.global_weights[key].double(), mean([10, 10, 1000]), atol=1e-6)

@@ -98,6 +98,8 @@ class RoundLog:
     statistic: str = "mean"
     # the simulated attackers (federated.faults.byzantine): their scores are kept apart
     byzantine: tuple[int, ...] = ()
+    # sample counts the server capped (federated.count_cap): client -> "sample count ..."
+    capped: dict[int, str] = field(default_factory=dict)
 
     def who(self, client: int) -> str:
         """The client as the console and MLflow name it: its robot, or ``client N``."""
@@ -110,6 +112,8 @@ class RoundLog:
         refused = self.refused.get(client, "")
         if refused:
             parts.append(f"refused {refused}")
+        if client in self.capped:
+            parts.append(self.capped[client])
         if client in self.missing and "scores: " not in refused:
             parts.append("missing")  # a robot whose scores did not come
         return "; ".join(parts)
@@ -215,6 +219,8 @@ class RoundLog:
             out["round/participants"] = float(len(self.participants))
         if self.refused:
             out["faults/refused"] = float(len(self.refused))
+        if self.capped:
+            out["faults/capped"] = float(len(self.capped))
         outliers = self.outliers()
         if outliers:
             out["round/outliers"] = float(len(outliers))

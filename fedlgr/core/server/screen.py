@@ -130,6 +130,23 @@ def oversized(norms: dict[int, float], ratio: float) -> dict[int, str]:
     return out
 
 
+def capped_counts(counts: Mapping[int, int], ratio: float) -> dict[int, int]:
+    """The clients whose sample count is over ``ratio`` times the median of the round's other
+    counts, each with that cap (a whole number, at least 1): a weighted mean trusts the
+    counts it weighs by, and a client is not its own yardstick. None where ``ratio`` is 0 or
+    a count has no other to be compared with."""
+    if not ratio or len(counts) < 2:
+        return {}
+    out = {}
+    for client, n in sorted(counts.items()):
+        cap = max(
+            1, math.floor(ratio * statistics.median(v for c, v in counts.items() if c != client))
+        )
+        if n > cap:
+            out[client] = cap
+    return out
+
+
 # Figures outside the scores (metrics.SCORES) with a range of their own, by name.
 OTHER_BOUNDS = {"recon_mse": metrics.ERROR}  # LGR's generator error
 # float32 sums can put a perfect correlation a hair over 1: a bound is widened by this

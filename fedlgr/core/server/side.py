@@ -13,6 +13,7 @@ out) has none and is named in ``RoundLog.missing``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
 from collections.abc import Iterable, Mapping
@@ -30,7 +31,7 @@ from fedlgr.core.records import RoundLog, table
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import initial_scholar, parameter_keys, shared_keys
 from fedlgr.core.server.aggregate import finish_mean, weighted_sum
-from fedlgr.core.server.screen import oversized, refusal, update_norm
+from fedlgr.core.server.screen import capped_counts, oversized, refusal, update_norm
 from fedlgr.core.state import to_device
 from fedlgr.core.strategies import build_strategy
 
@@ -80,6 +81,8 @@ class ServerSide:
         self.round_keys = round_keys(self.tasks, self.plugin_keys)  # a round's columns
         # this round's refusals: client -> what and why ("upload: ...", "scores: ...")
         self.refused: dict[int, str] = {}
+        # this round's sample counts capped (federated.count_cap): client -> what
+        self.capped: dict[int, str] = {}
         # federated.dp: clipped updates, noise on their sum, the accountant's epsilon
         dp = cfg.federated.dp.enabled
         self.privacy = Privacy(cfg, robots) if dp else None
@@ -146,6 +149,24 @@ class ServerSide:
         self.refused = {client: f"upload: {why}" for client, why in found.items()}
         return [r for r in results if r.client not in self.refused]
 
+    def cap(self, results: list[TrainRes], capacity: Mapping[int, int]) -> list[TrainRes]:
+        """The uploads taken, each sample count that nothing bounds (no ``capacity``: a robot
+        without the roster's ``scenes``) capped at ``federated.count_cap`` times the median of
+        the round's other counts; the caps are kept for the round's record. Under DP every
+        update weighs 1: nothing to cap."""
+        ratio = 0 if self.privacy is not None else self.config.federated.count_cap
+        counts = {r.client: r.n_samples for r in results}
+        caps = {c: n for c, n in capped_counts(counts, ratio).items() if c not in capacity}
+        for client, cap in caps.items():
+            self.capped[client] = (
+                f"sample count {counts[client]} capped at {cap} ({ratio:g} x the round's "
+                "others' median; no roster scenes bound it)"
+            )
+        return [
+            dataclasses.replace(r, n_samples=caps[r.client]) if r.client in caps else r
+            for r in results
+        ]
+
     # ------------------------------------------------------------------ aggregation
 
     def sum_template(self) -> Weights:
@@ -200,6 +221,7 @@ class ServerSide:
         refused = {c: why for part, _ in parts for c, why in part.items()}
         norms = {c: norm for _, part in parts for c, norm in part.items()}
         results = self.screen(results, refused, norms)  # on every process's norms
+        results = self.cap(results, capacity or {})
         senders = sum(c not in self.refused for c in norms)  # taken, in every process
         if self.strategy.needs_uploads:  # a statistic of every upload: gather them
             taken = [r for part in collective.all_gather(results) for r in part]
@@ -282,6 +304,7 @@ class ServerSide:
         clients = self.config.data.clients
         chosen = None if participants is None or len(participants) == clients else participants
         refused, self.refused = self.refused, {}
+        capped, self.capped = self.capped, {}
         for client, why in (bad_scores or {}).items():  # their rows are left out
             said = refused.get(client)
             refused[client] = f"{said}; scores: {why}" if said else f"scores: {why}"
@@ -301,6 +324,7 @@ class ServerSide:
             names=dict(names or {}),
             statistic=self.statistic,
             byzantine=tuple(sorted(byzantine)),
+            capped=capped,
         )
 
     # ------------------------------------------------------------------ checkpoints

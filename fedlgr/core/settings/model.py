@@ -335,6 +335,12 @@ class FederatedConfig:
         "an update over this many times the median of the round's other updates' norms is "
         "refused (0: no such check)",
     )
+    count_cap: Float = setting(
+        3.0,
+        "a robot whose sample count no roster scenes bound weighs at most this many times the "
+        "median of the round's other counts (0: no cap)",
+        ge=0,
+    )
     faults: FaultsConfig = setting(doc="simulated faults", factory=FaultsConfig)
     dp: DPConfig = setting(doc="client-level differential privacy", factory=DPConfig)
 

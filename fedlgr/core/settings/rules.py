@@ -101,6 +101,11 @@ def federated(federated: Any) -> None:
             f"federated.norm_ratio={federated.norm_ratio}: must be 0 (no check) or at least 1 "
             "(an update over this many times the round's median update norm is refused)"
         )
+    if federated.count_cap != 0 and federated.count_cap < 1:
+        raise ConfigError(
+            f"federated.count_cap={federated.count_cap:g}: must be 0 (no cap) or at least 1 "
+            "(a robot's sample count is capped at this many times the others' median)"
+        )
 
 
 def dp(dp: Any) -> None:

@@ -125,6 +125,8 @@ class RunLife:
                 self.say(f"{label}: {_line(log)}  ({log.seconds:.1f} s{eta}){missing}")
                 for client, why in sorted(log.refused.items()):
                     self.say(f"{label}: refused {log.who(client)}'s {why}")
+                for client, what in sorted(log.capped.items()):
+                    self.say(f"{label}: {log.who(client)}'s {what}")
                 for client, what in log.outliers().items():
                     self.say(f"{label}: outlier {log.who(client)}: {what}")
                 self.tell(plan.round, metrics)  # the caller's on_round: raising stops the run
@@ -360,7 +362,7 @@ def checkpoint_state(
 
 
 # a RoundLog in a checkpoint: lists for tuples, string keys by client; fields it lacks default
-_BY_CLIENT = ("refused", "faults", "names")
+_BY_CLIENT = ("refused", "faults", "names", "capped")
 
 
 def round_state(log: RoundLog) -> dict[str, Any]:
