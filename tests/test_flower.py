@@ -284,8 +284,10 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     federation, synth_dir, cache_dir, store
 ):
     """robot2 (client 2) is on the roster (at most 100 scenes) and trains honestly, but
-    alters every upload it sends: NaN (round 1), x 1e6 (round 2), a tensor cut short
-    (round 3), a sample count of 10^12 (round 4), client 0's (round 5); with round 2's
+    alters every upload it sends (SCAFFOLD: a control-variate change goes with each): NaN
+    (round 1), x 1e6 tensors (round 2), a tensor cut short (round 3), a sample count of 10^12
+    (round 4), client 0's (round 5), its payload x 8 (round 6, issue 50) and round 6's
+    upload again (round 7, issue 50); with round 2's
     upload it reports its round-1 scores as NaN, with round 3's its round-2 scores as RMSE
     0.01 and PCC 0.99 - which the server, scoring the same whole model, refuses (issue 50).
     Each is refused and robot2 named, in the console, MLflow and
@@ -299,11 +301,11 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
         dataclasses.replace(m, scenes=100) if m.name == "robot2" else m for m in roster.members
     ]
     roster.write()
-    plan = "nan,scale+scores,truncate+liar,count,client"
+    plan = "nan,scale+scores,truncate+liar,count,client,payload8,replay"
     env = {"PYTHONPATH": str(BYZANTINE), "FEDLGR_BYZANTINE": plan}
     assert start_until_online(federation, "robot2", synth_dir, env=env)
-    method = ["method=FedAvg", "federated.server_eval=on", "data.clients=3"]
-    method += ["federated.rounds=5", "seed=2"]  # seed 2: the one-process run's client 2
+    method = ["method=SCAFFOLD", "federated.server_eval=on", "data.clients=3"]
+    method += ["federated.rounds=7", "seed=2"]  # seed 2: the one-process run's client 2
     try:
         flower, out = flower_run(federation, synth_dir, store, "byzantine", *method)
     finally:
@@ -314,14 +316,17 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     robot_log = (federation.robot_dir("robot2") / "robot.log").read_text()
     assert "byzantine: train reply 2: scale+scores" in robot_log  # it did alter them
     who = "refused robot2 (client 2)'s"
-    assert f"round 1/5: {who} upload: " in out and "holds values that are not finite" in out
-    assert f"round 2/5: {who} upload: update norm " in out
-    assert f"round 3/5: {who} upload: cannot be read (ValueError: " in out
-    assert f"round 4/5: {who} upload: sample count 1000000000000 exceeds its 100" in out
-    assert f"round 5/5: {who} upload: it claims to be client 0's" in out
-    [first] = [line for line in out.splitlines() if line.startswith(f"round 1/5: {who}")]
+    assert f"round 1/7: {who} upload: " in out and "holds values that are not finite" in out
+    # x 1e6 tensors beside an honest payload: the payload is no longer their change
+    assert f"round 2/7: {who} upload: scaffold payload is not its update's control-" in out
+    assert f"round 3/7: {who} upload: cannot be read (ValueError: " in out
+    assert f"round 4/7: {who} upload: sample count 1000000000000 exceeds its 100" in out
+    assert f"round 5/7: {who} upload: it claims to be client 0's" in out
+    assert f"round 6/7: {who} upload: scaffold payload is not its update's control-" in out
+    assert f"round 7/7: {who} upload: stale: identical to an upload it sent before" in out
+    [first] = [line for line in out.splitlines() if line.startswith(f"round 1/7: {who}")]
     assert "; scores: " in first and "= nan is not finite" in first, first  # one line each
-    [second] = [line for line in out.splitlines() if line.startswith(f"round 2/5: {who}")]
+    [second] = [line for line in out.splitlines() if line.startswith(f"round 2/7: {who}")]
     assert "; scores: test/" in second, second
     assert (
         "scores: test/loss = 0.01 where the server's own evaluation of the same model gives "
@@ -330,7 +335,7 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     client = mlflow.MlflowClient(store)
     run_id = flower.info.run_id
     assert flower.info.status == "FINISHED"
-    assert history(client, run_id, "faults/refused") == [(r, 1.0) for r in (1, 2, 3, 4, 5)]
+    assert history(client, run_id, "faults/refused") == [(r, 1.0) for r in range(1, 8)]
     assert flower.data.tags["fedlgr.not_taken"].startswith("round 1: robot2 (client 2) (upload: ")
     # its round-1 and round-2 scores refused, its round-3 and round-5 uploads not its own
     missing = [(1, 1.0), (2, 1.0), (3, 1.0), (5, 1.0)]  # its round-2 scores: lies
@@ -339,7 +344,7 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
     first = faults[("1", "2")]
     assert first.startswith("refused upload: ") and "; scores: " in first, first
     assert faults[("3", "2")].startswith("refused upload: cannot be read (ValueError: ")
-    assert all(faults[(str(r), c)] == "" for r in range(1, 6) for c in ("0", "1"))
+    assert all(faults[(str(r), c)] == "" for r in range(1, 8) for c in ("0", "1"))
     byzantine = ["federated.faults.byzantine=1", "federated.faults.attack=scale"]
     local = run_experiment(
         fast_config(
@@ -354,7 +359,7 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
         )
     )
     assert local.config.federated.faults.byzantine == 1
-    assert history(client, local.run_id, "faults/refused") == [(r, 1.0) for r in range(1, 6)]
+    assert history(client, local.run_id, "faults/refused") == [(r, 1.0) for r in range(1, 8)]
     local_run = client.get_run(local.run_id)
     keys = [k for k in local_run.data.metrics if k.startswith("server/test/")]
     keys += [k for k in local_run.data.metrics if k.startswith(("test/client0/", "test/client1/"))]

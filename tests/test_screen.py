@@ -7,6 +7,7 @@ sample counts of 10^12, -31, 0."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import mlflow
@@ -227,16 +228,19 @@ def test_a_robots_reported_figures_are_checked_by_hand(figures, why):
 
 
 def honest_with_payload(side: ServerSide, client: int, n: int = 10) -> TrainRes:
-    """A small seeded update of the global tensors, and for SCAFFOLD a small seeded change
-    of the control variate (the strategy's payload)."""
+    """A small seeded update of the global tensors, and for SCAFFOLD the change of the
+    control variate it gives (the strategy's payload)."""
     g = torch.Generator().manual_seed(100 + client)
     weights = {
         k: v + 1e-3 * torch.randn(v.shape, generator=g) if v.is_floating_point() else v.clone()
         for k, v in side.global_weights.items()
     }
+    # option II's change, as an honest client computes it from its K local steps
+    steps, lrs = side.fewest_steps(n), side.learning_rates
+    control = getattr(side.strategy, "control", {})
     payload = {
-        k: 1e-3 * torch.randn(t.shape, generator=g, dtype=t.dtype)
-        for k, t in side.strategy.payload_template().items()
+        f"scaffold/{k}": -c + (side.global_weights[k] - weights[k]) / (steps * lrs[k])
+        for k, c in control.items()
     }
     return TrainRes(client, weights, n, {}, payload)
 
@@ -455,3 +459,60 @@ def test_a_capped_count_weighs_its_cap_and_is_reported_but_a_rostered_bound_is_k
     for bounded in (server(clients=3), server("federated.count_cap=0", clients=3)):
         bounded.aggregate(uploads, capacity={2: 1000})
         assert torch.allclose(bounded.global_weights[key].double(), mean([10, 10, 1000]), atol=1e-6)
+
+
+def test_a_scaffold_payload_that_is_not_its_updates_change_is_refused_by_hand():
+    """Issue 50: a payload x8 passed every check (RMSE 1.169 against 0.747 without it).
+    Option II makes Delta c_i + c = (x - y_i) / (K lr): with c not 0, x8 lies off the
+    update's direction; with c = 0 (round 1) it claims K / 8 = 1.25 local steps, fewer than
+    the 10 its 10 scenes train (2 epochs of 5 batches of 2). The honest payload of the same
+    upload passes."""
+    overrides = ("method=SCAFFOLD", "train.epochs=2", "train.batch_size=2")
+    side = server(*overrides, clients=3)
+    steps = side.fewest_steps(10)
+    assert steps == 10  # 2 epochs x ceil(10 / 2)
+    upload = honest_with_payload(side, 0)
+    payload = side.strategy.payload_refusal
+    lrs = side.learning_rates
+    assert payload(upload, side.global_weights, steps, lrs) is None
+    x8 = dataclasses.replace(upload, payload={k: 8 * v for k, v in upload.payload.items()})
+    assert payload(x8, side.global_weights, steps, lrs) == (
+        "scaffold payload is that of 1.25 local steps, fewer than the 10 its 10 scenes train"
+    )
+    side.strategy.control = {k: torch.full_like(c, 0.5) for k, c in side.strategy.control.items()}
+    upload = honest_with_payload(side, 0)
+    assert payload(upload, side.global_weights, steps, lrs) is None
+    x8 = dataclasses.replace(upload, payload={k: 8 * v for k, v in upload.payload.items()})
+    why = payload(x8, side.global_weights, steps, lrs)
+    assert why.startswith("scaffold payload is not its update's control-variate change (off")
+    # in a round: refused and named, the others taken
+    uploads = [honest_with_payload(side, c) for c in range(3)]
+    uploads[2] = dataclasses.replace(
+        uploads[2], payload={k: 8 * v for k, v in uploads[2].payload.items()}
+    )
+    side.aggregate(uploads)
+    assert list(side.refused) == [2] and "control-variate change" in side.refused[2]
+
+
+def test_a_payload_far_over_the_others_is_refused_by_its_own_norm():
+    """The payload's norm is screened apart from the update's: the same rule,
+    federated.norm_ratio x the others' median. By hand on payload norms 1, 1.2, 30."""
+    assert oversized({0: 1.0, 1: 1.2, 2: 30.0}, 10, "payload") == {
+        2: "payload norm 30 is over 10 x the others' median 1.1"
+    }
+
+
+def test_a_replayed_upload_is_refused_as_stale():
+    """Issue 50: a robot sending again an upload it sent before was never noticed. The
+    server keeps each upload's fingerprint: the same tensors, payload and count again are
+    refused (also after a checkpoint), another client's equal upload is not its replay."""
+    side = server(clients=3)
+    first = [honest(side, c) for c in range(3)]
+    side.aggregate(first)
+    assert side.refused == {}
+    again = [honest(side, 0, 11), first[1], dataclasses.replace(first[1], client=2)]
+    restored = server(clients=3)
+    restored.load_state_dict(side.state_dict(), "cpu")
+    for s in (side, restored):
+        s.aggregate(again)
+        assert s.refused == {1: "upload: stale: identical to an upload it sent before (a replay)"}

@@ -135,7 +135,8 @@ def test_the_robots_mod_passes_plain_messages_through_unchanged_and_answers_seca
 
 
 def uploads(server: ServerSide, counts: list[int], scale: float) -> list[TrainRes]:
-    """Uploads of known updates: the global tensors plus seeded noise, payloads likewise."""
+    """Uploads of known updates: the global tensors plus seeded noise, and the payloads
+    they give."""
     made = torch.Generator().manual_seed(3)
     out = []
     for client, n in enumerate(counts):
@@ -143,9 +144,13 @@ def uploads(server: ServerSide, counts: list[int], scale: float) -> list[TrainRe
             k: g + scale * torch.randn(g.shape, generator=made).to(g.dtype)
             for k, g in server.global_weights.items()
         }
+        # SCAFFOLD's option II change from c = 0, as the robot computes it (the server
+        # checks it is: Scaffold.payload_refusal)
+        steps, lrs = server.fewest_steps(n), server.learning_rates
         payload = {
-            k: 0.01 * torch.randn(t.shape, generator=made).to(t.dtype)
-            for k, t in server.strategy.payload_template().items()
+            k: (server.global_weights[k[len("scaffold/") :]] - weights[k[len("scaffold/") :]])
+            / (steps * lrs[k[len("scaffold/") :]])
+            for k in server.strategy.payload_template()
         }
         out.append(TrainRes(client, weights, n, {}, payload))
     return out

@@ -22,6 +22,7 @@ scores must be the server's own (:func:`claim_refusal`).
 
 from __future__ import annotations
 
+import hashlib
 import math
 import statistics
 from collections.abc import Collection, Mapping
@@ -99,19 +100,46 @@ def _tensor_refusal(key: str, tensor, like: torch.Tensor) -> str | None:
 
 
 def update_norm(result: TrainRes, shared: Weights) -> float:
-    """The Euclidean norm of the upload's change of the global floating-point tensors and of
-    what its plugins send (a change too: SCAFFOLD's control variate's)."""
+    """The Euclidean norm of the upload's change of the global floating-point tensors."""
     total = 0.0
     for key, like in shared.items():
         if like.is_floating_point():
             total += float((result.weights[key].double() - like.double()).pow(2).sum())
-    for tensor in result.payload.values():
-        if tensor.is_floating_point():
-            total += float(tensor.double().pow(2).sum())
     return math.sqrt(total)
 
 
-def oversized(norms: dict[int, float], ratio: float) -> dict[int, str]:
+def payload_norm(result: TrainRes) -> float:
+    """The Euclidean norm of what the upload's plugins send (a change too: SCAFFOLD's
+    control variate's), screened apart from the tensors' change: a payload x8 hides in the
+    sum of two norms where the tensors' change is the larger."""
+    total = sum(
+        float(t.double().pow(2).sum()) for t in result.payload.values() if t.is_floating_point()
+    )
+    return math.sqrt(total)
+
+
+def digest(result: TrainRes) -> str:
+    """A fingerprint of the upload - its tensors, payload and sample count - to know a replay
+    of an earlier one (BLAKE2b of their bytes, in key order)."""
+    hashed = hashlib.blake2b(digest_size=16)
+    hashed.update(str(result.n_samples).encode())
+    for part in (result.weights, result.payload):
+        for key in sorted(part):
+            hashed.update(key.encode())
+            hashed.update(
+                part[key]
+                .detach()
+                .cpu()
+                .contiguous()
+                .reshape(-1)
+                .view(torch.uint8)
+                .numpy()
+                .tobytes()
+            )
+    return hashed.hexdigest()
+
+
+def oversized(norms: dict[int, float], ratio: float, what: str = "update") -> dict[int, str]:
     """The clients whose update norm is over ``ratio`` times the median of the others'
     (every other accepted upload of the round: a client is not its own yardstick, so two
     uploads can be compared), with why; where the others did not move at all, any update
@@ -122,10 +150,10 @@ def oversized(norms: dict[int, float], ratio: float) -> dict[int, str]:
     for client, norm in sorted(norms.items()):
         others = statistics.median(v for c, v in norms.items() if c != client)
         if others <= 0 and norm > 0:
-            out[client] = f"update norm {norm:.3g} where the round's others did not move"
+            out[client] = f"{what} norm {norm:.3g} where the round's others did not move"
         elif others > 0 and norm > ratio * others:
             out[client] = (
-                f"update norm {norm:.3g} is over {ratio:g} x the others' median {others:.3g}"
+                f"{what} norm {norm:.3g} is over {ratio:g} x the others' median {others:.3g}"
             )
     return out
 

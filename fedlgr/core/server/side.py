@@ -31,7 +31,14 @@ from fedlgr.core.records import RoundLog, table
 from fedlgr.core.schedule import ALL
 from fedlgr.core.scope import initial_scholar, parameter_keys, shared_keys
 from fedlgr.core.server.aggregate import finish_mean, weighted_sum
-from fedlgr.core.server.screen import capped_counts, oversized, refusal, update_norm
+from fedlgr.core.server.screen import (
+    capped_counts,
+    digest,
+    oversized,
+    payload_norm,
+    refusal,
+    update_norm,
+)
 from fedlgr.core.state import to_device
 from fedlgr.core.strategies import build_strategy
 
@@ -75,6 +82,14 @@ class ServerSide:
         state = initial.state_dict()
         self.global_weights: Weights = {k: state[k].detach().clone() for k in self.keys}
         self.strategy.bind(self.keys, parameter_keys(initial), self.global_weights)
+        # each parameter's local learning rate (its optimiser group's, as every client has
+        # it): what a strategy's payload is computed with (SCAFFOLD's option II)
+        rates = {
+            id(p): g["lr"] for g in initial.configure_optimizers().param_groups for p in g["params"]
+        }
+        self.learning_rates = {k: rates[id(p)] for k, p in initial.named_parameters()}
+        # the fingerprints of every upload each client sent (screen.digest): a replay is stale
+        self.seen: dict[int, set[str]] = {}
         self.initial_bytes = nbytes(self.global_weights)
         # What the method's client plugins measure (every client has the same kinds).
         self.plugin_keys = plugin_metrics(cfg.federated.strategy, cfg.continual.method)
@@ -124,6 +139,11 @@ class ServerSide:
             r.client: refusal(r, self.global_weights, bound.get(r.client), payload) for r in results
         }
         counts = Counter(r.client for r in results)
+        for r in results:  # well formed: is its payload its update's, is it new?
+            if found[r.client] is None and counts[r.client] == 1:
+                found[r.client] = self.stale(r) or self.strategy.payload_refusal(
+                    r, self.global_weights, self.fewest_steps(r.n_samples), self.learning_rates
+                )
         for client in counts:
             if counts[client] > 1:  # which one would be its? neither is taken
                 found[client] = f"{counts[client]} uploads in one round"
@@ -133,19 +153,44 @@ class ServerSide:
                 found[client] = f"no client {client!r} in data.clients={self.config.data.clients}"
         return {client: why for client, why in found.items() if why is not None}
 
+    def stale(self, result: TrainRes) -> str | None:
+        """Why the upload is a replay - identical to one its client sent before - or None; it is
+        remembered either way."""
+        seen = self.seen.setdefault(result.client, set())
+        mark = digest(result)
+        if mark in seen:
+            return "stale: identical to an upload it sent before (a replay)"
+        seen.add(mark)
+        return None
+
+    def fewest_steps(self, n_samples: int) -> int:
+        """The fewest local optimiser steps a client takes on ``n_samples`` scenes: every epoch
+        goes over each scene at least once, in batches of ``train.batch_size`` - at most
+        ``train.max_batches`` of them."""
+        train = self.config.train
+        batches = math.ceil(n_samples / train.batch_size)
+        return train.epochs * min(batches, train.max_batches or batches)
+
     def update_norms(self, results: Iterable[TrainRes], refused: Mapping[int, str]) -> dict:
-        """client -> the norm of its update, for the uploads not ``refused``."""
+        """client -> the norms of its update and of its payload, for the uploads not
+        ``refused``."""
         shared = self.global_weights
-        return {r.client: update_norm(r, shared) for r in results if r.client not in refused}
+        return {
+            r.client: (update_norm(r, shared), payload_norm(r))
+            for r in results
+            if r.client not in refused
+        }
 
     def screen(self, results: list[TrainRes], refused: dict, norms: dict) -> list[TrainRes]:
-        """The uploads taken: not ``refused``, nor far larger than the round's others
-        (``federated.norm_ratio`` over every process's ``norms``); the round's refusals
-        are kept for its record."""
+        """The uploads taken: not ``refused``, nor far larger than the round's others - the
+        update and the payload each (``federated.norm_ratio`` over every process's
+        ``norms``); the round's refusals are kept for its record."""
         # Under DP the clip norm bounds every update; a bound drawn from the others' norms
         # would let one client decide whether another's update counts.
         ratio = 0 if self.privacy is not None else self.config.federated.norm_ratio
-        found = refused | oversized(norms, ratio)
+        updates = {c: n[0] for c, n in norms.items()}
+        payloads = {c: n[1] for c, n in norms.items()} if self.strategy.payload_template() else {}
+        found = refused | oversized(payloads, ratio, "payload") | oversized(updates, ratio)
         self.refused = {client: f"upload: {why}" for client, why in found.items()}
         return [r for r in results if r.client not in self.refused]
 
@@ -331,6 +376,7 @@ class ServerSide:
 
     def state_dict(self) -> dict:
         state = {"global": self.global_weights, "strategy": self.strategy.state_dict()}
+        state["seen"] = {c: sorted(marks) for c, marks in self.seen.items()}
         if self.privacy is not None:
             state["privacy"] = self.privacy.state_dict()
         return state
@@ -338,6 +384,7 @@ class ServerSide:
     def load_state_dict(self, state: dict, device: torch.device | str) -> None:
         self.global_weights = {k: v.to(device) for k, v in state["global"].items()}
         self.strategy.load_state_dict(to_device(state["strategy"], device))
+        self.seen = {int(c): set(marks) for c, marks in state.get("seen", {}).items()}
         if self.privacy is not None:
             self.privacy.load_state_dict(state["privacy"])
 

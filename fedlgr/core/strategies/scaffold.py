@@ -18,12 +18,17 @@ correction is added to the gradient Adam receives (docs/methods.md).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from fedlgr.core.client.plugins import ClientPlugin, LocalContext
 from fedlgr.core.strategies.base import ServerOptimizer, Weights
 
 PREFIX = "scaffold/"  # the payload's keys: scaffold/<parameter>
+# How far a control-variate change may lie off its update's direction, as a share of its
+# norm, and K below the fewest steps (Scaffold.payload_refusal).
+PARALLEL = 1e-3
 
 
 class ControlVariate(ClientPlugin):
@@ -105,6 +110,40 @@ class Scaffold(ServerOptimizer):
 
     def step(self, key: str, weight: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         return weight + self.settings.lr * delta
+
+    def payload_refusal(
+        self, result, shared: Weights, steps: int, learning_rates: dict[str, float]
+    ) -> str | None:
+        """Option II fixes the change a client sends: ``Delta c_i + c = (x - y_i) / (K lr)``,
+        its update's direction, K the local steps - at least ``steps``. So with ``w = (Delta
+        c_i + c) lr`` and ``v = x - y_i`` the server checks that w is ``v / K``: off v's line
+        by at most :data:`PARALLEL` of its norm (float32 rounding on the client), K not below
+        ``steps``. A payload scaled x8 is off the line once c is not 0, and claims K / 8
+        steps while c is (round 1)."""
+        if any(learning_rates[k] == 0 for k in self.control):
+            return None  # nothing moves: option II sends 0
+        dot = vv = ww = 0.0
+        for k, c in self.control.items():
+            w = (result.payload[PREFIX + k].double() + c.double()) * learning_rates[k]
+            v = shared[k].double() - result.weights[k].double()
+            dot += float((w * v).sum())
+            vv += float(v.pow(2).sum())
+            ww += float(w.pow(2).sum())
+        if vv == 0 or ww == 0:  # no step moved it (Delta c_i = -c), or no step was taken
+            return None if ww == 0 else "scaffold payload moves where the parameters did not"
+        off = math.sqrt(max(0.0, ww - dot * dot / vv) / ww)
+        if dot <= 0 or off > PARALLEL:
+            return (
+                "scaffold payload is not its update's control-variate change (off its "
+                f"direction by {off:.2g} of its norm)"
+            )
+        k_steps = vv / dot
+        if k_steps < steps * (1 - PARALLEL):
+            return (
+                f"scaffold payload is that of {k_steps:.3g} local steps, fewer than the "
+                f"{steps} its {result.n_samples} scenes train"
+            )
+        return None
 
     def take_payloads(self, sums: Weights, senders: int, clients: int) -> None:
         for k, c in self.control.items():

@@ -93,7 +93,8 @@ def check_trial_configs(spec: SweepSpec, echo: Callable[[str], None] = print) ->
                 f"{spec.path}: objective.metric: {spec.metric} is not logged by the runs of "
                 f"trial {point}"
             )
-        shown = sorted(m for m in logged if "/client" not in m)
+        apart = ("spread/", "byzantine/")  # a score's spread, the attackers': not examples
+        shown = sorted(m for m in logged if "/client" not in m and not m.startswith(apart))
         close = difflib.get_close_matches(spec.metric, shown, n=1)
         hint = f" - did you mean {close[0]}?" if close else ""
         scores = tuple(f"test/{s.name}" for s in headline_scores())

@@ -8,6 +8,8 @@ robot does, then alters its n-th train reply as the n-th word says:
 - ``scores``: the previous round's scores that the reply carries NaN;
 - ``liar`` (issue 50): those scores too good to be true - every error 0.01, every
   correlation 0.99 - yet each in its range;
+- (issue 50) ``payload8``: every payload tensor x 8; ``replay``: the upload this robot sent
+  in its previous train reply (as it was sent), sent again;
 - words joined by ``+`` do each (``count+scores``);
 - ``honest``: nothing altered.
 - (fault sweep 37) ``figkey``: a training figure that is not the run's; ``strfig``: a
@@ -39,9 +41,10 @@ def alter(robot_module) -> None:
     replies = []
 
     def encode_train_res(res, evaluated=None):
-        replies.append(1)
-        how = PLAN[len(replies) - 1] if len(replies) <= len(PLAN) else "honest"
-        print(f"byzantine: train reply {len(replies)}: {how}", flush=True)
+        how = PLAN[len(replies)] if len(replies) < len(PLAN) else "honest"
+        print(f"byzantine: train reply {len(replies) + 1}: {how}", flush=True)
+        if "replay" in how and replies:
+            res = replies[-1]
         weights = dict(res.weights)
         for key, w in res.weights.items():
             if w.is_floating_point() and "nan" in how:
@@ -65,15 +68,25 @@ def alter(robot_module) -> None:
         if "strfig" in how:
             figures[next(iter(figures))] = "abc"
         payload = dict(res.payload)
-        if "payload" in how:
+        if "payload" in how.split("+"):  # not payload8
             import torch
 
             payload = {k: v * float("nan") for k, v in payload.items()} or {
                 "scaffold/evil": torch.full((3,), float("nan"))
             }
+        if "payload8" in how:
+            payload = {k: v * 8 for k, v in payload.items()}
         client = 0 if "client" in how else res.client
         res = dataclasses.replace(
             res, weights=weights, n_samples=n, figures=figures, payload=payload, client=client
+        )
+        # as sent: the model's own tensors train on after the reply
+        replies.append(
+            dataclasses.replace(
+                res,
+                weights={k: w.clone() for k, w in res.weights.items()},
+                payload={k: v.clone() for k, v in res.payload.items()},
+            )
         )
         if "scores" in how and evaluated is not None:
             nan = {k: float("nan") for k in evaluated.figures}
