@@ -16,7 +16,7 @@ import numpy as np
 
 from fedlgr import __version__
 from fedlgr.core.forgetting import ForgettingTracker
-from fedlgr.core.metrics import SCORES
+from fedlgr.core.metrics import SCORES, headline_scores
 from fedlgr.core.privacy import epsilon
 from fedlgr.core.records import RoundLog
 from fedlgr.core.rounds import EpochProgress, Rounds
@@ -412,10 +412,18 @@ def _count(n: int, noun: str) -> str:
 
 def _line(log: RoundLog) -> str:
     """One round's line: every score's headline over the clients (a diverged run's NaN shows as
-    such; a round no client scored says so; a statistic that is not the mean is named), the
-    simulated attackers' scores apart, and the CPU per client."""
+    such; a round no client scored says so; a statistic that is not the mean is named) and,
+    from three clients, the first's interquartile range; the simulated attackers' scores
+    apart, and the CPU per client."""
     figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
     shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
+    first = f"test/{headline_scores()[0].name}"
+    spread = log.spread(first) if first in log.keys and log.counted.sum() >= 3 else None
+    if spread is not None:  # three clients or more: how far apart their scores lie
+        label = headline_scores()[0].label
+        shown = shown.replace(
+            f"{label} {log.mean(first):.3f}", f"{label} {log.mean(first):.3f} (IQR {spread:.3f})", 1
+        )
     if all(v is None for _, v in figures):  # federated.eval_every, or every scorer missing
         shown = "not scored"
     elif log.statistic != "mean":  # robots' scores: the robust strategy's statistic
