@@ -557,3 +557,45 @@ def test_secure_aggregation_gives_the_plain_mean_within_its_quantisation_bound(
     assert history(client, flower.info.run_id, "secagg/setup_bytes_up")[0][1] > 0
     rows = {(r["round"], r["client"]): r for r in results_csv(client, flower.info.run_id)}
     assert rows[("1", "0")]["train_loss"] != "" and rows[("1", "1")]["test_loss"] != ""
+
+
+def test_a_secure_round_recovers_a_robot_killed_after_the_round_before(
+    federation, synth_dir, store
+):
+    """SecAgg+ on three robots, two rounds; robot2's SuperNode and robot service are killed as
+    round 1 ends (issue 50: the run failed, "Not enough shares to recover secret"). The SuperLink
+    still lists robot2 as round 2 begins, so it is sent SecAgg+'s setup, and is lost (~20 s:
+    two missed heartbeats) before it shares its keys; round 2 unmasks the sum of the two robots
+    left - no share of robot2's key is needed: no vector was masked with it - names robot2,
+    and the run completes."""
+    ensure_online(federation, synth_dir, "robot0", "robot1")
+    assert start_until_online(federation, "robot2", synth_dir)
+    overrides = ["method=FedAvg", "federated.rounds=2", "data.clients=3"]
+    overrides += ["deploy.secagg.enabled=true", "deploy.round_timeout_s=60"]
+    base = settings(synth_dir, store, "secagg-dropout", federation)
+    proc = federation.run(FAST, [*base, *overrides])
+    seen = []
+    for line in proc.stdout:  # the run's log, as it comes
+        seen.append(line)
+        if line.startswith("round 1/2: "):  # round 1 recorded: round 2 begins
+            break
+    service = federation.robot_dir("robot2") / "robot.pid"
+    os.kill(int(service.read_text()), signal.SIGKILL)
+    federation.procs["robot2"].kill()
+    federation.procs["robot2"].wait()
+    rest, _ = proc.communicate(timeout=600)
+    out = "".join(seen) + rest
+    assert proc.returncode == 0, out[-3000:]
+    assert "round 1, secure train: 3 of 3 robots in the sum" in out, out[-3000:]
+    [line] = [line for line in out.splitlines() if line.startswith("round 2, secure train: ")]
+    assert line.startswith("round 2, secure train: 2 of 3 robots in the sum"), line
+    assert "; robot2 (client 2): setup: " in line or "; robot2 (client 2): share_keys: " in line
+    run = the_run(store, "secagg-dropout", out)
+    client = mlflow.MlflowClient(store)
+    run_id = run.info.run_id
+    assert run.info.status == "FINISHED"
+    assert history(client, run_id, "secagg/robots") == [(1, 3.0), (2, 2.0)]
+    assert run.data.tags["fedlgr.missing_robots"] == "round 2: robot2 (client 2)"
+    # the survivors' sum moved the global model that they scored
+    [(round1, before), (round2, after)] = history(client, run_id, "test/client0/loss")
+    assert (round1, round2) == (1, 2) and after != before

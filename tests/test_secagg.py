@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import flwr.compat.common.recorddict_compat as compat
 import numpy as np
 import pytest
 import torch
 from flwr.app import ConfigRecord, Context, Message, RecordDict
+from flwr.client.mod import secaggplus_mod
+from flwr.common import Code, Error, FitRes, Status, ndarrays_to_parameters
 from flwr.common.secure_aggregation.quantization import dequantize, quantize
 from flwr.common.secure_aggregation.secaggplus_constants import RECORD_KEY_CONFIGS, Key, Stage
 from flwr.supercore.task_identity import TaskIdentity
@@ -23,7 +26,8 @@ from fedlgr.errors import ConfigError
 from fedlgr.shell.config import load_config
 from fedlgr.shell.deploy.flower import masked, wire
 from fedlgr.shell.deploy.flower.client_app import secure_mod
-from fedlgr.shell.deploy.flower.secure import unpack
+from fedlgr.shell.deploy.flower.link import decode, encode
+from fedlgr.shell.deploy.flower.secure import Adapter, secure_sum, unpack
 from tests.support.runs import FAST
 
 ON = "deploy.secagg.enabled=true"
@@ -270,3 +274,74 @@ def test_the_error_bound_follows_the_quantisation_step():
     step = 2 * secagg.clipping_range / secagg.quantization_range
     assert masked.error_bound(secagg, 3, 3000.0, dp=False) == pytest.approx(3 * step * 1000 / 3000)
     assert masked.error_bound(secagg, 3, 3.0, dp=True) == pytest.approx(3 * step)
+
+
+class Loopback:
+    """A grid within this process for SecAgg+'s server side: each message goes, encoded and decoded
+    as on the wire, to its node's own ``secaggplus_mod`` (Flower's robot side, unchanged), whose
+    training answers the node's ``vectors`` entry; a node in ``leaves`` answers nothing from that
+    stage on."""
+
+    def __init__(self, vectors: dict[int, np.ndarray], leaves: dict[int, str]):
+        self.vectors, self.leaves = vectors, leaves
+        self.contexts = {
+            n: Context(run_id=1, node_id=n, node_config={}, state=RecordDict(), run_config={})
+            for n in vectors
+        }
+        self.gone: set[int] = set()
+
+    def send_and_receive(self, messages, *, timeout=None) -> list[Message]:
+        replies = []
+        for m in messages:
+            node = m.metadata.dst_node_id
+            if self.leaves.get(node) == m.content.config_records[RECORD_KEY_CONFIGS][Key.STAGE]:
+                self.gone.add(node)
+            if node in self.gone:
+                continue
+            # a copy, as a robot receives it (the mod changes it); an error, as a robot's
+            # ClientApp answers one
+            sent = Message(decode(encode(m.content)), dst_node_id=node, message_type="train")
+            try:
+                replies.append(secaggplus_mod(sent, self.contexts[node], self.train(node)))
+            except Exception as err:  # any, as Flower's ClientApp answers it
+                replies.append(Message(Error(0, repr(err)), reply_to=sent))
+        return replies
+
+    def train(self, node: int):
+        def fit(msg: Message, ctxt: Context) -> Message:
+            parameters = ndarrays_to_parameters([self.vectors[node]])
+            fit = FitRes(Status(Code.OK, ""), parameters, 1, {})
+            return Message(compat.fitres_to_recorddict(fit, keep_input=False), reply_to=msg)
+
+        return fit
+
+
+@pytest.mark.parametrize(
+    "leaves",
+    [
+        {33: Stage.SETUP},  # killed between two rounds, still listed
+        {33: Stage.SHARE_KEYS},
+        {33: Stage.COLLECT_MASKED_VECTORS},  # killed while it trains
+        {44: Stage.SETUP, 55: Stage.COLLECT_MASKED_VECTORS},
+        {44: Stage.COLLECT_MASKED_VECTORS, 55: Stage.COLLECT_MASKED_VECTORS},
+    ],
+    ids=["setup", "share-keys", "collect", "setup-and-collect", "two-in-collect"],
+)
+def test_secaggplus_unmasks_the_sum_of_the_robots_left_whenever_others_leave(robot_process, leaves):
+    """Flower's SecAgg+ on its own robot side (``secaggplus_mod``) for 3 robots (5 where two
+    leave; threshold 2 in both): robots that leave before the unmask stage, in any stage, leave
+    the sum of the others' vectors, within the quantisation (k x 2c/Q). Flower 1.42's own
+    workflow fails where one leaves before it shares its keys (the survivors are asked for shares
+    of its key they never got: "Not enough shares to recover secret"): the first, second and
+    fourth cases (issue 50)."""
+    secagg = load_config(FAST, [ON]).deploy.secagg
+    nodes = (11, 22, 33, 44, 55) if 44 in leaves else (11, 22, 33)
+    made = np.random.default_rng(5)
+    vectors = {n: made.uniform(-0.5, 0.5, 40) for n in nodes}
+    adapter = Adapter(None, list(nodes), 0)
+    secure_sum(Loopback(vectors, leaves), adapter, 1, secagg, timeout=1)
+    left = [n for n in nodes if n not in leaves]
+    assert adapter.count == len(left)
+    step = 2 * secagg.clipping_range / secagg.quantization_range
+    error = np.abs(adapter.mean * adapter.count - sum(vectors[n] for n in left))
+    assert error.max() < len(left) * step  # each value rounded by under one step

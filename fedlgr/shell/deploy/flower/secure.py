@@ -1,6 +1,7 @@
 """Secure aggregation on robots (``deploy.secagg``): a round's training through Flower's own SecAgg+
 workflow, so the server sees only the sum of the chosen robots' vectors (:mod:`.masked`), never one
-robot's; :class:`Adapter` and :class:`Exchanges` fit fedlgr's messages into the workflow."""
+robot's; :class:`Adapter` and :class:`Exchanges` fit fedlgr's messages into the workflow, and
+:class:`SecAggPlus` keeps its drop-outs' bookkeeping to the protocol's."""
 
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from fedlgr.shell.deploy.flower.link import encode
 from fedlgr.shell.deploy.flower.nodes import push_and_pull
 
 if TYPE_CHECKING:
+    from flwr.server.workflow.secure_aggregation.secaggplus_workflow import WorkflowState
     from flwr.serverapp import Grid
 
     from fedlgr.core.messages import RoundPlan
@@ -55,10 +57,13 @@ class Exchanges:
                 m.content = self.contents[m.metadata.dst_node_id]
                 m.content.config_records[RECORD_KEY_CONFIGS] = record
         replies = push_and_pull(self.grid, messages, timeout if timeout is not None else 1e9)
+        # an error reply may come from the SuperLink (a robot it has lost): named by its message
+        to_node = {m.metadata.message_id: m.metadata.dst_node_id for m in messages}
         for reply in replies:
             if reply.has_error():
                 reason = " ".join(str(reply.error.reason).split())
-                self.failures[reply.metadata.src_node_id] = f"{stage}: {reason[:300]}"
+                node = to_node.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
+                self.failures[node] = f"{stage}: {reason[:300]}"
         answered = {r.metadata.src_node_id for r in replies}
         for node in {m.metadata.dst_node_id for m in messages} - answered:
             self.failures.setdefault(node, f"{stage}: no reply")
@@ -71,6 +76,34 @@ class Exchanges:
             self.bytes[f"secagg/{name}_bytes_down"] = float(down)
             self.bytes[f"secagg/{name}_bytes_up"] = float(up)
         return replies
+
+
+class SecAggPlus(SecAggPlusWorkflow):
+    """Flower's SecAgg+ workflow (Bell et al. 2020, after Bonawitz et al. 2017), whose unmasking
+    takes a robot that left the round early for one that left late: Flower 1.42 counts every robot
+    sent the setup as one of the round's, so a robot gone before it shared its keys - one killed
+    between two rounds, that the SuperLink still lists - is asked for in the unmask stage, where
+    no robot holds a share of its keys (each answers an error) and the round fails ("Not enough
+    shares to recover secret"). In the protocol such a robot is out of the round: no survivor
+    masked its vector with it. So after each of the first two stages the round's robots, and each
+    one's neighbours, are those that answered it; a robot that leaves after sharing its keys is
+    unmasked from the survivors' shares, as in Flower's."""
+
+    def setup_stage(self, grid: Grid, context: LegacyContext, state: WorkflowState) -> bool:
+        return self.keep_active(super().setup_stage(grid, context, state), state)
+
+    def share_keys_stage(self, grid: Grid, context: LegacyContext, state: WorkflowState) -> bool:
+        return self.keep_active(super().share_keys_stage(grid, context, state), state)
+
+    @staticmethod
+    def keep_active(going: bool, state: WorkflowState) -> bool:
+        """The round's robots, and each one's neighbours, those that answered the stage."""
+        kept = set(state.active_node_ids)
+        state.sampled_node_ids = kept
+        state.nid_to_neighbours = {
+            node: around & kept for node, around in state.nid_to_neighbours.items() if node in kept
+        }
+        return going
 
 
 class Adapter(Strategy):
@@ -136,7 +169,7 @@ class SecureAggregation:
             )
         grid, adapter = Exchanges(rounds.grid, contents), Adapter(rounds.grid, list(contents), 0)
         started = time.monotonic()
-        self.run_workflow(grid, adapter, plan.round)
+        secure_sum(grid, adapter, plan.round, self.settings, rounds.config.deploy.round_timeout_s)
         seconds = time.monotonic() - started
         failed = "".join(f"; {rounds.nodes.name(n)}: {why}" for n, why in grid.failures.items())
         rounds.echo(
@@ -155,28 +188,6 @@ class SecureAggregation:
         for node, reply in grid.collected.items():
             self.keep(trained, node, reply, plan.round)
         return trained, down
-
-    def run_workflow(self, grid: Exchanges, adapter: Adapter, round_: int) -> None:
-        s = self.settings
-        workflow = SecAggPlusWorkflow(
-            s.shares,
-            s.threshold,
-            max_weight=1.0,  # every robot weighs 1: its weight is in its vector (.masked)
-            clipping_range=float(s.clipping_range),
-            quantization_range=int(s.quantization_range),
-            timeout=self.rounds.config.deploy.round_timeout_s,
-        )
-        state = RecordDict()
-        state[MAIN_CONFIGS_RECORD] = ConfigRecord({WorkflowKey.CURRENT_ROUND: round_})
-        state[MAIN_PARAMS_RECORD] = ArrayRecord()  # no global parameters: fedlgr sends its own
-        context = LegacyContext(Context(0, 0, {}, state, {}), strategy=adapter)
-        try:
-            workflow(grid, context)
-        except PROTOCOL_ERRORS as err:
-            raise FedlgrError(
-                f"round {round_}: SecAgg+ failed ({type(err).__name__}: {err}); a robot sent "
-                "a masked vector of another layout"
-            ) from None
 
     def keep(self, trained: dict, node: int, reply: Message, round_: int) -> None:
         """A robot's figures from its masked reply (in the clear beside the vector)."""
@@ -213,6 +224,31 @@ class SecureAggregation:
         bound = masked.error_bound(self.settings, count, total, privacy is not None)
         self.figures["secagg/error_bound"] = bound / (privacy.expected if privacy else 1)
         self.server.update(sums, total, payloads, count)
+
+
+def secure_sum(grid: Exchanges, adapter: Adapter, round_: int, secagg, timeout: float) -> None:
+    """Round ``round_``'s SecAgg+ (``secagg``: ``deploy.secagg``) over ``grid`` (an
+    :class:`Exchanges`) with ``adapter``'s nodes, each stage waiting ``timeout`` seconds; the
+    unmasked mean lands in ``adapter``."""
+    workflow = SecAggPlus(
+        secagg.shares,
+        secagg.threshold,
+        max_weight=1.0,  # every robot weighs 1: its weight is in its vector (.masked)
+        clipping_range=float(secagg.clipping_range),
+        quantization_range=int(secagg.quantization_range),
+        timeout=timeout,
+    )
+    state = RecordDict()
+    state[MAIN_CONFIGS_RECORD] = ConfigRecord({WorkflowKey.CURRENT_ROUND: round_})
+    state[MAIN_PARAMS_RECORD] = ArrayRecord()  # no global parameters: fedlgr sends its own
+    context = LegacyContext(Context(0, 0, {}, state, {}), strategy=adapter)
+    try:
+        workflow(grid, context)
+    except PROTOCOL_ERRORS as err:
+        raise FedlgrError(
+            f"round {round_}: SecAgg+ failed ({type(err).__name__}: {err}); a robot sent "
+            "a masked vector of another layout"
+        ) from None
 
 
 def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, float, dict]:
