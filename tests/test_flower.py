@@ -16,9 +16,11 @@ from pathlib import Path
 
 import mlflow
 import pytest
+import torch
 
 from fedlgr.core.messages import nbytes
 from fedlgr.core.scope import initial_scholar
+from fedlgr.core.server.side import ServerSide
 from fedlgr.shell.deploy.roster import Roster
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import run_experiment
@@ -230,6 +232,18 @@ def stop(federation, name: str) -> None:
     proc.wait(timeout=30)
 
 
+def end_service(federation, name: str) -> None:
+    """SIGTERM to ``name``'s robot service, if one runs (it outlives its SuperNode), and wait until
+    it is gone: the robot's next message starts a new one, in its SuperNode's environment."""
+    service = federation.robot_dir(name) / "robot.pid"
+    with contextlib.suppress(ProcessLookupError, FileNotFoundError, ValueError):
+        os.kill(int(service.read_text()), signal.SIGTERM)
+    deadline = time.monotonic() + 30
+    while service.exists():  # it removes its pid file as it leaves
+        assert time.monotonic() < deadline, f"{name}'s robot service did not leave"
+        time.sleep(0.1)
+
+
 def test_roster_keeps_strangers_unrostered_keys_and_claimed_slots_out_of_a_run(
     federation, synth_dir, store
 ):
@@ -310,9 +324,7 @@ def test_a_byzantine_robot_is_refused_named_and_the_global_model_is_the_one_with
         flower, out = flower_run(federation, synth_dir, store, "byzantine", *method)
     finally:
         stop(federation, "robot2")
-        service = federation.robot_dir("robot2") / "robot.pid"
-        with contextlib.suppress(ProcessLookupError, FileNotFoundError, ValueError):
-            os.kill(int(service.read_text()), signal.SIGTERM)  # no altered robot left
+        end_service(federation, "robot2")  # no altered robot left
     robot_log = (federation.robot_dir("robot2") / "robot.log").read_text()
     assert "byzantine: train reply 2: scale+scores" in robot_log  # it did alter them
     who = "refused robot2 (client 2)'s"
@@ -559,6 +571,55 @@ def test_secure_aggregation_gives_the_plain_mean_within_its_quantisation_bound(
     assert rows[("1", "0")]["train_loss"] != "" and rows[("1", "1")]["test_loss"] != ""
 
 
+def test_under_secagg_a_huge_masked_update_is_refused_at_the_aggregate(
+    federation, synth_dir, store
+):
+    """SecAgg+ on three robots, one round, the server scoring the global model too: robot2
+    trains honestly, then sends its update x 1000, unclipped (FEDLGR_BYZANTINE=secscale; issue
+    50: such an upload took the RMSE to 59,811 in one round, unrefused). The server cannot tell
+    whose it is, but the sum's mean update is far over deploy.secagg.norm_bound, which honest
+    robots clip to: the sum is refused, the round and both norms named, and counted; the global
+    model stays the initial one (the server's scores of round 1 are those of round 0, and the
+    global tensors each robot scored are the initial ones) and the run completes."""
+    ensure_online(federation, synth_dir, "robot0", "robot1")
+    end_service(federation, "robot2")  # a service started without the Byzantine hook
+    env = {"PYTHONPATH": str(BYZANTINE), "FEDLGR_BYZANTINE": "secscale"}
+    assert start_until_online(federation, "robot2", synth_dir, env=env)
+    log = federation.robot_dir("robot2") / "robot.log"
+    altered = count(log, "byzantine: train reply 1: secscale")
+    method = ["method=FedAvg", "data.clients=3", "federated.server_eval=on"]
+    method += ["deploy.secagg.enabled=true"]
+    try:
+        flower, out = flower_run(federation, synth_dir, store, "secagg-huge", *method)
+    finally:
+        stop(federation, "robot2")
+        end_service(federation, "robot2")  # no altered robot left
+    assert count(log, "byzantine: train reply 1: secscale") == altered + 1
+    assert "round 1, secure train: 3 of 3 robots in the sum" in out, out[-3000:]
+    refused = "round 1: the secure sum of 3 robots is refused: its mean update's norm "
+    [line] = [line for line in out.splitlines() if line.startswith(refused)]
+    norm = float(line.removeprefix(refused).split()[0])
+    assert norm > 10 * 100, line  # honest ones: ~15 (docs/deployment.md)
+    assert " is over deploy.secagg.norm_bound=100 (+" in line, line
+    assert line.endswith("; the global model stays"), line
+    print(line)
+    client = mlflow.MlflowClient(store)
+    run_id = flower.info.run_id
+    assert flower.info.status == "FINISHED"
+    assert history(client, run_id, "secagg/sum_refused") == [(1, 1.0)]
+    assert flower.data.tags["fedlgr.secagg_refused"].startswith("round 1: its mean update's norm ")
+    keys = [k for k in flower.data.metrics if k.startswith("server/test/")]
+    assert "server/test/rmse" in keys
+    for key in keys:  # the same tensors scored on the same scenes: the same figures
+        [(step0, before), (step1, after)] = history(client, run_id, key)
+        assert (step0, step1) == (0, 1) and after == before, key
+    initial = ServerSide(fast_config(synth_dir, synth_dir, store, *method)).global_weights
+    for robot, slot in (("robot0", 0), ("robot1", 1)):
+        state = federation.robot_dir(robot) / f"run-{run_id}" / f"client-{slot}.ckpt"
+        scored = ckpt.load(state)["client"]["model"]
+        assert all(torch.equal(scored[k], v) for k, v in initial.items()), robot
+
+
 def test_a_secure_round_recovers_a_robot_killed_after_the_round_before(
     federation, synth_dir, store
 ):
@@ -595,6 +656,7 @@ def test_a_secure_round_recovers_a_robot_killed_after_the_round_before(
     run_id = run.info.run_id
     assert run.info.status == "FINISHED"
     assert history(client, run_id, "secagg/robots") == [(1, 3.0), (2, 2.0)]
+    assert history(client, run_id, "secagg/sum_refused") == [(1, 0.0), (2, 0.0)]  # unmasked
     assert run.data.tags["fedlgr.missing_robots"] == "round 2: robot2 (client 2)"
     # the survivors' sum moved the global model that they scored
     [(round1, before), (round2, after)] = history(client, run_id, "test/client0/loss")

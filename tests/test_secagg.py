@@ -7,6 +7,7 @@ itself runs on real processes in tests/test_flower.py."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import flwr.compat.common.recorddict_compat as compat
 import numpy as np
@@ -165,11 +166,8 @@ def released(config, results: list[TrainRes]) -> tuple[ServerSide, ServerSide]:
     of the robots' vectors (no quantisation here: the sum is exact in float64)."""
     plain, secure = ServerSide(config), ServerSide(config)
     plain.aggregate(results)
-    record = {
-        "clip": 0.0 if secure.privacy is None else secure.privacy.bound,
-        "max_samples": config.deploy.secagg.max_samples,
-        "clipping_range": config.deploy.secagg.clipping_range,
-    }
+    clip = 0.0 if secure.privacy is None else secure.privacy.bound
+    record = masked.message_settings(config.deploy.secagg, clip)
     vectors = [masked.robot_vector(r, secure.global_weights, record)[0] for r in results]
     sums, total, payloads = unpack(
         np.sum(vectors, axis=0), len(results), secure, config.deploy.secagg
@@ -253,7 +251,7 @@ def test_the_centred_bits_sum_is_read_back_exactly_from_a_quantised_secure_sum()
         results[0], weights={k: g + 0.1 for k, g in plain.global_weights.items()}
     )
     plain.aggregate(results)
-    record = {"clip": 0.5, "max_samples": config.deploy.secagg.max_samples, "clipping_range": 1}
+    record = masked.message_settings(config.deploy.secagg, 0.5)
     vectors = [masked.robot_vector(r, secure.global_weights, record)[0] for r in results]
     assert [v[-1] for v in vectors] == [-0.5, 0.5, 0.5]  # the layout's last value: the bit
     summed = secagg_sum(vectors, config.deploy.secagg)
@@ -266,6 +264,56 @@ def test_the_centred_bits_sum_is_read_back_exactly_from_a_quantised_secure_sum()
     secure.update(sums, total, payloads, 3)
     assert secure.privacy.count == plain.privacy.count
     assert secure.privacy.bound == plain.privacy.bound != 0.5
+
+
+def test_robots_clip_to_the_norm_bound_and_a_sum_no_honest_robots_send_is_refused():
+    """Three robots of 5, 9 and 12 samples, no DP: each moves every value by 0.01 (an update of
+    norm ~3.7 on the tiny model), so each clips it to deploy.secagg.norm_bound=0.5 - all in
+    one direction, the worst honest case: the quantised sum's mean update is 0.5 (+ the
+    quantisation) and is taken. With one robot's update x 1000 unclipped in its place, the sum is
+    refused, named by its mean update's norm; under DP, by the clip norm."""
+    config = load_config(
+        FAST, [ON, "method=FedAvg", "data.clients=3", "deploy.secagg.norm_bound=0.5"]
+    )
+    secagg = config.deploy.secagg
+    server = ServerSide(config)
+    like = server.global_weights.items()
+    results = [
+        dataclasses.replace(r, weights={k: g + 0.01 * g.is_floating_point() for k, g in like})
+        for r in uploads(server, [5, 9, 12], 0.0)
+    ]
+    record = masked.message_settings(secagg, 0.0)
+    made = [masked.robot_vector(r, server.global_weights, record) for r in results]
+    sizes = [size for _, _, size in made]
+    assert all(3 < size < 4 for size in sizes), sizes  # 0.01 x sqrt(~140 000 values)
+    vectors = [vector for vector, _, _ in made]
+    for vector, r in zip(vectors, results, strict=True):  # n / W x the clipped update
+        assert np.linalg.norm(vector[:-1]) == pytest.approx(0.5 * r.n_samples / 1000, rel=1e-12)
+    sums, total, _ = unpack(secagg_sum(vectors, secagg), 3, server, secagg)
+    assert total == 26.0
+    mean = {k: sums[k] / total - g.double() for k, g in server.global_weights.items()}
+    # each value of the mean off by under error_bound: its norm by under that x sqrt(values)
+    slack = masked.error_bound(secagg, 3, total, dp=False) * math.sqrt(vectors[0].size - 1)
+    size = float(torch.cat([v.flatten() for v in mean.values()]).norm())
+    assert abs(size - 0.5) < slack < 0.05
+    vectors[0][:-1] = 1000 * (vectors[0][:-1] / 0.5 * sizes[0])  # unclipped, x 1000
+    with pytest.raises(
+        ValueError,
+        match=r"its mean update's norm [0-9.e+]+ is over deploy\.secagg\.norm_bound=0\.5 ",
+    ):
+        unpack(secagg_sum(vectors, secagg), 3, server, secagg)
+    dp = ["federated.dp.clip=0.5", "federated.dp.noise_multiplier=0", "federated.dp.delta=0.1"]
+    config = load_config(FAST, [ON, "method=FedAvg", "data.clients=3", *dp])
+    server = ServerSide(config)
+    record = masked.message_settings(config.deploy.secagg, server.privacy.bound)
+    vectors = [masked.robot_vector(r, server.global_weights, record)[0] for r in results]
+    secagg = config.deploy.secagg
+    unpack(secagg_sum(vectors, secagg), 3, server, secagg)  # 3 clipped updates: taken
+    vectors[0][:-2] *= 1000  # not its weight 1 nor its bit
+    with pytest.raises(
+        ValueError, match=r"its updates' norm [0-9.e+]+ is over 3 robots x the clip norm 0\.5 "
+    ):
+        unpack(secagg_sum(vectors, secagg), 3, server, secagg)
 
 
 def test_the_error_bound_follows_the_quantisation_step():

@@ -419,7 +419,8 @@ class RuntimeConfig:
 @section("deploy.secagg.")
 class SecAggConfig:
     """Secure aggregation on robots (Flower's SecAgg+, docs/deployment.md): the server
-    sees only the sum of the chosen robots' masked, clipped and quantised updates."""
+    sees only the sum of the chosen robots' masked, clipped and quantised updates, and
+    refuses a sum no honest robots could have sent (over ``norm_bound``)."""
 
     enabled: Bool = setting(False, "SecAgg+ on")
     clipping_range: Float = setting(1.0, "every value sent is clipped to [-this, this]", gt=0)
@@ -435,6 +436,12 @@ class SecAggConfig:
         1000,
         "the most samples a robot weighs: its update travels as n / max_samples x update",
         ge=1,
+    )
+    norm_bound: Float = setting(
+        100.0,
+        "each robot clips its update (and payload) to this L2 norm; a sum whose mean update "
+        "is over it is refused (under federated.dp: the clip norm instead)",
+        gt=0,
     )
     shares: Float = setting(
         1.0,

@@ -18,6 +18,9 @@ robot does, then alters its n-th train reply as the n-th word says:
   ``extra``: an extra tensor; ``half``: the first float tensor as float16; ``zeros``:
   every tensor zero; ``payload``: every payload tensor NaN (or, where the strategy sends
   none, a NaN payload record of its own); ``bigendian``: the tensors' index says >f4.
+- (issue 50) ``secscale``, in a SecAgg+ round (``deploy.secagg``, whose train reply is the
+  robot's vector, :func:`fedlgr.shell.deploy.flower.masked.robot_vector`): its update and
+  payload x 1000 before masking, unclipped (its weight, and DP's bit, as they are).
 
 Python imports ``sitecustomize`` at start; this one only hooks the import of fedlgr's robot
 module, so the SuperNode and its ClientApp processes stay as they are.
@@ -28,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.abc
 import importlib.util
+import math
 import os
 import sys
 
@@ -36,15 +40,34 @@ PLAN = [w for w in os.environ.get("FEDLGR_BYZANTINE", "").split(",") if w]
 
 
 def alter(robot_module) -> None:
-    wire = robot_module.wire
-    honest = wire.encode_train_res
-    replies = []
+    wire, masked = robot_module.wire, robot_module.masked
+    honest, honest_vector = wire.encode_train_res, masked.robot_vector
+    replies = []  # one per train reply
+    sent = []  # each upload as it was sent (replay)
+
+    def next_word() -> str:
+        replies.append(1)
+        how = PLAN[len(replies) - 1] if len(replies) <= len(PLAN) else "honest"
+        print(f"byzantine: train reply {len(replies)}: {how}", flush=True)
+        return how
+
+    def robot_vector(res, start, settings):
+        how = next_word()
+        if "secscale" not in how:
+            return honest_vector(res, start, settings)
+        import numpy as np  # here: every process with this PYTHONPATH imports this module
+
+        dp = float(settings["clip"]) > 0
+        unclipped = {**settings, "clip": math.inf if dp else 0.0, "norm_bound": math.inf}
+        vector, _, size = honest_vector(res, start, unclipped)
+        vector[: -2 if dp else -1] *= 1000  # not the weight (nor DP's bit): the last values
+        outside = int(np.count_nonzero(np.abs(vector) > float(settings["clipping_range"])))
+        return vector, outside, size
 
     def encode_train_res(res, evaluated=None):
-        how = PLAN[len(replies)] if len(replies) < len(PLAN) else "honest"
-        print(f"byzantine: train reply {len(replies) + 1}: {how}", flush=True)
-        if "replay" in how and replies:
-            res = replies[-1]
+        how = next_word()
+        if "replay" in how and sent:
+            res = sent[-1]
         weights = dict(res.weights)
         for key, w in res.weights.items():
             if w.is_floating_point() and "nan" in how:
@@ -81,7 +104,7 @@ def alter(robot_module) -> None:
             res, weights=weights, n_samples=n, figures=figures, payload=payload, client=client
         )
         # as sent: the model's own tensors train on after the reply
-        replies.append(
+        sent.append(
             dataclasses.replace(
                 res,
                 weights={k: w.clone() for k, w in res.weights.items()},
@@ -115,6 +138,7 @@ def alter(robot_module) -> None:
         return content
 
     wire.encode_train_res = encode_train_res
+    masked.robot_vector = robot_vector
 
 
 class _Hook(importlib.abc.MetaPathFinder):

@@ -145,18 +145,16 @@ class SecureAggregation:
         self.rounds, self.server = rounds, rounds.server
         self.settings = rounds.config.deploy.secagg
         self.summed: tuple[np.ndarray, int] | None = None
+        self.round = 0  # the round being summed
         self.figures: dict[str, float] = {}
+        self.refused: list[str] = []  # "round 2: its mean update's norm ..." (a tag)
 
     def train(self, plan: RoundPlan, chosen: list[int]) -> tuple[dict, dict]:
         """The chosen robots' training, summed by SecAgg+: their figures by client (``client ->
         (node, TrainRes without tensors, masked bytes)``) and each node's bytes down."""
         rounds = self.rounds
         privacy = self.server.privacy
-        record = {  # the SecAgg settings a train message carries
-            "clip": 0.0 if privacy is None else float(privacy.bound),
-            "max_samples": int(self.settings.max_samples),
-            "clipping_range": float(self.settings.clipping_range),
-        }
+        record = masked.message_settings(self.settings, 0 if privacy is None else privacy.bound)
         contents = rounds.train_messages(plan, chosen)  # all with the update's origin
         for content in contents.values():
             content[masked.RECORD] = ConfigRecord(record)
@@ -169,6 +167,7 @@ class SecureAggregation:
             )
         grid, adapter = Exchanges(rounds.grid, contents), Adapter(rounds.grid, list(contents), 0)
         started = time.monotonic()
+        self.round = plan.round
         secure_sum(grid, adapter, plan.round, self.settings, rounds.config.deploy.round_timeout_s)
         seconds = time.monotonic() - started
         failed = "".join(f"; {rounds.nodes.name(n)}: {why}" for n, why in grid.failures.items())
@@ -217,9 +216,15 @@ class SecureAggregation:
         try:
             sums, total, payloads = unpack(mean * count, count, self.server, self.settings)
         except ValueError as err:
-            self.rounds.echo(f"the round's secure sum is not taken: {err}")
+            self.rounds.echo(
+                f"round {self.round}: the secure sum of {count} robots is refused: {err}; the "
+                "global model stays"
+            )
             self.figures["secagg/sum_refused"] = 1.0
+            self.refused.append(f"round {self.round}: {err}")
+            self.rounds.tag("fedlgr.secagg_refused", "; ".join(self.refused)[-5000:])
             return
+        self.figures["secagg/sum_refused"] = 0.0
         privacy = self.server.privacy  # under DP the sum is divided by q N, not by N / W
         bound = masked.error_bound(self.settings, count, total, privacy is not None)
         self.figures["secagg/error_bound"] = bound / (privacy.expected if privacy else 1)
@@ -254,7 +259,8 @@ def secure_sum(grid: Exchanges, adapter: Adapter, round_: int, secagg, timeout: 
 def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, float, dict]:
     """What ``ServerSide.update`` takes from the sum of ``count`` robots' vectors (:mod:`.masked`):
     tensor, sample-count and payload sums, under DP the bits' sum rounded to ``k - total / 2``. A
-    sum not finite, or under one sample per robot, is refused (``ValueError``)."""
+    sum not finite, under one sample per robot, or over the norm honest robots' vectors keep to
+    (:func:`~.masked.over_bound`) is refused (``ValueError``)."""
     dp = server.privacy is not None
     payload = server.strategy.payload_template()
     parts = masked.layout(server.global_weights, payload, dp)
@@ -265,6 +271,9 @@ def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, floa
     total = round(float(found.pop(masked.WEIGHT)) * scale)
     if total < count:
         raise ValueError(f"its sample count {total} is under one per robot ({count})")
+    clip = 0.0 if server.privacy is None else float(server.privacy.bound)  # this round's
+    if (why := masked.over_bound(found, count, total, settings, clip)) is not None:
+        raise ValueError(why)
     g = server.global_weights
     sums = {k: scale * found[f"w/{k}"] + total * g[k].double() for k in g}
     payloads = {k: found[f"p/{k}"] for k in sorted(payload)}
