@@ -3,6 +3,11 @@ whole ones give; which clients score a round (``federated.evaluate``)."""
 
 from __future__ import annotations
 
+import contextlib
+import re
+import resource
+import signal
+
 import numpy as np
 import psutil
 import pytest
@@ -201,6 +206,41 @@ def test_a_folder_for_idle_states_that_cannot_be_made_is_one_line(synth_dir, cac
     with pytest.raises(FedlgrError, match=r"runtime.idle_clients=disk: cannot make a folder "):
         _side(synth_dir, cache_dir, blocked, "disk")
     assert blocked.read_text() == "not a folder"
+
+
+@contextlib.contextmanager
+def _files_up_to(size: int):
+    """Writes past ``size`` bytes into any file fail for real (EFBIG; SIGXFSZ ignored), as
+    they do on a full disk; as it was after the block."""
+    limits = resource.getrlimit(resource.RLIMIT_FSIZE)
+    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size, limits[1]))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, handler)
+
+
+def test_a_full_disk_under_idle_clients_is_one_line_and_leaves_no_file(
+    synth_dir, cache_dir, tmp_path
+):
+    """Issue 50's tester: a full disk while idle clients spilled was torch's ``RuntimeError:
+    basic_ios::clear`` traceback; now one line naming the folder and what moves it."""
+    side = _side(synth_dir, cache_dir, tmp_path, "disk")
+    plan = RoundPlan(1)
+    [res] = side.train({1: TrainIns(plan)})
+    (folder,) = tmp_path.glob(".idle-clients-*")
+    with _files_up_to(1024), pytest.raises(FedlgrError) as err:
+        side.evaluate(EvaluateIns(plan, res.weights | {}, clients=(1,)))  # client 1 rests
+    assert re.fullmatch(
+        rf"cannot write idle clients' states in {re.escape(str(folder))} \(the write failed "
+        r"with \d+ MiB free there\); choose another with tracking.checkpoint_dir, or keep "
+        r"them in memory \(runtime.idle_clients=memory\)",
+        str(err.value),
+    )
+    assert not any(folder.iterdir())  # the half-written file removed
+    side.close()
 
 
 @pytest.mark.skipif(_malloc_trim() is None, reason="not glibc: nothing to trim")

@@ -25,6 +25,7 @@ import torch
 
 from fedlgr.core.messages import Weights
 from fedlgr.core.state import save_private
+from fedlgr.errors import FedlgrError
 
 LIVE_UP_TO = 32  # runtime.idle_clients=auto: whole clients up to this many per process
 
@@ -117,10 +118,11 @@ def nbytes_of(value) -> int:
 class IdleStates:
     """The compact states of the idle clients, by client: in memory while their bytes stay
     within ``budget`` (None: no bound), the others in ``folder`` (one file per client,
-    removed when the client is woken)."""
+    removed when the client is woken). ``elsewhere``: how to keep them elsewhere, said when
+    a file cannot be written (a full disk)."""
 
-    def __init__(self, budget: float | None, folder: Path | None):
-        self.budget, self.folder = budget, folder
+    def __init__(self, budget: float | None, folder: Path | None, elsewhere: str = ""):
+        self.budget, self.folder, self.elsewhere = budget, folder, elsewhere
         self.memory: dict[int, dict] = {}
         self.sizes: dict[int, int] = {}  # of those in memory
         self.on_disk: set[int] = set()
@@ -147,7 +149,11 @@ class IdleStates:
             raise RuntimeError("idle clients spill to disk but no folder was given")
         self.folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         path = self._path(client)
-        save_private(state, path.with_suffix(".tmp"))
+        try:
+            save_private(state, path.with_suffix(".tmp"))
+        except (OSError, RuntimeError) as err:  # a full disk: torch's writer raises either
+            path.with_suffix(".tmp").unlink(missing_ok=True)
+            raise FedlgrError(self._unwritten(err)) from None
         os.replace(path.with_suffix(".tmp"), path)
         self.on_disk.add(client)
 
@@ -188,6 +194,16 @@ class IdleStates:
         self.sizes.clear()
         self.on_disk.clear()
         self.own_shared.clear()
+
+    def _unwritten(self, err: OSError | RuntimeError) -> str:
+        """One line: the folder an idle client's state could not be written in, why, and how
+        to keep the states elsewhere."""
+        if isinstance(err, OSError) and err.strerror:
+            why = err.strerror  # "No space left on device"
+        else:  # torch's zip writer says only "unexpected pos" or "basic_ios::clear"
+            free = shutil.disk_usage(self.folder).free / 2**20
+            why = f"the write failed with {free:.0f} MiB free there"
+        return f"cannot write idle clients' states in {self.folder} ({why}); {self.elsewhere}"
 
     def _path(self, client: int) -> Path:
         assert self.folder is not None

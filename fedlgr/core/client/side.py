@@ -82,9 +82,14 @@ def _spill_folder(parent: Path | None, keeping: str) -> tempfile.TemporaryDirect
         where = parent or Path(tempfile.gettempdir())
         raise FedlgrError(
             f"runtime.idle_clients={keeping}: cannot make a folder for idle clients' states "
-            f"in {where} ({err.strerror or err}); choose another with "
-            "tracking.checkpoint_dir, or keep them in memory (runtime.idle_clients=memory)"
+            f"in {where} ({err.strerror or err}); {_elsewhere(parent)}"
         ) from None
+
+
+def _elsewhere(parent: Path | None) -> str:
+    """How to keep idle clients' states out of ``parent`` (None: the temporary folder)."""
+    moved_by = "the TMPDIR variable" if parent is None else "tracking.checkpoint_dir"
+    return f"choose another with {moved_by}, or keep them in memory (runtime.idle_clients=memory)"
 
 
 def _measures_rounds(plugin: ClientPlugin) -> bool:
@@ -146,7 +151,8 @@ class ClientSide:
         self._spill = None  # the folder idle clients' states spill to, removed by close()
         if self.keeping != "live":
             self._spill = _spill_folder(spill, self.keeping)
-        self.idle = IdleStates(budget, self._spill and Path(self._spill.name))
+        folder = self._spill and Path(self._spill.name)
+        self.idle = IdleStates(budget, folder, _elsewhere(spill))
         self.awake: dict[int, Client] = {}
         if self.keeping == "live":  # else a client is built when it is first woken
             for index in self.shards:
