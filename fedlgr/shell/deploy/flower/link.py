@@ -7,6 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 DEFAULT_STATE_DIR = Path.home() / ".fedlgr" / "node-state"
+# The SuperNode's pid, in the environment of its ClientApps: the robot service one of them starts
+# leaves when that SuperNode has ended.
+SUPERNODE_PID = "FEDLGR_SUPERNODE_PID"
 
 
 def state_dir(node_config: dict) -> Path:

@@ -1,10 +1,12 @@
 """The robot service: one long-lived process per robot (Flower starts one per message) that loads
 torch and the data once and answers over a Unix socket (mode 0600): a JSON header and Flower's
-protobuf encoding of the content, nothing pickled. It leaves after ``robot-idle-s`` idle seconds."""
+protobuf encoding of the content, nothing pickled. It leaves after ``robot-idle-s`` idle seconds,
+and once its SuperNode has ended (~1 GB of memory that no ClientApp will ask again)."""
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -14,16 +16,19 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from pathlib import Path
 
 from filelock import FileLock
 
-from fedlgr.shell.deploy.flower.link import decode, encode, state_dir
+from fedlgr.shell.deploy.flower.link import SUPERNODE_PID, decode, encode, state_dir
+from fedlgr.shell.tracking.liveness import process_alive, process_started
 
 DEFAULT_IDLE_S = 900.0
 START_TIMEOUT_S = 300.0  # the service's first start imports torch and loads the data
+WATCH_S = 1.0  # how often the service looks whether its SuperNode is still there
 
 
 def socket_path(folder: Path) -> Path:
@@ -99,9 +104,11 @@ def start(folder: Path, node_config: dict) -> None:
             _connect(socket_path(folder)).close()
             return  # started meanwhile
         idle = str(float(node_config.get("robot-idle-s", DEFAULT_IDLE_S)))
+        supernode = os.environ.get(SUPERNODE_PID, "")  # set by fedlgr's SuperNode (supernode.py)
         log = (folder / "robot.log").open("ab")
+        module = "fedlgr.shell.deploy.flower.service"
         subprocess.Popen(
-            [sys.executable, "-m", "fedlgr.shell.deploy.flower.service", str(folder), idle],
+            [sys.executable, "-m", module, str(folder), idle, supernode],
             stdout=log,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
@@ -113,8 +120,10 @@ def start(folder: Path, node_config: dict) -> None:
 # ---------------------------------------------------------------------- the service
 
 
-def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
-    """Answer messages on ``folder``'s socket until ``idle_s`` seconds pass without one."""
+def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S, supernode: int | None = None) -> None:
+    """Answer messages on ``folder``'s socket until ``idle_s`` seconds pass without one, or the
+    process ``supernode`` (the SuperNode whose ClientApp started this service) has ended."""
+    started = process_started(supernode) if supernode is not None else ""
     from fedlgr.shell.deploy.flower.robot import handle  # lazy: torch, in the service only
 
     path = socket_path(folder)
@@ -128,10 +137,13 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
     server.listen()
     server.settimeout(idle_s)
     (folder / "robot.pid").write_text(str(os.getpid()))
-    # SIGTERM leaves through the finally below: no stale robot.pid or robot.sock.
-    signal.signal(signal.SIGTERM, _leave)
+    # SIGTERM and the SuperNode's end leave through the finally below, even in the middle of a
+    # message: no stale robot.pid or robot.sock.
+    signal.signal(signal.SIGTERM, functools.partial(_leave, "SIGTERM"))
     print(f"robot service {os.getpid()} listening on {path}", flush=True)
     try:
+        if supernode is not None:
+            _leave_with(supernode, started)
         while True:
             try:
                 conn, _ = server.accept()
@@ -143,20 +155,36 @@ def serve(folder: Path, idle_s: float = DEFAULT_IDLE_S) -> None:
                     _answer(conn, handle)
                 except OSError as err:  # the ClientApp went away (its SuperNode was killed)
                     print(f"could not answer: {err}", flush=True)
-    except _Stopped:
-        print("SIGTERM: leaving", flush=True)
+    except _Stopped as stop:
+        print(f"{stop}: leaving", flush=True)
     finally:
         server.close()
         path.unlink(missing_ok=True)
         (folder / "robot.pid").unlink(missing_ok=True)
 
 
-class _Stopped(Exception):
-    """SIGTERM."""
+class _Stopped(BaseException):
+    """SIGTERM, or the SuperNode's end: the service leaves (a BaseException, since a robot's own
+    failure, an Exception, is answered and the service goes on)."""
 
 
-def _leave(signum, frame) -> None:
-    raise _Stopped
+def _leave(why: str, signum, frame) -> None:
+    raise _Stopped(why)
+
+
+def _leave_with(supernode: int, started: str) -> None:
+    """Leave (SIGUSR1: :class:`_Stopped`) within :data:`WATCH_S` of the end of the process
+    ``supernode``, even in the middle of a message: its ClientApps, the only ones to ask this
+    service and to read its replies, ended with it."""
+    why = f"SuperNode {supernode} has ended"
+    signal.signal(signal.SIGUSR1, functools.partial(_leave, why))
+
+    def watch() -> None:
+        while process_alive(supernode, started):
+            time.sleep(WATCH_S)
+        os.kill(os.getpid(), signal.SIGUSR1)
+
+    threading.Thread(target=watch, name="fedlgr-leave-with-supernode", daemon=True).start()
 
 
 def _answer(conn: socket.socket, handle) -> None:
@@ -184,5 +212,6 @@ def reply_error(err: Exception) -> str:
     return f"{type(err).__name__}: {lines[0][:1000] if lines else 'no message'}"
 
 
-if __name__ == "__main__":
-    serve(Path(sys.argv[1]), float(sys.argv[2]))
+if __name__ == "__main__":  # FOLDER IDLE_S [SUPERNODE_PID]
+    supernode = sys.argv[3] if len(sys.argv) > 3 else ""
+    serve(Path(sys.argv[1]), float(sys.argv[2]), int(supernode) if supernode else None)

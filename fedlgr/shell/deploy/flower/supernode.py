@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+from fedlgr.shell.deploy.flower.link import SUPERNODE_PID
+
 FLOWER_IDLE_S = 3.0  # flwr's sleep when the SuperLink had no message
 REPLY_WAIT_S = 0.1  # our wait between looks for the ClientApp's reply (flwr: 0.5 s)
 POLL_RANGE = (0.05, 3.0)
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     from flwr.supernode.cli import flower_supernode
 
     args = list(sys.argv[1:] if argv is None else argv)
+    os.environ[SUPERNODE_PID] = str(os.getpid())  # its ClientApps' robot service watches it
     if args[:1] == ["--poll-s"]:
         internal.time = _Clock(float(args[1]))
         del args[:2]
