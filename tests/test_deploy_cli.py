@@ -571,7 +571,8 @@ def test_run_without_a_roster_is_refused_before_anything_is_submitted(tmp_path, 
 def test_the_supernode_launcher_shortens_only_flowers_idle_poll_and_reply_wait(monkeypatch):
     """flwr 1.42's SuperNode sleeps 3 s when the SuperLink has no message and 0.5 s between
     looks for the ClientApp's reply, with no setting for either; the launcher shortens those
-    two. If a flwr upgrade changes the loop, this fails: look again at supernode.py."""
+    two, and looks up the run during the reply waits (issue 50). If a flwr upgrade changes the
+    loop, this fails: look again at supernode.py."""
     import inspect
 
     from flwr.supernode import start_client_internal as internal
@@ -581,14 +582,26 @@ def test_the_supernode_launcher_shortens_only_flowers_idle_poll_and_reply_wait(m
     source = inspect.getsource(internal)
     assert source.count("time.sleep(3)") == 1, "flwr's idle poll is no longer time.sleep(3)"
     assert source.count("time.sleep(0.5)") == 2, "flwr's reply wait is no longer 0.5 s"
-    waits: list[float] = []
+    waits: list[float | str] = []
     monkeypatch.setattr(supernode.time, "sleep", waits.append)
-    clock = supernode._Clock(0.25)
+    clock = supernode._Clock(0.25, lambda: waits.append("run looked up"))
     clock.sleep(3)
     clock.sleep(0.5)
     clock.sleep(0.05)
-    assert waits == [0.25, supernode.REPLY_WAIT_S, 0.05]
+    # the reply waits look whether the run still runs (supernode._RunWatch), the idle poll not
+    assert waits == [0.25, "run looked up", supernode.REPLY_WAIT_S, "run looked up", 0.05]
     assert clock.monotonic is supernode.time.monotonic  # the rest of time passes through
+    # what supernode._RunWatch wraps: flwr's loop calls them by their module names, with
+    # these keywords, and the Fleet connection yields GetRun fourth
+    assert "= _pull_and_store_message(" in source and "_push_messages(\n" in source
+    assert list(inspect.signature(internal._push_messages).parameters) == [
+        "state",
+        "object_store",
+        "send",
+        "push_object",
+    ]
+    assert "with _init_connection(" in source and "get_run,\n" in source
+    assert "node_id,\n            receive,\n            send,\n            get_run," in source
 
 
 @pytest.mark.parametrize("poll", ["0", "0.01", "4", "nan", "-1"])

@@ -24,6 +24,7 @@ from fedlgr.core.server.side import ServerSide
 from fedlgr.shell.deploy.roster import Roster
 from fedlgr.shell.run import checkpoint as ckpt
 from fedlgr.shell.run.experiment import run_experiment
+from fedlgr.shell.tracking.liveness import process_alive
 from tests.support.flower import Federation
 from tests.support.runs import FAST, fast_config, results_csv
 
@@ -463,14 +464,14 @@ def test_a_robot_killed_mid_round_is_recorded_missing_and_rejoins_with_its_state
     assert history(client, run.info.run_id, "cost/client0/bytes_down")[-1] == (rounds, float(root))
 
 
-def serverapps(federation) -> list[int]:
-    """The ServerApp processes of this federation (``flwr-serverapp``, started by the
-    SuperLink's SuperExec)."""
+def apps(federation, name: str = "flwr-serverapp") -> list[int]:
+    """The app processes of this federation: its ServerApps (``flwr-serverapp``, started by the
+    SuperLink's SuperExec) or its ClientApps (``flwr-clientapp``, by the SuperNodes')."""
     found = []
     for pid in federation.leftovers():
         with contextlib.suppress(OSError):
             # forked by fedlgr's executor: named as Flower's own process
-            if Path(f"/proc/{pid}/comm").read_text().strip() == "flwr-serverapp":
+            if Path(f"/proc/{pid}/comm").read_text().strip() == name:
                 found.append(pid)
     return found
 
@@ -504,7 +505,7 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
             if list(folder.glob("round-*.ckpt")):
                 break
         time.sleep(0.05)
-    [serverapp] = serverapps(federation)
+    [serverapp] = apps(federation)
     os.kill(serverapp, signal.SIGKILL)
     proc.kill()  # the log stream (what Ctrl-C stops); the run on the SuperLink is dead
     proc.communicate()
@@ -520,6 +521,53 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
         )
     )
     assert_computes_what_one_process_computes(store, run, local, 6)
+
+
+def test_a_killed_serverapps_clientapps_end_with_its_run_and_robot_services_with_their_supernode(
+    federation, synth_dir, store
+):
+    """Issue 50's tester: after a ServerApp's SIGKILL each robot kept its forked ClientApp
+    (~100 MB) for 12+ minutes - as long as its training for the dead run took - and a robot
+    service (~1 GB) stayed 15 minutes after its SuperNode stopped. Here the robots train for
+    minutes (5000 epochs); the ServerApp is killed once both train: the SuperLink ends the run at
+    once (the executor reports the kill), each SuperNode stops its ClientApp within seconds; then
+    the SuperNodes are stopped and their robot services leave within seconds, mid-training."""
+    names = ("robot0", "robot1")
+    ensure_online(federation, synth_dir, *names)
+    logs = {name: federation.robot_dir(name) / "robot.log" for name in names}
+    received = {name: count(log, "train received") for name, log in logs.items()}
+    answered = {name: count(log, "train answered") for name, log in logs.items()}
+    slow = ["method=FedAvg", "train.epochs=5000", "deploy.round_timeout_s=900"]
+    proc = federation.run(FAST, [*settings(synth_dir, store, "killed", federation), *slow])
+    deadline = time.monotonic() + 300
+    while any(count(log, "train received") == received[name] for name, log in logs.items()):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()[-3000:]
+        time.sleep(0.1)
+    [serverapp] = apps(federation)
+    os.kill(serverapp, signal.SIGKILL)
+    killed = time.monotonic()
+    proc.kill()  # the log stream
+    proc.communicate()
+    said = "is no longer running on the SuperLink: 1 ClientApp process(es) stopped"
+    while apps(federation, "flwr-clientapp") or not all(said in federation.log(n) for n in names):
+        assert time.monotonic() - killed < 30, federation.log("robot0")[-2000:]
+        time.sleep(0.2)
+    ended = time.monotonic() - killed
+    assert {name: count(log, "train answered") for name, log in logs.items()} == answered
+    killed_line = "the ServerApp process was killed (SIGKILL): its task is reported failed"
+    assert killed_line in federation.log("superlink")
+    services = {name: int((federation.robot_dir(name) / "robot.pid").read_text()) for name in names}
+    for name in names:
+        stop(federation, name)
+    stopped = time.monotonic()
+    while any(process_alive(pid) for pid in services.values()):  # a zombie is not
+        assert time.monotonic() - stopped < 30, logs["robot0"].read_text()[-2000:]
+        time.sleep(0.2)
+    left = time.monotonic() - stopped
+    for name, log in logs.items():
+        assert f"SuperNode {federation.procs[name].pid} has ended: leaving" in log.read_text()
+        assert not (federation.robot_dir(name) / "robot.pid").exists()
+    print(f"ClientApps ended {ended:.1f} s after the kill, services {left:.1f} s after their stop")
 
 
 def newest_global(store: str, run_id: str) -> dict:

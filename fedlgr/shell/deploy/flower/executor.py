@@ -61,7 +61,7 @@ class ForkExecutor:
 
     def __init__(self):
         self.owner = os.getpid()
-        self.children: set[int] = set()
+        self.children: dict[int, object] = {}  # pid -> its task's ExecutionSpec
 
     def get_eligible_capacity(self, supported_task_types, *, insecure=False, **_):
         return supported_task_types, set()
@@ -84,22 +84,62 @@ class ForkExecutor:
         pid = os.fork()
         if pid == 0:
             _run_child(app, argv, spec.suppress_output, self.owner)  # never returns
-        self.children.add(pid)
+        self.children[pid] = spec
         return LaunchResult.accepted()
 
     def reconcile(self) -> None:
-        """Reap the task processes that ended (Flower's loop calls this every poll)."""
-        for pid in list(self.children):
+        """Reap the task processes that ended (Flower's loop calls this every poll); a ServerApp
+        killed outright (SIGKILL, the OOM killer) is reported failed, as its own exit would."""
+        for pid, spec in list(self.children.items()):
             try:
-                done, _ = os.waitpid(pid, os.WNOHANG)
+                done, status = os.waitpid(pid, os.WNOHANG)
             except ChildProcessError:
-                done = pid
-            if done:
-                self.children.discard(pid)
+                done, status = pid, 0
+            if not done:
+                continue
+            del self.children[pid]
+            if os.WIFSIGNALED(status) and task_argv(spec)[0] == "flwr-serverapp":
+                _report_killed(spec, signal.Signals(os.WTERMSIG(status)).name)
 
     def close(self) -> None:
         """Task processes are left to end on their own, as Flower's SubprocessExecutor
         leaves them (each watches this process and leaves when it is gone)."""
+
+
+def _report_killed(spec, how: str) -> None:
+    """Finish the task of a ServerApp killed by signal ``how`` as failed, with its token, as its
+    own exit handler would have: the SuperLink would hold its run RUNNING until the task's heartbeat
+    lapsed (a minute), and the robots would work on for it until then."""
+    # lazy: flwr (seconds): the executor watches its parent before any slow import
+    import httpx
+    from flwr.common.constant import SubStatus
+    from flwr.proto.runtime_pb2 import PushTaskOutputRequest
+    from flwr.supercore.interceptors import (
+        RuntimeTokenHttpInterceptor,
+        RuntimeVersionHttpInterceptor,
+    )
+    from flwr.supercore.runtime import RuntimeHttpClient
+    from flwr.supercore.tls import validate_and_resolve_root_certificates
+
+    client = RuntimeHttpClient.from_server_address(
+        server_address=spec.runtime_api_address,
+        insecure=spec.insecure,
+        root_certificates=validate_and_resolve_root_certificates(
+            spec.root_certificates_path, spec.insecure
+        ),
+        interceptors=[
+            RuntimeVersionHttpInterceptor(component_name="flwr-serverapp"),
+            RuntimeTokenHttpInterceptor(token=spec.token),
+        ],
+    )
+    details = f"the ServerApp process was killed ({how})"
+    try:
+        client.PushTaskOutput(PushTaskOutputRequest(sub_status=SubStatus.FAILED, details=details))
+        print(f"fedlgr: {details}: its task is reported failed to the SuperLink", flush=True)
+    except httpx.HTTPError as err:
+        print(f"fedlgr: {details}; the SuperLink was not told: {err}", flush=True)
+    finally:
+        client.close()
 
 
 def _run_child(app, argv: list[str], quiet: bool, owner: int) -> None:
