@@ -10,6 +10,7 @@ import dataclasses
 import math
 import os
 import signal
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -515,6 +516,13 @@ def test_a_killed_serverapp_resumes_in_its_mlflow_run_and_computes_what_one_proc
     assert f"resuming run {run_id} after round" in out
     run = client.get_run(run_id)
     assert run.info.status == "FINISHED"
+    # Issue 50: resuming it again streamed the ServerApp's traceback before the one-line error;
+    # now it is refused before any Flower run starts.
+    again = federation.run(FAST, [*base, "--resume", run_id], stderr=subprocess.PIPE)
+    out, err = again.communicate(timeout=120)
+    assert again.returncode == 1 and out == "", out
+    finished = f"--resume: run {run_id} has finished; there is nothing to resume"
+    assert err == f"fedlgr: error: {finished}\n"
     local = run_experiment(
         fast_config(
             synth_dir, cache_dir, store, *method, *DETAIL, "tracking.run_name=local-resumed"

@@ -131,15 +131,16 @@ class Federation:
         node += ["--heartbeat-s", "10"]
         return self.spawn(name, [str(BIN / "fedlgr"), "deploy", *node, *extra], env)
 
-    def run(self, config: Path, overrides: list[str]) -> subprocess.Popen:
-        """``fedlgr deploy run``: flwr run of fedlgr's app, its log streamed to stdout."""
+    def run(self, config: Path, overrides: list[str], stderr=subprocess.STDOUT) -> subprocess.Popen:
+        """``fedlgr deploy run``: flwr run of fedlgr's app, its log streamed to stdout (and its
+        errors, unless ``stderr`` says otherwise)."""
         cmd = [str(BIN / "fedlgr"), "deploy", "run", str(config), *overrides]
         return subprocess.Popen(
             [*cmd, "--federation", "local"],
             env=self.env,
             cwd=self.folder,
             stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
+            stderr=stderr,
             text=True,
         )
 

@@ -24,8 +24,7 @@ def resume_point(
     checkpoint, or None without ``resume``. Rank 0 finds it, every process reads it."""
     if not resume:
         return None
-    if not config.tracking.enabled:
-        raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
+    _needs_tracking(config)
     found: tuple[str, str] | str = ""
     if fabric is None or fabric.global_rank == 0:
         try:
@@ -44,6 +43,21 @@ def resume_point(
         owner.release(Path(path).parent)  # claimed by find_checkpoint (rank 0)
         raise
     return Resumed(run_id, state, Path(path).parent)
+
+
+def check_resumable(config: ExperimentConfig, resume: str | bool) -> None:
+    """Refuse a resume that :func:`resume_point` would refuse for want of a run to resume - none
+    unfinished, or the one named has finished - reading the store only (nothing claimed, marked
+    or removed): ``fedlgr deploy run`` says so before a Flower run starts."""
+    _needs_tracking(config)
+    info = _the_run(config, resume, open_client(tracking_uri(config))).info
+    if info.status == "FINISHED":
+        raise FedlgrError(f"--resume: run {info.run_id} has finished; there is nothing to resume")
+
+
+def _needs_tracking(config: ExperimentConfig) -> None:
+    if not config.tracking.enabled:
+        raise FedlgrError("--resume needs tracking.enabled=true (runs are found in MLflow)")
 
 
 def left_to_machine(config: ExperimentConfig) -> frozenset[str]:

@@ -64,10 +64,11 @@ def run(
     link = [federation] if federation else []
     cmd = [str(flwr), "run", str(APP_DIR), *link, "--stream", "--run-config", run_config]
     _check_connection(federation)  # with --print-command too: the command must work
+    if not print_command:
+        _check_config(path, overrides, resume)  # a run refused here prints no flwr command
     print(shlex.join(cmd), flush=True)
     if print_command:
         return
-    _check_config(path, overrides)
     env = {**launch.flower_env(flwr), "PYTHONUNBUFFERED": "1"}
     run_id = _stream(cmd, env, link)
     row = _final_status(flwr, link, run_id, env)
@@ -114,18 +115,28 @@ def _check_connection(name: str | None) -> None:
         )
 
 
-def _check_config(config: Path, overrides: list[str]) -> None:
+def _check_config(config: Path, overrides: list[str], resume: str | bool | None) -> None:
     """The config and its roster, loaded here rather than on the server once the run's ServerApp
-    started: a typo is the commonest mistake."""
+    started: a typo is the commonest mistake. With ``resume``, the run to resume is looked for in
+    the sqlite file the config names when that is on this machine too (the ServerApp's refusal
+    would come as its traceback; a default store is the SuperLink machine's own)."""
     if not config.is_file():
         print(f"fedlgr: {config} is not on this machine: it must be on the SuperLink's", flush=True)
         return
     from fedlgr.shell.checks.experiment import check_robots_are_real  # lazy: pydantic
     from fedlgr.shell.deploy.roster import roster_of  # lazy: cryptography and yaml
+    from fedlgr.shell.tracking.uri import sqlite_file  # lazy: sqlalchemy
 
     loaded = conf.load_config(config, overrides)
     check_robots_are_real(loaded)
     roster_of(loaded)
+    uri = loaded.tracking.uri
+    store = sqlite_file(uri) if uri else None
+    here = store is not None and store.is_absolute() and store.is_file()
+    if resume and (here or not loaded.tracking.enabled):
+        from fedlgr.shell.run.resume import check_resumable  # lazy: MLflow and torch
+
+        check_resumable(loaded, resume)
 
 
 def _stream(cmd: list[str], env: dict[str, str], link: list[str]) -> str:
