@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import ipaddress
+import os
 import shlex
 import shutil
 import stat
@@ -676,3 +677,18 @@ def test_a_supernode_interrupted_while_it_imports_flower_says_one_line(tmp_path)
             proc.kill()
     assert proc.returncode == 130
     assert err.strip().splitlines() == ["fedlgr: interrupted"], err
+
+
+def test_a_robots_state_folder_is_made_private_whatever_the_umask(tmp_path):
+    """Issue 50's fault sweep, case 7: --state-dir and --cache-dir were made 0755 under umask
+    022 (their files were 0600): each folder fedlgr makes for them is 0700."""
+    from fedlgr.shell.cli.deploy.launch import own_folder
+
+    old = os.umask(0o022)
+    try:
+        made = own_folder(tmp_path / "robot" / "state", "--state-dir", make=True)
+    finally:
+        os.umask(old)
+    assert made == tmp_path / "robot" / "state"
+    for folder in (made, made.parent):
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o700, folder

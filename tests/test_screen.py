@@ -436,7 +436,7 @@ def test_a_capped_count_weighs_its_cap_and_is_reported_but_a_rostered_bound_is_k
     """Three uploads of 10, 10 and 1000 samples, nothing bounding client 2: it weighs 30
     (the global tensors are the mean weighted 10, 10, 30) and the round's record names it;
     with client 2 bounded (its 1000 scenes, a roster's ``scenes``) it keeps its 1000; under
-    federated.count_cap=0 too."""
+    federated.count_cap=0 too. A median weighs none: nothing is capped there."""
     side = server(clients=3)
     uploads = [honest(side, 0, 10), honest(side, 1, 10), honest(side, 2, 1000)]
     key = first_float(side)
@@ -456,6 +456,9 @@ def test_a_capped_count_weighs_its_cap_and_is_reported_but_a_rostered_bound_is_k
     }
     assert log.metrics()["faults/capped"] == 1.0
     assert log.rows()[2]["fault"] == log.capped[2]
+    robust = server("federated.strategy=median", clients=3)  # weighs every upload 1
+    robust.aggregate(uploads)
+    assert robust.capped == {} and robust.refused == {}  # the fault sweep's case 3
     for bounded in (server(clients=3), server("federated.count_cap=0", clients=3)):
         bounded.aggregate(uploads, capacity={2: 1000})
         assert torch.allclose(bounded.global_weights[key].double(), mean([10, 10, 1000]), atol=1e-6)

@@ -395,3 +395,28 @@ def test_secaggplus_unmasks_the_sum_of_the_robots_left_whenever_others_leave(rob
     step = 2 * secagg.clipping_range / secagg.quantization_range
     error = np.abs(adapter.mean * adapter.count - sum(vectors[n] for n in left))
     assert error.max() < len(left) * step  # each value rounded by under one step
+
+
+def test_a_sum_within_the_bound_whose_mean_has_a_negative_variance_is_refused():
+    """Issue 50's fault sweep, case 1: an update within norm_bound moved a BatchNorm variance
+    below 0 in the mean - every score NaN for the rest of a FINISHED run. A plain round
+    refuses such an upload; under SecAgg+ the server refuses such a sum: here one robot's
+    update moves a running variance by -400 (x 5 / 1000 in its vector), the mean by -77 (2000 /
+    26 samples): within norm_bound=1000, below 0."""
+    config = load_config(
+        FAST, [ON, "method=FedAvg", "data.clients=3", "deploy.secagg.norm_bound=1000"]
+    )
+    secagg = config.deploy.secagg
+    server = ServerSide(config)
+    key = next(k for k in server.global_weights if k.endswith("running_var"))
+    results = uploads(server, [5, 9, 12], 0.0)
+    record = masked.message_settings(secagg, 0.0)
+    vectors = [masked.robot_vector(r, server.global_weights, record)[0] for r in results]
+    unpack(secagg_sum(vectors, secagg), 3, server, secagg)  # unchanged tensors: taken
+    bad = dataclasses.replace(
+        results[0],
+        weights={**results[0].weights, key: results[0].weights[key] - 1000 / 5 * 2},
+    )
+    vectors[0] = masked.robot_vector(bad, server.global_weights, record)[0]
+    with pytest.raises(ValueError, match=rf"it would make {key} a variance below 0 \(min -"):
+        unpack(secagg_sum(vectors, secagg), 3, server, secagg)

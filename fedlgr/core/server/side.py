@@ -198,8 +198,10 @@ class ServerSide:
         """The uploads taken, each sample count that nothing bounds (no ``capacity``: a robot
         without the roster's ``scenes``) capped at ``federated.count_cap`` times the median of
         the round's other counts; the caps are kept for the round's record. Under DP every
-        update weighs 1: nothing to cap."""
-        ratio = 0 if self.privacy is not None else self.config.federated.count_cap
+        update weighs 1, and so does every upload of a robust strategy (a median, Krum):
+        nothing to cap."""
+        unweighted = self.privacy is not None or self.strategy.needs_uploads
+        ratio = 0 if unweighted else self.config.federated.count_cap
         counts = {r.client: r.n_samples for r in results}
         caps = {c: n for c, n in capped_counts(counts, ratio).items() if c not in capacity}
         for client, cap in caps.items():

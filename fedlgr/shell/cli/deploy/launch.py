@@ -87,7 +87,8 @@ def own_folder(folder: Path, option: str, make: bool) -> Path:
             raise FedlgrError(f"{option} {path}: {above} is a file, not a folder")
         made = [p for p in (path, *path.parents) if not p.exists()]  # the deepest first
         try:
-            path.mkdir(parents=True)
+            for part in reversed(made):  # private from the first byte, whatever the umask
+                part.mkdir(mode=0o700)
         except OSError as err:
             raise FedlgrError(f"{option} {path}: cannot make it ({err.strerror})") from None
         if not make:

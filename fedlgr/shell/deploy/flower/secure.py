@@ -259,8 +259,9 @@ def secure_sum(grid: Exchanges, adapter: Adapter, round_: int, secagg, timeout: 
 def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, float, dict]:
     """What ``ServerSide.update`` takes from the sum of ``count`` robots' vectors (:mod:`.masked`):
     tensor, sample-count and payload sums, under DP the bits' sum rounded to ``k - total / 2``. A
-    sum not finite, under one sample per robot, or over the norm honest robots' vectors keep to
-    (:func:`~.masked.over_bound`) is refused (``ValueError``)."""
+    sum not finite, under one sample per robot, over the norm honest robots' vectors keep to
+    (:func:`~.masked.over_bound`) or, without DP, whose mean has a BatchNorm variance below 0 (no
+    mean of honest robots' variances has) is refused (``ValueError``)."""
     dp = server.privacy is not None
     payload = server.strategy.payload_template()
     parts = masked.layout(server.global_weights, payload, dp)
@@ -276,6 +277,11 @@ def unpack(summed: np.ndarray, count: int, server, settings) -> tuple[dict, floa
         raise ValueError(why)
     g = server.global_weights
     sums = {k: scale * found[f"w/{k}"] + total * g[k].double() for k in g}
+    for key in (k for k in sums if k.endswith("running_var") and not dp):
+        if bool((sums[key] < 0).any()):  # what a plain round refuses in an upload, in the mean
+            raise ValueError(
+                f"it would make {key} a variance below 0 (min {float(sums[key].min() / total):.3g})"
+            )
     payloads = {k: found[f"p/{k}"] for k in sorted(payload)}
     if dp:
         within = round(float(found[UNCLIPPED]) + total / 2)  # k, a whole number
