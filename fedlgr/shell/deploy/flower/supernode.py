@@ -97,7 +97,7 @@ class _RunWatch:
 
     def _running(self) -> bool:
         import httpx  # lazy: with flwr, already loaded here
-        from flwr.supercore.run import RunNotRunningException
+        from flwr.supercore.run import RunNotRunningException  # lazy: as above
 
         try:
             self.get_run(self.run_id)  # the SuperLink refuses a run that is not running
