@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import ipaddress
+import logging
 import os
 import shlex
 import shutil
@@ -20,6 +21,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.x509.verification import PolicyBuilder, Store, VerificationError
 from flwr.common.config import parse_config_args
 
+from fedlgr.errors import FedlgrError
 from fedlgr.shell.cli import main
 from fedlgr.shell.cli.deploy import launch
 from fedlgr.shell.deploy.credentials import make_node_key
@@ -692,3 +694,26 @@ def test_a_robots_state_folder_is_made_private_whatever_the_umask(tmp_path):
     assert made == tmp_path / "robot" / "state"
     for folder in (made, made.parent):
         assert stat.S_IMODE(folder.stat().st_mode) == 0o700, folder
+
+
+def test_a_serverapps_fedlgr_error_is_logged_in_one_line_by_flower(caplog):
+    """Issue 50's fault sweep, cases 5 and 6: Flower's run_serverapp logs the ServerApp's
+    exception with exc_info, and the stream showed ~20 lines of traceback before the one-line
+    error. Through Flower's own logger, a FedlgrError is one line; another error keeps its
+    traceback."""
+    from flwr.common.logger import log
+
+    import fedlgr.shell.deploy.flower.server_app  # noqa: F401 - installs the filter
+
+    def logged(err: Exception) -> str:
+        caplog.clear()
+        try:
+            raise err
+        except Exception as ex:
+            log(logging.ERROR, "%s raised an exception", "ServerApp", exc_info=ex)
+        return caplog.text
+
+    one = logged(FedlgrError("round 2: SecAgg+ gave no sum (50% gone)\nsecond line"))
+    assert "ServerApp raised an exception: round 2: SecAgg+ gave no sum (50% gone)" in one
+    assert "Traceback" not in one and "second line" not in one
+    assert "Traceback" in logged(ValueError("a bug"))

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import functools
+import logging
 import shlex
 import time
 
@@ -34,6 +35,23 @@ from fedlgr.shell.run.resume import resume_point
 from fedlgr.shell.tracking.mlflow_run import open_client, tracking_uri
 
 app = ServerApp()
+
+
+class OneLineErrors(logging.Filter):
+    """Flower logs the exception a ServerApp raises with its traceback (``flwr`` logger,
+    ``run_serverapp``), and ``flwr run --stream`` shows that to the user before ``fedlgr deploy
+    run`` prints the one line a :class:`FedlgrError` is: its traceback goes (issue 50's fault
+    sweep: ~20 lines before "two robots dropped out"); any other exception keeps its own."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        raised = record.exc_info[1] if record.exc_info else None
+        if isinstance(raised, FedlgrError):
+            record.msg, record.args = "%s: %s", (record.getMessage(), first_line(raised))
+            record.exc_info, record.exc_text = None, None
+        return True
+
+
+logging.getLogger("flwr").addFilter(OneLineErrors())  # this process runs the ServerApp
 CPU = torch.device("cpu")
 
 
