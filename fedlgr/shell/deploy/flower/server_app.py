@@ -40,8 +40,8 @@ app = ServerApp()
 class OneLineErrors(logging.Filter):
     """Flower logs the exception a ServerApp raises with its traceback (``flwr`` logger,
     ``run_serverapp``), and ``flwr run --stream`` shows that to the user before ``fedlgr deploy
-    run`` prints the one line a :class:`FedlgrError` is: its traceback goes (issue 50's fault
-    sweep: ~20 lines before "two robots dropped out"); any other exception keeps its own."""
+    run`` prints the one line a :class:`FedlgrError` is: its traceback goes (it was ~20 lines
+    before "two robots dropped out"); any other exception keeps its own."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         raised = record.exc_info[1] if record.exc_info else None
