@@ -149,15 +149,6 @@ class ServerOptimizer(Strategy):
     def bind(self, shared: list[str], parameters: set[str], initial: Weights | None = None) -> None:
         self.trainable = parameters & set(shared)
 
-    def payload_refusal(
-        self, result, shared: Weights, steps: int, learning_rates: dict[str, float]
-    ) -> str | None:
-        """Why what ``result``'s plugins sent cannot be what they compute from its own upload
-        and the global tensors ``shared`` (``steps``: the fewest local steps its sample count
-        trains; ``learning_rates``: each parameter's local one), or None; nothing to check
-        by default."""
-        return None
-
     def server_update(self, global_weights: Weights, mean: Weights) -> Weights:
         return {
             key: self.step(key, global_weights[key], avg - global_weights[key])

@@ -415,15 +415,15 @@ def _line(log: RoundLog) -> str:
     such; a round no client scored says so; a statistic that is not the mean is named) and,
     from three clients, the first's interquartile range; the simulated attackers' scores
     apart, and the CPU per client."""
-    figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
-    shown = "  ".join(f"{n} {'-' if v is None else f'{v:.3f}'}" for n, v in figures)
     first = f"test/{headline_scores()[0].name}"
+    # three clients or more: how far apart their scores lie
     spread = log.spread(first) if first in log.keys and log.counted.sum() >= 3 else None
-    if spread is not None:  # three clients or more: how far apart their scores lie
-        label = headline_scores()[0].label
-        shown = shown.replace(
-            f"{label} {log.mean(first):.3f}", f"{label} {log.mean(first):.3f} (IQR {spread:.3f})", 1
-        )
+    figures = [(s.label, log.mean(f"test/{s.name}")) for s in SCORES]
+    shown = "  ".join(
+        f"{n} {'-' if v is None else f'{v:.3f}'}"
+        + (f" (IQR {spread:.3f})" if spread is not None and f"test/{s.name}" == first else "")
+        for s, (n, v) in zip(SCORES, figures, strict=True)
+    )
     if all(v is None for _, v in figures):  # federated.eval_every, or every scorer missing
         shown = "not scored"
     elif log.statistic != "mean":  # robots' scores: the robust strategy's statistic
