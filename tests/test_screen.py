@@ -18,6 +18,7 @@ from fedlgr.core.messages import RoundPlan, TrainRes
 from fedlgr.core.server.aggregate import weighted_mean
 from fedlgr.core.server.screen import capped_counts, figures_refusal, oversized
 from fedlgr.core.server.side import ServerSide
+from fedlgr.errors import ConfigError
 from fedlgr.shell.config import load_config
 from fedlgr.shell.run.experiment import run_experiment
 from tests.support.runs import fast_config
@@ -519,3 +520,18 @@ def test_a_replayed_upload_is_refused_as_stale():
     for s in (side, restored):
         s.aggregate(again)
         assert s.refused == {1: "upload: stale: identical to an upload it sent before (a replay)"}
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("0.5", r"federated.count_cap=0.5: must be 0 \(no cap\) or at least 1 "),
+        ("-1", r"federated.count_cap=-1.0: must be >= 0"),
+    ],
+)
+def test_a_count_cap_below_one_is_refused_at_load(value, message):
+    """A cap under 1 would cut every honest count below the others' median: refused, naming
+    the setting; 0 turns the cap off."""
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [f"federated.count_cap={value}"])
+    assert load_config(None, ["federated.count_cap=0"]).federated.count_cap == 0
